@@ -1,0 +1,122 @@
+"""Configuration of an EAGLE-style draft head: what it is, and what target it was built for."""
+
+from __future__ import annotations
+
+from transformers import LlamaConfig, PretrainedConfig
+
+from .action_tokenizer import DEFAULT_N_BINS, ActionTokenizer
+
+
+class DraftHeadConfig(PretrainedConfig):
+    r"""Configuration of a [`DraftHead`].
+
+    The head is one Llama decoder layer, so most fields mirror [`LlamaConfig`]; the rest record the target the
+    head was built for (so that attaching it to another model fails loudly) and OpenVLA's action-token layout.
+
+    Args:
+        hidden_size: the target's hidden size H (the head's width must equal it: it reads the target's hidden
+            states and reuses the target's embedding and lm_head).
+        intermediate_size, num_attention_heads, num_key_value_heads, head_dim, hidden_act, rms_norm_eps,
+        max_position_embeddings, rope_parameters, attention_bias, mlp_bias: the decoder layer, as in LlamaConfig.
+        vocab_size: number of logits the target's lm_head produces (OpenVLA: 32064, padded).
+        action_vocab_size: one past the last action token id (OpenVLA: 32000); see [`ActionTokenizer`].
+        n_action_bins: number of action bins, i.e. action tokens (OpenVLA: 256).
+        action_dim: action tokens per action (OpenVLA: 7); the position of a token within its action is its
+            "action dimension", used by per-dimension bin tolerances.
+        num_draft_tokens: default number of tokens drafted per target verification (chain length k).
+        draft_action_tokens_only: score only action tokens (and EOS) when drafting. This makes each draft step's
+            lm_head product n_action_bins+1 wide instead of vocab_size, and the head can then only draft actions.
+        target_model_type, target_name_or_path: what the head was built for (informational + compatibility check).
+    """
+
+    model_type = "specvla_draft_head"
+
+    def __init__(
+        self,
+        hidden_size: int = 4096,
+        intermediate_size: int = 11008,
+        num_attention_heads: int = 32,
+        num_key_value_heads: int | None = None,
+        head_dim: int | None = None,
+        hidden_act: str = "silu",
+        rms_norm_eps: float = 1e-6,
+        max_position_embeddings: int = 4096,
+        rope_parameters: dict | None = None,
+        attention_bias: bool = False,
+        mlp_bias: bool = False,
+        initializer_range: float = 0.02,
+        vocab_size: int = 32064,
+        action_vocab_size: int = 32000,
+        n_action_bins: int = DEFAULT_N_BINS,
+        action_dim: int = 7,
+        num_draft_tokens: int = 6,
+        draft_action_tokens_only: bool = True,
+        target_model_type: str | None = None,
+        target_name_or_path: str | None = None,
+        **kwargs,
+    ):
+        self.hidden_size = hidden_size
+        self.intermediate_size = intermediate_size
+        self.num_attention_heads = num_attention_heads
+        self.num_key_value_heads = num_attention_heads if num_key_value_heads is None else num_key_value_heads
+        self.head_dim = hidden_size // num_attention_heads if head_dim is None else head_dim
+        self.hidden_act = hidden_act
+        self.rms_norm_eps = rms_norm_eps
+        self.max_position_embeddings = max_position_embeddings
+        self.rope_parameters = rope_parameters or {"rope_type": "default", "rope_theta": 10000.0}
+        self.attention_bias = attention_bias
+        self.mlp_bias = mlp_bias
+        self.initializer_range = initializer_range
+        self.vocab_size = vocab_size
+        self.action_vocab_size = action_vocab_size
+        self.n_action_bins = n_action_bins
+        self.action_dim = action_dim
+        self.num_draft_tokens = num_draft_tokens
+        self.draft_action_tokens_only = draft_action_tokens_only
+        self.target_model_type = target_model_type
+        self.target_name_or_path = target_name_or_path
+        super().__init__(**kwargs)
+        self._validate()
+
+    def _validate(self) -> None:
+        for name in ("hidden_size", "intermediate_size", "num_attention_heads", "vocab_size", "action_dim"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+                raise ValueError(f"DraftHeadConfig.{name} must be a positive int, got {value!r}")
+        if isinstance(self.num_draft_tokens, bool) or not isinstance(self.num_draft_tokens, int):
+            raise ValueError(f"DraftHeadConfig.num_draft_tokens must be an int >= 1, got {self.num_draft_tokens!r}")
+        if self.num_draft_tokens < 1:
+            raise ValueError(f"DraftHeadConfig.num_draft_tokens must be an int >= 1, got {self.num_draft_tokens!r}")
+        if self.action_vocab_size > self.vocab_size:
+            raise ValueError(
+                f"action_vocab_size={self.action_vocab_size} exceeds vocab_size={self.vocab_size}: the action tokens "
+                f"must be ids the target's lm_head can produce"
+            )
+        # Delegates the action-layout checks (n_bins >= 2, room for text ids) to the tokenizer.
+        self.action_tokenizer()
+
+    def action_tokenizer(self) -> ActionTokenizer:
+        """The [`ActionTokenizer`] this head was built for."""
+        return ActionTokenizer(self.action_vocab_size, self.n_action_bins)
+
+    def to_llama_config(self) -> LlamaConfig:
+        """The [`LlamaConfig`] of the head's single decoder layer."""
+        config = LlamaConfig(
+            vocab_size=self.vocab_size,
+            hidden_size=self.hidden_size,
+            intermediate_size=self.intermediate_size,
+            num_hidden_layers=1,
+            num_attention_heads=self.num_attention_heads,
+            num_key_value_heads=self.num_key_value_heads,
+            head_dim=self.head_dim,
+            hidden_act=self.hidden_act,
+            rms_norm_eps=self.rms_norm_eps,
+            max_position_embeddings=self.max_position_embeddings,
+            rope_parameters=dict(self.rope_parameters),
+            attention_bias=self.attention_bias,
+            mlp_bias=self.mlp_bias,
+            initializer_range=self.initializer_range,
+        )
+        # The head always passes an explicit additive float mask, which eager and sdpa both read correctly.
+        config._attn_implementation = "sdpa"
+        return config

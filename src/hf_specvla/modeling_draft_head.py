@@ -1,0 +1,210 @@
+"""EAGLE-style draft head: one decoder layer that drafts action tokens from the target's own hidden states.
+
+Architecture (EAGLE, Li et al. 2024; Spec-VLA, arXiv 2507.22424, section 3):
+
+    features[p] = norm( decoder_layer( fuse( [embed(x[p+1]) ; h[p]] ) ) )      # ~ h[p+1]
+    draft token x[p+2] = argmax lm_head(features[p])
+
+where ``h[p]`` is the target's last hidden state (after its final norm) at position p, ``embed`` and ``lm_head``
+are the *target's* modules (reused, frozen, never stored in the draft checkpoint), ``fuse`` is Linear(2H -> H).
+Deviation from EAGLE-1: a final RMSNorm, because the target's last hidden state is itself post-norm.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import nn
+from transformers import AutoConfig, AutoModel, PreTrainedModel
+from transformers.cache_utils import Cache
+from transformers.models.llama.modeling_llama import LlamaDecoderLayer, LlamaRMSNorm, LlamaRotaryEmbedding
+
+from .action_tokenizer import DEFAULT_N_BINS, ActionTokenizer
+from .attention_masks import causal_mask
+from .configuration_draft_head import DraftHeadConfig
+
+
+class TargetHandles(NamedTuple):
+    """The target modules a draft head borrows: its input embedding and its lm_head."""
+
+    embed_tokens: nn.Embedding
+    lm_head: nn.Linear
+
+
+class DraftScorer:
+    """Turns draft features into draft token ids with the target's lm_head.
+
+    With ``draft_action_tokens_only`` only the action tokens (+ EOS) are scored: the lm_head rows are gathered
+    once here, so each draft step multiplies by ``[n_bins + n_eos, H]`` instead of ``[vocab_size, H]``.
+    """
+
+    def __init__(self, lm_head: nn.Linear, candidate_ids: torch.Tensor | None):
+        self.candidate_ids = candidate_ids  # [C] or None for the full vocabulary
+        weight = lm_head.weight
+        bias = getattr(lm_head, "bias", None)
+        if candidate_ids is not None:
+            weight = weight.index_select(0, candidate_ids)
+            bias = None if bias is None else bias.index_select(0, candidate_ids)
+        self.weight, self.bias = weight, bias
+
+    def logits(self, features: torch.Tensor) -> torch.Tensor:
+        """features ``[..., H]`` -> logits ``[..., C]`` over the scored tokens."""
+        return nn.functional.linear(features, self.weight, self.bias)
+
+    def token_ids(self, features: torch.Tensor) -> torch.Tensor:
+        """features ``[..., H]`` -> greedy draft token ids ``[...]`` (vocabulary ids)."""
+        best = self.logits(features).argmax(dim=-1)
+        return best if self.candidate_ids is None else self.candidate_ids[best]
+
+
+class DraftHead(PreTrainedModel):
+    """EAGLE-style draft head (see module docstring). Create one for a target with [`DraftHead.from_target`].
+
+    Used as ``target.generate(..., assistant_model=draft_head)`` once the target has speculation enabled
+    (see [`hf_specvla.enable_speculation`]).
+    """
+
+    config_class = DraftHeadConfig
+    base_model_prefix = "draft_head"
+    main_input_name = "token_embeds"
+    _no_split_modules = ["LlamaDecoderLayer"]
+    _supports_sdpa = True
+
+    def __init__(self, config: DraftHeadConfig):
+        super().__init__(config)
+        hidden = config.hidden_size
+        layer_config = config.to_llama_config()
+        self.fuse = nn.Linear(2 * hidden, hidden, bias=True)
+        self.layer = LlamaDecoderLayer(layer_config, layer_idx=0)
+        self.norm = LlamaRMSNorm(hidden, eps=config.rms_norm_eps)
+        self.rotary_emb = LlamaRotaryEmbedding(layer_config)
+        self.post_init()
+
+    # ------------------------------------------------------------------ building
+    @classmethod
+    def from_target(
+        cls,
+        target: PreTrainedModel,
+        action_tokenizer: ActionTokenizer | None = None,
+        action_dim: int = 7,
+        **config_overrides,
+    ) -> DraftHead:
+        """An untrained draft head sized for ``target`` (its text config), on the target's device and dtype.
+
+        Args:
+            target: a causal LM or a VLM with a language model (e.g. Llama, Llava).
+            action_tokenizer: the target's action layout; defaults to the last 256 ids of the text vocabulary.
+            action_dim: action tokens per action.
+            config_overrides: any other [`DraftHeadConfig`] field (e.g. ``num_draft_tokens=4``,
+                ``intermediate_size=...``).
+        """
+        text_config = target.config.get_text_config()
+        lm_head = target.get_output_embeddings()
+        if lm_head is None:
+            raise ValueError(f"{type(target).__name__} has no lm_head (get_output_embeddings() is None)")
+        if action_tokenizer is None:
+            action_tokenizer = ActionTokenizer(text_config.vocab_size, DEFAULT_N_BINS)
+        settings = dict(
+            hidden_size=text_config.hidden_size,
+            intermediate_size=text_config.intermediate_size,
+            num_attention_heads=text_config.num_attention_heads,
+            num_key_value_heads=getattr(text_config, "num_key_value_heads", None),
+            head_dim=getattr(text_config, "head_dim", None),
+            hidden_act=getattr(text_config, "hidden_act", "silu"),
+            rms_norm_eps=getattr(text_config, "rms_norm_eps", 1e-6),
+            max_position_embeddings=getattr(text_config, "max_position_embeddings", 4096),
+            rope_parameters=getattr(text_config, "rope_parameters", None),
+            vocab_size=lm_head.weight.shape[0],
+            action_vocab_size=action_tokenizer.vocab_size,
+            n_action_bins=action_tokenizer.n_bins,
+            action_dim=action_dim,
+            eos_token_id=getattr(text_config, "eos_token_id", None),
+            target_model_type=target.config.model_type,
+            target_name_or_path=getattr(target.config, "_name_or_path", None) or None,
+        )
+        settings.update(config_overrides)
+        head = cls(DraftHeadConfig(**settings))
+        return head.to(device=target.device, dtype=target.dtype)
+
+    def target_handles(self, target: PreTrainedModel) -> TargetHandles:
+        """Checks that this head fits ``target`` and returns the target modules it borrows.
+
+        Raises:
+            ValueError: naming the mismatching field when the head was built for another target.
+        """
+        text_config = target.config.get_text_config()
+        embed_tokens, lm_head = target.get_input_embeddings(), target.get_output_embeddings()
+        problems = []
+        if text_config.hidden_size != self.config.hidden_size:
+            problems.append(f"hidden_size: draft {self.config.hidden_size}, target {text_config.hidden_size}")
+        if lm_head is None or lm_head.weight.shape[0] != self.config.vocab_size:
+            found = None if lm_head is None else lm_head.weight.shape[0]
+            problems.append(f"lm_head vocabulary: draft {self.config.vocab_size}, target {found}")
+        if embed_tokens is None or embed_tokens.weight.shape[1] != self.config.hidden_size:
+            problems.append("the target's input embedding width differs from the draft's hidden_size")
+        if problems:
+            built_for = self.config.target_name_or_path or self.config.target_model_type or "another model"
+            raise ValueError(
+                f"This DraftHead was built for {built_for!r} and does not fit {type(target).__name__}: "
+                + "; ".join(problems)
+                + ". Build one for this target with DraftHead.from_target(target) and train it."
+            )
+        if self.fuse.weight.device != lm_head.weight.device or self.fuse.weight.dtype != lm_head.weight.dtype:
+            raise ValueError(
+                f"DraftHead is on {self.fuse.weight.device}/{self.fuse.weight.dtype} but the target's lm_head is on "
+                f"{lm_head.weight.device}/{lm_head.weight.dtype}; move it with "
+                f"draft_head.to(device=target.device, dtype=target.dtype)"
+            )
+        return TargetHandles(embed_tokens, lm_head)
+
+    def scorer(self, lm_head: nn.Linear, eos_token_ids: list[int] | None = None) -> DraftScorer:
+        """A [`DraftScorer`] over the tokens this head drafts (all, or actions + EOS)."""
+        if not self.config.draft_action_tokens_only:
+            return DraftScorer(lm_head, None)
+        action_ids = list(self.config.action_tokenizer().action_token_ids)
+        extra = [i for i in (eos_token_ids or []) if i not in action_ids]
+        candidate_ids = torch.tensor(extra + action_ids, device=lm_head.weight.device)
+        return DraftScorer(lm_head, candidate_ids)
+
+    # ------------------------------------------------------------------ forward
+    def forward(
+        self,
+        token_embeds: torch.Tensor,
+        target_hidden: torch.Tensor,
+        position_ids: torch.Tensor,
+        attention_mask: torch.Tensor | None = None,
+        past_key_values: Cache | None = None,
+    ) -> torch.Tensor:
+        """Predicts the target's next hidden states.
+
+        Args:
+            token_embeds: ``[B, q, H]`` target embeddings of tokens ``x[p+1]``.
+            target_hidden: ``[B, q, H]`` target (or previously drafted) hidden states ``h[p]``.
+            position_ids: ``[B, q]`` positions p.
+            attention_mask: additive float ``[B, 1, q, past + q]``; default causal over the cache + new tokens.
+            past_key_values: the head's own KV cache (one layer), updated in place.
+
+        Returns:
+            features ``[B, q, H]``, estimates of ``h[p+1]``.
+        """
+        past_len = 0 if past_key_values is None else past_key_values.get_seq_length()
+        if attention_mask is None:
+            attention_mask = causal_mask(token_embeds.shape[1], past_len, token_embeds.dtype, token_embeds.device)
+        fused = self.fuse(torch.cat([token_embeds, target_hidden], dim=-1))  # [B, q, H]
+        position_embeddings = self.rotary_emb(fused, position_ids=position_ids)
+        hidden = self.layer(
+            fused,
+            attention_mask=attention_mask,
+            position_ids=position_ids,
+            past_key_values=past_key_values,
+            use_cache=past_key_values is not None,
+            position_embeddings=position_embeddings,
+        )
+        if isinstance(hidden, tuple):  # older decoder layers return (hidden_states, ...)
+            hidden = hidden[0]
+        return self.norm(hidden)
+
+
+AutoConfig.register(DraftHeadConfig.model_type, DraftHeadConfig)
+AutoModel.register(DraftHeadConfig, DraftHead)

@@ -1,0 +1,20 @@
+"""Output type of speculative ``generate`` calls."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from transformers.generation.utils import GenerateDecoderOnlyOutput
+
+from .stats import SpeculationStats
+
+
+@dataclass
+class SpeculativeDecoderOnlyOutput(GenerateDecoderOnlyOutput):
+    """[`GenerateDecoderOnlyOutput`] plus ``speculation``: the [`SpeculationStats`] of the call.
+
+    ``sequences`` is ``[B, S + new]``; ``scores`` / ``logits`` (when requested) hold one ``[B, V]`` tensor per new
+    token, the processed / raw target logits at the position that emitted it.
+    """
+
+    speculation: SpeculationStats | None = None
