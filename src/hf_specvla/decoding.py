@@ -221,12 +221,6 @@ def target_greedy_ids(
 def _validate_call(model, input_ids, generation_config: GenerationConfig, draft_head) -> None:
     if not isinstance(draft_head, DraftHead):
         raise TypeError(f"draft_head must be a hf_specvla.DraftHead, got {type(draft_head).__name__}")
-    batch_size = input_ids.shape[0]
-    if batch_size != 1:
-        raise ValueError(
-            f"speculative decoding with a DraftHead supports batch size 1 in this version, got {batch_size} "
-            f"sequences; call generate once per sequence, or without assistant_model for batched greedy decoding"
-        )
     if generation_config.do_sample:
         raise ValueError(
             "speculative decoding with a DraftHead is greedy only (do_sample=False); got do_sample=True. Drop "
@@ -236,6 +230,12 @@ def _validate_call(model, input_ids, generation_config: GenerationConfig, draft_
         raise ValueError(
             f"speculative decoding with a DraftHead needs num_beams=1 and num_return_sequences=1, got "
             f"num_beams={generation_config.num_beams}, num_return_sequences={generation_config.num_return_sequences}"
+        )
+    batch_size = input_ids.shape[0]
+    if batch_size != 1:
+        raise ValueError(
+            f"speculative decoding with a DraftHead supports batch size 1 in this version, got {batch_size} "
+            f"sequences; call generate once per sequence, or without assistant_model for batched greedy decoding"
         )
     if generation_config.output_attentions or generation_config.output_hidden_states:
         raise ValueError(

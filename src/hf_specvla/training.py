@@ -1,0 +1,355 @@
+"""Draft-head training by self-distillation from a frozen target, on accelerate.
+
+Recipe (Spec-VLA section 3.2, following EAGLE):
+
+1. [`build_distillation_dataset`]: run the target greedily over the prompts (images + text); keep the full
+   sequence (prompt + the target's *own* action tokens) and the target's last hidden state at every position.
+2. [`train_draft_head`]: teacher-forced draft forward over ``(x[p+1], h[p] + noise)``; loss on the positions whose
+   next token is a generated action token:
+
+       loss = feature_loss_weight * SmoothL1(features[p], h[p+1])
+            + token_loss_weight   * CE(softmax(lm_head(h[p+1])), log_softmax(lm_head(features[p])))
+
+   AdamW (betas 0.9/0.95), gradient clipping, uniform feature noise. Periodic ``save_pretrained`` checkpoints
+   with full accelerate state (optimizer, RNG), resumable. The same code runs on one CPU or many GPUs
+   (``accelerate launch``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import shutil
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from accelerate import Accelerator
+from accelerate.utils import DataLoaderConfiguration, set_seed
+from torch.utils.data import DataLoader, Dataset
+from tqdm.auto import tqdm
+from transformers import PreTrainedModel
+
+from .attention_masks import causal_mask
+from .decoding import embed_tokens
+from .modeling_draft_head import DraftHead, TargetHandles
+
+logger = logging.getLogger(__name__)
+
+CHECKPOINT_PATTERN = re.compile(r"^checkpoint-(\d+)$")
+
+
+@dataclass
+class DraftTrainingConfig:
+    """Settings of [`train_draft_head`]. Defaults follow the paper's (for a 7B target); a toy target wants a
+    larger learning rate.
+
+    Args:
+        output_dir: where checkpoints (``checkpoint-<step>/``) and the final head go.
+        max_steps: optimizer steps.
+        batch_size: sequences per step per process.
+        learning_rate, betas, weight_decay, max_grad_norm: AdamW + clipping (paper: 5e-5, (0.9, 0.95), 0, 0.5).
+        warmup_steps: linear warm-up, then constant.
+        feature_loss_weight / token_loss_weight: weights of the SmoothL1 feature loss and the soft cross-entropy.
+        feature_noise: width of the uniform noise added to the input hidden states (U(-a/2, a/2)).
+        save_every: steps between checkpoints (0 = only the final save).
+        keep_checkpoints: most recent checkpoints kept on disk.
+        resume: continue from the newest ``checkpoint-*`` in output_dir if there is one.
+        overwrite_output_dir: allow writing into a non-empty output_dir without resuming (never deletes a
+            final model that is not ours to delete: only checkpoint-* folders and the head's own files).
+        seed: data order and noise.
+        mixed_precision: accelerate's "no" / "fp16" / "bf16".
+    """
+
+    output_dir: str
+    max_steps: int = 2000
+    batch_size: int = 8
+    learning_rate: float = 5e-5
+    betas: tuple[float, float] = (0.9, 0.95)
+    weight_decay: float = 0.0
+    max_grad_norm: float = 0.5
+    warmup_steps: int = 0
+    feature_loss_weight: float = 1.0
+    token_loss_weight: float = 0.1
+    feature_noise: float = 0.2
+    save_every: int = 500
+    keep_checkpoints: int = 2
+    resume: bool = False
+    overwrite_output_dir: bool = False
+    seed: int = 0
+    mixed_precision: str = "no"
+
+    def __post_init__(self):
+        for name in ("max_steps", "batch_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("learning_rate", "max_grad_norm"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("save_every", "warmup_steps", "feature_noise", "feature_loss_weight", "token_loss_weight"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.keep_checkpoints < 1:
+            raise ValueError(f"keep_checkpoints must be >= 1, got {self.keep_checkpoints}")
+
+
+# ----------------------------------------------------------------------------- data
+class DistillationDataset(Dataset):
+    """Sequences the target generated, with its hidden states.
+
+    Each item: ``input_ids`` ``[L]`` (prompt + generated tokens), ``hidden`` ``[L, H]`` (the target's last hidden
+    state at each position), ``loss_mask`` ``[L]`` (True at positions p whose token x[p+2] is a generated action
+    token, i.e. where the draft head's prediction is used).
+    """
+
+    def __init__(self, examples: list[dict[str, torch.Tensor]]):
+        if not examples:
+            raise ValueError("a DistillationDataset needs at least one example")
+        self.examples = examples
+
+    def __len__(self) -> int:
+        return len(self.examples)
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        return self.examples[index]
+
+    def save(self, path: str | Path) -> None:
+        torch.save(self.examples, path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> DistillationDataset:
+        return cls(torch.load(path, weights_only=True))
+
+
+@torch.no_grad()
+def build_distillation_dataset(
+    target: PreTrainedModel,
+    prompts: Iterable[dict[str, torch.Tensor]],
+    max_new_tokens: int,
+    action_tokenizer,
+    progress: bool = True,
+) -> DistillationDataset:
+    """Runs the target greedily on each prompt and records its sequence and hidden states.
+
+    Args:
+        target: the frozen target (any model ``generate`` works on; images go in the prompt dicts).
+        prompts: model inputs, e.g. ``{"input_ids": [B, S], "pixel_values": [B, 3, H, W]}``. A dict may hold
+            several examples (batched generation) when it has no padding; with an ``attention_mask`` that has
+            padding, give one example per dict.
+        max_new_tokens: tokens the target generates (an action's worth: OpenVLA 7).
+        action_tokenizer: which generated tokens count for the loss.
+    """
+    target.eval()
+    examples = []
+    for inputs in tqdm(list(prompts), desc="self-distillation data", disable=not progress):
+        inputs = {k: v.to(target.device) if isinstance(v, torch.Tensor) else v for k, v in inputs.items()}
+        mask = inputs.get("attention_mask")
+        if inputs["input_ids"].shape[0] != 1 and mask is not None and not bool(mask.all()):
+            raise ValueError("prompts with padding must be given one example per dict (batch size 1)")
+        # Greedy to exactly max_new_tokens tokens, so every example has the same layout.
+        sequences = target.generate(
+            **inputs, max_new_tokens=max_new_tokens, min_new_tokens=max_new_tokens, do_sample=False
+        )  # [B, L]
+        forward_inputs = dict(inputs, input_ids=sequences)
+        if mask is not None:
+            forward_inputs["attention_mask"] = torch.cat([mask, mask.new_ones(mask.shape[0], max_new_tokens)], 1)
+        hidden = target(**forward_inputs, output_hidden_states=True).hidden_states[-1]  # [B, L, H]
+        prompt_len, length = inputs["input_ids"].shape[1], sequences.shape[1]
+        positions = torch.arange(length)
+        for ids, states in zip(sequences.cpu(), hidden.cpu()):
+            generated_action = (positions >= prompt_len) & action_tokenizer.is_action_token(ids)
+            loss_mask = torch.zeros(length, dtype=torch.bool)
+            loss_mask[: length - 2] = generated_action[2:]  # position p predicts token p+2
+            examples.append({"input_ids": ids, "hidden": states, "loss_mask": loss_mask})
+    return DistillationDataset(examples)
+
+
+def collate_distillation(batch: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Right-pads a list of dataset items to ``input_ids`` ``[B, L]``, ``hidden`` ``[B, L, H]``,
+    ``loss_mask`` ``[B, L]``, ``padding_mask`` ``[B, L]`` (True = real token)."""
+    length = max(item["input_ids"].shape[0] for item in batch)
+    hidden_size = batch[0]["hidden"].shape[-1]
+    out = {
+        "input_ids": torch.zeros(len(batch), length, dtype=torch.long),
+        "hidden": torch.zeros(len(batch), length, hidden_size, dtype=batch[0]["hidden"].dtype),
+        "loss_mask": torch.zeros(len(batch), length, dtype=torch.bool),
+        "padding_mask": torch.zeros(len(batch), length, dtype=torch.bool),
+    }
+    for i, item in enumerate(batch):
+        n = item["input_ids"].shape[0]
+        out["input_ids"][i, :n] = item["input_ids"]
+        out["hidden"][i, :n] = item["hidden"]
+        out["loss_mask"][i, :n] = item["loss_mask"]
+        out["padding_mask"][i, :n] = True
+    return out
+
+
+# ----------------------------------------------------------------------------- loss
+def distillation_loss(
+    draft_head: DraftHead,
+    handles: TargetHandles,
+    batch: dict[str, torch.Tensor],
+    config: DraftTrainingConfig,
+    generator: torch.Generator | None = None,
+) -> dict[str, torch.Tensor]:
+    """EAGLE objective on one batch (see module docstring). Returns ``loss``, ``feature_loss``, ``token_loss``
+    and ``token_accuracy`` (draft argmax == target argmax on the loss positions)."""
+    input_ids, hidden = batch["input_ids"], batch["hidden"]  # [B, L], [B, L, H]
+    length = input_ids.shape[1]
+    dtype = next(draft_head.parameters()).dtype
+    hidden = hidden.to(dtype)
+    inputs_hidden = hidden[:, :-1]  # h[p], p = 0..L-2
+    if config.feature_noise > 0:
+        noise = torch.rand(inputs_hidden.shape, generator=generator, device="cpu").to(inputs_hidden.device)
+        inputs_hidden = inputs_hidden + (noise - 0.5) * config.feature_noise
+    token_embeds = embed_tokens(handles, input_ids[:, 1:]).to(dtype)  # x[p+1]
+    positions = torch.arange(length - 1, device=input_ids.device)[None].expand(input_ids.shape[0], -1)
+    mask = causal_mask(length - 1, 0, dtype, input_ids.device, batch["padding_mask"][:, :-1])
+    features = draft_head(token_embeds, inputs_hidden, positions, mask)  # [B, L-1, H] ~ h[p+1]
+
+    target_features = hidden[:, 1:]
+    loss_mask = batch["loss_mask"][:, :-1]  # [B, L-1]
+    n = loss_mask.sum().clamp(min=1)
+    feature_loss = torch.nn.functional.smooth_l1_loss(features, target_features, reduction="none").mean(-1)
+    feature_loss = (feature_loss * loss_mask).sum() / n
+    selected_features = features[loss_mask]  # [N, H]
+    with torch.no_grad():
+        target_logits = handles.lm_head(target_features[loss_mask]).float()
+        target_probs = target_logits.softmax(-1)
+    draft_logits = handles.lm_head(selected_features).float()
+    token_loss = -(target_probs * draft_logits.log_softmax(-1)).sum(-1).mean() if len(draft_logits) else n * 0.0
+    accuracy = (draft_logits.argmax(-1) == target_logits.argmax(-1)).float().mean() if len(draft_logits) else n * 0.0
+    loss = config.feature_loss_weight * feature_loss + config.token_loss_weight * token_loss
+    return {"loss": loss, "feature_loss": feature_loss, "token_loss": token_loss, "token_accuracy": accuracy}
+
+
+# ----------------------------------------------------------------------------- checkpoints
+def _checkpoints(output_dir: Path) -> list[tuple[int, Path]]:
+    found = []
+    if output_dir.is_dir():
+        for child in output_dir.iterdir():
+            match = CHECKPOINT_PATTERN.match(child.name)
+            if match and child.is_dir() and (child / "trainer_state.pt").exists():
+                found.append((int(match.group(1)), child))
+    return sorted(found)
+
+
+def latest_checkpoint(output_dir: str | Path) -> Path | None:
+    """The newest complete ``checkpoint-<step>`` folder in ``output_dir``, or None."""
+    found = _checkpoints(Path(output_dir))
+    return found[-1][1] if found else None
+
+
+def _check_output_dir(output_dir: Path, config: DraftTrainingConfig) -> None:
+    if not output_dir.exists() or not any(output_dir.iterdir()):
+        return
+    if config.resume or config.overwrite_output_dir:
+        return
+    raise FileExistsError(
+        f"output_dir {str(output_dir)!r} is not empty; pass resume=True (--resume) to continue its training, "
+        f"overwrite_output_dir=True to train from scratch into it, or choose another output_dir"
+    )
+
+
+# ----------------------------------------------------------------------------- training
+def train_draft_head(
+    draft_head: DraftHead,
+    target: PreTrainedModel,
+    dataset: DistillationDataset,
+    config: DraftTrainingConfig,
+    accelerator: Accelerator | None = None,
+    progress: bool = True,
+) -> DraftHead:
+    """Trains ``draft_head`` against the frozen ``target`` on a [`DistillationDataset`].
+
+    Only the draft head is optimised; the target's embedding and lm_head are used frozen. Checkpoints
+    (``output_dir/checkpoint-<step>/``: the head via ``save_pretrained`` plus the accelerate state) are written
+    every ``save_every`` steps; with ``resume=True`` training continues from the newest one. The final head is
+    saved to ``output_dir`` and returned (unwrapped, in eval mode).
+    """
+    output_dir = Path(config.output_dir)
+    _check_output_dir(output_dir, config)
+    accelerator = accelerator or Accelerator(
+        mixed_precision=config.mixed_precision,
+        dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
+    )
+    set_seed(config.seed)
+    handles = draft_head.target_handles(target)
+    for module in handles:
+        module.requires_grad_(False)
+    draft_head.train()
+
+    optimizer = torch.optim.AdamW(
+        draft_head.parameters(), lr=config.learning_rate, betas=config.betas, weight_decay=config.weight_decay
+    )
+    warmup = max(config.warmup_steps, 1)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: min(1.0, (step + 1) / warmup))
+    loader = DataLoader(
+        dataset, batch_size=config.batch_size, shuffle=True, collate_fn=collate_distillation, drop_last=False
+    )
+    draft_head, optimizer, loader, scheduler = accelerator.prepare(draft_head, optimizer, loader, scheduler)
+    steps_per_epoch = len(loader)
+
+    step = 0
+    checkpoint = latest_checkpoint(output_dir) if config.resume else None
+    if checkpoint is not None:
+        accelerator.load_state(str(checkpoint))
+        step = torch.load(checkpoint / "trainer_state.pt", weights_only=True)["step"]
+        logger.info("resuming draft training from %s (step %d)", checkpoint, step)
+    if step >= config.max_steps:
+        logger.info("nothing to do: checkpoint step %d >= max_steps %d", step, config.max_steps)
+
+    generator = torch.Generator().manual_seed(config.seed + step)
+    bar = tqdm(total=config.max_steps, initial=step, desc="train draft head", disable=not progress or not accelerator.is_main_process)
+    metrics: dict[str, float] = {}
+    while step < config.max_steps:
+        epoch, offset = divmod(step, steps_per_epoch)
+        loader.set_epoch(epoch)
+        epoch_loader = accelerator.skip_first_batches(loader, offset) if offset else loader
+        for batch in epoch_loader:
+            with accelerator.accumulate(draft_head):
+                losses = distillation_loss(draft_head, handles, batch, config, generator)
+                accelerator.backward(losses["loss"])
+                if accelerator.sync_gradients:
+                    accelerator.clip_grad_norm_(draft_head.parameters(), config.max_grad_norm)
+                optimizer.step()
+                scheduler.step()
+                optimizer.zero_grad()
+            step += 1
+            metrics = {k: v.item() for k, v in losses.items()}
+            bar.update(1)
+            bar.set_postfix(loss=f"{metrics['loss']:.4f}", acc=f"{metrics['token_accuracy']:.3f}")
+            if config.save_every and step % config.save_every == 0 and step < config.max_steps:
+                _save_checkpoint(accelerator, draft_head, output_dir, step, config)
+            if step >= config.max_steps:
+                break
+    bar.close()
+
+    model = accelerator.unwrap_model(draft_head)
+    model.eval()
+    if accelerator.is_main_process:
+        output_dir.mkdir(parents=True, exist_ok=True)
+        model.save_pretrained(output_dir)
+        torch.save({"step": step, "metrics": metrics, "config": asdict(config)}, output_dir / "training_state.pt")
+    accelerator.wait_for_everyone()
+    logger.info("draft head trained for %d steps: %s", step, metrics)
+    return model
+
+
+def _save_checkpoint(accelerator: Accelerator, draft_head, output_dir: Path, step: int, config) -> None:
+    checkpoint = output_dir / f"checkpoint-{step}"
+    accelerator.save_state(str(checkpoint))
+    if accelerator.is_main_process:
+        accelerator.unwrap_model(draft_head).save_pretrained(checkpoint / "draft_head")
+        # Written last: a checkpoint without it is incomplete and ignored on resume.
+        torch.save({"step": step}, checkpoint / "trainer_state.pt")
+        for _, old in _checkpoints(output_dir)[: -config.keep_checkpoints]:
+            shutil.rmtree(old)
+    accelerator.wait_for_everyone()
+
+
+def default_steps_for(dataset_size: int, batch_size: int, epochs: float) -> int:
+    """Optimizer steps for ``epochs`` passes over a dataset."""
+    return max(1, math.ceil(epochs * dataset_size / batch_size))

@@ -1,0 +1,75 @@
+"""Shared fixtures: tiny random targets (built in milliseconds) and the trained toy pipeline (built once)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from transformers import CLIPVisionConfig, LlamaConfig, LlamaForCausalLM, LlavaConfig, LlavaForConditionalGeneration
+
+from hf_specvla import ActionTokenizer, DraftHead, enable_speculation
+
+torch.set_num_threads(2)
+
+VOCAB = 320  # 64 text ids + 256 action ids (64..319)
+IMAGE_TOKEN = 5
+
+
+def tiny_llama_config(**overrides) -> LlamaConfig:
+    settings = dict(
+        vocab_size=VOCAB, hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4,
+        num_key_value_heads=2, max_position_embeddings=256, bos_token_id=1, eos_token_id=2, pad_token_id=0,
+    )  # fmt: skip
+    settings.update(overrides)
+    return LlamaConfig(**settings)
+
+
+@pytest.fixture(scope="session")
+def action_tokenizer() -> ActionTokenizer:
+    return ActionTokenizer(VOCAB)
+
+
+@pytest.fixture(scope="session")
+def tiny_llama():
+    torch.manual_seed(0)
+    return enable_speculation(LlamaForCausalLM(tiny_llama_config()).eval())
+
+
+@pytest.fixture(scope="session")
+def tiny_llava():
+    torch.manual_seed(1)
+    vision = CLIPVisionConfig(
+        hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2, image_size=16,
+        patch_size=8, projection_dim=32,
+    )  # fmt: skip
+    config = LlavaConfig(
+        vision_config=vision, text_config=tiny_llama_config(), image_token_id=IMAGE_TOKEN, image_seq_length=4,
+        vision_feature_select_strategy="default", vision_feature_layer=-1,
+    )  # fmt: skip
+    return enable_speculation(LlavaForConditionalGeneration(config).eval())
+
+
+@pytest.fixture(scope="session")
+def random_draft(tiny_llama, action_tokenizer):
+    torch.manual_seed(2)
+    return DraftHead.from_target(tiny_llama, action_tokenizer, action_dim=7, draft_action_tokens_only=False).eval()
+
+
+@pytest.fixture(scope="session")
+def random_llava_draft(tiny_llava, action_tokenizer):
+    torch.manual_seed(3)
+    return DraftHead.from_target(tiny_llava, action_tokenizer, action_dim=7).eval()
+
+
+@pytest.fixture(scope="session")
+def toy_pipeline(tmp_path_factory):
+    """The toy target + a self-distilled draft head, trained once per test session (~1 minute)."""
+    from hf_specvla.toy import build_toy_pipeline
+
+    return build_toy_pipeline(str(tmp_path_factory.mktemp("toy")), progress=False)
+
+
+def llava_prompt(generator: torch.Generator, text_len: int = 4) -> dict[str, torch.Tensor]:
+    """``[<s>, 4 image tokens, random text]`` plus a random 16x16 image."""
+    text = torch.randint(6, 64, (1, text_len), generator=generator)
+    input_ids = torch.cat([torch.tensor([[1] + [IMAGE_TOKEN] * 4]), text], dim=1)
+    return {"input_ids": input_ids, "pixel_values": torch.randn(1, 3, 16, 16, generator=generator)}

@@ -1,0 +1,66 @@
+"""DraftHead / DraftHeadConfig: building for a target, compatibility checks, save/load round trips."""
+
+import pytest
+import torch
+from transformers import AutoConfig, AutoModel, LlamaForCausalLM
+
+from hf_specvla import ActionTokenizer, DraftHead, DraftHeadConfig
+
+from .conftest import VOCAB, tiny_llama_config
+
+
+def test_from_target_records_what_it_was_built_for(tiny_llava, action_tokenizer):
+    head = DraftHead.from_target(tiny_llava, action_tokenizer, action_dim=7, num_draft_tokens=4)
+    config = head.config
+    assert config.hidden_size == 64 and config.vocab_size == VOCAB
+    assert (config.action_vocab_size, config.n_action_bins, config.action_dim) == (VOCAB, 256, 7)
+    assert config.target_model_type == "llava" and config.num_draft_tokens == 4
+    assert config.action_tokenizer() == action_tokenizer
+
+
+def test_save_load_round_trip(tmp_path, tiny_llama, random_draft):
+    random_draft.save_pretrained(tmp_path)
+    state_keys = set(random_draft.state_dict())
+    assert not any("lm_head" in k or "embed" in k for k in state_keys)  # the target's modules are not stored
+    assert (tmp_path / "model.safetensors").exists()
+    loaded = DraftHead.from_pretrained(tmp_path)
+    auto_loaded = AutoModel.from_pretrained(tmp_path)
+    assert isinstance(auto_loaded, DraftHead) and isinstance(AutoConfig.from_pretrained(tmp_path), DraftHeadConfig)
+    def settings(model):
+        return {k: v for k, v in model.config.to_dict().items() if k != "_name_or_path"}
+
+    assert settings(loaded) == settings(random_draft)
+    torch.manual_seed(0)
+    embeds, hidden = torch.randn(1, 5, 64), torch.randn(1, 5, 64)
+    positions = torch.arange(5)[None]
+    with torch.no_grad():
+        expected = random_draft(embeds, hidden, positions)
+        for model in (loaded, auto_loaded):
+            torch.testing.assert_close(model(embeds, hidden, positions), expected, rtol=0, atol=0)
+
+
+def test_mismatched_target_is_rejected(random_draft):
+    other = LlamaForCausalLM(tiny_llama_config(hidden_size=32, num_attention_heads=2, num_key_value_heads=1))
+    with pytest.raises(ValueError, match="hidden_size: draft 64, target 32"):
+        random_draft.target_handles(other)
+    wider_vocab = LlamaForCausalLM(tiny_llama_config(vocab_size=400))
+    with pytest.raises(ValueError, match="lm_head vocabulary: draft 320, target 400"):
+        random_draft.target_handles(wider_vocab)
+
+
+@pytest.mark.parametrize(
+    "overrides, match",
+    [(dict(action_vocab_size=500, vocab_size=320), "exceeds vocab_size"), (dict(num_draft_tokens=0), "num_draft_tokens"),
+     (dict(hidden_size=-4), "hidden_size"), (dict(action_vocab_size=100, n_action_bins=256), "larger than n_bins")],
+)  # fmt: skip
+def test_config_validation(overrides, match):
+    with pytest.raises(ValueError, match=match):
+        DraftHeadConfig(**overrides)
+
+
+def test_action_only_scorer_drafts_only_actions_and_eos(tiny_llama):
+    head = DraftHead.from_target(tiny_llama, ActionTokenizer(VOCAB), draft_action_tokens_only=True)
+    scorer = head.scorer(tiny_llama.get_output_embeddings(), eos_token_ids=[2])
+    assert scorer.weight.shape == (257, 64)
+    ids = scorer.token_ids(torch.randn(50, 64))
+    assert bool(((ids >= 64) | (ids == 2)).all())
