@@ -16,9 +16,17 @@ IMAGE_TOKEN = 5
 
 def tiny_llama_config(**overrides) -> LlamaConfig:
     settings = dict(
-        vocab_size=VOCAB, hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4,
-        num_key_value_heads=2, max_position_embeddings=256, bos_token_id=1, eos_token_id=2, pad_token_id=0,
-    )  # fmt: skip
+        vocab_size=VOCAB,
+        hidden_size=64,
+        intermediate_size=128,
+        num_hidden_layers=2,
+        num_attention_heads=4,
+        num_key_value_heads=2,
+        max_position_embeddings=256,
+        bos_token_id=1,
+        eos_token_id=2,
+        pad_token_id=0,
+    )
     settings.update(overrides)
     return LlamaConfig(**settings)
 
@@ -38,13 +46,22 @@ def tiny_llama():
 def tiny_llava():
     torch.manual_seed(1)
     vision = CLIPVisionConfig(
-        hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2, image_size=16,
-        patch_size=8, projection_dim=32,
-    )  # fmt: skip
+        hidden_size=32,
+        intermediate_size=64,
+        num_hidden_layers=1,
+        num_attention_heads=2,
+        image_size=16,
+        patch_size=8,
+        projection_dim=32,
+    )
     config = LlavaConfig(
-        vision_config=vision, text_config=tiny_llama_config(), image_token_id=IMAGE_TOKEN, image_seq_length=4,
-        vision_feature_select_strategy="default", vision_feature_layer=-1,
-    )  # fmt: skip
+        vision_config=vision,
+        text_config=tiny_llama_config(),
+        image_token_id=IMAGE_TOKEN,
+        image_seq_length=4,
+        vision_feature_select_strategy="default",
+        vision_feature_layer=-1,
+    )
     return enable_speculation(LlavaForConditionalGeneration(config).eval())
 
 

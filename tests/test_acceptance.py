@@ -60,9 +60,15 @@ def test_rule_factory(action_tokenizer):
 
 @pytest.mark.parametrize(
     "tolerance, error, match",
-    [(-1, ValueError, ">= 0"), (1.5, TypeError, "non-negative int"), (True, TypeError, "non-negative int"),
-     ("2", TypeError, "non-negative int"), ([1, 2], ValueError, "7 dimensions"), ([1] * 6 + [-2], ValueError, r"\[6\]")],
-)  # fmt: skip
+    [
+        (-1, ValueError, ">= 0"),
+        (1.5, TypeError, "non-negative int"),
+        (True, TypeError, "non-negative int"),
+        ("2", TypeError, "non-negative int"),
+        ([1, 2], ValueError, "7 dimensions"),
+        ([1] * 6 + [-2], ValueError, r"\[6\]"),
+    ],
+)
 def test_bad_tolerance(action_tokenizer, tolerance, error, match):
     with pytest.raises(error, match=match):
         make_acceptance_rule(tolerance, action_tokenizer, 7)

@@ -51,9 +51,12 @@ def test_bins_and_distances(openvla):
 
 @pytest.mark.parametrize(
     "kwargs, match",
-    [(dict(vocab_size=100, n_bins=256), "larger than n_bins"), (dict(vocab_size=1000, n_bins=1), "n_bins"),
-     (dict(vocab_size=1000.0), "vocab_size")],
-)  # fmt: skip
+    [
+        (dict(vocab_size=100, n_bins=256), "larger than n_bins"),
+        (dict(vocab_size=1000, n_bins=1), "n_bins"),
+        (dict(vocab_size=1000.0), "vocab_size"),
+    ],
+)
 def test_bad_layout(kwargs, match):
     with pytest.raises((ValueError, TypeError), match=match):
         ActionTokenizer(**kwargs)

@@ -26,6 +26,7 @@ def test_save_load_round_trip(tmp_path, tiny_llama, random_draft):
     loaded = DraftHead.from_pretrained(tmp_path)
     auto_loaded = AutoModel.from_pretrained(tmp_path)
     assert isinstance(auto_loaded, DraftHead) and isinstance(AutoConfig.from_pretrained(tmp_path), DraftHeadConfig)
+
     def settings(model):
         return {k: v for k, v in model.config.to_dict().items() if k != "_name_or_path"}
 
@@ -50,9 +51,13 @@ def test_mismatched_target_is_rejected(random_draft):
 
 @pytest.mark.parametrize(
     "overrides, match",
-    [(dict(action_vocab_size=500, vocab_size=320), "exceeds vocab_size"), (dict(num_draft_tokens=0), "num_draft_tokens"),
-     (dict(hidden_size=-4), "hidden_size"), (dict(action_vocab_size=100, n_action_bins=256), "larger than n_bins")],
-)  # fmt: skip
+    [
+        (dict(action_vocab_size=500, vocab_size=320), "exceeds vocab_size"),
+        (dict(num_draft_tokens=0), "num_draft_tokens"),
+        (dict(hidden_size=-4), "hidden_size"),
+        (dict(action_vocab_size=100, n_action_bins=256), "larger than n_bins"),
+    ],
+)
 def test_config_validation(overrides, match):
     with pytest.raises(ValueError, match=match):
         DraftHeadConfig(**overrides)

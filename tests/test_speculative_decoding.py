@@ -12,7 +12,10 @@ from .conftest import llava_prompt, tiny_llama_config
 
 def random_prompts(n: int, seed: int = 0):
     generator = torch.Generator().manual_seed(seed)
-    return [torch.randint(3, 320, (1, int(torch.randint(2, 12, (1,), generator=generator))), generator=generator) for _ in range(n)]
+    return [
+        torch.randint(3, 320, (1, int(torch.randint(2, 12, (1,), generator=generator))), generator=generator)
+        for _ in range(n)
+    ]
 
 
 def greedy(model, **inputs):
@@ -25,9 +28,12 @@ def test_r0_equals_greedy_llama_untrained_draft(tiny_llama, random_draft):
     for input_ids in random_prompts(40):
         expected = greedy(tiny_llama, input_ids=input_ids, max_new_tokens=12)
         out = tiny_llama.generate(
-            input_ids=input_ids, max_new_tokens=12, do_sample=False, assistant_model=random_draft,
+            input_ids=input_ids,
+            max_new_tokens=12,
+            do_sample=False,
+            assistant_model=random_draft,
             return_dict_in_generate=True,
-        )  # fmt: skip
+        )
         assert torch.equal(out.sequences, expected)
         accept_lengths += out.speculation.accept_lengths
     # an untrained head is (almost) always rejected: about one token per target forward
@@ -63,9 +69,13 @@ def test_perfect_draft_is_fully_accepted(tiny_llama, random_draft, monkeypatch):
         expected = greedy(tiny_llama, input_ids=input_ids, max_new_tokens=14)
         monkeypatch.setattr(decoding, "draft_chain", oracle_chain(expected))
         out = tiny_llama.generate(
-            input_ids=input_ids, max_new_tokens=14, do_sample=False, assistant_model=random_draft,
-            num_draft_tokens=4, return_dict_in_generate=True,
-        )  # fmt: skip
+            input_ids=input_ids,
+            max_new_tokens=14,
+            do_sample=False,
+            assistant_model=random_draft,
+            num_draft_tokens=4,
+            return_dict_in_generate=True,
+        )
         assert torch.equal(out.sequences, expected)
         # prefill emits 1, then every verification accepts all 4 drafts + 1 bonus (last one is cut at max length)
         assert out.speculation.accept_lengths == [1, 5, 5, 3]
@@ -78,9 +88,13 @@ def test_wrong_draft_is_rejected_from_that_position(tiny_llama, random_draft, mo
     expected = greedy(tiny_llama, input_ids=input_ids, max_new_tokens=10)
     monkeypatch.setattr(decoding, "draft_chain", oracle_chain(expected, corrupt_at))
     out = tiny_llama.generate(
-        input_ids=input_ids, max_new_tokens=10, do_sample=False, assistant_model=random_draft, num_draft_tokens=4,
+        input_ids=input_ids,
+        max_new_tokens=10,
+        do_sample=False,
+        assistant_model=random_draft,
+        num_draft_tokens=4,
         return_dict_in_generate=True,
-    )  # fmt: skip
+    )
     assert torch.equal(out.sequences, expected)  # caches stay consistent after every rejection
     stats = out.speculation
     assert all(n == corrupt_at + 1 for n in stats.accept_lengths[1:-1])  # accepts corrupt_at drafts + bonus
@@ -89,9 +103,12 @@ def test_wrong_draft_is_rejected_from_that_position(tiny_llama, random_draft, mo
 
 def test_stats_add_up(tiny_llama, random_draft):
     out = tiny_llama.generate(
-        input_ids=random_prompts(1)[0], max_new_tokens=11, do_sample=False, assistant_model=random_draft,
+        input_ids=random_prompts(1)[0],
+        max_new_tokens=11,
+        do_sample=False,
+        assistant_model=random_draft,
         return_dict_in_generate=True,
-    )  # fmt: skip
+    )
     stats = out.speculation
     assert isinstance(out, SpeculativeDecoderOnlyOutput)
     assert stats.num_new_tokens == 11 == sum(stats.accept_lengths)
@@ -133,9 +150,12 @@ def test_left_padded_prompt(tiny_llama, random_draft):
     attention_mask[:, 3:] = 1
     expected = greedy(tiny_llama, input_ids=input_ids, attention_mask=attention_mask, max_new_tokens=8)
     out = tiny_llama.generate(
-        input_ids=input_ids, attention_mask=attention_mask, max_new_tokens=8, do_sample=False,
+        input_ids=input_ids,
+        attention_mask=attention_mask,
+        max_new_tokens=8,
+        do_sample=False,
         assistant_model=random_draft,
-    )  # fmt: skip
+    )
     assert torch.equal(out, expected)
 
 
@@ -161,9 +181,14 @@ def test_relaxed_tokens_stay_within_tolerance(tiny_llama, random_draft, action_t
     relaxed_accepts = 0
     for input_ids in random_prompts(25, seed=6):
         out = tiny_llama.generate(
-            input_ids=input_ids, max_new_tokens=14, min_new_tokens=14, do_sample=False, assistant_model=random_draft,
-            bin_tolerance=bin_tolerance, return_dict_in_generate=True,
-        )  # fmt: skip
+            input_ids=input_ids,
+            max_new_tokens=14,
+            min_new_tokens=14,
+            do_sample=False,
+            assistant_model=random_draft,
+            bin_tolerance=bin_tolerance,
+            return_dict_in_generate=True,
+        )
         assert_within_tolerance(tiny_llama, {"input_ids": input_ids}, out.sequences, tolerance, action_tokenizer)
         relaxed_accepts += sum(out.speculation.accepted_per_position)
     if max(tolerance) >= 40:
@@ -183,9 +208,13 @@ def test_batch_and_sampling_are_rejected(tiny_llama, random_draft):
 
 @pytest.mark.parametrize(
     "kwargs, error, match",
-    [(dict(bin_tolerance=-1), ValueError, ">= 0"), (dict(bin_tolerance=0.5), TypeError, "non-negative int"),
-     (dict(bin_tolerance=[1, 2, 3]), ValueError, "7 dimensions"), (dict(num_draft_tokens=0), ValueError, "num_draft_tokens")],
-)  # fmt: skip
+    [
+        (dict(bin_tolerance=-1), ValueError, ">= 0"),
+        (dict(bin_tolerance=0.5), TypeError, "non-negative int"),
+        (dict(bin_tolerance=[1, 2, 3]), ValueError, "7 dimensions"),
+        (dict(num_draft_tokens=0), ValueError, "num_draft_tokens"),
+    ],
+)
 def test_bad_speculation_settings(tiny_llama, random_draft, kwargs, error, match):
     with pytest.raises(error, match=match):
         tiny_llama.generate(input_ids=random_prompts(1)[0], max_new_tokens=3, assistant_model=random_draft, **kwargs)
@@ -229,7 +258,10 @@ def test_custom_generate_callable_without_the_mixin(random_draft, tiny_llama):
     input_ids = random_prompts(1, seed=8)[0]
     expected = greedy(plain.eval(), input_ids=input_ids, max_new_tokens=5)
     out = plain.generate(
-        input_ids=input_ids, max_new_tokens=5, do_sample=False, custom_generate=speculative_generate,
+        input_ids=input_ids,
+        max_new_tokens=5,
+        do_sample=False,
+        custom_generate=speculative_generate,
         draft_head=random_draft,
-    )  # fmt: skip
+    )
     assert torch.equal(out, expected)

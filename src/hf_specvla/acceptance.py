@@ -28,7 +28,10 @@ def accepted_prefix_length(accepted: torch.Tensor) -> torch.Tensor:
 
 
 def action_dimensions(
-    draft_ids: torch.Tensor, action_tokenizer: ActionTokenizer, num_prior_action_tokens: torch.Tensor | int, action_dim: int
+    draft_ids: torch.Tensor,
+    action_tokenizer: ActionTokenizer,
+    num_prior_action_tokens: torch.Tensor | int,
+    action_dim: int,
 ) -> torch.Tensor:
     """Action dimension of each drafted token, assuming all drafted tokens before it are accepted.
 

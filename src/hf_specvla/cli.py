@@ -24,8 +24,12 @@ import torch
 EXAMPLES = __doc__.split("Examples:", 1)[1]
 
 SIZES = {
-    "small": dict(hidden_size=128, num_hidden_layers=4, num_attention_heads=4, num_key_value_heads=2, intermediate_size=256),
-    "medium": dict(hidden_size=256, num_hidden_layers=8, num_attention_heads=8, num_key_value_heads=4, intermediate_size=688),
+    "small": dict(
+        hidden_size=128, num_hidden_layers=4, num_attention_heads=4, num_key_value_heads=2, intermediate_size=256
+    ),
+    "medium": dict(
+        hidden_size=256, num_hidden_layers=8, num_attention_heads=8, num_key_value_heads=4, intermediate_size=688
+    ),
 }
 
 
@@ -70,7 +74,9 @@ def main(argv: list[str] | None = None) -> int:
         "demo", help="train a toy VLA target + draft head on the spot and benchmark them",
         epilog="examples:" + EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )  # fmt: skip
-    demo.add_argument("--output-dir", default="runs/toy", help="where target and draft head are kept (reused if present)")
+    demo.add_argument(
+        "--output-dir", default="runs/toy", help="where target and draft head are kept (reused if present)"
+    )
     demo.add_argument("--size", choices=sorted(SIZES), default="small", help="toy target size")
     demo.add_argument("--target-steps", type=int, default=300)
     demo.add_argument("--draft-steps", type=int, default=800)
@@ -84,7 +90,9 @@ def main(argv: list[str] | None = None) -> int:
     _add_benchmark_arguments(bench)
 
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
+    )
     if args.threads:
         torch.set_num_threads(args.threads)
 

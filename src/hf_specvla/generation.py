@@ -17,7 +17,9 @@ from .modeling_draft_head import DraftHead
 
 #: generate() keyword arguments that only mean something with a DraftHead assistant.
 SPECULATION_KWARGS = tuple(
-    name for name in inspect.signature(SpeculationConfig).parameters if name in inspect.signature(speculative_generate).parameters
+    name
+    for name in inspect.signature(SpeculationConfig).parameters
+    if name in inspect.signature(speculative_generate).parameters
 )
 
 

@@ -76,9 +76,10 @@ def all_scenes() -> list[DotScene]:
 
 
 def split_scenes() -> tuple[list[DotScene], list[DotScene]]:
-    """(train, held_out): every 4th scene is held out of target and draft training, for evaluation."""
+    """(train, held_out): a fixed random quarter of the scenes is held out of target and draft training."""
     scenes = all_scenes()
-    return [s for i, s in enumerate(scenes) if i % 4 != 3], [s for i, s in enumerate(scenes) if i % 4 == 3]
+    held_out = set(np.random.default_rng(1234).permutation(len(scenes))[: len(scenes) // 4].tolist())
+    return [s for i, s in enumerate(scenes) if i not in held_out], [s for i, s in enumerate(scenes) if i in held_out]
 
 
 def toy_tokenizer():
@@ -195,8 +196,10 @@ def toy_action_accuracy(model, tokenizer, action_tokenizer, scenes: list[DotScen
 
 @dataclass
 class ToyPipeline:
-    """A trained toy target with its tokenizer, action tokenizer and a draft head trained on it."""
+    """A trained toy target with its tokenizer, action tokenizer and a draft head trained on it, saved in
+    ``output_dir`` (``target/`` and ``draft_head/``)."""
 
+    output_dir: str
     target: LlavaForConditionalGeneration
     tokenizer: object
     action_tokenizer: ActionTokenizer
@@ -246,10 +249,11 @@ def build_toy_pipeline(
         scenes = split_scenes()[0]
         prompts = [toy_inputs(scenes[i : i + 64], tokenizer) for i in range(0, len(scenes), 64)]
         dataset = build_distillation_dataset(target, prompts, ACTION_DIM, action_tokenizer, progress=progress)
+        torch.manual_seed(seed)  # the head's initialisation, independent of what ran before
         draft_head = DraftHead.from_target(target, action_tokenizer, action_dim=ACTION_DIM)
         config = DraftTrainingConfig(
             str(draft_dir), max_steps=draft_steps, batch_size=32, learning_rate=draft_learning_rate,
-            save_every=0, seed=seed,
+            lr_schedule="cosine", warmup_steps=50, save_every=0, seed=seed,
         )  # fmt: skip
         draft_head = train_draft_head(draft_head, target, dataset, config, progress=progress)
-    return ToyPipeline(target, tokenizer, action_tokenizer, draft_head.eval())
+    return ToyPipeline(str(root), target, tokenizer, action_tokenizer, draft_head.eval())

@@ -51,7 +51,8 @@ class DraftTrainingConfig:
         max_steps: optimizer steps.
         batch_size: sequences per step per process.
         learning_rate, betas, weight_decay, max_grad_norm: AdamW + clipping (paper: 5e-5, (0.9, 0.95), 0, 0.5).
-        warmup_steps: linear warm-up, then constant.
+        warmup_steps: linear warm-up steps.
+        lr_schedule: after warm-up, "constant" or "cosine" (decays to 0 at max_steps).
         feature_loss_weight / token_loss_weight: weights of the SmoothL1 feature loss and the soft cross-entropy.
         feature_noise: width of the uniform noise added to the input hidden states (U(-a/2, a/2)).
         save_every: steps between checkpoints (0 = only the final save).
@@ -71,6 +72,7 @@ class DraftTrainingConfig:
     weight_decay: float = 0.0
     max_grad_norm: float = 0.5
     warmup_steps: int = 0
+    lr_schedule: str = "constant"
     feature_loss_weight: float = 1.0
     token_loss_weight: float = 0.1
     feature_noise: float = 0.2
@@ -91,6 +93,8 @@ class DraftTrainingConfig:
         for name in ("save_every", "warmup_steps", "feature_noise", "feature_loss_weight", "token_loss_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
         if self.keep_checkpoints < 1:
             raise ValueError(f"keep_checkpoints must be >= 1, got {self.keep_checkpoints}")
 
@@ -284,8 +288,7 @@ def train_draft_head(
     optimizer = torch.optim.AdamW(
         draft_head.parameters(), lr=config.learning_rate, betas=config.betas, weight_decay=config.weight_decay
     )
-    warmup = max(config.warmup_steps, 1)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: min(1.0, (step + 1) / warmup))
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: learning_rate_factor(step, config))
     loader = DataLoader(
         dataset, batch_size=config.batch_size, shuffle=True, collate_fn=collate_distillation, drop_last=False
     )
@@ -301,14 +304,21 @@ def train_draft_head(
     if step >= config.max_steps:
         logger.info("nothing to do: checkpoint step %d >= max_steps %d", step, config.max_steps)
 
-    generator = torch.Generator().manual_seed(config.seed + step)
-    bar = tqdm(total=config.max_steps, initial=step, desc="train draft head", disable=not progress or not accelerator.is_main_process)
+    generator = torch.Generator()
+    bar = tqdm(
+        total=config.max_steps,
+        initial=step,
+        desc="train draft head",
+        disable=not progress or not accelerator.is_main_process,
+    )
     metrics: dict[str, float] = {}
     while step < config.max_steps:
         epoch, offset = divmod(step, steps_per_epoch)
         loader.set_epoch(epoch)
         epoch_loader = accelerator.skip_first_batches(loader, offset) if offset else loader
         for batch in epoch_loader:
+            # Noise seeded per step (and process), so a resumed run draws what an uninterrupted one would.
+            generator.manual_seed(hash((config.seed, step, accelerator.process_index)) % 2**63)
             with accelerator.accumulate(draft_head):
                 losses = distillation_loss(draft_head, handles, batch, config, generator)
                 accelerator.backward(losses["loss"])
@@ -348,6 +358,16 @@ def _save_checkpoint(accelerator: Accelerator, draft_head, output_dir: Path, ste
         for _, old in _checkpoints(output_dir)[: -config.keep_checkpoints]:
             shutil.rmtree(old)
     accelerator.wait_for_everyone()
+
+
+def learning_rate_factor(step: int, config: DraftTrainingConfig) -> float:
+    """Multiplier of the base learning rate at ``step``: linear warm-up, then constant or cosine decay."""
+    if step < config.warmup_steps:
+        return (step + 1) / config.warmup_steps
+    if config.lr_schedule == "constant":
+        return 1.0
+    progress = (step - config.warmup_steps) / max(1, config.max_steps - config.warmup_steps)
+    return 0.5 * (1.0 + math.cos(math.pi * min(progress, 1.0)))
 
 
 def default_steps_for(dataset_size: int, batch_size: int, epochs: float) -> int:
