@@ -1,0 +1,1 @@
+"""Simulated environments to validate policies on (Meta-World)."""
