@@ -11,6 +11,13 @@ Examples:
 
     # Re-run only the benchmark on a pipeline a previous demo saved
     hf-specvla benchmark --pipeline-dir runs/toy --chain-lengths 2 4 6 --bin-tolerances 1 2 4
+
+    # Meta-World: expert demonstrations (resumable), behaviour cloning, evaluation on held-out seeds
+    hf-specvla collect --tasks MT10 --episodes 50 --output-dir runs/mt10_demos
+    hf-specvla train-vla --data runs/mt10_demos --output-dir runs/mt10_vla --max-steps 6000
+    hf-specvla eval --policy policies/mt10_vla --tasks MT10 --episodes 20 --output-dir runs/eval_greedy
+    hf-specvla eval --policy policies/mt10_vla --tasks reach push --episodes 5 --video runs/reach.gif
+    hf-specvla eval --policy policies/mt10_vla --draft-head runs/draft --bin-tolerance 2 --output-dir runs/eval_spec
 """
 
 from __future__ import annotations
@@ -60,6 +67,67 @@ def _benchmark(pipeline, args) -> None:
     print(format_report(results))
 
 
+def _collect(args) -> int:
+    from .demonstrations import collect_demonstrations
+    from .envs.metaworld import EnvConfig
+
+    summary = collect_demonstrations(
+        args.output_dir, args.tasks, args.episodes, EnvConfig(args.image_size, args.camera), args.seed_start
+    )
+    print(f"{summary.episodes_written} episodes written, {summary.episodes_present} in {args.output_dir}, "
+          f"{summary.expert_failures} expert failures skipped")  # fmt: skip
+    return 0
+
+
+def _train_vla(args) -> int:
+    from .demonstrations import dataset_info, load_demonstrations, read_stats
+    from .envs.metaworld import TASK_INSTRUCTIONS
+    from .policy import VLAPolicy, VLAPolicyConfig
+    from .vla_training import VLATrainingConfig, train_vla
+
+    config = VLATrainingConfig(
+        args.output_dir, max_steps=args.max_steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
+        eval_every=args.eval_every, save_every=args.save_every, resume=args.resume,
+        overwrite_output_dir=args.overwrite_output_dir, seed=args.seed,
+    )  # fmt: skip
+    demos = load_demonstrations(args.data, args.tasks)
+    action_stats, state_stats = read_stats(args.data)
+    policy_config = VLAPolicyConfig(image_size=dataset_info(args.data)["image_size"], use_state=not args.no_state)
+    policy = VLAPolicy.build(list(TASK_INSTRUCTIONS.values()), action_stats, state_stats, policy_config, args.seed)
+    metrics = train_vla(policy, demos, config)
+    print(f"policy saved to {args.output_dir}: {metrics}")
+    return 0
+
+
+def _eval(args, parser) -> int:
+    import json
+
+    from .envs.metaworld import EnvConfig
+    from .evaluation import EVAL_SEED_START, evaluate, format_summary
+    from .modeling_draft_head import DraftHead
+    from .policy import VLAPolicy
+
+    policy = VLAPolicy.from_pretrained(args.policy)
+    generate_kwargs = {}
+    if args.draft_head:
+        generate_kwargs["assistant_model"] = DraftHead.from_pretrained(args.draft_head).eval()
+        if args.bin_tolerance is not None:
+            tolerance = args.bin_tolerance
+            generate_kwargs["bin_tolerance"] = tolerance[0] if len(tolerance) == 1 else tolerance
+        if args.num_draft_tokens is not None:
+            generate_kwargs["num_draft_tokens"] = args.num_draft_tokens
+    elif args.bin_tolerance is not None or args.num_draft_tokens is not None:
+        parser.error("--bin-tolerance / --num-draft-tokens need --draft-head")
+    env_config = EnvConfig(policy.config.image_size, max_episode_steps=args.max_episode_steps)
+    seed_start = EVAL_SEED_START if args.seed_start is None else args.seed_start
+    summary = evaluate(
+        policy, args.tasks, args.episodes, args.output_dir, env_config, seed_start, generate_kwargs, args.video
+    )
+    print(format_summary(summary))
+    print(json.dumps(summary["overall"]))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="hf-specvla",
@@ -89,14 +157,65 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--pipeline-dir", required=True, help="a folder written by `hf-specvla demo`")
     _add_benchmark_arguments(bench)
 
+    collect = commands.add_parser(
+        "collect", help="record scripted-expert Meta-World demonstrations (Parquet; resumable)",
+        epilog="examples:" + EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
+    collect.add_argument("--tasks", nargs="+", default=["MT10"], help="suites (MT10, MT50) and/or task names")
+    collect.add_argument("--episodes", type=int, default=50, help="successful episodes per task")
+    collect.add_argument("--output-dir", required=True, help="dataset folder (resumes if it exists)")
+    collect.add_argument("--image-size", type=int, default=64)
+    collect.add_argument("--camera", default="corner")
+    collect.add_argument("--seed-start", type=int, default=0)
+
+    train = commands.add_parser(
+        "train-vla", help="behaviour-clone an OpenVLA-style policy on demonstrations (resumable)",
+        epilog="examples:" + EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
+    train.add_argument("--data", required=True, help="a folder written by `hf-specvla collect`")
+    train.add_argument("--output-dir", required=True)
+    train.add_argument("--tasks", nargs="+", default=None, help="train on these tasks only (default: all in --data)")
+    train.add_argument("--max-steps", type=int, default=6000)
+    train.add_argument("--batch-size", type=int, default=64)
+    train.add_argument("--learning-rate", type=float, default=1e-3)
+    train.add_argument("--eval-every", type=int, default=500)
+    train.add_argument("--save-every", type=int, default=1000)
+    train.add_argument("--no-state", action="store_true", help="do not give the proprio state to the model")
+    train.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --output-dir")
+    train.add_argument("--overwrite-output-dir", action="store_true")
+    train.add_argument("--seed", type=int, default=0)
+
+    ev = commands.add_parser(
+        "eval", help="roll a policy out on Meta-World and report per-task success (resumable)",
+        epilog="examples:" + EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
+    ev.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
+    ev.add_argument("--tasks", nargs="+", default=["MT10"])
+    ev.add_argument("--episodes", type=int, default=20, help="episodes per task")
+    ev.add_argument("--output-dir", required=True, help="episodes.jsonl + summary.json go here (resumes)")
+    ev.add_argument("--seed-start", type=int, default=None, help="first evaluation seed (default 100000)")
+    ev.add_argument("--max-episode-steps", type=int, default=500)
+    ev.add_argument("--video", default=None, help="save the first episode as .gif / .mp4")
+    ev.add_argument("--draft-head", default=None, help="speculative decoding with this DraftHead folder")
+    ev.add_argument("--bin-tolerance", type=int, nargs="+", default=None, help="relaxed acceptance r (or one per dim)")
+    ev.add_argument("--num-draft-tokens", type=int, default=None)
+    ev.add_argument("--threads", type=int, default=None)
+
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
     )
-    if args.threads:
+    if getattr(args, "threads", None):
         torch.set_num_threads(args.threads)
 
     from pathlib import Path
+
+    if args.command == "collect":
+        return _collect(args)
+    if args.command == "train-vla":
+        return _train_vla(args)
+    if args.command == "eval":
+        return _eval(args, parser)
 
     from .toy import ToyTargetSize, build_toy_pipeline
 

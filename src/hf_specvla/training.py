@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import logging
 import math
-import re
-import shutil
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -33,12 +31,13 @@ from tqdm.auto import tqdm
 from transformers import PreTrainedModel
 
 from .attention_masks import causal_mask
+from .checkpointing import check_output_dir, latest_checkpoint, resume_step, save_checkpoint
 from .decoding import embed_tokens
 from .modeling_draft_head import DraftHead, TargetHandles
 
 logger = logging.getLogger(__name__)
 
-CHECKPOINT_PATTERN = re.compile(r"^checkpoint-(\d+)$")
+__all__ = ["DraftTrainingConfig", "build_distillation_dataset", "latest_checkpoint", "train_draft_head"]
 
 
 @dataclass
@@ -229,34 +228,6 @@ def distillation_loss(
     return {"loss": loss, "feature_loss": feature_loss, "token_loss": token_loss, "token_accuracy": accuracy}
 
 
-# ----------------------------------------------------------------------------- checkpoints
-def _checkpoints(output_dir: Path) -> list[tuple[int, Path]]:
-    found = []
-    if output_dir.is_dir():
-        for child in output_dir.iterdir():
-            match = CHECKPOINT_PATTERN.match(child.name)
-            if match and child.is_dir() and (child / "trainer_state.pt").exists():
-                found.append((int(match.group(1)), child))
-    return sorted(found)
-
-
-def latest_checkpoint(output_dir: str | Path) -> Path | None:
-    """The newest complete ``checkpoint-<step>`` folder in ``output_dir``, or None."""
-    found = _checkpoints(Path(output_dir))
-    return found[-1][1] if found else None
-
-
-def _check_output_dir(output_dir: Path, config: DraftTrainingConfig) -> None:
-    if not output_dir.exists() or not any(output_dir.iterdir()):
-        return
-    if config.resume or config.overwrite_output_dir:
-        return
-    raise FileExistsError(
-        f"output_dir {str(output_dir)!r} is not empty; pass resume=True (--resume) to continue its training, "
-        f"overwrite_output_dir=True to train from scratch into it, or choose another output_dir"
-    )
-
-
 # ----------------------------------------------------------------------------- training
 def train_draft_head(
     draft_head: DraftHead,
@@ -274,7 +245,7 @@ def train_draft_head(
     saved to ``output_dir`` and returned (unwrapped, in eval mode).
     """
     output_dir = Path(config.output_dir)
-    _check_output_dir(output_dir, config)
+    check_output_dir(output_dir, config.resume, config.overwrite_output_dir)
     accelerator = accelerator or Accelerator(
         mixed_precision=config.mixed_precision,
         dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
@@ -295,12 +266,9 @@ def train_draft_head(
     draft_head, optimizer, loader, scheduler = accelerator.prepare(draft_head, optimizer, loader, scheduler)
     steps_per_epoch = len(loader)
 
-    step = 0
-    checkpoint = latest_checkpoint(output_dir) if config.resume else None
-    if checkpoint is not None:
-        accelerator.load_state(str(checkpoint))
-        step = torch.load(checkpoint / "trainer_state.pt", weights_only=True)["step"]
-        logger.info("resuming draft training from %s (step %d)", checkpoint, step)
+    step = resume_step(accelerator, output_dir) if config.resume else 0
+    if step:
+        logger.info("resuming draft training from step %d", step)
     if step >= config.max_steps:
         logger.info("nothing to do: checkpoint step %d >= max_steps %d", step, config.max_steps)
 
@@ -332,7 +300,11 @@ def train_draft_head(
             bar.update(1)
             bar.set_postfix(loss=f"{metrics['loss']:.4f}", acc=f"{metrics['token_accuracy']:.3f}")
             if config.save_every and step % config.save_every == 0 and step < config.max_steps:
-                _save_checkpoint(accelerator, draft_head, output_dir, step, config)
+                save_checkpoint(
+                    accelerator, output_dir, step,
+                    lambda folder: accelerator.unwrap_model(draft_head).save_pretrained(folder / "draft_head"),
+                    config.keep_checkpoints,
+                )  # fmt: skip
             if step >= config.max_steps:
                 break
     bar.close()
@@ -346,18 +318,6 @@ def train_draft_head(
     accelerator.wait_for_everyone()
     logger.info("draft head trained for %d steps: %s", step, metrics)
     return model
-
-
-def _save_checkpoint(accelerator: Accelerator, draft_head, output_dir: Path, step: int, config) -> None:
-    checkpoint = output_dir / f"checkpoint-{step}"
-    accelerator.save_state(str(checkpoint))
-    if accelerator.is_main_process:
-        accelerator.unwrap_model(draft_head).save_pretrained(checkpoint / "draft_head")
-        # Written last: a checkpoint without it is incomplete and ignored on resume.
-        torch.save({"step": step}, checkpoint / "trainer_state.pt")
-        for _, old in _checkpoints(output_dir)[: -config.keep_checkpoints]:
-            shutil.rmtree(old)
-    accelerator.wait_for_everyone()
 
 
 def learning_rate_factor(step: int, config: DraftTrainingConfig) -> float:

@@ -1,0 +1,296 @@
+"""Scripted-expert demonstrations on Meta-World, stored as plain Parquet files.
+
+Layout of a dataset folder (readable with pandas / pyarrow / polars; images are PNG bytes):
+
+    meta/info.json          format, version, image size, camera, action/state dims, the column schema
+    meta/stats.json         q01 / q99 (and the normalisation mask) of actions and states, over all episodes
+    data/<task>/episode_<seed>.parquet   one successful episode, one row per step
+
+Columns: ``episode_index`` int64 (``task_index * 1_000_000 + seed``), ``step_index`` int32, ``task`` str,
+``instruction`` str, ``seed`` int64, ``image`` binary (PNG, uint8 [S, S, 3], upright), ``state`` list<float32>[4]
+(hand xyz, gripper), ``action`` list<float32>[4] (the expert's action clipped to [-1, 1]), ``success`` bool (the
+task is solved after this step).
+
+Only successful episodes are kept. Each episode file is written to a temporary name and renamed, so an
+interrupted collection leaves whole episodes only; running the same command again skips the seeds already on
+disk and collects the rest (no duplicates, nothing lost).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from .action_tokenizer import ActionNormalizer
+from .envs.metaworld import ACTION_DIM, STATE_DIM, TASK_INSTRUCTIONS, EnvConfig, MetaWorldEnv, resolve_tasks
+
+logger = logging.getLogger(__name__)
+
+FORMAT_NAME = "hf_specvla-demonstrations"
+FORMAT_VERSION = 1
+#: Normalisation mask of the 4-dim action: xyz are scaled by q01/q99, the gripper (+-1) passes through.
+ACTION_NORM_MASK = (True, True, True, False)
+TASK_INDEX = {task: i for i, task in enumerate(TASK_INSTRUCTIONS)}
+
+
+def _png(image: np.ndarray) -> bytes:
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def decode_png(data: bytes) -> np.ndarray:
+    """PNG bytes -> uint8 ``[S, S, 3]``."""
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+
+
+def episode_path(root: Path, task: str, seed: int) -> Path:
+    return root / "data" / task / f"episode_{seed:06d}.parquet"
+
+
+def _write_episode(path: Path, rows: dict[str, list]) -> None:
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    table = pa.table(
+        {
+            "episode_index": pa.array(rows["episode_index"], pa.int64()),
+            "step_index": pa.array(rows["step_index"], pa.int32()),
+            "task": pa.array(rows["task"], pa.string()),
+            "instruction": pa.array(rows["instruction"], pa.string()),
+            "seed": pa.array(rows["seed"], pa.int64()),
+            "image": pa.array(rows["image"], pa.binary()),
+            "state": pa.array(rows["state"], pa.list_(pa.float32(), STATE_DIM)),
+            "action": pa.array(rows["action"], pa.list_(pa.float32(), ACTION_DIM)),
+            "success": pa.array(rows["success"], pa.bool_()),
+        }
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".parquet.tmp")
+    pq.write_table(table, tmp)
+    os.replace(tmp, path)  # atomic: a crash leaves either no episode or a whole one
+
+
+def record_episode(env: MetaWorldEnv, seed: int) -> dict[str, list] | None:
+    """Runs the expert from ``reset(seed)``; the episode's rows, or None when the expert failed."""
+    obs = env.reset(seed)
+    rows: dict[str, list] = {k: [] for k in ("image", "state", "action", "success")}
+    while True:
+        action = env.expert_action()
+        rows["image"].append(_png(obs["image"]))
+        rows["state"].append(obs["state"].tolist())
+        rows["action"].append(action.tolist())
+        obs, _, done, info = env.step(action)
+        rows["success"].append(info["success"])
+        if done:
+            break
+    if not info["success"]:
+        return None
+    n = len(rows["image"])
+    rows.update(
+        episode_index=[TASK_INDEX[env.task] * 1_000_000 + seed] * n,
+        step_index=list(range(n)),
+        task=[env.task] * n,
+        instruction=[env.instruction] * n,
+        seed=[seed] * n,
+    )
+    return rows
+
+
+def _check_info(root: Path, env_config: EnvConfig) -> None:
+    info_path = root / "meta" / "info.json"
+    info = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "image_size": env_config.image_size,
+        "camera": env_config.camera,
+        "action_dim": ACTION_DIM,
+        "state_dim": STATE_DIM,
+        "columns": [
+            "episode_index",
+            "step_index",
+            "task",
+            "instruction",
+            "seed",
+            "image",
+            "state",
+            "action",
+            "success",
+        ],
+    }
+    if info_path.exists():
+        existing = json.loads(info_path.read_text())
+        for key in ("format", "image_size", "camera", "action_dim"):
+            if existing.get(key) != info[key]:
+                raise ValueError(
+                    f"{root} holds a dataset with {key}={existing.get(key)!r}, but this collection uses "
+                    f"{info[key]!r}; collect into another folder or use the same settings"
+                )
+        return
+    info_path.parent.mkdir(parents=True, exist_ok=True)
+    info_path.write_text(json.dumps(info, indent=2))
+
+
+def collected_seeds(root: Path, task: str) -> list[int]:
+    """Seeds of the complete episodes of ``task`` on disk."""
+    folder = root / "data" / task
+    if not folder.is_dir():
+        return []
+    return sorted(int(p.stem.split("_")[1]) for p in folder.glob("episode_*.parquet"))
+
+
+@dataclass
+class CollectSummary:
+    episodes_written: int
+    episodes_present: int
+    expert_failures: int
+
+
+def collect_demonstrations(
+    output_dir: str | Path,
+    tasks: str | list[str],
+    episodes_per_task: int,
+    env_config: EnvConfig | None = None,
+    seed_start: int = 0,
+    max_seed_tries: int = 3,
+    progress: bool = True,
+) -> CollectSummary:
+    """Collects ``episodes_per_task`` successful expert episodes per task (resumable; see module docstring).
+
+    Seeds ``seed_start, seed_start + 1, ...`` are tried in order; a seed whose expert episode fails is skipped
+    (at most ``max_seed_tries * episodes_per_task`` seeds per task).
+    """
+    if episodes_per_task < 1:
+        raise ValueError(f"episodes_per_task must be >= 1, got {episodes_per_task}")
+    root = Path(output_dir)
+    env_config = env_config or EnvConfig()
+    tasks = resolve_tasks(tasks)
+    _check_info(root, env_config)
+    written = failures = 0
+    total = len(tasks) * episodes_per_task
+    done = {task: collected_seeds(root, task) for task in tasks}
+    bar = tqdm(total=total, initial=sum(min(len(s), episodes_per_task) for s in done.values()),
+               desc="collect", unit="episode", disable=not progress)  # fmt: skip
+    for task in tasks:
+        have = set(done[task])
+        if len(have) >= episodes_per_task:
+            continue
+        with MetaWorldEnv(task, env_config) as env:
+            for seed in range(seed_start, seed_start + max_seed_tries * episodes_per_task):
+                if len(have) >= episodes_per_task:
+                    break
+                if seed in have:
+                    continue
+                rows = record_episode(env, seed)
+                if rows is None:
+                    failures += 1
+                    logger.info("expert failed on %s seed %d; skipped", task, seed)
+                    continue
+                _write_episode(episode_path(root, task, seed), rows)
+                have.add(seed)
+                written += 1
+                bar.update(1)
+        if len(have) < episodes_per_task:
+            logger.warning("%s: only %d successful episodes within the seed budget", task, len(have))
+    bar.close()
+    write_stats(root)
+    present = sum(len(collected_seeds(root, t)) for t in tasks)
+    return CollectSummary(written, present, failures)
+
+
+# ----------------------------------------------------------------------------- reading
+@dataclass
+class Demonstrations:
+    """A dataset in memory. ``images`` uint8 ``[N, S, S, 3]``, ``states`` / ``actions`` float32 ``[N, 4]``,
+    ``tasks`` list of N task names, ``episode_index`` int64 ``[N]``."""
+
+    images: np.ndarray
+    states: np.ndarray
+    actions: np.ndarray
+    tasks: list[str]
+    episode_index: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+
+def load_demonstrations(
+    root: str | Path, tasks: str | list[str] | None = None, progress: bool = True
+) -> Demonstrations:
+    """Reads every episode (of ``tasks``, default all) of a dataset folder."""
+    import pyarrow.parquet as pq
+
+    root = Path(root)
+    if not (root / "meta" / "info.json").exists():
+        raise FileNotFoundError(f"{root} is not a demonstrations folder (no meta/info.json); run hf-specvla collect")
+    files = sorted((root / "data").glob("*/episode_*.parquet"))
+    if tasks is not None:
+        wanted = set(resolve_tasks(tasks))
+        files = [f for f in files if f.parent.name in wanted]
+    if not files:
+        raise FileNotFoundError(f"no episodes in {root / 'data'}")
+    images, states, actions, task_names, episodes = [], [], [], [], []
+    for file in tqdm(files, desc="load episodes", disable=not progress):
+        table = pq.read_table(file).to_pydict()
+        images.extend(decode_png(b) for b in table["image"])
+        states.extend(table["state"])
+        actions.extend(table["action"])
+        task_names.extend(table["task"])
+        episodes.extend(table["episode_index"])
+    return Demonstrations(
+        np.stack(images), np.asarray(states, np.float32), np.asarray(actions, np.float32), task_names,
+        np.asarray(episodes, np.int64),
+    )  # fmt: skip
+
+
+def write_stats(root: str | Path) -> dict:
+    """(Re)computes ``meta/stats.json`` from every episode on disk."""
+    import pyarrow.parquet as pq
+
+    root = Path(root)
+    files = sorted((root / "data").glob("*/episode_*.parquet"))
+    if not files:
+        return {}
+    actions, states = [], []
+    for file in files:
+        table = pq.read_table(file, columns=["action", "state"]).to_pydict()
+        actions.extend(table["action"])
+        states.extend(table["state"])
+    stats = {
+        "action": ActionNormalizer.from_actions(np.asarray(actions), ACTION_NORM_MASK).to_dict(),
+        "state": ActionNormalizer.from_actions(np.asarray(states)).to_dict(),
+        "num_frames": len(actions),
+        "num_episodes": len(files),
+    }
+    (root / "meta" / "stats.json").write_text(json.dumps(stats, indent=2))
+    return stats
+
+
+def read_stats(root: str | Path) -> tuple[ActionNormalizer, ActionNormalizer]:
+    """(action normaliser, state normaliser) of a dataset folder."""
+    path = Path(root) / "meta" / "stats.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path} is missing; run hf-specvla collect (it writes the statistics)")
+    stats = json.loads(path.read_text())
+    return ActionNormalizer.from_dict(stats["action"]), ActionNormalizer.from_dict(stats["state"])
+
+
+def dataset_info(root: str | Path) -> dict:
+    return json.loads((Path(root) / "meta" / "info.json").read_text())
+
+
+__all__ = [
+    "CollectSummary", "Demonstrations", "EnvConfig", "collect_demonstrations", "dataset_info", "load_demonstrations",
+    "read_stats", "write_stats", "asdict",
+]  # fmt: skip

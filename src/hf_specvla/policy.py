@@ -1,0 +1,268 @@
+"""An OpenVLA-style vision-language-action policy, small enough to train and run on a CPU.
+
+Model: a transformers ``LlavaForConditionalGeneration`` (CLIP vision encoder -> MLP projector -> Llama decoder),
+built from small configs; its decoder is a plain transformers language model, so ``generate`` (and the
+speculative engine, via ``assistant_model=DraftHead``) drives it unchanged.
+
+Prompt (OpenVLA's, plus the proprio state):
+
+    <s> <image> x N  "in: what action should the robot take to {instruction}?"  "state:" s1 s2 s3 s4  "out:"
+
+The image enters as N placeholder tokens that Llava replaces with projected patch features. The proprio state
+(hand xyz + gripper, 4 numbers) is q01/q99-normalised and discretised with the *action* tokenizer, i.e. it
+reuses the 256 bin tokens, so no new vocabulary is needed. The model then generates ``action_dim`` action tokens
+greedily; ``predict_action`` maps them back through the bin centers and the action statistics.
+
+One folder is a complete policy: ``save_pretrained`` writes the model, the tokenizer and ``policy_config.json``
+(image processing, prompt layout and the normalisation statistics).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from transformers import (
+    CLIPVisionConfig,
+    LlamaConfig,
+    LlavaConfig,
+    LlavaForConditionalGeneration,
+    PreTrainedTokenizerFast,
+)
+
+from .action_tokenizer import ActionNormalizer, ActionTokenizer
+from .generation import enable_speculation
+from .tokenization import build_vla_tokenizer
+
+POLICY_CONFIG_NAME = "policy_config.json"
+
+
+@dataclass
+class VLAPolicyConfig:
+    """What a policy is built from and how it reads observations. Saved as ``policy_config.json``.
+
+    Args:
+        image_size: side of the square RGB image the vision encoder takes (pixels).
+        patch_size: ViT patch size; the image becomes ``(image_size / patch_size) ** 2`` tokens.
+        action_dim / state_dim: action tokens per action, proprio numbers per observation.
+        use_state: put the discretised proprio state in the prompt.
+        vision_hidden_size, vision_layers, text_hidden_size, text_layers, text_heads: model sizes.
+        action_stats / state_stats: ``ActionNormalizer.to_dict()`` of the training data.
+    """
+
+    image_size: int = 64
+    patch_size: int = 16
+    action_dim: int = 4
+    state_dim: int = 4
+    use_state: bool = True
+    vision_hidden_size: int = 128
+    vision_layers: int = 3
+    text_hidden_size: int = 192
+    text_layers: int = 3
+    text_heads: int = 6
+    action_stats: dict = field(default_factory=dict)
+    state_stats: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.image_size % self.patch_size:
+            raise ValueError(f"image_size {self.image_size} must be a multiple of patch_size {self.patch_size}")
+        if self.action_dim < 1 or self.state_dim < 0:
+            raise ValueError(f"action_dim must be >= 1 and state_dim >= 0, got {self.action_dim}, {self.state_dim}")
+
+    @property
+    def num_image_tokens(self) -> int:
+        return (self.image_size // self.patch_size) ** 2
+
+
+class VLAPolicy:
+    """An OpenVLA-style policy: ``predict_action(image, instruction, state)`` -> un-normalised action.
+
+    Attributes:
+        model: the Llava model (speculation enabled: ``generate`` accepts a DraftHead assistant).
+        tokenizer, action_tokenizer, action_normalizer, state_normalizer, config.
+    """
+
+    def __init__(self, model, tokenizer, config: VLAPolicyConfig):
+        self.model = enable_speculation(model)
+        self.tokenizer = tokenizer
+        self.config = config
+        self.action_tokenizer = ActionTokenizer(len(tokenizer))
+        self.action_normalizer = ActionNormalizer.from_dict(config.action_stats) if config.action_stats else None
+        self.state_normalizer = ActionNormalizer.from_dict(config.state_stats) if config.state_stats else None
+        self._prefix_cache: dict[str, list[int]] = {}
+
+    # ----------------------------------------------------------------------------- building
+    @classmethod
+    def build(
+        cls,
+        instructions: list[str],
+        action_normalizer: ActionNormalizer,
+        state_normalizer: ActionNormalizer | None,
+        config: VLAPolicyConfig | None = None,
+        seed: int = 0,
+    ) -> VLAPolicy:
+        """A new, untrained policy whose tokenizer covers ``instructions``."""
+        config = config or VLAPolicyConfig()
+        if action_normalizer.action_dim != config.action_dim:
+            raise ValueError(
+                f"the action statistics have {action_normalizer.action_dim} dimensions, the policy "
+                f"action_dim={config.action_dim}"
+            )
+        config.action_stats = action_normalizer.to_dict()
+        config.state_stats = state_normalizer.to_dict() if state_normalizer is not None else {}
+        tokenizer = build_vla_tokenizer([*instructions, "state:"])
+        vision = CLIPVisionConfig(
+            hidden_size=config.vision_hidden_size, intermediate_size=2 * config.vision_hidden_size,
+            num_hidden_layers=config.vision_layers, num_attention_heads=4, image_size=config.image_size,
+            patch_size=config.patch_size, projection_dim=config.vision_hidden_size,
+        )  # fmt: skip
+        text = LlamaConfig(
+            vocab_size=len(tokenizer), hidden_size=config.text_hidden_size,
+            intermediate_size=2 * config.text_hidden_size, num_hidden_layers=config.text_layers,
+            num_attention_heads=config.text_heads, num_key_value_heads=max(1, config.text_heads // 2),
+            max_position_embeddings=256, bos_token_id=tokenizer.bos_token_id, eos_token_id=tokenizer.eos_token_id,
+            pad_token_id=tokenizer.pad_token_id,
+        )  # fmt: skip
+        llava = LlavaConfig(
+            vision_config=vision, text_config=text, image_token_id=tokenizer.convert_tokens_to_ids("<image>"),
+            image_seq_length=config.num_image_tokens, vision_feature_select_strategy="default",
+            vision_feature_layer=-1,
+        )  # fmt: skip
+        torch.manual_seed(seed)
+        model = LlavaForConditionalGeneration(llava)
+        model.generation_config.pad_token_id = tokenizer.pad_token_id
+        return cls(model.eval(), tokenizer, config)
+
+    # ----------------------------------------------------------------------------- inputs
+    def preprocess_images(self, images) -> torch.Tensor:
+        """uint8 images ``[S, S, 3]`` or ``[B, S, S, 3]`` -> pixel_values float ``[B, 3, S, S]`` in [-1, 1].
+
+        Raises:
+            ValueError / TypeError: wrong size, channel count or dtype, naming what was expected.
+        """
+        images = np.asarray(images)
+        if images.dtype != np.uint8:
+            raise TypeError(f"images must be uint8 RGB (0..255), got dtype {images.dtype}")
+        if images.ndim == 3:
+            images = images[None]
+        size = self.config.image_size
+        if images.ndim != 4 or images.shape[1:] != (size, size, 3):
+            raise ValueError(
+                f"images must have shape [{size}, {size}, 3] (or [B, {size}, {size}, 3]), got {images.shape}"
+            )
+        pixels = torch.from_numpy(images).permute(0, 3, 1, 2).float() / 127.5 - 1.0
+        return pixels.to(self.model.device, self.model.dtype)
+
+    def state_token_ids(self, state) -> list[int]:
+        """The discretised proprio state as action-bin token ids."""
+        state = np.asarray(state, dtype=np.float64).reshape(-1)
+        if state.shape[0] != self.config.state_dim:
+            raise ValueError(f"state must have {self.config.state_dim} numbers, got {state.shape[0]}")
+        normalized = self.state_normalizer.normalize(state) if self.state_normalizer else np.clip(state, -1, 1)
+        return self.action_tokenizer.encode(normalized).tolist()
+
+    def prompt_ids(self, instruction: str, state=None) -> list[int]:
+        """Token ids of the prompt (see module docstring)."""
+        if instruction not in self._prefix_cache:
+            text = f"In: What action should the robot take to {instruction.lower().strip().rstrip('.')}?"
+            encode = lambda t: self.tokenizer(t.lower(), add_special_tokens=False)["input_ids"]  # noqa: E731
+            image_id = self.tokenizer.convert_tokens_to_ids("<image>")
+            prefix = [self.tokenizer.bos_token_id] + [image_id] * self.config.num_image_tokens + encode(text)
+            self._prefix_cache[instruction] = prefix
+            self._state_word, self._out_words = encode("\nState:"), encode("\nOut:")
+        ids = list(self._prefix_cache[instruction])
+        if self.config.use_state:
+            if state is None:
+                raise ValueError("this policy was built with use_state=True: pass state=[x, y, z, gripper]")
+            ids += self._state_word + self.state_token_ids(state)
+        return ids + self._out_words
+
+    def action_token_ids(self, actions) -> np.ndarray:
+        """Raw actions ``[..., action_dim]`` -> their token ids (normalised with the policy's statistics)."""
+        return self.action_tokenizer.encode(self.action_normalizer.normalize(actions))
+
+    def training_batch(self, images, states, actions, instructions: list[str]) -> dict[str, torch.Tensor]:
+        """Teacher-forcing inputs for behaviour cloning: ``input_ids`` ``[B, L]`` (right-padded), ``attention_mask``,
+        ``pixel_values``, ``labels`` (-100 except on the action tokens)."""
+        action_ids = self.action_token_ids(np.asarray(actions))  # [B, A]
+        sequences = [
+            self.prompt_ids(instruction, state) + ids.tolist()
+            for instruction, state, ids in zip(instructions, states, action_ids)
+        ]
+        length = max(len(s) for s in sequences)
+        input_ids = torch.full((len(sequences), length), self.tokenizer.pad_token_id, dtype=torch.long)
+        attention_mask = torch.zeros_like(input_ids)
+        labels = torch.full_like(input_ids, -100)
+        for i, seq in enumerate(sequences):
+            input_ids[i, : len(seq)] = torch.tensor(seq)
+            attention_mask[i, : len(seq)] = 1
+            labels[i, len(seq) - self.config.action_dim : len(seq)] = input_ids[
+                i, len(seq) - self.config.action_dim : len(seq)
+            ]
+        return {
+            "input_ids": input_ids.to(self.model.device),
+            "attention_mask": attention_mask.to(self.model.device),
+            "pixel_values": self.preprocess_images(images),
+            "labels": labels.to(self.model.device),
+        }
+
+    # ----------------------------------------------------------------------------- acting
+    def reset(self) -> None:
+        """Start of an episode (the policy is stateless; kept for the LeRobot-style interface)."""
+
+    @torch.no_grad()
+    def predict_action(self, image, instruction: str, state=None, return_output: bool = False, **generate_kwargs):
+        """The action for one observation.
+
+        Args:
+            image: uint8 ``[S, S, 3]`` RGB.
+            instruction: the task in words.
+            state: the proprio state ``[state_dim]`` (required when ``config.use_state``).
+            return_output: also return ``generate``'s output (with ``return_dict_in_generate=True``: sequences,
+                and ``.speculation`` when a DraftHead drafted).
+            generate_kwargs: anything ``generate`` accepts, e.g. ``assistant_model=draft_head, bin_tolerance=2``.
+
+        Returns:
+            the un-normalised action, float64 ``[action_dim]`` (and the generate output if ``return_output``).
+        """
+        input_ids = torch.tensor([self.prompt_ids(instruction, state)], device=self.model.device)
+        kwargs = dict(max_new_tokens=self.config.action_dim, min_new_tokens=self.config.action_dim, do_sample=False)
+        if return_output:
+            kwargs["return_dict_in_generate"] = True
+        kwargs.update(generate_kwargs)
+        output = self.model.generate(input_ids=input_ids, pixel_values=self.preprocess_images(image), **kwargs)
+        sequences = output.sequences if hasattr(output, "sequences") else output
+        normalized = self.action_tokenizer.decode(sequences[0, -self.config.action_dim :])
+        action = self.action_normalizer.unnormalize(normalized)
+        return (action, output) if return_output else action
+
+    # ----------------------------------------------------------------------------- persistence
+    def save_pretrained(self, folder: str | Path) -> None:
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        self.model.save_pretrained(folder)
+        self.tokenizer.save_pretrained(folder)
+        (folder / POLICY_CONFIG_NAME).write_text(json.dumps(asdict(self.config), indent=2))
+
+    @classmethod
+    def from_pretrained(cls, folder: str | Path, **model_kwargs) -> VLAPolicy:
+        """Loads a policy folder written by ``save_pretrained``.
+
+        Raises:
+            FileNotFoundError: naming the missing folder or file.
+        """
+        folder = Path(folder)
+        if not folder.is_dir():
+            raise FileNotFoundError(f"policy folder {str(folder)!r} does not exist")
+        if not (folder / POLICY_CONFIG_NAME).exists():
+            raise FileNotFoundError(
+                f"{str(folder)!r} has no {POLICY_CONFIG_NAME}: not a policy saved by VLAPolicy.save_pretrained "
+                f"(or hf-specvla train-vla)"
+            )
+        config = VLAPolicyConfig(**json.loads((folder / POLICY_CONFIG_NAME).read_text()))
+        model = LlavaForConditionalGeneration.from_pretrained(folder, **model_kwargs)
+        tokenizer = PreTrainedTokenizerFast.from_pretrained(folder)
+        return cls(model.eval(), tokenizer, config)

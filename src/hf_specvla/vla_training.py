@@ -1,0 +1,218 @@
+"""Behaviour cloning of a [`VLAPolicy`] on Meta-World demonstrations, on accelerate.
+
+Next-token cross-entropy on the action tokens only (the prompt, image and state tokens carry no loss), AdamW with
+warm-up and cosine decay, random-shift image augmentation (pad 4 px by edge replication, crop back: DrQ's
+augmentation, which matters for behaviour cloning from pixels). Validation on held-out *episodes*: loss and
+action-token accuracy (teacher-forced argmax == demonstrated token). Periodic checkpoints with full accelerate
+state; ``resume=True`` continues from the newest one.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from accelerate import Accelerator
+from accelerate.utils import DataLoaderConfiguration, set_seed
+from torch.utils.data import DataLoader, Dataset
+from tqdm.auto import tqdm
+
+from .checkpointing import check_output_dir, resume_step, save_checkpoint
+from .demonstrations import Demonstrations
+from .envs.metaworld import TASK_INSTRUCTIONS
+from .policy import VLAPolicy
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class VLATrainingConfig:
+    """Settings of [`train_vla`].
+
+    Args:
+        output_dir: checkpoints (``checkpoint-<step>/policy``) and the final policy go here.
+        max_steps, batch_size, learning_rate, weight_decay, warmup_steps: optimisation (cosine decay to 0).
+        val_episodes: episodes per task held out for validation.
+        eval_every / save_every / log_every: steps between validation, checkpoints, log lines.
+        augment_shift: pixels of random-shift augmentation (0 = off).
+        resume / overwrite_output_dir / keep_checkpoints / seed: as in draft training.
+    """
+
+    output_dir: str
+    max_steps: int = 6000
+    batch_size: int = 64
+    learning_rate: float = 1e-3
+    weight_decay: float = 0.01
+    warmup_steps: int = 200
+    val_episodes: int = 2
+    eval_every: int = 500
+    save_every: int = 1000
+    log_every: int = 100
+    augment_shift: int = 4
+    keep_checkpoints: int = 2
+    resume: bool = False
+    overwrite_output_dir: bool = False
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("max_steps", "batch_size", "eval_every", "log_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.learning_rate > 0:
+            raise ValueError(f"learning_rate must be > 0, got {self.learning_rate}")
+        for name in ("save_every", "warmup_steps", "val_episodes", "augment_shift"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+
+
+class FrameDataset(Dataset):
+    """Frames of some episodes of a [`Demonstrations`]: ``(image, state, action, instruction)``."""
+
+    def __init__(self, demos: Demonstrations, indices: np.ndarray):
+        self.demos, self.indices = demos, indices
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, i: int):
+        j = int(self.indices[i])
+        return self.demos.images[j], self.demos.states[j], self.demos.actions[j], TASK_INSTRUCTIONS[self.demos.tasks[j]]
+
+
+def split_episodes(demos: Demonstrations, val_episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Frame indices (train, val): ``val_episodes`` random episodes of every task go to validation."""
+    rng = np.random.default_rng(seed)
+    tasks = np.asarray(demos.tasks)
+    val_ids: set[int] = set()
+    for task in sorted(set(demos.tasks)):
+        episodes = np.unique(demos.episode_index[tasks == task])
+        if len(episodes) > val_episodes:
+            val_ids.update(rng.choice(episodes, val_episodes, replace=False).tolist())
+    is_val = np.isin(demos.episode_index, list(val_ids))
+    return np.flatnonzero(~is_val), np.flatnonzero(is_val)
+
+
+def random_shift(images: np.ndarray, pad: int, rng: np.random.Generator) -> np.ndarray:
+    """DrQ augmentation: edge-pad ``[B, S, S, 3]`` uint8 images by ``pad`` and crop back at random offsets."""
+    if pad == 0:
+        return images
+    size = images.shape[1]
+    padded = np.pad(images, ((0, 0), (pad, pad), (pad, pad), (0, 0)), mode="edge")
+    out = np.empty_like(images)
+    for b, (dy, dx) in enumerate(rng.integers(0, 2 * pad + 1, size=(len(images), 2))):
+        out[b] = padded[b, dy : dy + size, dx : dx + size]
+    return out
+
+
+def _collate(batch):
+    images, states, actions, instructions = zip(*batch)
+    return np.stack(images), np.stack(states), np.stack(actions), list(instructions)
+
+
+@torch.no_grad()
+def validate(policy: VLAPolicy, loader: DataLoader) -> dict[str, float]:
+    """Mean loss and action-token accuracy (teacher-forced) over a loader."""
+    policy.model.eval()
+    total_loss = correct = count = batches = 0
+    for images, states, actions, instructions in loader:
+        batch = policy.training_batch(images, states, actions, instructions)
+        out = policy.model(**batch)
+        labels = batch["labels"][:, 1:]
+        predictions = out.logits[:, :-1].argmax(-1)
+        mask = labels != -100
+        correct += int((predictions[mask] == labels[mask]).sum())
+        count += int(mask.sum())
+        total_loss += out.loss.item()
+        batches += 1
+    policy.model.train()
+    return {"val_loss": total_loss / max(batches, 1), "val_action_token_accuracy": correct / max(count, 1)}
+
+
+def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfig, progress: bool = True) -> dict:
+    """Behaviour-clones ``policy`` on ``demos``; saves it to ``config.output_dir``; returns the last metrics."""
+    output_dir = Path(config.output_dir)
+    check_output_dir(output_dir, config.resume, config.overwrite_output_dir)
+    if demos.actions.shape[1] != policy.config.action_dim:
+        raise ValueError(
+            f"the demonstrations have {demos.actions.shape[1]}-dim actions, the policy action_dim="
+            f"{policy.config.action_dim}; build the policy from this dataset's statistics"
+        )
+    accelerator = Accelerator(dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True))
+    set_seed(config.seed)
+    train_idx, val_idx = split_episodes(demos, config.val_episodes, config.seed)
+    train_loader = DataLoader(FrameDataset(demos, train_idx), batch_size=config.batch_size, shuffle=True,
+                              collate_fn=_collate, drop_last=True)  # fmt: skip
+    val_loader = DataLoader(FrameDataset(demos, val_idx), batch_size=config.batch_size, collate_fn=_collate)
+    model = policy.model
+    model.train()
+    optimizer = torch.optim.AdamW(model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
+
+    def lr_factor(step: int) -> float:
+        if step < config.warmup_steps:
+            return (step + 1) / config.warmup_steps
+        progress_ = (step - config.warmup_steps) / max(1, config.max_steps - config.warmup_steps)
+        return 0.5 * (1.0 + math.cos(math.pi * min(progress_, 1.0)))
+
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lr_factor)
+    model, optimizer, train_loader, scheduler = accelerator.prepare(model, optimizer, train_loader, scheduler)
+    policy.model = model
+    step = resume_step(accelerator, output_dir) if config.resume else 0
+    if step:
+        logger.info("resuming VLA training from step %d", step)
+    history_path = output_dir / "training_log.jsonl"
+    metrics: dict[str, float] = {}
+    bar = tqdm(total=config.max_steps, initial=step, desc="train-vla", disable=not progress)
+    while step < config.max_steps:
+        epoch, offset = divmod(step, len(train_loader))
+        train_loader.set_epoch(epoch)
+        loader = accelerator.skip_first_batches(train_loader, offset) if offset else train_loader
+        for images, states, actions, instructions in loader:
+            rng = np.random.default_rng((config.seed, step))  # per step: a resumed run augments identically
+            batch = policy.training_batch(
+                random_shift(images, config.augment_shift, rng), states, actions, instructions
+            )
+            loss = model(**batch).loss
+            accelerator.backward(loss)
+            accelerator.clip_grad_norm_(model.parameters(), 1.0)
+            optimizer.step()
+            scheduler.step()
+            optimizer.zero_grad()
+            step += 1
+            bar.update(1)
+            metrics["loss"] = loss.item()
+            bar.set_postfix(loss=f"{metrics['loss']:.3f}")
+            if step % config.eval_every == 0 or step == config.max_steps:
+                if len(val_idx):
+                    metrics.update(validate(policy, val_loader))
+                logger.info("step %d: %s", step, metrics)
+            if accelerator.is_main_process and (step % config.log_every == 0 or step == config.max_steps):
+                output_dir.mkdir(parents=True, exist_ok=True)
+                with history_path.open("a") as log:
+                    log.write(json.dumps({"step": step, "lr": scheduler.get_last_lr()[0], **metrics}) + "\n")
+            if config.save_every and step % config.save_every == 0 and step < config.max_steps:
+                save_checkpoint(accelerator, output_dir, step, lambda f: _save(policy, accelerator, f / "policy"),
+                                config.keep_checkpoints)  # fmt: skip
+            if step >= config.max_steps:
+                break
+    bar.close()
+    if accelerator.is_main_process:
+        _save(policy, accelerator, output_dir)
+        (output_dir / "training_config.json").write_text(
+            json.dumps({**asdict(config), "final_metrics": metrics}, indent=2)
+        )
+    policy.model = accelerator.unwrap_model(model).eval()
+    return metrics
+
+
+def _save(policy: VLAPolicy, accelerator: Accelerator, folder: Path) -> None:
+    wrapped = policy.model
+    policy.model = accelerator.unwrap_model(wrapped)
+    try:
+        policy.save_pretrained(folder)
+    finally:
+        policy.model = wrapped

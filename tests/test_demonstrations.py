@@ -1,0 +1,68 @@
+"""Demonstration datasets: Parquet round trip, resume without duplicates, statistics, bad input."""
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("metaworld")
+
+from hf_specvla.demonstrations import (  # noqa: E402
+    collect_demonstrations,
+    collected_seeds,
+    load_demonstrations,
+    read_stats,
+)
+from hf_specvla.envs.metaworld import EnvConfig  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("demos")
+    collect_demonstrations(root, "reach", 2, EnvConfig(image_size=32), progress=False)
+    return root
+
+
+def test_round_trip_with_common_tools(dataset):
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(next((dataset / "data" / "reach-v3").glob("*.parquet"))).to_pydict()
+    assert list(table) == [
+        "episode_index", "step_index", "task", "instruction", "seed", "image", "state", "action", "success",
+    ]  # fmt: skip
+    assert table["success"][-1] and table["step_index"] == list(range(len(table["step_index"])))
+    demos = load_demonstrations(dataset, progress=False)
+    assert demos.images.shape[1:] == (32, 32, 3) and demos.images.dtype == np.uint8
+    assert len(demos) == len(demos.actions) == len(demos.states) == len(demos.tasks)
+    assert np.all(np.abs(demos.actions) <= 1.0)
+    assert len(np.unique(demos.episode_index)) == 2
+    info = json.loads((dataset / "meta" / "info.json").read_text())
+    assert info["image_size"] == 32 and info["action_dim"] == 4
+
+
+def test_resume_adds_only_missing_episodes(dataset):
+    before = collected_seeds(dataset, "reach-v3")
+    summary = collect_demonstrations(dataset, "reach", 3, EnvConfig(image_size=32), progress=False)
+    after = collected_seeds(dataset, "reach-v3")
+    assert summary.episodes_written == 1 and after[: len(before)] == before and len(after) == len(set(after)) == 3
+    # an interrupted write leaves a .tmp file, which is never read as an episode
+    (dataset / "data" / "reach-v3" / "episode_000099.parquet.tmp").write_bytes(b"partial")
+    assert collected_seeds(dataset, "reach-v3") == after
+    assert len(np.unique(load_demonstrations(dataset, progress=False).episode_index)) == 3
+
+
+def test_statistics(dataset):
+    action_norm, state_norm = read_stats(dataset)
+    assert action_norm.action_dim == 4 and state_norm.action_dim == 4
+    assert list(action_norm.mask) == [True, True, True, False]  # the gripper is not rescaled
+    assert np.all(action_norm.q01 <= action_norm.q99)
+
+
+def test_mixing_settings_is_refused(dataset):
+    with pytest.raises(ValueError, match="image_size=32"):
+        collect_demonstrations(dataset, "reach", 3, EnvConfig(image_size=48), progress=False)
+
+
+def test_missing_dataset(tmp_path):
+    with pytest.raises(FileNotFoundError, match="hf-specvla collect"):
+        load_demonstrations(tmp_path)

@@ -1,0 +1,42 @@
+"""Smoke runs of the Meta-World commands, sized for CI: collect -> train-vla -> eval, and resume."""
+
+import json
+
+import pytest
+
+pytest.importorskip("metaworld")
+
+from hf_specvla.cli import main  # noqa: E402
+
+
+def test_collect_train_eval(tmp_path, capsys):
+    data, policy, results = tmp_path / "demos", tmp_path / "policy", tmp_path / "eval"
+    assert (
+        main(["collect", "--tasks", "reach", "--episodes", "2", "--output-dir", str(data), "--image-size", "32"]) == 0
+    )
+    args = ["train-vla", "--data", str(data), "--output-dir", str(policy), "--max-steps", "3", "--batch-size", "8",
+            "--eval-every", "2", "--save-every", "2"]  # fmt: skip
+    assert main(args) == 0
+    assert (policy / "policy_config.json").exists() and (policy / "checkpoint-2" / "policy" / "config.json").exists()
+    with pytest.raises(FileExistsError, match="--resume"):
+        main(args)
+    assert main([*args[:5], "--max-steps", "4", "--batch-size", "8", "--resume"]) == 0
+    log = [json.loads(line) for line in (policy / "training_log.jsonl").read_text().splitlines()]
+    assert log[-1]["step"] == 4
+
+    eval_args = ["eval", "--policy", str(policy), "--tasks", "reach", "--episodes", "2", "--max-episode-steps", "5",
+                 "--output-dir", str(results), "--video", str(results / "first.gif")]  # fmt: skip
+    assert main(eval_args) == 0
+    out = capsys.readouterr().out
+    assert "| reach-v3 | 2 |" in out
+    summary = json.loads((results / "summary.json").read_text())
+    assert summary["tasks"]["reach-v3"]["mean_episode_length"] <= 5
+    assert (results / "first.gif").exists()
+    # resuming an evaluation reuses the episodes already on disk
+    assert main(eval_args) == 0
+    assert len((results / "episodes.jsonl").read_text().splitlines()) == 2
+
+
+def test_eval_refuses_missing_policy_and_stray_flags(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        main(["eval", "--policy", str(tmp_path / "none"), "--output-dir", str(tmp_path / "e")])

@@ -1,0 +1,107 @@
+"""The OpenVLA-style policy: loss, predict_action, save/load, bad input, and speculative decoding on it."""
+
+import numpy as np
+import pytest
+import torch
+
+from hf_specvla import ActionNormalizer, DraftHead
+from hf_specvla.policy import VLAPolicy, VLAPolicyConfig
+
+INSTRUCTIONS = ["reach the goal", "push the puck to the goal"]
+SMALL = dict(
+    image_size=32,
+    patch_size=16,
+    vision_hidden_size=32,
+    vision_layers=1,
+    text_hidden_size=64,
+    text_layers=2,
+    text_heads=4,
+)
+
+
+@pytest.fixture(scope="module")
+def policy():
+    actions = ActionNormalizer(q01=[-1.0, -0.5, -1.0, -1.0], q99=[1.0, 0.5, 0.2, 1.0], mask=[True, True, True, False])
+    states = ActionNormalizer(q01=[-0.1, 0.5, 0.05, 0.0], q99=[0.1, 0.9, 0.3, 1.0])
+    return VLAPolicy.build(INSTRUCTIONS, actions, states, VLAPolicyConfig(**SMALL))
+
+
+def observation(seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.integers(0, 256, (32, 32, 3), dtype=np.uint8), rng.uniform([-0.1, 0.5, 0.05, 0], [0.1, 0.9, 0.3, 1])
+
+
+def test_prompt_layout(policy):
+    image, state = observation()
+    ids = policy.prompt_ids("Reach the goal.", state)
+    tokens = policy.tokenizer.convert_ids_to_tokens(ids)
+    assert tokens[0] == "<s>" and tokens[1:5] == ["<image>"] * 4  # (32 / 16) ** 2 image tokens
+    assert tokens[-2:] == ["out", ":"] and tokens[-8:-6] == ["state", ":"]
+    assert all(policy.action_tokenizer.is_action_token(i) for i in ids[-6:-2])  # the state, as bin tokens
+
+
+def test_forward_loss_only_on_action_tokens(policy):
+    image, state = observation()
+    batch = policy.training_batch(image[None].repeat(2, 0), [state, state], [[0.1, 0.2, -0.3, 1.0]] * 2, INSTRUCTIONS)
+    assert int((batch["labels"] != -100).sum()) == 2 * 4
+    loss = policy.model(**batch).loss
+    assert torch.isfinite(loss) and loss.item() > 0
+
+
+def test_predict_action_shape_and_range(policy):
+    image, state = observation()
+    action = policy.predict_action(image, "reach the goal", state)
+    norm = policy.action_normalizer
+    assert action.shape == (4,)
+    assert np.all(action[:3] >= norm.q01[:3] - 1e-6) and np.all(action[:3] <= norm.q99[:3] + 1e-6)
+    assert -1.0 <= action[3] <= 1.0
+
+
+def test_save_load_gives_identical_actions(policy, tmp_path):
+    policy.save_pretrained(tmp_path)
+    loaded = VLAPolicy.from_pretrained(tmp_path)
+    for seed in range(3):
+        image, state = observation(seed)
+        np.testing.assert_array_equal(
+            loaded.predict_action(image, "push the puck to the goal", state),
+            policy.predict_action(image, "push the puck to the goal", state),
+        )
+    assert loaded.config == policy.config
+
+
+def test_speculative_decoding_on_the_policy_is_lossless(policy):
+    draft = DraftHead.from_target(policy.model, policy.action_tokenizer, action_dim=4, num_draft_tokens=3).eval()
+    for seed in range(5):
+        image, state = observation(seed)
+        plain = policy.predict_action(image, "reach the goal", state)
+        spec, out = policy.predict_action(image, "reach the goal", state, return_output=True, assistant_model=draft)
+        np.testing.assert_array_equal(plain, spec)
+        assert out.speculation.num_new_tokens == 4
+
+
+def test_bad_inputs(policy, tmp_path):
+    image, state = observation()
+    with pytest.raises(ValueError, match=r"shape \[32, 32, 3\]"):
+        policy.predict_action(np.zeros((48, 48, 3), np.uint8), "reach the goal", state)
+    with pytest.raises(TypeError, match="uint8"):
+        policy.predict_action(image.astype(np.float32), "reach the goal", state)
+    with pytest.raises(ValueError, match="state=\\[x, y, z, gripper\\]"):
+        policy.predict_action(image, "reach the goal")
+    with pytest.raises(ValueError, match="4 numbers"):
+        policy.predict_action(image, "reach the goal", [0.0, 1.0])
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        VLAPolicy.from_pretrained(tmp_path / "nowhere")
+    with pytest.raises(FileNotFoundError, match="policy_config.json"):
+        VLAPolicy.from_pretrained(tmp_path)
+
+
+def test_dataset_with_other_action_dim_is_refused(policy, tmp_path):
+    from hf_specvla.demonstrations import Demonstrations
+    from hf_specvla.vla_training import VLATrainingConfig, train_vla
+
+    demos = Demonstrations(
+        np.zeros((4, 32, 32, 3), np.uint8), np.zeros((4, 4), np.float32), np.zeros((4, 7), np.float32),
+        ["reach-v3"] * 4, np.zeros(4, np.int64),
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="7-dim actions, the policy action_dim=4"):
+        train_vla(policy, demos, VLATrainingConfig(str(tmp_path / "out"), max_steps=1))
