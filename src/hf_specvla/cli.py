@@ -28,6 +28,10 @@ import sys
 
 import torch
 
+from .envs.metaworld import EnvConfig
+from .evaluation import EVAL_SEED_START
+from .vla_training import VLATrainingConfig
+
 EXAMPLES = __doc__.split("Examples:", 1)[1]
 
 SIZES = {
@@ -38,6 +42,14 @@ SIZES = {
         hidden_size=256, num_hidden_layers=8, num_attention_heads=8, num_key_value_heads=4, intermediate_size=688
     ),
 }
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Keeps the examples' line breaks and shows every option's default."""
+
+
+def _subcommand(commands, name: str, help: str) -> argparse.ArgumentParser:
+    return commands.add_parser(name, help=help, epilog="examples:" + EXAMPLES, formatter_class=_HelpFormatter)
 
 
 def _add_benchmark_arguments(parser: argparse.ArgumentParser) -> None:
@@ -69,7 +81,6 @@ def _benchmark(pipeline, args) -> None:
 
 def _collect(args) -> int:
     from .demonstrations import collect_demonstrations
-    from .envs.metaworld import EnvConfig
 
     summary = collect_demonstrations(
         args.output_dir, args.tasks, args.episodes, EnvConfig(args.image_size, args.camera), args.seed_start
@@ -83,7 +94,7 @@ def _train_vla(args) -> int:
     from .demonstrations import dataset_info, load_demonstrations, read_stats
     from .envs.metaworld import TASK_INSTRUCTIONS
     from .policy import VLAPolicy, VLAPolicyConfig
-    from .vla_training import VLATrainingConfig, train_vla
+    from .vla_training import train_vla
 
     config = VLATrainingConfig(
         args.output_dir, max_steps=args.max_steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
@@ -102,8 +113,7 @@ def _train_vla(args) -> int:
 def _eval(args, parser) -> int:
     import json
 
-    from .envs.metaworld import EnvConfig
-    from .evaluation import EVAL_SEED_START, evaluate, format_summary
+    from .evaluation import evaluate, format_summary
     from .modeling_draft_head import DraftHead
     from .policy import VLAPolicy
 
@@ -119,9 +129,8 @@ def _eval(args, parser) -> int:
     elif args.bin_tolerance is not None or args.num_draft_tokens is not None:
         parser.error("--bin-tolerance / --num-draft-tokens need --draft-head")
     env_config = EnvConfig(policy.config.image_size, max_episode_steps=args.max_episode_steps)
-    seed_start = EVAL_SEED_START if args.seed_start is None else args.seed_start
     summary = evaluate(
-        policy, args.tasks, args.episodes, args.output_dir, env_config, seed_start, generate_kwargs, args.video
+        policy, args.tasks, args.episodes, args.output_dir, env_config, args.seed_start, generate_kwargs, args.video
     )
     print(format_summary(summary))
     print(json.dumps(summary["overall"]))
@@ -138,10 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     commands = parser.add_subparsers(dest="command", required=True)
 
-    demo = commands.add_parser(
-        "demo", help="train a toy VLA target + draft head on the spot and benchmark them",
-        epilog="examples:" + EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
-    )  # fmt: skip
+    demo = _subcommand(commands, "demo", "train a toy VLA target + draft head on the spot and benchmark them")
     demo.add_argument(
         "--output-dir", default="runs/toy", help="where target and draft head are kept (reused if present)"
     )
@@ -150,51 +156,39 @@ def main(argv: list[str] | None = None) -> int:
     demo.add_argument("--draft-steps", type=int, default=800)
     _add_benchmark_arguments(demo)
 
-    bench = commands.add_parser(
-        "benchmark", help="benchmark a pipeline saved by `demo`",
-        epilog="examples:" + EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
-    )  # fmt: skip
+    bench = _subcommand(commands, "benchmark", "benchmark a pipeline saved by `demo`")
     bench.add_argument("--pipeline-dir", required=True, help="a folder written by `hf-specvla demo`")
     _add_benchmark_arguments(bench)
 
-    collect = commands.add_parser(
-        "collect", help="record scripted-expert Meta-World demonstrations (Parquet; resumable)",
-        epilog="examples:" + EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
-    )  # fmt: skip
+    collect = _subcommand(commands, "collect", "record scripted-expert Meta-World demonstrations (Parquet; resumable)")
     collect.add_argument("--tasks", nargs="+", default=["MT10"], help="suites (MT10, MT50) and/or task names")
     collect.add_argument("--episodes", type=int, default=50, help="successful episodes per task")
     collect.add_argument("--output-dir", required=True, help="dataset folder (resumes if it exists)")
-    collect.add_argument("--image-size", type=int, default=64)
-    collect.add_argument("--camera", default="corner")
+    collect.add_argument("--image-size", type=int, default=EnvConfig.image_size)
+    collect.add_argument("--camera", default=EnvConfig.camera)
     collect.add_argument("--seed-start", type=int, default=0)
 
-    train = commands.add_parser(
-        "train-vla", help="behaviour-clone an OpenVLA-style policy on demonstrations (resumable)",
-        epilog="examples:" + EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
-    )  # fmt: skip
+    train = _subcommand(commands, "train-vla", "behaviour-clone an OpenVLA-style policy on demonstrations (resumable)")
     train.add_argument("--data", required=True, help="a folder written by `hf-specvla collect`")
     train.add_argument("--output-dir", required=True)
     train.add_argument("--tasks", nargs="+", default=None, help="train on these tasks only (default: all in --data)")
-    train.add_argument("--max-steps", type=int, default=6000)
-    train.add_argument("--batch-size", type=int, default=64)
-    train.add_argument("--learning-rate", type=float, default=1e-3)
-    train.add_argument("--eval-every", type=int, default=500)
-    train.add_argument("--save-every", type=int, default=1000)
+    train.add_argument("--max-steps", type=int, default=VLATrainingConfig.max_steps)
+    train.add_argument("--batch-size", type=int, default=VLATrainingConfig.batch_size)
+    train.add_argument("--learning-rate", type=float, default=VLATrainingConfig.learning_rate)
+    train.add_argument("--eval-every", type=int, default=VLATrainingConfig.eval_every)
+    train.add_argument("--save-every", type=int, default=VLATrainingConfig.save_every)
     train.add_argument("--no-state", action="store_true", help="do not give the proprio state to the model")
     train.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --output-dir")
     train.add_argument("--overwrite-output-dir", action="store_true")
-    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--seed", type=int, default=VLATrainingConfig.seed)
 
-    ev = commands.add_parser(
-        "eval", help="roll a policy out on Meta-World and report per-task success (resumable)",
-        epilog="examples:" + EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
-    )  # fmt: skip
+    ev = _subcommand(commands, "eval", "roll a policy out on Meta-World and report per-task success (resumable)")
     ev.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
     ev.add_argument("--tasks", nargs="+", default=["MT10"])
     ev.add_argument("--episodes", type=int, default=20, help="episodes per task")
     ev.add_argument("--output-dir", required=True, help="episodes.jsonl + summary.json go here (resumes)")
-    ev.add_argument("--seed-start", type=int, default=None, help="first evaluation seed (default 100000)")
-    ev.add_argument("--max-episode-steps", type=int, default=500)
+    ev.add_argument("--seed-start", type=int, default=EVAL_SEED_START, help="first evaluation seed")
+    ev.add_argument("--max-episode-steps", type=int, default=EnvConfig.max_episode_steps)
     ev.add_argument("--video", default=None, help="save the first episode as .gif / .mp4")
     ev.add_argument("--draft-head", default=None, help="speculative decoding with this DraftHead folder")
     ev.add_argument("--bin-tolerance", type=int, nargs="+", default=None, help="relaxed acceptance r (or one per dim)")

@@ -259,7 +259,9 @@ def train_draft_head(
     optimizer = torch.optim.AdamW(
         draft_head.parameters(), lr=config.learning_rate, betas=config.betas, weight_decay=config.weight_decay
     )
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: learning_rate_factor(step, config))
+    scheduler = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda step: learning_rate_factor(step, config.warmup_steps, config.max_steps, config.lr_schedule)
+    )
     loader = DataLoader(
         dataset, batch_size=config.batch_size, shuffle=True, collate_fn=collate_distillation, drop_last=False
     )
@@ -320,13 +322,14 @@ def train_draft_head(
     return model
 
 
-def learning_rate_factor(step: int, config: DraftTrainingConfig) -> float:
-    """Multiplier of the base learning rate at ``step``: linear warm-up, then constant or cosine decay."""
-    if step < config.warmup_steps:
-        return (step + 1) / config.warmup_steps
-    if config.lr_schedule == "constant":
+def learning_rate_factor(step: int, warmup_steps: int, max_steps: int, schedule: str) -> float:
+    """Multiplier of the base learning rate at ``step``: linear warm-up, then "constant" or "cosine" decay to 0
+    at ``max_steps``."""
+    if step < warmup_steps:
+        return (step + 1) / warmup_steps
+    if schedule == "constant":
         return 1.0
-    progress = (step - config.warmup_steps) / max(1, config.max_steps - config.warmup_steps)
+    progress = (step - warmup_steps) / max(1, max_steps - warmup_steps)
     return 0.5 * (1.0 + math.cos(math.pi * min(progress, 1.0)))
 
 

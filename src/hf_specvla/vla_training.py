@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from .checkpointing import check_output_dir, resume_step, save_checkpoint
 from .demonstrations import Demonstrations
 from .envs.metaworld import TASK_INSTRUCTIONS
 from .policy import VLAPolicy
+from .training import learning_rate_factor
 
 logger = logging.getLogger(__name__)
 
@@ -152,13 +152,9 @@ def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfi
     model.train()
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
 
-    def lr_factor(step: int) -> float:
-        if step < config.warmup_steps:
-            return (step + 1) / config.warmup_steps
-        progress_ = (step - config.warmup_steps) / max(1, config.max_steps - config.warmup_steps)
-        return 0.5 * (1.0 + math.cos(math.pi * min(progress_, 1.0)))
-
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lr_factor)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda step: learning_rate_factor(step, config.warmup_steps, config.max_steps, "cosine")
+    )
     model, optimizer, train_loader, scheduler = accelerator.prepare(model, optimizer, train_loader, scheduler)
     policy.model = model
     step = resume_step(accelerator, output_dir) if config.resume else 0
