@@ -22,7 +22,7 @@ import io
 import json
 import logging
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -288,9 +288,3 @@ def read_stats(root: str | Path) -> tuple[ActionNormalizer, ActionNormalizer]:
 
 def dataset_info(root: str | Path) -> dict:
     return json.loads((Path(root) / "meta" / "info.json").read_text())
-
-
-__all__ = [
-    "CollectSummary", "Demonstrations", "EnvConfig", "collect_demonstrations", "dataset_info", "load_demonstrations",
-    "read_stats", "write_stats", "asdict",
-]  # fmt: skip

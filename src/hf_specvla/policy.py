@@ -92,7 +92,8 @@ class VLAPolicy:
         self.action_tokenizer = ActionTokenizer(len(tokenizer))
         self.action_normalizer = ActionNormalizer.from_dict(config.action_stats) if config.action_stats else None
         self.state_normalizer = ActionNormalizer.from_dict(config.state_stats) if config.state_stats else None
-        self._prefix_cache: dict[str, list[int]] = {}
+        self._prefix_cache: dict[str, list[int]] = {}  # instruction -> [<s>, <image> x N, prompt text]
+        self._state_word, self._out_words = self._encode("\nState:"), self._encode("\nOut:")
 
     # ----------------------------------------------------------------------------- building
     @classmethod
@@ -164,15 +165,16 @@ class VLAPolicy:
         normalized = self.state_normalizer.normalize(state) if self.state_normalizer else np.clip(state, -1, 1)
         return self.action_tokenizer.encode(normalized).tolist()
 
+    def _encode(self, text: str) -> list[int]:
+        return self.tokenizer(text.lower(), add_special_tokens=False)["input_ids"]
+
     def prompt_ids(self, instruction: str, state=None) -> list[int]:
         """Token ids of the prompt (see module docstring)."""
         if instruction not in self._prefix_cache:
             text = f"In: What action should the robot take to {instruction.lower().strip().rstrip('.')}?"
-            encode = lambda t: self.tokenizer(t.lower(), add_special_tokens=False)["input_ids"]  # noqa: E731
             image_id = self.tokenizer.convert_tokens_to_ids("<image>")
-            prefix = [self.tokenizer.bos_token_id] + [image_id] * self.config.num_image_tokens + encode(text)
+            prefix = [self.tokenizer.bos_token_id] + [image_id] * self.config.num_image_tokens + self._encode(text)
             self._prefix_cache[instruction] = prefix
-            self._state_word, self._out_words = encode("\nState:"), encode("\nOut:")
         ids = list(self._prefix_cache[instruction])
         if self.config.use_state:
             if state is None:

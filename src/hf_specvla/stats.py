@@ -66,13 +66,12 @@ class SpeculationStats:
             draft_seconds=self.draft_seconds + other.draft_seconds,
             total_seconds=self.total_seconds + other.total_seconds,
         )
-        width = max(len(self.drafted_per_position), len(other.drafted_per_position))
-        for stats in (self, other):
-            pad = width - len(stats.drafted_per_position)
-            drafted = stats.drafted_per_position + [0] * pad
-            accepted = stats.accepted_per_position + [0] * pad
-            merged.drafted_per_position = [a + b for a, b in zip(merged.drafted_per_position or [0] * width, drafted)]
-            merged.accepted_per_position = [
-                a + b for a, b in zip(merged.accepted_per_position or [0] * width, accepted)
-            ]
+        merged.drafted_per_position = _add_padded(self.drafted_per_position, other.drafted_per_position)
+        merged.accepted_per_position = _add_padded(self.accepted_per_position, other.accepted_per_position)
         return merged
+
+
+def _add_padded(a: list[int], b: list[int]) -> list[int]:
+    """Element-wise sum of two count lists, the shorter one padded with zeros."""
+    width = max(len(a), len(b))
+    return [x + y for x, y in zip(a + [0] * (width - len(a)), b + [0] * (width - len(b)))]

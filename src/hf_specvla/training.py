@@ -331,8 +331,3 @@ def learning_rate_factor(step: int, warmup_steps: int, max_steps: int, schedule:
         return 1.0
     progress = (step - warmup_steps) / max(1, max_steps - warmup_steps)
     return 0.5 * (1.0 + math.cos(math.pi * min(progress, 1.0)))
-
-
-def default_steps_for(dataset_size: int, batch_size: int, epochs: float) -> int:
-    """Optimizer steps for ``epochs`` passes over a dataset."""
-    return max(1, math.ceil(epochs * dataset_size / batch_size))
