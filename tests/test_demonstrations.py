@@ -66,3 +66,48 @@ def test_mixing_settings_is_refused(dataset):
 def test_missing_dataset(tmp_path):
     with pytest.raises(FileNotFoundError, match="hf-specvla collect"):
         load_demonstrations(tmp_path)
+
+
+@pytest.fixture(scope="module")
+def noisy_dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("noisy_demos")
+    collect_demonstrations(root, "reach", 2, EnvConfig(image_size=32), progress=False, action_noise=0.3)
+    return root
+
+
+def test_action_noise_perturbs_the_path_but_records_clean_actions(dataset, noisy_dataset):
+    from hf_specvla.envs.metaworld import MetaWorldEnv
+
+    clean, noisy = load_demonstrations(dataset, progress=False), load_demonstrations(noisy_dataset, progress=False)
+    assert json.loads((noisy_dataset / "meta" / "info.json").read_text())["action_noise"] == 0.3
+    assert np.allclose(clean.states[0], noisy.states[0])  # same seed, same start ...
+    first = noisy.episode_index == noisy.episode_index[0]
+    n = min(first.sum(), (clean.episode_index == clean.episode_index[0]).sum())
+    assert not np.allclose(clean.states[:n], noisy.states[:n])  # ... then the executed noise moves the hand
+    # every recorded action is the expert's (clean) action in the recorded state, not the executed one
+    with MetaWorldEnv("reach-v3", EnvConfig(image_size=32)) as env:
+        env.reset(int(noisy.episode_index[0] % 1_000_000))
+        expert_first = env.expert_action()
+    assert np.allclose(noisy.actions[0], expert_first)
+    assert np.all(np.abs(noisy.actions) <= 1.0)
+
+
+def test_extending_with_other_noise_is_refused(noisy_dataset):
+    with pytest.raises(ValueError, match="action_noise=0.3"):
+        collect_demonstrations(noisy_dataset, "reach", 3, EnvConfig(image_size=32), progress=False)
+    with pytest.raises(ValueError, match=r"action_noise must be in \[0, 1\]"):
+        collect_demonstrations(noisy_dataset, "reach", 3, EnvConfig(image_size=32), progress=False, action_noise=-1)
+
+
+def test_several_folders_load_together(dataset, noisy_dataset, tmp_path):
+    single = [load_demonstrations(r, progress=False) for r in (dataset, noisy_dataset)]
+    both = load_demonstrations([dataset, noisy_dataset], progress=False)
+    assert len(both) == sum(len(d) for d in single)
+    # the same seeds in two folders are different episodes: ids stay unique
+    assert len(np.unique(both.episode_index)) == sum(len(np.unique(d.episode_index)) for d in single)
+    action_norm, _ = read_stats([dataset, noisy_dataset])
+    assert np.all(action_norm.q01 <= action_norm.q99)
+    other = tmp_path / "other"
+    collect_demonstrations(other, "reach", 1, EnvConfig(image_size=48), progress=False)
+    with pytest.raises(ValueError, match="image_size=48"):
+        load_demonstrations([dataset, other], progress=False)

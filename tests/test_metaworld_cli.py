@@ -10,17 +10,20 @@ from hf_specvla.cli import main  # noqa: E402
 
 
 def test_collect_train_eval(tmp_path, capsys):
-    data, policy, results = tmp_path / "demos", tmp_path / "policy", tmp_path / "eval"
+    data, noisy, policy, results = tmp_path / "demos", tmp_path / "noisy", tmp_path / "policy", tmp_path / "eval"
     assert (
         main(["collect", "--tasks", "reach", "--episodes", "2", "--output-dir", str(data), "--image-size", "32"]) == 0
     )
-    args = ["train-vla", "--data", str(data), "--output-dir", str(policy), "--max-steps", "3", "--batch-size", "8",
-            "--eval-every", "2", "--save-every", "2"]  # fmt: skip
+    assert main(["collect", "--tasks", "reach", "--episodes", "1", "--output-dir", str(noisy), "--image-size", "32",
+                 "--action-noise", "0.3", "--seed-start", "1000"]) == 0  # fmt: skip
+    args = ["train-vla", "--data", str(data), str(noisy), "--output-dir", str(policy), "--max-steps", "3",
+            "--batch-size", "8", "--eval-every", "2", "--save-every", "2", "--patch-size", "8"]  # fmt: skip
     assert main(args) == 0
     assert (policy / "policy_config.json").exists() and (policy / "checkpoint-2" / "policy" / "config.json").exists()
+    assert json.loads((policy / "policy_config.json").read_text())["patch_size"] == 8
     with pytest.raises(FileExistsError, match="--resume"):
         main(args)
-    assert main([*args[:5], "--max-steps", "4", "--batch-size", "8", "--resume"]) == 0
+    assert main([*args[:6], "--max-steps", "4", "--batch-size", "8", "--patch-size", "8", "--resume"]) == 0
     log = [json.loads(line) for line in (policy / "training_log.jsonl").read_text().splitlines()]
     assert log[-1]["step"] == 4
 

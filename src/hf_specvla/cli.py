@@ -30,6 +30,7 @@ import torch
 
 from .envs.metaworld import EnvConfig
 from .evaluation import EVAL_SEED_START
+from .policy import VLAPolicyConfig
 from .vla_training import VLATrainingConfig
 
 EXAMPLES = __doc__.split("Examples:", 1)[1]
@@ -82,8 +83,9 @@ def _benchmark(pipeline, args) -> None:
 def _collect(args) -> int:
     from .demonstrations import collect_demonstrations
 
+    env_config = EnvConfig(args.image_size, args.camera)
     summary = collect_demonstrations(
-        args.output_dir, args.tasks, args.episodes, EnvConfig(args.image_size, args.camera), args.seed_start
+        args.output_dir, args.tasks, args.episodes, env_config, args.seed_start, action_noise=args.action_noise
     )
     print(f"{summary.episodes_written} episodes written, {summary.episodes_present} in {args.output_dir}, "
           f"{summary.expert_failures} expert failures skipped")  # fmt: skip
@@ -93,7 +95,7 @@ def _collect(args) -> int:
 def _train_vla(args) -> int:
     from .demonstrations import dataset_info, load_demonstrations, read_stats
     from .envs.metaworld import TASK_INSTRUCTIONS
-    from .policy import VLAPolicy, VLAPolicyConfig
+    from .policy import VLAPolicy
     from .vla_training import train_vla
 
     config = VLATrainingConfig(
@@ -103,7 +105,9 @@ def _train_vla(args) -> int:
     )  # fmt: skip
     demos = load_demonstrations(args.data, args.tasks)
     action_stats, state_stats = read_stats(args.data)
-    policy_config = VLAPolicyConfig(image_size=dataset_info(args.data)["image_size"], use_state=not args.no_state)
+    policy_config = VLAPolicyConfig(
+        image_size=dataset_info(args.data)["image_size"], patch_size=args.patch_size, use_state=not args.no_state
+    )
     policy = VLAPolicy.build(list(TASK_INSTRUCTIONS.values()), action_stats, state_stats, policy_config, args.seed)
     metrics = train_vla(policy, demos, config)
     print(f"policy saved to {args.output_dir}: {metrics}")
@@ -167,9 +171,13 @@ def main(argv: list[str] | None = None) -> int:
     collect.add_argument("--image-size", type=int, default=EnvConfig.image_size, help="camera image side (px)")
     collect.add_argument("--camera", default=EnvConfig.camera, help="Meta-World camera")
     collect.add_argument("--seed-start", type=int, default=0, help="first seed tried per task")
+    collect.add_argument("--action-noise", type=float, default=0.0,
+                         help="std of Gaussian noise added to the executed expert action (recorded actions stay "
+                              "clean): recovery data for behaviour cloning (DART)")  # fmt: skip
 
     train = _subcommand(commands, "train-vla", "behaviour-clone an OpenVLA-style policy on demonstrations (resumable)")
-    train.add_argument("--data", required=True, help="a folder written by `hf-specvla collect`")
+    train.add_argument("--data", required=True, nargs="+",
+                       help="folders written by `hf-specvla collect` (same image size and camera)")  # fmt: skip
     train.add_argument("--output-dir", required=True, help="the policy folder (and checkpoints)")
     train.add_argument("--tasks", nargs="+", default=None, help="train on these tasks only (default: all in --data)")
     train.add_argument("--max-steps", type=int, default=VLATrainingConfig.max_steps, help="optimizer steps")
@@ -177,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     train.add_argument("--learning-rate", type=float, default=VLATrainingConfig.learning_rate, help="peak AdamW lr")
     train.add_argument("--eval-every", type=int, default=VLATrainingConfig.eval_every, help="steps between validations")
     train.add_argument("--save-every", type=int, default=VLATrainingConfig.save_every, help="steps between checkpoints")
+    train.add_argument("--patch-size", type=int, default=VLAPolicyConfig.patch_size,
+                       help="ViT patch size (px): the image becomes (image size / patch size)^2 tokens")  # fmt: skip
     train.add_argument("--no-state", action="store_true", help="do not give the proprio state to the model")
     train.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --output-dir")
     train.add_argument("--overwrite-output-dir", action="store_true", help="train from scratch into a non-empty folder")

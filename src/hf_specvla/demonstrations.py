@@ -82,8 +82,18 @@ def _write_episode(path: Path, rows: dict[str, list]) -> None:
     os.replace(tmp, path)  # atomic: a crash leaves either no episode or a whole one
 
 
-def record_episode(env: MetaWorldEnv, seed: int) -> dict[str, list] | None:
-    """Runs the expert from ``reset(seed)``; the episode's rows, or None when the expert failed."""
+def record_episode(env: MetaWorldEnv, seed: int, action_noise: float = 0.0) -> dict[str, list] | None:
+    """Runs the expert from ``reset(seed)``; the episode's rows, or None when the expert failed.
+
+    With ``action_noise > 0`` the env executes the expert's action plus Gaussian noise of that standard deviation
+    (clipped to [-1, 1]) while the rows record the expert's clean action: the demonstrations then visit states a
+    little off the expert's path and show how the expert recovers from them (DART, Laskey et al. 2017), which is
+    what a behaviour-cloned policy needs once its own small errors take it there. The noise is drawn from
+    ``seed``, so an episode is reproducible.
+    """
+    if action_noise < 0:
+        raise ValueError(f"action_noise must be >= 0, got {action_noise}")
+    rng = np.random.default_rng(seed)
     obs = env.reset(seed)
     rows: dict[str, list] = {k: [] for k in ("image", "state", "action", "success")}
     while True:
@@ -91,7 +101,11 @@ def record_episode(env: MetaWorldEnv, seed: int) -> dict[str, list] | None:
         rows["image"].append(_png(obs["image"]))
         rows["state"].append(obs["state"].tolist())
         rows["action"].append(action.tolist())
-        obs, _, done, info = env.step(action)
+        executed = action
+        if action_noise > 0:
+            noise = rng.normal(0.0, action_noise, size=action.shape)
+            executed = np.clip(action + noise, -1.0, 1.0).astype(np.float32)
+        obs, _, done, info = env.step(executed)
         rows["success"].append(info["success"])
         if done:
             break
@@ -108,7 +122,7 @@ def record_episode(env: MetaWorldEnv, seed: int) -> dict[str, list] | None:
     return rows
 
 
-def _check_info(root: Path, env_config: EnvConfig) -> None:
+def _check_info(root: Path, env_config: EnvConfig, action_noise: float) -> None:
     info_path = root / "meta" / "info.json"
     info = {
         "format": FORMAT_NAME,
@@ -117,6 +131,7 @@ def _check_info(root: Path, env_config: EnvConfig) -> None:
         "camera": env_config.camera,
         "action_dim": ACTION_DIM,
         "state_dim": STATE_DIM,
+        "action_noise": action_noise,
         "columns": [
             "episode_index",
             "step_index",
@@ -131,7 +146,8 @@ def _check_info(root: Path, env_config: EnvConfig) -> None:
     }
     if info_path.exists():
         existing = json.loads(info_path.read_text())
-        for key in ("format", "image_size", "camera", "action_dim"):
+        existing.setdefault("action_noise", 0.0)  # datasets written before the option existed
+        for key in ("format", "image_size", "camera", "action_dim", "action_noise"):
             if existing.get(key) != info[key]:
                 raise ValueError(
                     f"{root} holds a dataset with {key}={existing.get(key)!r}, but this collection uses "
@@ -165,18 +181,22 @@ def collect_demonstrations(
     seed_start: int = 0,
     max_seed_tries: int = 3,
     progress: bool = True,
+    action_noise: float = 0.0,
 ) -> CollectSummary:
     """Collects ``episodes_per_task`` successful expert episodes per task (resumable; see module docstring).
 
     Seeds ``seed_start, seed_start + 1, ...`` are tried in order; a seed whose expert episode fails is skipped
-    (at most ``max_seed_tries * episodes_per_task`` seeds per task).
+    (at most ``max_seed_tries * episodes_per_task`` seeds per task). ``action_noise``: see `record_episode`; it
+    is recorded in ``meta/info.json`` and a dataset is only ever extended with the same value.
     """
     if episodes_per_task < 1:
         raise ValueError(f"episodes_per_task must be >= 1, got {episodes_per_task}")
+    if not 0.0 <= action_noise <= 1.0:
+        raise ValueError(f"action_noise must be in [0, 1] (a standard deviation in action units), got {action_noise}")
     root = Path(output_dir)
     env_config = env_config or EnvConfig()
     tasks = resolve_tasks(tasks)
-    _check_info(root, env_config)
+    _check_info(root, env_config, float(action_noise))
     written = failures = 0
     total = len(tasks) * episodes_per_task
     done = {task: collected_seeds(root, task) for task in tasks}
@@ -192,7 +212,7 @@ def collect_demonstrations(
                     break
                 if seed in have:
                     continue
-                rows = record_episode(env, seed)
+                rows = record_episode(env, seed, action_noise)
                 if rows is None:
                     failures += 1
                     logger.info("expert failed on %s seed %d; skipped", task, seed)
@@ -225,66 +245,105 @@ class Demonstrations:
         return len(self.actions)
 
 
+#: Episode ids of the i-th of several loaded folders are offset by ``i * DATASET_EPISODE_OFFSET`` (unique).
+DATASET_EPISODE_OFFSET = 100_000_000
+
+
+def _as_roots(roots: str | Path | list[str | Path] | tuple[str | Path, ...]) -> list[Path]:
+    roots = [Path(r) for r in ([roots] if isinstance(roots, (str, Path)) else roots)]
+    if not roots:
+        raise ValueError("no demonstrations folder given")
+    for root in roots:
+        if not (root / "meta" / "info.json").exists():
+            raise FileNotFoundError(
+                f"{root} is not a demonstrations folder (no meta/info.json); run hf-specvla collect"
+            )
+    return roots
+
+
+def dataset_info(roots: str | Path | list[str | Path]) -> dict:
+    """``meta/info.json`` of a dataset folder; of several, the first one's after checking that they agree on
+    image size, camera and action / state dimensions (they may differ in ``action_noise``)."""
+    roots = _as_roots(roots)
+    infos = [json.loads((root / "meta" / "info.json").read_text()) for root in roots]
+    for root, info in zip(roots[1:], infos[1:]):
+        for key in ("format", "image_size", "camera", "action_dim", "state_dim"):
+            if info.get(key) != infos[0].get(key):
+                raise ValueError(
+                    f"{root} has {key}={info.get(key)!r} but {roots[0]} has {infos[0].get(key)!r}; "
+                    "only datasets collected with the same settings can be combined"
+                )
+    return infos[0]
+
+
 def load_demonstrations(
-    root: str | Path, tasks: str | list[str] | None = None, progress: bool = True
+    roots: str | Path | list[str | Path], tasks: str | list[str] | None = None, progress: bool = True
 ) -> Demonstrations:
-    """Reads every episode (of ``tasks``, default all) of a dataset folder."""
+    """Reads every episode (of ``tasks``, default all) of one dataset folder or of several compatible ones
+    (see `dataset_info`); episode ids stay unique (`DATASET_EPISODE_OFFSET`)."""
     import pyarrow.parquet as pq
 
-    root = Path(root)
-    if not (root / "meta" / "info.json").exists():
-        raise FileNotFoundError(f"{root} is not a demonstrations folder (no meta/info.json); run hf-specvla collect")
-    files = sorted((root / "data").glob("*/episode_*.parquet"))
-    if tasks is not None:
-        wanted = set(resolve_tasks(tasks))
-        files = [f for f in files if f.parent.name in wanted]
+    roots = _as_roots(roots)
+    dataset_info(roots)
+    files: list[tuple[int, Path]] = []
+    for position, root in enumerate(roots):
+        found = sorted((root / "data").glob("*/episode_*.parquet"))
+        if tasks is not None:
+            wanted = set(resolve_tasks(tasks))
+            found = [f for f in found if f.parent.name in wanted]
+        files.extend((position, f) for f in found)
     if not files:
-        raise FileNotFoundError(f"no episodes in {root / 'data'}")
+        raise FileNotFoundError(f"no episodes in {', '.join(str(r / 'data') for r in roots)}")
     images, states, actions, task_names, episodes = [], [], [], [], []
-    for file in tqdm(files, desc="load episodes", disable=not progress):
+    for position, file in tqdm(files, desc="load episodes", disable=not progress):
         table = pq.read_table(file).to_pydict()
         images.extend(decode_png(b) for b in table["image"])
         states.extend(table["state"])
         actions.extend(table["action"])
         task_names.extend(table["task"])
-        episodes.extend(table["episode_index"])
+        episodes.extend(e + position * DATASET_EPISODE_OFFSET for e in table["episode_index"])
     return Demonstrations(
         np.stack(images), np.asarray(states, np.float32), np.asarray(actions, np.float32), task_names,
         np.asarray(episodes, np.int64),
     )  # fmt: skip
 
 
-def write_stats(root: str | Path) -> dict:
-    """(Re)computes ``meta/stats.json`` from every episode on disk."""
+def _compute_stats(files: list[Path]) -> dict:
     import pyarrow.parquet as pq
 
-    root = Path(root)
-    files = sorted((root / "data").glob("*/episode_*.parquet"))
-    if not files:
-        return {}
     actions, states = [], []
     for file in files:
         table = pq.read_table(file, columns=["action", "state"]).to_pydict()
         actions.extend(table["action"])
         states.extend(table["state"])
-    stats = {
+    return {
         "action": ActionNormalizer.from_actions(np.asarray(actions), ACTION_NORM_MASK).to_dict(),
         "state": ActionNormalizer.from_actions(np.asarray(states)).to_dict(),
         "num_frames": len(actions),
         "num_episodes": len(files),
     }
+
+
+def write_stats(root: str | Path) -> dict:
+    """(Re)computes ``meta/stats.json`` from every episode on disk."""
+    root = Path(root)
+    files = sorted((root / "data").glob("*/episode_*.parquet"))
+    if not files:
+        return {}
+    stats = _compute_stats(files)
     (root / "meta" / "stats.json").write_text(json.dumps(stats, indent=2))
     return stats
 
 
-def read_stats(root: str | Path) -> tuple[ActionNormalizer, ActionNormalizer]:
-    """(action normaliser, state normaliser) of a dataset folder."""
-    path = Path(root) / "meta" / "stats.json"
-    if not path.exists():
-        raise FileNotFoundError(f"{path} is missing; run hf-specvla collect (it writes the statistics)")
-    stats = json.loads(path.read_text())
+def read_stats(roots: str | Path | list[str | Path]) -> tuple[ActionNormalizer, ActionNormalizer]:
+    """(action normaliser, state normaliser) of a dataset folder (its ``meta/stats.json``); of several folders,
+    computed over all their episodes together."""
+    roots = _as_roots(roots)
+    if len(roots) > 1:
+        stats = _compute_stats([f for root in roots for f in sorted((root / "data").glob("*/episode_*.parquet"))])
+    else:
+        path = roots[0] / "meta" / "stats.json"
+        if not path.exists():
+            raise FileNotFoundError(f"{path} is missing; run hf-specvla collect (it writes the statistics)")
+        stats = json.loads(path.read_text())
     return ActionNormalizer.from_dict(stats["action"]), ActionNormalizer.from_dict(stats["state"])
-
-
-def dataset_info(root: str | Path) -> dict:
-    return json.loads((Path(root) / "meta" / "info.json").read_text())
