@@ -23,6 +23,8 @@ def test_collect_train_eval(tmp_path, capsys):
     assert json.loads((policy / "policy_config.json").read_text())["patch_size"] == 8
     with pytest.raises(FileExistsError, match="--resume"):
         main(args)
+    with pytest.raises(ValueError, match="patch_size=8"):  # resuming must rebuild the same model
+        main([*args[:6], "--max-steps", "4", "--batch-size", "8", "--resume"])
     assert main([*args[:6], "--max-steps", "4", "--batch-size", "8", "--patch-size", "8", "--resume"]) == 0
     log = [json.loads(line) for line in (policy / "training_log.jsonl").read_text().splitlines()]
     assert log[-1]["step"] == 4
