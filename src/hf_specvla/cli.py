@@ -92,26 +92,6 @@ def _collect(args) -> int:
     return 0
 
 
-def _check_resumed_policy_config(output_dir: str, policy_config) -> None:
-    """A resumed run must build the same model as the checkpoint's; say which option differs."""
-    import json
-    from pathlib import Path
-
-    from .checkpointing import latest_checkpoint
-    from .policy import POLICY_CONFIG_NAME
-
-    checkpoint = latest_checkpoint(output_dir)
-    if checkpoint is None or not (checkpoint / "policy" / POLICY_CONFIG_NAME).exists():
-        return
-    saved = json.loads((Path(checkpoint) / "policy" / POLICY_CONFIG_NAME).read_text())
-    for key in ("image_size", "patch_size", "use_state"):
-        if key in saved and saved[key] != getattr(policy_config, key):
-            raise ValueError(
-                f"--resume: {checkpoint} was trained with {key}={saved[key]!r} but this command asks for "
-                f"{getattr(policy_config, key)!r}; repeat the original options"
-            )
-
-
 def _train_vla(args) -> int:
     from .demonstrations import dataset_info, load_demonstrations, read_stats
     from .envs.metaworld import TASK_INSTRUCTIONS
@@ -128,8 +108,6 @@ def _train_vla(args) -> int:
     policy_config = VLAPolicyConfig(
         image_size=dataset_info(args.data)["image_size"], patch_size=args.patch_size, use_state=not args.no_state
     )
-    if args.resume:
-        _check_resumed_policy_config(args.output_dir, policy_config)
     policy = VLAPolicy.build(list(TASK_INSTRUCTIONS.values()), action_stats, state_stats, policy_config, args.seed)
     metrics = train_vla(policy, demos, config)
     print(f"policy saved to {args.output_dir}: {metrics}")

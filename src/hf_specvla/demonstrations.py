@@ -82,6 +82,11 @@ def _write_episode(path: Path, rows: dict[str, list]) -> None:
     os.replace(tmp, path)  # atomic: a crash leaves either no episode or a whole one
 
 
+def _check_action_noise(action_noise: float) -> None:
+    if not 0.0 <= action_noise <= 1.0:
+        raise ValueError(f"action_noise must be in [0, 1] (a standard deviation in action units), got {action_noise}")
+
+
 def record_episode(env: MetaWorldEnv, seed: int, action_noise: float = 0.0) -> dict[str, list] | None:
     """Runs the expert from ``reset(seed)``; the episode's rows, or None when the expert failed.
 
@@ -91,8 +96,7 @@ def record_episode(env: MetaWorldEnv, seed: int, action_noise: float = 0.0) -> d
     what a behaviour-cloned policy needs once its own small errors take it there. The noise is drawn from
     ``seed``, so an episode is reproducible.
     """
-    if action_noise < 0:
-        raise ValueError(f"action_noise must be >= 0, got {action_noise}")
+    _check_action_noise(action_noise)
     rng = np.random.default_rng(seed)
     obs = env.reset(seed)
     rows: dict[str, list] = {k: [] for k in ("image", "state", "action", "success")}
@@ -191,8 +195,7 @@ def collect_demonstrations(
     """
     if episodes_per_task < 1:
         raise ValueError(f"episodes_per_task must be >= 1, got {episodes_per_task}")
-    if not 0.0 <= action_noise <= 1.0:
-        raise ValueError(f"action_noise must be in [0, 1] (a standard deviation in action units), got {action_noise}")
+    _check_action_noise(action_noise)
     root = Path(output_dir)
     env_config = env_config or EnvConfig()
     tasks = resolve_tasks(tasks)
@@ -249,6 +252,10 @@ class Demonstrations:
 DATASET_EPISODE_OFFSET = 100_000_000
 
 
+def _episode_files(root: Path) -> list[Path]:
+    return sorted((root / "data").glob("*/episode_*.parquet"))
+
+
 def _as_roots(roots: str | Path | list[str | Path] | tuple[str | Path, ...]) -> list[Path]:
     roots = [Path(r) for r in ([roots] if isinstance(roots, (str, Path)) else roots)]
     if not roots:
@@ -285,13 +292,13 @@ def load_demonstrations(
 
     roots = _as_roots(roots)
     dataset_info(roots)
-    files: list[tuple[int, Path]] = []
-    for position, root in enumerate(roots):
-        found = sorted((root / "data").glob("*/episode_*.parquet"))
-        if tasks is not None:
-            wanted = set(resolve_tasks(tasks))
-            found = [f for f in found if f.parent.name in wanted]
-        files.extend((position, f) for f in found)
+    wanted = None if tasks is None else set(resolve_tasks(tasks))
+    files = [
+        (position, f)
+        for position, root in enumerate(roots)
+        for f in _episode_files(root)
+        if wanted is None or f.parent.name in wanted
+    ]
     if not files:
         raise FileNotFoundError(f"no episodes in {', '.join(str(r / 'data') for r in roots)}")
     images, states, actions, task_names, episodes = [], [], [], [], []
@@ -327,7 +334,7 @@ def _compute_stats(files: list[Path]) -> dict:
 def write_stats(root: str | Path) -> dict:
     """(Re)computes ``meta/stats.json`` from every episode on disk."""
     root = Path(root)
-    files = sorted((root / "data").glob("*/episode_*.parquet"))
+    files = _episode_files(root)
     if not files:
         return {}
     stats = _compute_stats(files)
@@ -340,7 +347,7 @@ def read_stats(roots: str | Path | list[str | Path]) -> tuple[ActionNormalizer, 
     computed over all their episodes together."""
     roots = _as_roots(roots)
     if len(roots) > 1:
-        stats = _compute_stats([f for root in roots for f in sorted((root / "data").glob("*/episode_*.parquet"))])
+        stats = _compute_stats([f for root in roots for f in _episode_files(root)])
     else:
         path = roots[0] / "meta" / "stats.json"
         if not path.exists():

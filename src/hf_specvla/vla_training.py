@@ -21,10 +21,10 @@ from accelerate.utils import DataLoaderConfiguration, set_seed
 from torch.utils.data import DataLoader, Dataset
 from tqdm.auto import tqdm
 
-from .checkpointing import check_output_dir, resume_step, save_checkpoint
+from .checkpointing import check_output_dir, latest_checkpoint, resume_step, save_checkpoint
 from .demonstrations import Demonstrations
 from .envs.metaworld import TASK_INSTRUCTIONS
-from .policy import VLAPolicy
+from .policy import POLICY_CONFIG_NAME, VLAPolicy
 from .training import learning_rate_factor
 
 logger = logging.getLogger(__name__)
@@ -133,6 +133,21 @@ def validate(policy: VLAPolicy, loader: DataLoader) -> dict[str, float]:
     return {"val_loss": total_loss / max(batches, 1), "val_action_token_accuracy": correct / max(count, 1)}
 
 
+def _check_resumed_policy_config(output_dir: Path, policy_config) -> None:
+    """A resumed run must build the same model as its checkpoint; names the option that differs."""
+    checkpoint = latest_checkpoint(output_dir)
+    saved_path = checkpoint / "policy" / POLICY_CONFIG_NAME if checkpoint else None
+    if saved_path is None or not saved_path.exists():
+        return
+    saved = json.loads(saved_path.read_text())
+    for key in ("image_size", "patch_size", "use_state"):
+        if key in saved and saved[key] != getattr(policy_config, key):
+            raise ValueError(
+                f"--resume: {checkpoint} was trained with {key}={saved[key]!r} but this run asks for "
+                f"{getattr(policy_config, key)!r}; repeat the original options"
+            )
+
+
 def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfig, progress: bool = True) -> dict:
     """Behaviour-clones ``policy`` on ``demos``; saves it to ``config.output_dir``; returns the last metrics."""
     output_dir = Path(config.output_dir)
@@ -142,6 +157,8 @@ def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfi
             f"the demonstrations have {demos.actions.shape[1]}-dim actions, the policy action_dim="
             f"{policy.config.action_dim}; build the policy from this dataset's statistics"
         )
+    if config.resume:
+        _check_resumed_policy_config(output_dir, policy.config)
     accelerator = Accelerator(dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True))
     set_seed(config.seed)
     train_idx, val_idx = split_episodes(demos, config.val_episodes, config.seed)
