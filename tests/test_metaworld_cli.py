@@ -12,15 +12,17 @@ from hf_specvla.cli import main  # noqa: E402
 def test_collect_train_eval(tmp_path, capsys):
     data, noisy, policy, results = tmp_path / "demos", tmp_path / "noisy", tmp_path / "policy", tmp_path / "eval"
     assert (
-        main(["collect", "--tasks", "reach", "--episodes", "2", "--output-dir", str(data), "--image-size", "32"]) == 0
-    )
+        main(["collect", "--tasks", "reach", "--episodes", "2", "--output-dir", str(data), "--image-size", "32",
+              "--camera", "workspace"]) == 0
+    )  # fmt: skip
     assert main(["collect", "--tasks", "reach", "--episodes", "1", "--output-dir", str(noisy), "--image-size", "32",
-                 "--action-noise", "0.3", "--seed-start", "1000"]) == 0  # fmt: skip
+                 "--action-noise", "0.3", "--seed-start", "1000", "--camera", "workspace"]) == 0  # fmt: skip
     args = ["train-vla", "--data", str(data), str(noisy), "--output-dir", str(policy), "--max-steps", "3",
             "--batch-size", "8", "--eval-every", "2", "--save-every", "2", "--patch-size", "8"]  # fmt: skip
     assert main(args) == 0
     assert (policy / "policy_config.json").exists() and (policy / "checkpoint-2" / "policy" / "config.json").exists()
-    assert json.loads((policy / "policy_config.json").read_text())["patch_size"] == 8
+    saved_config = json.loads((policy / "policy_config.json").read_text())
+    assert saved_config["patch_size"] == 8 and saved_config["camera"] == "workspace"  # evaluation renders from it
     with pytest.raises(FileExistsError, match="--resume"):
         main(args)
     with pytest.raises(ValueError, match="patch_size=8"):  # resuming must rebuild the same model
@@ -40,6 +42,13 @@ def test_collect_train_eval(tmp_path, capsys):
     # resuming an evaluation reuses the episodes already on disk
     assert main(eval_args) == 0
     assert len((results / "episodes.jsonl").read_text().splitlines()) == 2
+    # a policy only sees the camera it was trained on
+    from hf_specvla.envs.metaworld import EnvConfig
+    from hf_specvla.evaluation import evaluate
+    from hf_specvla.policy import VLAPolicy
+
+    with pytest.raises(ValueError, match="trained on camera 'workspace', the env renders 'corner'"):
+        evaluate(VLAPolicy.from_pretrained(policy), "reach", 1, tmp_path / "e2", EnvConfig(32, "corner"))
 
 
 def test_eval_refuses_missing_policy_and_stray_flags(tmp_path):

@@ -44,6 +44,22 @@ def test_images_are_real_upright_and_sized():
         np.testing.assert_array_equal(raw[::-1, ::-1], image)
 
 
+def test_workspace_camera_is_real_upright_and_closer():
+    """The free ``workspace`` camera: real image of the requested size, not rotated, objects larger."""
+    images = {}
+    for camera in ("corner", "workspace"):
+        with MetaWorldEnv("push", EnvConfig(image_size=48, camera=camera)) as env:
+            images[camera] = env.reset(seed=0)["image"]
+    image = images["workspace"]
+    assert image.shape == (48, 48, 3) and image.dtype == np.uint8
+    assert image.std() > 10 and image.mean() > 20
+    # upright: the light floor beyond the table is at the top, the dark wooden table fills the bottom
+    assert image[:8].mean() > image[-8:].mean() + 20
+    # the green goal marker covers several times more pixels than from the far-away corner camera
+    green = {cam: int(((im[..., 1] > 150) & (im[..., 0] < 100)).sum()) for cam, im in images.items()}
+    assert green["workspace"] >= 3 * max(green["corner"], 1), green
+
+
 def test_same_seed_same_start_and_varied_seeds():
     with MetaWorldEnv("push") as env:
         first = env.reset(seed=3)

@@ -93,6 +93,8 @@ def test_bad_inputs(policy, tmp_path):
         VLAPolicy.from_pretrained(tmp_path / "nowhere")
     with pytest.raises(FileNotFoundError, match="policy_config.json"):
         VLAPolicy.from_pretrained(tmp_path)
+    with pytest.raises(ValueError, match="camera must be one of .*'workspace'.*got 'ceiling'"):
+        VLAPolicyConfig(camera="ceiling")
 
 
 def test_dataset_with_other_action_dim_is_refused(policy, tmp_path):

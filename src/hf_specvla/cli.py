@@ -105,8 +105,9 @@ def _train_vla(args) -> int:
     )  # fmt: skip
     demos = load_demonstrations(args.data, args.tasks)
     action_stats, state_stats = read_stats(args.data)
+    info = dataset_info(args.data)
     policy_config = VLAPolicyConfig(
-        image_size=dataset_info(args.data)["image_size"], patch_size=args.patch_size, use_state=not args.no_state
+        image_size=info["image_size"], camera=info["camera"], patch_size=args.patch_size, use_state=not args.no_state
     )
     policy = VLAPolicy.build(list(TASK_INSTRUCTIONS.values()), action_stats, state_stats, policy_config, args.seed)
     metrics = train_vla(policy, demos, config)
@@ -132,7 +133,7 @@ def _eval(args, parser) -> int:
             generate_kwargs["num_draft_tokens"] = args.num_draft_tokens
     elif args.bin_tolerance is not None or args.num_draft_tokens is not None:
         parser.error("--bin-tolerance / --num-draft-tokens need --draft-head")
-    env_config = EnvConfig(policy.config.image_size, max_episode_steps=args.max_episode_steps)
+    env_config = EnvConfig(policy.config.image_size, policy.config.camera, args.max_episode_steps)
     summary = evaluate(
         policy, args.tasks, args.episodes, args.output_dir, env_config, args.seed_start, generate_kwargs, args.video
     )

@@ -34,6 +34,7 @@ from transformers import (
 )
 
 from .action_tokenizer import ActionNormalizer, ActionTokenizer
+from .envs.metaworld import CAMERAS, EnvConfig
 from .generation import enable_speculation
 from .tokenization import build_vla_tokenizer
 
@@ -46,6 +47,7 @@ class VLAPolicyConfig:
 
     Args:
         image_size: side of the square RGB image the vision encoder takes (pixels).
+        camera: the camera the policy was trained on (``EnvConfig.camera``); evaluation renders from it.
         patch_size: ViT patch size; the image becomes ``(image_size / patch_size) ** 2`` tokens.
         action_dim / state_dim: action tokens per action, proprio numbers per observation.
         use_state: put the discretised proprio state in the prompt.
@@ -54,6 +56,7 @@ class VLAPolicyConfig:
     """
 
     image_size: int = 64
+    camera: str = EnvConfig.camera
     patch_size: int = 16
     action_dim: int = 4
     state_dim: int = 4
@@ -69,6 +72,8 @@ class VLAPolicyConfig:
     def __post_init__(self):
         if self.image_size % self.patch_size:
             raise ValueError(f"image_size {self.image_size} must be a multiple of patch_size {self.patch_size}")
+        if self.camera not in CAMERAS:
+            raise ValueError(f"camera must be one of {CAMERAS}, got {self.camera!r}")
         if self.action_dim < 1 or self.state_dim < 0:
             raise ValueError(f"action_dim must be >= 1 and state_dim >= 0, got {self.action_dim}, {self.state_dim}")
 

@@ -84,7 +84,13 @@ TASK_INSTRUCTIONS = {
 }
 
 SUITES = {"MT10": MT10_TASKS, "MT50": tuple(TASK_INSTRUCTIONS)}
-CAMERAS = ("corner", "corner2", "corner3", "topview", "behindGripper", "gripperPOV")
+#: Free (not model-defined) cameras: MuJoCo ``mjvCamera`` settings, lookat in world metres, angles in degrees.
+#: ``workspace`` looks at the table from the robot's front right, about three times closer than ``corner``,
+#: so that goal markers and pucks are several pixels wide even in 64 px images (one pixel from ``corner``).
+FREE_CAMERAS = {
+    "workspace": {"lookat": (-0.03, 0.7, 0.08), "distance": 0.85, "azimuth": 150.0, "elevation": -45.0},
+}
+CAMERAS = ("corner", "corner2", "corner3", "topview", "behindGripper", "gripperPOV", *FREE_CAMERAS)
 ACTION_DIM = 4  # xyz delta + gripper
 STATE_DIM = 4  # hand xyz + gripper opening
 MAX_EPISODE_STEPS = 500  # Meta-World's max_path_length
@@ -119,7 +125,7 @@ class EnvConfig:
 
     Args:
         image_size: side of the square camera image (pixels).
-        camera: a Meta-World camera; ``corner*`` images are rotated upright.
+        camera: a Meta-World camera (``corner*`` images are rotated upright) or one of ``FREE_CAMERAS``.
         max_episode_steps: steps before an episode is cut (at most Meta-World's 500).
     """
 
@@ -151,12 +157,16 @@ class MetaWorldEnv:
         from metaworld.env_dict import ALL_V3_ENVIRONMENTS
         from metaworld.policies import ENV_POLICY_MAP
 
-        size = self.config.image_size
+        size, camera = self.config.image_size, self.config.camera
+        view = {"camera_id": -1} if camera in FREE_CAMERAS else {"camera_name": camera}
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            env = ALL_V3_ENVIRONMENTS[self.task](
-                render_mode="rgb_array", camera_name=self.config.camera, width=size, height=size
-            )
+            env = ALL_V3_ENVIRONMENTS[self.task](render_mode="rgb_array", width=size, height=size, **view)
+        if camera in FREE_CAMERAS:  # applied to the viewer's camera when the renderer makes it (first render)
+            env.mujoco_renderer.default_cam_config = {
+                key: np.asarray(value) if isinstance(value, tuple) else value
+                for key, value in FREE_CAMERAS[camera].items()
+            }
         env.seeded_rand_vec = True  # starts are drawn from env.np_random, which reset(seed) seeds
         env._set_task_called = True
         env._partially_observable = False  # the scripted expert reads the goal from the raw observation
