@@ -61,6 +61,8 @@ def test_statistics(dataset):
 def test_mixing_settings_is_refused(dataset):
     with pytest.raises(ValueError, match="image_size=32"):
         collect_demonstrations(dataset, "reach", 3, EnvConfig(image_size=48), progress=False)
+    with pytest.raises(ValueError, match="hand_start_noise=0.0, but this collection uses 0.1"):
+        collect_demonstrations(dataset, "reach", 3, EnvConfig(image_size=32, hand_start_noise=0.1), progress=False)
 
 
 def test_missing_dataset(tmp_path):

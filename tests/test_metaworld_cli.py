@@ -13,8 +13,9 @@ def test_collect_train_eval(tmp_path, capsys):
     data, noisy, policy, results = tmp_path / "demos", tmp_path / "noisy", tmp_path / "policy", tmp_path / "eval"
     assert (
         main(["collect", "--tasks", "reach", "--episodes", "2", "--output-dir", str(data), "--image-size", "32",
-              "--camera", "workspace"]) == 0
+              "--camera", "workspace", "--hand-start-noise", "0.05"]) == 0
     )  # fmt: skip
+    assert json.loads((data / "meta" / "info.json").read_text())["hand_start_noise"] == 0.05
     assert main(["collect", "--tasks", "reach", "--episodes", "1", "--output-dir", str(noisy), "--image-size", "32",
                  "--action-noise", "0.3", "--seed-start", "1000", "--camera", "workspace"]) == 0  # fmt: skip
     args = ["train-vla", "--data", str(data), str(noisy), "--output-dir", str(policy), "--max-steps", "3",

@@ -72,6 +72,23 @@ def test_same_seed_same_start_and_varied_seeds():
         assert not np.array_equal(goal_a, env._raw_obs[-3:]) or not np.array_equal(first["image"], other["image"])
 
 
+def test_hand_start_noise_varies_only_the_hand_start_reproducibly():
+    with MetaWorldEnv("push") as env:
+        plain = env.reset(seed=5)["state"]
+        plain_goal, plain_puck = env._raw_obs[-3:].copy(), env._raw_obs[4:7].copy()
+    with MetaWorldEnv("push", EnvConfig(hand_start_noise=0.1)) as env:
+        starts = [env.reset(seed=seed)["state"] for seed in (5, 6, 5)]
+        np.testing.assert_allclose(env._raw_obs[-3:], plain_goal, atol=1e-4)  # same objects and goal as without
+        np.testing.assert_allclose(env._raw_obs[4:7], plain_puck, atol=1e-4)
+    np.testing.assert_array_equal(starts[0], starts[2])  # same seed, same start
+    assert not np.allclose(starts[0][:3], starts[1][:3])  # other seed, other hand start
+    for start in starts:  # within the noise (plus the few mm the reset's settling leaves)
+        assert np.all(np.abs(start[:3] - plain[:3]) <= 0.1 + 0.01)
+    assert np.abs(starts[0][:3] - plain[:3]).max() > 0.01
+    with pytest.raises(ValueError, match=r"hand_start_noise must be in \[0, 0.15\] metres, got -0.1"):
+        EnvConfig(hand_start_noise=-0.1)
+
+
 def test_several_envs_render_independently_and_close_cleanly():
     with MetaWorldEnv("drawer-open") as alone:
         expected = alone.reset(seed=1)["image"]

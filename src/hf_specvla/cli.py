@@ -28,7 +28,7 @@ import sys
 
 import torch
 
-from .envs.metaworld import EnvConfig
+from .envs.metaworld import CAMERAS, EnvConfig
 from .evaluation import EVAL_SEED_START
 from .policy import VLAPolicyConfig
 from .vla_training import VLATrainingConfig
@@ -83,7 +83,7 @@ def _benchmark(pipeline, args) -> None:
 def _collect(args) -> int:
     from .demonstrations import collect_demonstrations
 
-    env_config = EnvConfig(args.image_size, args.camera)
+    env_config = EnvConfig(args.image_size, args.camera, hand_start_noise=args.hand_start_noise)
     summary = collect_demonstrations(
         args.output_dir, args.tasks, args.episodes, env_config, args.seed_start, action_noise=args.action_noise
     )
@@ -170,11 +170,14 @@ def main(argv: list[str] | None = None) -> int:
     collect.add_argument("--episodes", type=int, default=50, help="successful episodes per task")
     collect.add_argument("--output-dir", required=True, help="dataset folder (resumes if it exists)")
     collect.add_argument("--image-size", type=int, default=EnvConfig.image_size, help="camera image side (px)")
-    collect.add_argument("--camera", default=EnvConfig.camera, help="Meta-World camera")
+    collect.add_argument("--camera", default=EnvConfig.camera, choices=CAMERAS, help="camera to render from")
     collect.add_argument("--seed-start", type=int, default=0, help="first seed tried per task")
     collect.add_argument("--action-noise", type=float, default=0.0,
                          help="std of Gaussian noise added to the executed expert action (recorded actions stay "
                               "clean): recovery data for behaviour cloning (DART)")  # fmt: skip
+    collect.add_argument("--hand-start-noise", type=float, default=EnvConfig.hand_start_noise,
+                         help="metres: uniform per-axis offset of the hand's start position, drawn from the seed "
+                              "(varied starts keep a cloned policy from copying the state's drift)")  # fmt: skip
 
     train = _subcommand(commands, "train-vla", "behaviour-clone an OpenVLA-style policy on demonstrations (resumable)")
     train.add_argument("--data", required=True, nargs="+",

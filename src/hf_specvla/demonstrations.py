@@ -136,6 +136,7 @@ def _check_info(root: Path, env_config: EnvConfig, action_noise: float) -> None:
         "action_dim": ACTION_DIM,
         "state_dim": STATE_DIM,
         "action_noise": action_noise,
+        "hand_start_noise": env_config.hand_start_noise,
         "columns": [
             "episode_index",
             "step_index",
@@ -150,8 +151,9 @@ def _check_info(root: Path, env_config: EnvConfig, action_noise: float) -> None:
     }
     if info_path.exists():
         existing = json.loads(info_path.read_text())
-        existing.setdefault("action_noise", 0.0)  # datasets written before the option existed
-        for key in ("format", "image_size", "camera", "action_dim", "action_noise"):
+        for key in ("action_noise", "hand_start_noise"):
+            existing.setdefault(key, 0.0)  # datasets written before the option existed
+        for key in ("format", "image_size", "camera", "action_dim", "action_noise", "hand_start_noise"):
             if existing.get(key) != info[key]:
                 raise ValueError(
                     f"{root} holds a dataset with {key}={existing.get(key)!r}, but this collection uses "

@@ -94,6 +94,7 @@ CAMERAS = ("corner", "corner2", "corner3", "topview", "behindGripper", "gripperP
 ACTION_DIM = 4  # xyz delta + gripper
 STATE_DIM = 4  # hand xyz + gripper opening
 MAX_EPISODE_STEPS = 500  # Meta-World's max_path_length
+MAX_HAND_START_NOISE = 0.15  # metres: further and some starts leave the reachable box or touch the objects
 
 
 def resolve_tasks(names: str | list[str] | tuple[str, ...]) -> list[str]:
@@ -127,11 +128,17 @@ class EnvConfig:
         image_size: side of the square camera image (pixels).
         camera: a Meta-World camera (``corner*`` images are rotated upright) or one of ``FREE_CAMERAS``.
         max_episode_steps: steps before an episode is cut (at most Meta-World's 500).
+        hand_start_noise: half-width (metres) of a uniform offset, per axis, added to the task's hand start
+            position at each reset, drawn from the reset seed. Meta-World starts the hand at one fixed point;
+            demonstrations from varied starts stop the hand position from giving away where the expert is
+            heading (a cloned policy then reads the goal from the image instead of copying the state's drift).
+            0 gives Meta-World's own starts (used for evaluation).
     """
 
     image_size: int = 64
     camera: str = "corner"
     max_episode_steps: int = MAX_EPISODE_STEPS
+    hand_start_noise: float = 0.0
 
     def __post_init__(self):
         if self.camera not in CAMERAS:
@@ -140,6 +147,10 @@ class EnvConfig:
             raise ValueError(f"image_size must be in [16, 512] pixels, got {self.image_size}")
         if not 1 <= self.max_episode_steps <= MAX_EPISODE_STEPS:
             raise ValueError(f"max_episode_steps must be in [1, {MAX_EPISODE_STEPS}], got {self.max_episode_steps}")
+        if not 0.0 <= self.hand_start_noise <= MAX_HAND_START_NOISE:
+            raise ValueError(
+                f"hand_start_noise must be in [0, {MAX_HAND_START_NOISE}] metres, got {self.hand_start_noise}"
+            )
 
 
 class MetaWorldEnv:
@@ -174,6 +185,7 @@ class MetaWorldEnv:
         env.__dict__.pop("sawyer_observation_space", None)
         env.model.vis.quality.offsamples = 0  # no multisampling: must be set before the first render
         self._env = env
+        self._hand_start = np.array(env.hand_init_pos, dtype=np.float64)
         self._expert = ENV_POLICY_MAP[self.task]()
         self._raw_obs: np.ndarray | None = None
         self._fast_render_set = False
@@ -212,6 +224,10 @@ class MetaWorldEnv:
     def reset(self, seed: int) -> dict:
         """Starts an episode whose object and goal positions are drawn from ``seed``."""
         self._env.seed(int(seed))
+        noise = self.config.hand_start_noise
+        if noise > 0:  # its own stream: the objects and goal are the same as without the noise
+            offset = np.random.default_rng([int(seed), 1]).uniform(-noise, noise, size=3)
+            self._env.hand_init_pos = self._hand_start + offset
         self._env._freeze_rand_vec = False  # draw a new start vector during this reset ...
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
