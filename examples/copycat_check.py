@@ -1,7 +1,7 @@
 """Does a Meta-World policy read its image, or copy its proprio state? (causal confusion / "copycat" check)
 
-    python examples/copycat_check.py --policy policies/mt10_vla --data runs/mt10_demos
-    python examples/copycat_check.py --policy runs/mt10_vla_hs --data runs/mt10_demos_hs --tasks reach push
+    python examples/copycat_check.py --policy policies/mt10_vla --data runs/mt10_demos_hs
+    python examples/copycat_check.py --policy runs/mt10_vla --data runs/mt10_demos --tasks reach push --pairs 5
 
 For pairs of demonstrations of the same task (seeds a, b) at the same step, it predicts the action from
 (image a, state a), (image b, state a) and (image a, state b), and reports per task the mean change of the xyz
