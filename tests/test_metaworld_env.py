@@ -6,6 +6,7 @@ import pytest
 pytest.importorskip("metaworld")
 
 from hf_specvla.envs.metaworld import (  # noqa: E402
+    FREE_CAMERAS,
     MT10_TASKS,
     TASK_INSTRUCTIONS,
     EnvConfig,
@@ -58,6 +59,16 @@ def test_workspace_camera_is_real_upright_and_closer():
     # the green goal marker covers several times more pixels than from the far-away corner camera
     green = {cam: int(((im[..., 1] > 150) & (im[..., 0] < 100)).sum()) for cam, im in images.items()}
     assert green["workspace"] >= 3 * max(green["corner"], 1), green
+
+
+def test_free_camera_settings_are_frozen():
+    """Datasets and the shipped policy record only the name ``workspace``: its view must never move."""
+    assert FREE_CAMERAS["workspace"] == {
+        "lookat": (-0.03, 0.7, 0.08),
+        "distance": 0.85,
+        "azimuth": 150.0,
+        "elevation": -45.0,
+    }
 
 
 def test_same_seed_same_start_and_varied_seeds():
