@@ -11,22 +11,20 @@ moves only with the state. Only reads the dataset and the policy (no simulator).
 """
 
 import argparse
-import io
 import itertools
 from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
-from PIL import Image
 
-from hf_specvla.demonstrations import dataset_info
+from hf_specvla.demonstrations import collected_seeds, dataset_info, decode_png, episode_path
 from hf_specvla.envs.metaworld import resolve_tasks
 from hf_specvla.policy import VLAPolicy
 
 
 def load_episode(path):
     table = pq.read_table(path).to_pydict()
-    images = [np.array(Image.open(io.BytesIO(png)).convert("RGB")) for png in table["image"]]
+    images = [decode_png(png) for png in table["image"]]
     return images, np.asarray(table["state"], np.float32), np.asarray(table["action"]), table["instruction"][0]
 
 
@@ -48,8 +46,8 @@ def main() -> None:
 
     print("| task | image swapped | state swapped | experts differ |\n|---|---:|---:|---:|")
     for task in resolve_tasks(args.tasks):
-        files = sorted(Path(args.data, "data", task).glob("episode_*.parquet"))
-        episodes = [load_episode(f) for f in files[: 2 * args.pairs]]
+        seeds = collected_seeds(Path(args.data), task)[: 2 * args.pairs]
+        episodes = [load_episode(episode_path(Path(args.data), task, seed)) for seed in seeds]
         image_change, state_change, expert_change = [], [], []
         for a, b in itertools.islice(zip(episodes[::2], episodes[1::2]), args.pairs):
             for step in args.steps:
