@@ -7,11 +7,14 @@ import pytest
 
 pytest.importorskip("metaworld")
 
+from hf_specvla import ActionNormalizer  # noqa: E402
 from hf_specvla.demonstrations import (  # noqa: E402
     collect_demonstrations,
     collected_seeds,
+    episode_path,
     load_demonstrations,
     read_stats,
+    record_episode,
 )
 from hf_specvla.envs.metaworld import EnvConfig  # noqa: E402
 
@@ -113,3 +116,68 @@ def test_several_folders_load_together(dataset, noisy_dataset, tmp_path):
     collect_demonstrations(other, "reach", 1, EnvConfig(image_size=48), progress=False)
     with pytest.raises(ValueError, match="image_size=48"):
         load_demonstrations([dataset, other], progress=False)
+
+
+# ----------------------------------------------------------------------------- policy-driven (DAgger) collection
+@pytest.fixture(scope="module")
+def tiny_policy():
+    from hf_specvla.envs.metaworld import TASK_INSTRUCTIONS
+    from hf_specvla.policy import VLAPolicy, VLAPolicyConfig
+
+    action_norm = ActionNormalizer(q01=[-1.0] * 4, q99=[1.0] * 4, mask=[True, True, True, False])
+    state_norm = ActionNormalizer(q01=[-0.5, 0.3, 0.0, 0.0], q99=[0.5, 0.9, 0.3, 1.0])
+    config = VLAPolicyConfig(image_size=32, vision_hidden_size=32, vision_layers=1, text_hidden_size=64,
+                             text_layers=1, text_heads=4)  # fmt: skip
+    return VLAPolicy.build(list(TASK_INSTRUCTIONS.values()), action_norm, state_norm, config, seed=0)
+
+
+SHORT = EnvConfig(image_size=32, max_episode_steps=12)
+
+
+def _replay(rows: dict, choose_action) -> None:
+    """Replays an episode from its seed: every recorded state must come back and every recorded action must be the
+    expert's in that state; ``choose_action(obs, expert_action)`` is what the collection executed."""
+    from hf_specvla.envs.metaworld import MetaWorldEnv
+
+    with MetaWorldEnv(rows["task"][0], SHORT) as env:
+        obs = env.reset(rows["seed"][0])
+        for state, action in zip(rows["state"], rows["action"]):
+            assert np.allclose(obs["state"], state, atol=1e-6)
+            expert = env.expert_action()
+            assert np.allclose(action, expert, atol=1e-6)
+            obs, *_ = env.step(choose_action(obs, expert))
+
+
+def test_policy_driven_episodes_keep_failures_and_label_with_the_expert(tiny_policy, tmp_path):
+    import pyarrow.parquet as pq
+
+    summary = collect_demonstrations(tmp_path, "reach", 2, SHORT, seed_start=7, progress=False, policy=tiny_policy)
+    assert summary.episodes_written == 2 and summary.expert_failures == 0
+    assert collected_seeds(tmp_path, "reach-v3") == [7, 8]  # every seed gives an episode
+    rows = pq.read_table(episode_path(tmp_path, "reach-v3", 7)).to_pydict()
+    assert len(rows["step_index"]) == 12 and not rows["success"][-1]  # a random policy fails: kept all the same
+    # the policy drove (replaying its actions reproduces the states) and the expert labelled every state
+    _replay(rows, lambda obs, expert: tiny_policy.predict_action(obs["image"], obs["instruction"], obs["state"]))
+    info = json.loads((tmp_path / "meta" / "info.json").read_text())
+    assert info["policy"] == "in-memory" and info["expert_mix"] == 0.0 and info["max_episode_steps"] == 12
+    assert summary.driven_successes == 0
+
+
+def test_expert_mix_one_is_the_expert_episode(tiny_policy):
+    from hf_specvla.envs.metaworld import MetaWorldEnv
+
+    with MetaWorldEnv("reach-v3", SHORT) as env:
+        rows = record_episode(env, 3, policy=tiny_policy, expert_mix=1.0)
+    _replay(rows, lambda obs, expert: expert)
+
+
+def test_policy_driven_bad_input(tiny_policy, tmp_path):
+    with pytest.raises(ValueError, match=r"expert_mix must be in \[0, 1\].*got 1.5"):
+        collect_demonstrations(tmp_path, "reach", 1, SHORT, progress=False, policy=tiny_policy, expert_mix=1.5)
+    with pytest.raises(ValueError, match="the policy reads 32px images, the env makes 48px"):
+        collect_demonstrations(tmp_path, "reach", 1, EnvConfig(image_size=48), progress=False, policy=tiny_policy)
+    collect_demonstrations(tmp_path, "reach", 1, SHORT, progress=False, policy=tiny_policy, expert_mix=0.5)
+    with pytest.raises(ValueError, match="expert_mix=0.5, but this collection uses 0.25"):
+        collect_demonstrations(tmp_path, "reach", 2, SHORT, progress=False, policy=tiny_policy, expert_mix=0.25)
+    with pytest.raises(ValueError, match="policy='in-memory', but this collection uses None"):
+        collect_demonstrations(tmp_path, "reach", 2, SHORT, progress=False)

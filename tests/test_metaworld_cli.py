@@ -7,6 +7,7 @@ import pytest
 pytest.importorskip("metaworld")
 
 from hf_specvla.cli import main  # noqa: E402
+from hf_specvla.demonstrations import load_demonstrations  # noqa: E402
 
 
 def test_collect_train_eval(tmp_path, capsys):
@@ -50,6 +51,17 @@ def test_collect_train_eval(tmp_path, capsys):
 
     with pytest.raises(ValueError, match="trained on camera 'workspace', the env renders 'corner'"):
         evaluate(VLAPolicy.from_pretrained(policy), "reach", 1, tmp_path / "e2", EnvConfig(32, "corner"))
+
+    # DAgger: the trained policy drives a collection (its camera and image size by default), the expert labels
+    dagger = tmp_path / "dagger"
+    assert main(["collect", "--policy", str(policy), "--tasks", "reach", "--episodes", "1", "--expert-mix", "0.5",
+                 "--max-episode-steps", "5", "--output-dir", str(dagger)]) == 0  # fmt: skip
+    assert "the policy solved" in capsys.readouterr().out
+    info = json.loads((dagger / "meta" / "info.json").read_text())
+    assert [info[k] for k in ("camera", "image_size", "policy", "expert_mix")] == ["workspace", 32, str(policy), 0.5]
+    assert len(load_demonstrations(dagger, progress=False)) == 5  # the failed episode is kept
+    with pytest.raises(SystemExit):  # --expert-mix without a policy to mix with
+        main(["collect", "--expert-mix", "0.5", "--output-dir", str(tmp_path / "none")])
 
 
 def test_eval_refuses_missing_policy_and_stray_flags(tmp_path):

@@ -18,6 +18,10 @@ Examples:
     hf-specvla eval --policy policies/mt10_vla --tasks MT10 --episodes 20 --output-dir runs/eval_greedy
     hf-specvla eval --policy policies/mt10_vla --tasks reach push --episodes 5 --video runs/reach.gif
     hf-specvla eval --policy policies/mt10_vla --draft-head runs/draft --bin-tolerance 2 --output-dir runs/eval_spec
+
+    # DAgger: the policy drives (a quarter of the steps run the expert), the expert labels every state it reaches
+    hf-specvla collect --policy policies/mt10_vla --expert-mix 0.25 --episodes 30 --seed-start 20000 \\
+        --max-episode-steps 250 --output-dir runs/mt10_dagger
 """
 
 from __future__ import annotations
@@ -80,15 +84,28 @@ def _benchmark(pipeline, args) -> None:
     print(format_report(results))
 
 
-def _collect(args) -> int:
+def _collect(args, parser) -> int:
     from .demonstrations import collect_demonstrations
 
-    env_config = EnvConfig(args.image_size, args.camera, hand_start_noise=args.hand_start_noise)
+    policy = None
+    if args.policy is not None:
+        from .policy import VLAPolicy
+
+        policy = VLAPolicy.from_pretrained(args.policy)
+    elif args.expert_mix is not None:
+        parser.error("--expert-mix needs --policy (it mixes expert steps into the policy's rollouts)")
+    # the image settings default to the driving policy's (it can only read what it was trained on)
+    image_size = args.image_size or (policy.config.image_size if policy else EnvConfig.image_size)
+    camera = args.camera or (policy.config.camera if policy else EnvConfig.camera)
+    env_config = EnvConfig(image_size, camera, args.max_episode_steps, args.hand_start_noise)
     summary = collect_demonstrations(
-        args.output_dir, args.tasks, args.episodes, env_config, args.seed_start, action_noise=args.action_noise
-    )
+        args.output_dir, args.tasks, args.episodes, env_config, args.seed_start, action_noise=args.action_noise,
+        policy=policy, expert_mix=args.expert_mix or 0.0,
+    )  # fmt: skip
     print(f"{summary.episodes_written} episodes written, {summary.episodes_present} in {args.output_dir}, "
           f"{summary.expert_failures} expert failures skipped")  # fmt: skip
+    if policy is not None:
+        print(f"the policy solved {summary.driven_successes} of the {summary.episodes_written} episodes it drove")
     return 0
 
 
@@ -167,10 +184,13 @@ def main(argv: list[str] | None = None) -> int:
 
     collect = _subcommand(commands, "collect", "record scripted-expert Meta-World demonstrations (Parquet; resumable)")
     collect.add_argument("--tasks", nargs="+", default=["MT10"], help="suites (MT10, MT50) and/or task names")
-    collect.add_argument("--episodes", type=int, default=50, help="successful episodes per task")
+    collect.add_argument("--episodes", type=int, default=50,
+                         help="successful episodes per task (with --policy: episodes, failed ones kept)")  # fmt: skip
     collect.add_argument("--output-dir", required=True, help="dataset folder (resumes if it exists)")
-    collect.add_argument("--image-size", type=int, default=EnvConfig.image_size, help="camera image side (px)")
-    collect.add_argument("--camera", default=EnvConfig.camera, choices=CAMERAS, help="camera to render from")
+    collect.add_argument("--image-size", type=int, default=None,
+                         help=f"image side (px) (default: the --policy's, else {EnvConfig.image_size})")  # fmt: skip
+    collect.add_argument("--camera", default=None, choices=CAMERAS,
+                         help=f"camera to render from (default: the --policy's, else {EnvConfig.camera})")  # fmt: skip
     collect.add_argument("--seed-start", type=int, default=0, help="first seed tried per task")
     collect.add_argument("--action-noise", type=float, default=0.0,
                          help="std of Gaussian noise added to the executed expert action (recorded actions stay "
@@ -178,6 +198,12 @@ def main(argv: list[str] | None = None) -> int:
     collect.add_argument("--hand-start-noise", type=float, default=EnvConfig.hand_start_noise,
                          help="metres: uniform per-axis offset of the hand's start position, drawn from the seed "
                               "(varied starts keep a cloned policy from copying the state's drift)")  # fmt: skip
+    collect.add_argument("--max-episode-steps", type=int, default=EnvConfig.max_episode_steps, help="step limit")
+    collect.add_argument("--policy", default=None,
+                         help="DAgger: this policy folder drives, the expert labels the states it reaches")  # fmt: skip
+    collect.add_argument("--expert-mix", type=float, default=None,
+                         help="with --policy: probability that a step runs the expert instead (default 0)")  # fmt: skip
+    collect.add_argument("--threads", type=int, default=None, help="torch CPU threads (with --policy)")
 
     train = _subcommand(commands, "train-vla", "behaviour-clone an OpenVLA-style policy on demonstrations (resumable)")
     train.add_argument("--data", required=True, nargs="+",
@@ -220,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     from pathlib import Path
 
     if args.command == "collect":
-        return _collect(args)
+        return _collect(args, collect)
     if args.command == "train-vla":
         return _train_vla(args)
     if args.command == "eval":

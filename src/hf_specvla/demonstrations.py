@@ -4,14 +4,17 @@ Layout of a dataset folder (readable with pandas / pyarrow / polars; images are 
 
     meta/info.json          format, version, image size, camera, action/state dims, the column schema
     meta/stats.json         q01 / q99 (and the normalisation mask) of actions and states, over all episodes
-    data/<task>/episode_<seed>.parquet   one successful episode, one row per step
+    data/<task>/episode_<seed>.parquet   one episode, one row per step
 
 Columns: ``episode_index`` int64 (``task_index * 1_000_000 + seed``), ``step_index`` int32, ``task`` str,
 ``instruction`` str, ``seed`` int64, ``image`` binary (PNG, uint8 [S, S, 3], upright), ``state`` list<float32>[4]
 (hand xyz, gripper), ``action`` list<float32>[4] (the expert's action clipped to [-1, 1]), ``success`` bool (the
 task is solved after this step).
 
-Only successful episodes are kept. Each episode file is written to a temporary name and renamed, so an
+Only successful episodes are kept, except in a *policy-driven* (DAgger) collection: there a trained policy
+drives (``collect --policy``), the expert only labels the states it reaches, and every episode is kept, failed
+ones included (they hold the states the policy needs to learn to leave; ``success`` tells them apart). Each
+episode file is written to a temporary name and renamed, so an
 interrupted collection leaves whole episodes only; running the same command again skips the seeds already on
 disk and collects the rest (no duplicates, nothing lost).
 """
@@ -29,7 +32,15 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from .action_tokenizer import ActionNormalizer
-from .envs.metaworld import ACTION_DIM, STATE_DIM, TASK_INSTRUCTIONS, EnvConfig, MetaWorldEnv, resolve_tasks
+from .envs.metaworld import (
+    ACTION_DIM,
+    MAX_EPISODE_STEPS,
+    STATE_DIM,
+    TASK_INSTRUCTIONS,
+    EnvConfig,
+    MetaWorldEnv,
+    resolve_tasks,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -87,18 +98,35 @@ def _check_action_noise(action_noise: float) -> None:
         raise ValueError(f"action_noise must be in [0, 1] (a standard deviation in action units), got {action_noise}")
 
 
-def record_episode(env: MetaWorldEnv, seed: int, action_noise: float = 0.0) -> dict[str, list] | None:
-    """Runs the expert from ``reset(seed)``; the episode's rows, or None when the expert failed.
+def _check_expert_mix(expert_mix: float) -> None:
+    if not 0.0 <= expert_mix <= 1.0:
+        raise ValueError(
+            f"expert_mix must be in [0, 1] (the probability that a step runs the expert), got {expert_mix}"
+        )
 
-    With ``action_noise > 0`` the env executes the expert's action plus Gaussian noise of that standard deviation
-    (clipped to [-1, 1]) while the rows record the expert's clean action: the demonstrations then visit states a
-    little off the expert's path and show how the expert recovers from them (DART, Laskey et al. 2017), which is
-    what a behaviour-cloned policy needs once its own small errors take it there. The noise is drawn from
-    ``seed``, so an episode is reproducible.
+
+def record_episode(
+    env: MetaWorldEnv, seed: int, action_noise: float = 0.0, policy=None, expert_mix: float = 0.0
+) -> dict[str, list] | None:
+    """Runs one episode from ``reset(seed)`` and returns its rows; the action of every row is the scripted
+    expert's action in that row's state.
+
+    Without ``policy`` the expert drives and a failed episode gives None. With ``action_noise > 0`` the env
+    executes the expert's action plus Gaussian noise of that standard deviation (clipped to [-1, 1]) while the
+    rows record the expert's clean action: the demonstrations then visit states a little off the expert's path
+    and show how the expert recovers from them (DART, Laskey et al. 2017).
+
+    With ``policy`` (a [`VLAPolicy`], greedy) the policy drives instead, except that each step runs the expert's
+    action with probability ``expert_mix``; the expert still labels every state (DAgger, Ross et al. 2011: the
+    labels cover the states the policy itself reaches, its mistakes included). The episode is returned whether
+    or not it succeeded. The noise and the mixing are drawn from ``seed``, so an episode is reproducible.
     """
     _check_action_noise(action_noise)
+    _check_expert_mix(expert_mix)
     rng = np.random.default_rng(seed)
     obs = env.reset(seed)
+    if policy is not None:
+        policy.reset()
     rows: dict[str, list] = {k: [] for k in ("image", "state", "action", "success")}
     while True:
         action = env.expert_action()
@@ -106,14 +134,16 @@ def record_episode(env: MetaWorldEnv, seed: int, action_noise: float = 0.0) -> d
         rows["state"].append(obs["state"].tolist())
         rows["action"].append(action.tolist())
         executed = action
+        if policy is not None and rng.random() >= expert_mix:
+            executed = policy.predict_action(obs["image"], obs["instruction"], obs["state"])
         if action_noise > 0:
             noise = rng.normal(0.0, action_noise, size=action.shape)
-            executed = np.clip(action + noise, -1.0, 1.0).astype(np.float32)
+            executed = np.clip(executed + noise, -1.0, 1.0).astype(np.float32)
         obs, _, done, info = env.step(executed)
         rows["success"].append(info["success"])
         if done:
             break
-    if not info["success"]:
+    if not info["success"] and policy is None:
         return None
     n = len(rows["image"])
     rows.update(
@@ -126,7 +156,17 @@ def record_episode(env: MetaWorldEnv, seed: int, action_noise: float = 0.0) -> d
     return rows
 
 
-def _check_info(root: Path, env_config: EnvConfig, action_noise: float) -> None:
+#: info.json keys added after format version 1 was first written, with the value that older datasets had.
+_INFO_DEFAULTS = {
+    "action_noise": 0.0,
+    "hand_start_noise": 0.0,
+    "max_episode_steps": MAX_EPISODE_STEPS,
+    "policy": None,
+    "expert_mix": None,
+}
+
+
+def _check_info(root: Path, env_config: EnvConfig, action_noise: float, driver: dict) -> None:
     info_path = root / "meta" / "info.json"
     info = {
         "format": FORMAT_NAME,
@@ -137,6 +177,8 @@ def _check_info(root: Path, env_config: EnvConfig, action_noise: float) -> None:
         "state_dim": STATE_DIM,
         "action_noise": action_noise,
         "hand_start_noise": env_config.hand_start_noise,
+        "max_episode_steps": env_config.max_episode_steps,
+        **driver,
         "columns": [
             "episode_index",
             "step_index",
@@ -151,9 +193,10 @@ def _check_info(root: Path, env_config: EnvConfig, action_noise: float) -> None:
     }
     if info_path.exists():
         existing = json.loads(info_path.read_text())
-        for key in ("action_noise", "hand_start_noise"):
-            existing.setdefault(key, 0.0)  # datasets written before the option existed
-        for key in ("format", "image_size", "camera", "action_dim", "action_noise", "hand_start_noise"):
+        for key, default in _INFO_DEFAULTS.items():
+            existing.setdefault(key, default)  # datasets written before the option existed
+        keys = ("format", "image_size", "camera", "action_dim", *_INFO_DEFAULTS)
+        for key in keys:
             if existing.get(key) != info[key]:
                 raise ValueError(
                     f"{root} holds a dataset with {key}={existing.get(key)!r}, but this collection uses "
@@ -177,6 +220,9 @@ class CollectSummary:
     episodes_written: int
     episodes_present: int
     expert_failures: int
+    #: policy-driven collections: how many of the episodes written this run the policy (with the mixed-in
+    #: expert steps) solved
+    driven_successes: int = 0
 
 
 def collect_demonstrations(
@@ -188,21 +234,34 @@ def collect_demonstrations(
     max_seed_tries: int = 3,
     progress: bool = True,
     action_noise: float = 0.0,
+    policy=None,
+    expert_mix: float = 0.0,
 ) -> CollectSummary:
     """Collects ``episodes_per_task`` successful expert episodes per task (resumable; see module docstring).
 
     Seeds ``seed_start, seed_start + 1, ...`` are tried in order; a seed whose expert episode fails is skipped
-    (at most ``max_seed_tries * episodes_per_task`` seeds per task). ``action_noise``: see `record_episode`; it
-    is recorded in ``meta/info.json`` and a dataset is only ever extended with the same value.
+    (at most ``max_seed_tries * episodes_per_task`` seeds per task). ``action_noise``: see `record_episode`.
+
+    With ``policy`` (a [`VLAPolicy`]) the collection is policy-driven (DAgger; see `record_episode`): the policy
+    acts, a step runs the expert's action with probability ``expert_mix``, the expert labels every state, and the
+    seeds ``seed_start .. seed_start + episodes_per_task - 1`` each give one episode, failed or not. The policy's
+    folder, ``expert_mix``, ``action_noise`` and the env settings are recorded in ``meta/info.json``; a dataset
+    is only ever extended with the same values.
     """
     if episodes_per_task < 1:
         raise ValueError(f"episodes_per_task must be >= 1, got {episodes_per_task}")
     _check_action_noise(action_noise)
+    _check_expert_mix(expert_mix)
     root = Path(output_dir)
     env_config = env_config or EnvConfig()
     tasks = resolve_tasks(tasks)
-    _check_info(root, env_config, float(action_noise))
-    written = failures = 0
+    driver = {"policy": None, "expert_mix": None}
+    if policy is not None:
+        policy.check_env_config(env_config)
+        driver = {"policy": policy.name_or_path or "in-memory", "expert_mix": float(expert_mix)}
+        max_seed_tries = 1  # every seed gives an episode
+    _check_info(root, env_config, float(action_noise), driver)
+    written = failures = driven_successes = 0
     total = len(tasks) * episodes_per_task
     done = {task: collected_seeds(root, task) for task in tasks}
     bar = tqdm(total=total, initial=sum(min(len(s), episodes_per_task) for s in done.values()),
@@ -217,7 +276,7 @@ def collect_demonstrations(
                     break
                 if seed in have:
                     continue
-                rows = record_episode(env, seed, action_noise)
+                rows = record_episode(env, seed, action_noise, policy, expert_mix)
                 if rows is None:
                     failures += 1
                     logger.info("expert failed on %s seed %d; skipped", task, seed)
@@ -225,13 +284,14 @@ def collect_demonstrations(
                 _write_episode(episode_path(root, task, seed), rows)
                 have.add(seed)
                 written += 1
+                driven_successes += policy is not None and rows["success"][-1]
                 bar.update(1)
         if len(have) < episodes_per_task:
             logger.warning("%s: only %d successful episodes within the seed budget", task, len(have))
     bar.close()
     write_stats(root)
     present = sum(len(collected_seeds(root, t)) for t in tasks)
-    return CollectSummary(written, present, failures)
+    return CollectSummary(written, present, failures, driven_successes)
 
 
 # ----------------------------------------------------------------------------- reading

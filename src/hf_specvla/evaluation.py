@@ -126,15 +126,7 @@ def evaluate(
         raise ValueError(f"episodes_per_task must be >= 1, got {episodes_per_task}")
     tasks = resolve_tasks(tasks)
     env_config = env_config or EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)
-    if env_config.image_size != policy.config.image_size:
-        raise ValueError(
-            f"the policy reads {policy.config.image_size}px images, the env makes {env_config.image_size}px"
-        )
-    if env_config.camera != policy.config.camera:
-        raise ValueError(
-            f"the policy was trained on camera {policy.config.camera!r}, the env renders {env_config.camera!r}; "
-            f"use EnvConfig(camera={policy.config.camera!r})"
-        )
+    policy.check_env_config(env_config)
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     log_path = output_dir / "episodes.jsonl"

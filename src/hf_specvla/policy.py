@@ -97,6 +97,7 @@ class VLAPolicy:
         self.action_tokenizer = ActionTokenizer(len(tokenizer))
         self.action_normalizer = ActionNormalizer.from_dict(config.action_stats) if config.action_stats else None
         self.state_normalizer = ActionNormalizer.from_dict(config.state_stats) if config.state_stats else None
+        self.name_or_path: str | None = None  # the folder it was loaded from (from_pretrained)
         self._prefix_cache: dict[str, list[int]] = {}  # instruction -> [<s>, <image> x N, prompt text]
         self._state_word, self._out_words = self._encode("\nState:"), self._encode("\nOut:")
 
@@ -217,6 +218,18 @@ class VLAPolicy:
         }
 
     # ----------------------------------------------------------------------------- acting
+    def check_env_config(self, env_config) -> None:
+        """Raises ValueError when an [`EnvConfig`] renders other images than the ones this policy was trained on."""
+        if env_config.image_size != self.config.image_size:
+            raise ValueError(
+                f"the policy reads {self.config.image_size}px images, the env makes {env_config.image_size}px"
+            )
+        if env_config.camera != self.config.camera:
+            raise ValueError(
+                f"the policy was trained on camera {self.config.camera!r}, the env renders {env_config.camera!r}; "
+                f"use EnvConfig(camera={self.config.camera!r})"
+            )
+
     def reset(self) -> None:
         """Start of an episode (the policy is stateless; kept for the LeRobot-style interface)."""
 
@@ -272,4 +285,6 @@ class VLAPolicy:
         config = VLAPolicyConfig(**json.loads((folder / POLICY_CONFIG_NAME).read_text()))
         model = LlavaForConditionalGeneration.from_pretrained(folder, **model_kwargs)
         tokenizer = PreTrainedTokenizerFast.from_pretrained(folder)
-        return cls(model.eval(), tokenizer, config)
+        policy = cls(model.eval(), tokenizer, config)
+        policy.name_or_path = str(folder)
+        return policy
