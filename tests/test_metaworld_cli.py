@@ -29,6 +29,9 @@ def test_collect_train_eval(tmp_path, capsys):
         main(args)
     with pytest.raises(ValueError, match="patch_size=8"):  # resuming must rebuild the same model
         main([*args[:6], "--max-steps", "4", "--batch-size", "8", "--resume"])
+    with pytest.raises(ValueError, match="vision_layers=3"):
+        main([*args[:6], "--max-steps", "4", "--batch-size", "8", "--patch-size", "8", "--vision-layers", "2",
+              "--resume"])  # fmt: skip
     assert main([*args[:6], "--max-steps", "4", "--batch-size", "8", "--patch-size", "8", "--resume"]) == 0
     log = [json.loads(line) for line in (policy / "training_log.jsonl").read_text().splitlines()]
     assert log[-1]["step"] == 4

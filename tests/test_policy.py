@@ -95,6 +95,8 @@ def test_bad_inputs(policy, tmp_path):
         VLAPolicy.from_pretrained(tmp_path)
     with pytest.raises(ValueError, match="camera must be one of .*'workspace'.*got 'ceiling'"):
         VLAPolicyConfig(camera="ceiling")
+    with pytest.raises(ValueError, match="vision_hidden_size must be a positive multiple of 4.*got 130"):
+        VLAPolicyConfig(vision_hidden_size=130)
 
 
 def test_dataset_with_other_action_dim_is_refused(policy, tmp_path):

@@ -124,7 +124,12 @@ def _train_vla(args) -> int:
     action_stats, state_stats = read_stats(args.data)
     info = dataset_info(args.data)
     policy_config = VLAPolicyConfig(
-        image_size=info["image_size"], camera=info["camera"], patch_size=args.patch_size, use_state=not args.no_state
+        image_size=info["image_size"],
+        camera=info["camera"],
+        patch_size=args.patch_size,
+        use_state=not args.no_state,
+        vision_hidden_size=args.vision_hidden_size,
+        vision_layers=args.vision_layers,
     )
     policy = VLAPolicy.build(list(TASK_INSTRUCTIONS.values()), action_stats, state_stats, policy_config, args.seed)
     metrics = train_vla(policy, demos, config)
@@ -217,6 +222,10 @@ def main(argv: list[str] | None = None) -> int:
     train.add_argument("--save-every", type=int, default=VLATrainingConfig.save_every, help="steps between checkpoints")
     train.add_argument("--patch-size", type=int, default=VLAPolicyConfig.patch_size,
                        help="ViT patch size (px): the image becomes (image size / patch size)^2 tokens")  # fmt: skip
+    train.add_argument("--vision-hidden-size", type=int, default=VLAPolicyConfig.vision_hidden_size,
+                       help="width of the vision encoder")  # fmt: skip
+    train.add_argument("--vision-layers", type=int, default=VLAPolicyConfig.vision_layers,
+                       help="transformer layers of the vision encoder")  # fmt: skip
     train.add_argument("--no-state", action="store_true", help="do not give the proprio state to the model")
     train.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --output-dir")
     train.add_argument("--overwrite-output-dir", action="store_true", help="train from scratch into a non-empty folder")

@@ -74,6 +74,11 @@ class VLAPolicyConfig:
             raise ValueError(f"image_size {self.image_size} must be a multiple of patch_size {self.patch_size}")
         if self.camera not in CAMERAS:
             raise ValueError(f"camera must be one of {CAMERAS}, got {self.camera!r}")
+        if self.vision_layers < 1 or self.vision_hidden_size < 4 or self.vision_hidden_size % 4:
+            raise ValueError(
+                "vision_hidden_size must be a positive multiple of 4 (the encoder's attention heads) and "
+                f"vision_layers >= 1, got {self.vision_hidden_size} and {self.vision_layers}"
+            )
         if self.action_dim < 1 or self.state_dim < 0:
             raise ValueError(f"action_dim must be >= 1 and state_dim >= 0, got {self.action_dim}, {self.state_dim}")
 

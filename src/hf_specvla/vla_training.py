@@ -140,7 +140,7 @@ def _check_resumed_policy_config(output_dir: Path, policy_config) -> None:
     if saved_path is None or not saved_path.exists():
         return
     saved = json.loads(saved_path.read_text())
-    for key in ("image_size", "camera", "patch_size", "use_state"):
+    for key in ("image_size", "camera", "patch_size", "use_state", "vision_hidden_size", "vision_layers"):
         if key in saved and saved[key] != getattr(policy_config, key):
             raise ValueError(
                 f"--resume: {checkpoint} was trained with {key}={saved[key]!r} but this run asks for "
