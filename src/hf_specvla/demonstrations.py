@@ -13,10 +13,11 @@ task is solved after this step).
 
 Only successful episodes are kept, except in a *policy-driven* (DAgger) collection: there a trained policy
 drives (``collect --policy``), the expert only labels the states it reaches, and every episode is kept, failed
-ones included (they hold the states the policy needs to learn to leave; ``success`` tells them apart). Each
-episode file is written to a temporary name and renamed, so an
-interrupted collection leaves whole episodes only; running the same command again skips the seeds already on
-disk and collects the rest (no duplicates, nothing lost).
+ones included (they hold the states the policy needs to learn to leave; ``success`` tells them apart).
+
+Each episode file is written to a temporary name and renamed, so an interrupted collection leaves whole episodes
+only; running the same command again skips the seeds already on disk and collects the rest (no duplicates,
+nothing lost).
 """
 
 from __future__ import annotations
@@ -195,8 +196,7 @@ def _check_info(root: Path, env_config: EnvConfig, action_noise: float, driver: 
         existing = json.loads(info_path.read_text())
         for key, default in _INFO_DEFAULTS.items():
             existing.setdefault(key, default)  # datasets written before the option existed
-        keys = ("format", "image_size", "camera", "action_dim", *_INFO_DEFAULTS)
-        for key in keys:
+        for key in ("format", "image_size", "camera", "action_dim", *_INFO_DEFAULTS):
             if existing.get(key) != info[key]:
                 raise ValueError(
                     f"{root} holds a dataset with {key}={existing.get(key)!r}, but this collection uses "
