@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -140,7 +140,9 @@ def _check_resumed_policy_config(output_dir: Path, policy_config) -> None:
     if saved_path is None or not saved_path.exists():
         return
     saved = json.loads(saved_path.read_text())
-    for key in ("image_size", "camera", "patch_size", "use_state", "vision_hidden_size", "vision_layers"):
+    # every option that shapes the model; the statistics are the data's, recomputed on each run
+    model_keys = [f.name for f in fields(policy_config) if f.name not in ("action_stats", "state_stats")]
+    for key in model_keys:
         if key in saved and saved[key] != getattr(policy_config, key):
             raise ValueError(
                 f"--resume: {checkpoint} was trained with {key}={saved[key]!r} but this run asks for "
