@@ -61,12 +61,30 @@ def test_workspace_camera_is_real_upright_and_closer():
     assert green["workspace"] >= 3 * max(green["corner"], 1), green
 
 
+def test_overview_camera_is_real_upright_and_shows_the_goal():
+    """The free ``overview`` camera: the whole table from above the robot's right side, goal marker visible."""
+    with MetaWorldEnv("push", EnvConfig(image_size=64, camera="overview")) as env:
+        image = env.reset(seed=0)["image"]
+    assert image.shape == (64, 64, 3) and image.dtype == np.uint8
+    assert image.std() > 10 and image.mean() > 20
+    # upright: the light floor beyond the table is at the top, the dark wooden table fills the bottom
+    assert image[:6].mean() > image[-6:].mean() + 20
+    # the green goal marker is a blob of several pixels, not a speck
+    assert int(((image[..., 1] > 150) & (image[..., 0] < 100)).sum()) >= 5
+
+
 def test_free_camera_settings_are_frozen():
-    """Datasets and the shipped policy record only the name ``workspace``: its view must never move."""
+    """Datasets and policies record only a free camera's name: its view must never move."""
     assert FREE_CAMERAS["workspace"] == {
         "lookat": (-0.03, 0.7, 0.08),
         "distance": 0.85,
         "azimuth": 150.0,
+        "elevation": -45.0,
+    }
+    assert FREE_CAMERAS["overview"] == {
+        "lookat": (0.0, 0.68, 0.08),
+        "distance": 0.95,
+        "azimuth": 180.0,
         "elevation": -45.0,
     }
 

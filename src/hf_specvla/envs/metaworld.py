@@ -86,11 +86,14 @@ TASK_INSTRUCTIONS = {
 SUITES = {"MT10": MT10_TASKS, "MT50": tuple(TASK_INSTRUCTIONS)}
 #: Free (not model-defined) cameras: MuJoCo ``mjvCamera`` settings, lookat in world metres, angles in degrees.
 #: ``workspace`` looks at the table from the robot's front right, about twice as close as ``corner``, so that
-#: a goal marker covers 7-10 pixels of a 64 px image (2-4 from ``corner``).
+#: a goal marker covers 7-10 pixels of a 64 px image (2-4 from ``corner``), but the hand is often at the image's
+#: edge and hides a puck below it. ``overview`` looks down at 45 degrees from the robot's right side at the whole
+#: table: hand, puck and goal are seen apart (a goal marker covers 6-8 pixels of a 64 px image).
 #: Datasets and policies record only the camera's name, so an entry here is frozen once data exists for it:
 #: a different view gets a new name (``workspace2``), never new numbers under an old one.
 FREE_CAMERAS = {
     "workspace": {"lookat": (-0.03, 0.7, 0.08), "distance": 0.85, "azimuth": 150.0, "elevation": -45.0},
+    "overview": {"lookat": (0.0, 0.68, 0.08), "distance": 0.95, "azimuth": 180.0, "elevation": -45.0},
 }
 CAMERAS = ("corner", "corner2", "corner3", "topview", "behindGripper", "gripperPOV", *FREE_CAMERAS)
 ACTION_DIM = 4  # xyz delta + gripper
