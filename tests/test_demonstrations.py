@@ -13,10 +13,11 @@ from hf_specvla.demonstrations import (  # noqa: E402
     collected_seeds,
     episode_path,
     load_demonstrations,
+    read_scene_stats,
     read_stats,
     record_episode,
 )
-from hf_specvla.envs.metaworld import EnvConfig  # noqa: E402
+from hf_specvla.envs.metaworld import EnvConfig, MetaWorldEnv  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -32,6 +33,7 @@ def test_round_trip_with_common_tools(dataset):
     table = pq.read_table(next((dataset / "data" / "reach-v3").glob("*.parquet"))).to_pydict()
     assert list(table) == [
         "episode_index", "step_index", "task", "instruction", "seed", "image", "state", "action", "success",
+        "scene_state",
     ]  # fmt: skip
     assert table["success"][-1] and table["step_index"] == list(range(len(table["step_index"])))
     demos = load_demonstrations(dataset, progress=False)
@@ -52,6 +54,38 @@ def test_resume_adds_only_missing_episodes(dataset):
     (dataset / "data" / "reach-v3" / "episode_000099.parquet.tmp").write_bytes(b"partial")
     assert collected_seeds(dataset, "reach-v3") == after
     assert len(np.unique(load_demonstrations(dataset, progress=False).episode_index)) == 3
+
+
+def test_scene_state_is_where_the_object_and_goal_are(dataset):
+    """The privileged scene state of every frame: reach's goal does not move during an episode, and the first
+    frame's values are the ones the env gives after ``reset`` of the same seed."""
+    demos = load_demonstrations(dataset, progress=False)
+    assert demos.scene_states.shape == (len(demos), 6) and demos.scene_states.dtype == np.float32
+    for episode in np.unique(demos.episode_index):
+        goals = demos.scene_states[demos.episode_index == episode, 3:]
+        np.testing.assert_array_equal(goals, np.broadcast_to(goals[0], goals.shape))
+    seed = int(demos.episode_index[0] % 1_000_000)
+    with MetaWorldEnv("reach", EnvConfig(image_size=32)) as env:
+        env.reset(seed)
+        np.testing.assert_allclose(demos.scene_states[0], env.scene_state(), atol=1e-6)
+    scene_norm = read_scene_stats(dataset)
+    assert scene_norm.action_dim == 6 and np.all(scene_norm.q01 <= scene_norm.q99)
+
+
+def test_episodes_without_scene_state_are_read_and_refused_for_scene_targets(dataset, tmp_path):
+    """A dataset collected before the scene_state column existed still loads; scene targets are refused."""
+    import shutil
+
+    import pyarrow.parquet as pq
+
+    old = tmp_path / "old"
+    shutil.copytree(dataset, old)
+    for file in (old / "data").glob("*/*.parquet"):
+        pq.write_table(pq.read_table(file).drop_columns(["scene_state"]), file)
+    demos = load_demonstrations(old, progress=False)
+    assert demos.scene_states is None and len(demos) == len(load_demonstrations(dataset, progress=False))
+    with pytest.raises(ValueError, match="without the scene_state column"):
+        read_scene_stats([old, dataset])
 
 
 def test_statistics(dataset):

@@ -66,6 +66,17 @@ def test_collect_train_eval(tmp_path, capsys):
     with pytest.raises(SystemExit):  # --expert-mix without a policy to mix with
         main(["collect", "--expert-mix", "0.5", "--output-dir", str(tmp_path / "none")])
 
+    # scene targets: the model also learns the object and goal positions recorded with the data
+    scene = tmp_path / "scene"
+    scene_args = ["train-vla", "--data", str(data), str(noisy), "--output-dir", str(scene), "--max-steps", "2",
+                  "--batch-size", "8", "--eval-every", "2", "--scene-targets",
+                  "--scene-loss-weight", "0.25"]  # fmt: skip
+    assert main(scene_args) == 0
+    assert json.loads((scene / "policy_config.json").read_text())["scene_state_dim"] == 6
+    assert json.loads((scene / "training_config.json").read_text())["scene_loss_weight"] == 0.25
+    last = json.loads((scene / "training_log.jsonl").read_text().splitlines()[-1])
+    assert last["scene_loss"] > 0 and last["val_scene_loss"] > 0
+
 
 def test_eval_refuses_missing_policy_and_stray_flags(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist"):

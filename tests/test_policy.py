@@ -48,6 +48,41 @@ def test_forward_loss_only_on_action_tokens(policy):
     assert torch.isfinite(loss) and loss.item() > 0
 
 
+def test_action_loss_is_the_models_loss_and_scene_targets_follow_the_actions(policy):
+    """``target_losses`` on a plain policy is transformers' own loss; a policy with scene targets learns
+    ``scene_state_dim`` more tokens after the action tokens, and still acts with the action tokens only."""
+    from hf_specvla.vla_training import target_losses
+
+    image, state = observation()
+    actions = [[0.1, 0.2, -0.3, 1.0], [-0.5, 0.0, 0.1, -1.0]]
+    batch = policy.training_batch(image[None].repeat(2, 0), [state, state], actions, INSTRUCTIONS)
+    out = policy.model(**batch)
+    losses = target_losses(out.logits, batch["labels"], action_dim=4)
+    torch.testing.assert_close(losses["action_loss"], out.loss)
+    assert int(losses["action_count"]) == 8 and "scene_loss" not in losses
+
+    scene_norm = ActionNormalizer(q01=[-0.2, 0.4, 0.0] * 2, q99=[0.2, 0.9, 0.3] * 2)
+    normalizers = (policy.action_normalizer, policy.state_normalizer)
+    scene_policy = VLAPolicy.build(INSTRUCTIONS, *normalizers, VLAPolicyConfig(**SMALL, scene_state_dim=6),
+                                   scene_normalizer=scene_norm)  # fmt: skip
+    scene_states = [[0.0, 0.6, 0.02, 0.1, 0.8, 0.2], [0.1, 0.7, 0.02, -0.1, 0.8, 0.1]]
+    batch = scene_policy.training_batch(image[None].repeat(2, 0), [state, state], actions, INSTRUCTIONS, scene_states)
+    labelled = batch["labels"] != -100
+    assert int(labelled.sum()) == 2 * (4 + 6)
+    # the first 4 labelled tokens of a row are its action tokens, the next 6 the scene state's
+    np.testing.assert_array_equal(batch["labels"][0][labelled[0]][:4].numpy(), policy.action_token_ids(actions[0]))
+    scene_ids = scene_policy.action_tokenizer.encode(scene_norm.normalize(np.asarray(scene_states[0])))
+    np.testing.assert_array_equal(batch["labels"][0][labelled[0]][4:].numpy(), scene_ids)
+    losses = target_losses(scene_policy.model(**batch).logits, batch["labels"], action_dim=4)
+    assert int(losses["action_count"]) == 8 and torch.isfinite(losses["scene_loss"])
+    _, output = scene_policy.predict_action(image, "reach the goal", state, return_output=True)
+    assert output.sequences.shape[1] == len(scene_policy.prompt_ids("reach the goal", state)) + 4
+    with pytest.raises(ValueError, match="pass scene_states"):
+        scene_policy.training_batch(image[None], [state], actions[:1], INSTRUCTIONS[:1])
+    with pytest.raises(ValueError, match="scene_state_dim=6 needs scene-state statistics.*got 0"):
+        VLAPolicy.build(INSTRUCTIONS, *normalizers, VLAPolicyConfig(**SMALL, scene_state_dim=6))
+
+
 def test_predict_action_shape_and_range(policy):
     image, state = observation()
     action = policy.predict_action(image, "reach the goal", state)
@@ -109,3 +144,10 @@ def test_dataset_with_other_action_dim_is_refused(policy, tmp_path):
     )  # fmt: skip
     with pytest.raises(ValueError, match="7-dim actions, the policy action_dim=4"):
         train_vla(policy, demos, VLATrainingConfig(str(tmp_path / "out"), max_steps=1))
+    scene_norm = ActionNormalizer(q01=[-1.0] * 6, q99=[1.0] * 6)
+    config = VLAPolicyConfig(**SMALL, scene_state_dim=6)
+    scene_policy = VLAPolicy.build(INSTRUCTIONS, policy.action_normalizer, policy.state_normalizer, config,
+                                   scene_normalizer=scene_norm)  # fmt: skip
+    demos.actions = np.zeros((4, 4), np.float32)  # no scene states: collected before the column existed
+    with pytest.raises(ValueError, match="scene_state_dim=6 scene targets but the demonstrations have no"):
+        train_vla(scene_policy, demos, VLATrainingConfig(str(tmp_path / "out"), max_steps=1))

@@ -110,18 +110,19 @@ def _collect(args, parser) -> int:
 
 
 def _train_vla(args) -> int:
-    from .demonstrations import dataset_info, load_demonstrations, read_stats
-    from .envs.metaworld import TASK_INSTRUCTIONS
+    from .demonstrations import dataset_info, load_demonstrations, read_scene_stats, read_stats
+    from .envs.metaworld import SCENE_STATE_DIM, TASK_INSTRUCTIONS
     from .policy import VLAPolicy
     from .vla_training import train_vla
 
     config = VLATrainingConfig(
         args.output_dir, max_steps=args.max_steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
         eval_every=args.eval_every, save_every=args.save_every, resume=args.resume,
-        overwrite_output_dir=args.overwrite_output_dir, seed=args.seed,
+        overwrite_output_dir=args.overwrite_output_dir, seed=args.seed, scene_loss_weight=args.scene_loss_weight,
     )  # fmt: skip
-    demos = load_demonstrations(args.data, args.tasks)
     action_stats, state_stats = read_stats(args.data)
+    scene_stats = read_scene_stats(args.data) if args.scene_targets else None  # before the slow load: fails fast
+    demos = load_demonstrations(args.data, args.tasks)
     info = dataset_info(args.data)
     policy_config = VLAPolicyConfig(
         image_size=info["image_size"],
@@ -130,8 +131,11 @@ def _train_vla(args) -> int:
         use_state=not args.no_state,
         vision_hidden_size=args.vision_hidden_size,
         vision_layers=args.vision_layers,
+        scene_state_dim=SCENE_STATE_DIM if args.scene_targets else 0,
     )
-    policy = VLAPolicy.build(list(TASK_INSTRUCTIONS.values()), action_stats, state_stats, policy_config, args.seed)
+    policy = VLAPolicy.build(
+        list(TASK_INSTRUCTIONS.values()), action_stats, state_stats, policy_config, args.seed, scene_stats
+    )
     metrics = train_vla(policy, demos, config)
     print(f"policy saved to {args.output_dir}: {metrics}")
     return 0
@@ -227,6 +231,12 @@ def main(argv: list[str] | None = None) -> int:
     train.add_argument("--vision-layers", type=int, default=VLAPolicyConfig.vision_layers,
                        help="transformer layers of the vision encoder")  # fmt: skip
     train.add_argument("--no-state", action="store_true", help="do not give the proprio state to the model")
+    train.add_argument("--scene-targets", action="store_true",
+                       help="also learn to predict the object and goal positions (the data's scene_state column) "
+                            "after the action tokens: an auxiliary target for the vision encoder; acting is "
+                            "unchanged")  # fmt: skip
+    train.add_argument("--scene-loss-weight", type=float, default=VLATrainingConfig.scene_loss_weight,
+                       help="weight of the scene-state loss (with --scene-targets)")  # fmt: skip
     train.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --output-dir")
     train.add_argument("--overwrite-output-dir", action="store_true", help="train from scratch into a non-empty folder")
     train.add_argument("--seed", type=int, default=VLATrainingConfig.seed, help="random seed")

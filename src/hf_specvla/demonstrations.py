@@ -9,7 +9,9 @@ Layout of a dataset folder (readable with pandas / pyarrow / polars; images are 
 Columns: ``episode_index`` int64 (``task_index * 1_000_000 + seed``), ``step_index`` int32, ``task`` str,
 ``instruction`` str, ``seed`` int64, ``image`` binary (PNG, uint8 [S, S, 3], upright), ``state`` list<float32>[4]
 (hand xyz, gripper), ``action`` list<float32>[4] (the expert's action clipped to [-1, 1]), ``success`` bool (the
-task is solved after this step).
+task is solved after this step), ``scene_state`` list<float32>[6] (object xyz and goal xyz from the simulator:
+privileged, never given to a policy, used as an auxiliary training target; absent from datasets collected before
+it existed).
 
 Only successful episodes are kept, except in a *policy-driven* (DAgger) collection: there a trained policy
 drives (``collect --policy``), the expert only labels the states it reaches, and every episode is kept, failed
@@ -36,6 +38,7 @@ from .action_tokenizer import ActionNormalizer
 from .envs.metaworld import (
     ACTION_DIM,
     MAX_EPISODE_STEPS,
+    SCENE_STATE_DIM,
     STATE_DIM,
     TASK_INSTRUCTIONS,
     EnvConfig,
@@ -86,6 +89,7 @@ def _write_episode(path: Path, rows: dict[str, list]) -> None:
             "state": pa.array(rows["state"], pa.list_(pa.float32(), STATE_DIM)),
             "action": pa.array(rows["action"], pa.list_(pa.float32(), ACTION_DIM)),
             "success": pa.array(rows["success"], pa.bool_()),
+            "scene_state": pa.array(rows["scene_state"], pa.list_(pa.float32(), SCENE_STATE_DIM)),
         }
     )
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -128,11 +132,12 @@ def record_episode(
     obs = env.reset(seed)
     if policy is not None:
         policy.reset()
-    rows: dict[str, list] = {k: [] for k in ("image", "state", "action", "success")}
+    rows: dict[str, list] = {k: [] for k in ("image", "state", "action", "success", "scene_state")}
     while True:
         action = env.expert_action()
         rows["image"].append(_png(obs["image"]))
         rows["state"].append(obs["state"].tolist())
+        rows["scene_state"].append(env.scene_state().tolist())
         rows["action"].append(action.tolist())
         executed = action
         if policy is not None and rng.random() >= expert_mix:
@@ -190,6 +195,7 @@ def _check_info(root: Path, env_config: EnvConfig, action_noise: float, driver: 
             "state",
             "action",
             "success",
+            "scene_state",
         ],
     }
     if info_path.exists():
@@ -298,13 +304,15 @@ def collect_demonstrations(
 @dataclass
 class Demonstrations:
     """A dataset in memory. ``images`` uint8 ``[N, S, S, 3]``, ``states`` / ``actions`` float32 ``[N, 4]``,
-    ``tasks`` list of N task names, ``episode_index`` int64 ``[N]``."""
+    ``tasks`` list of N task names, ``episode_index`` int64 ``[N]``, ``scene_states`` float32 ``[N, 6]`` (None when
+    some episode was collected without them)."""
 
     images: np.ndarray
     states: np.ndarray
     actions: np.ndarray
     tasks: list[str]
     episode_index: np.ndarray
+    scene_states: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.actions)
@@ -363,7 +371,7 @@ def load_demonstrations(
     ]
     if not files:
         raise FileNotFoundError(f"no episodes in {', '.join(str(r / 'data') for r in roots)}")
-    images, states, actions, task_names, episodes = [], [], [], [], []
+    images, states, actions, task_names, episodes, scene_states = [], [], [], [], [], []
     for position, file in tqdm(files, desc="load episodes", disable=not progress):
         table = pq.read_table(file).to_pydict()
         images.extend(decode_png(b) for b in table["image"])
@@ -371,26 +379,39 @@ def load_demonstrations(
         actions.extend(table["action"])
         task_names.extend(table["task"])
         episodes.extend(e + position * DATASET_EPISODE_OFFSET for e in table["episode_index"])
+        if scene_states is not None and "scene_state" in table:
+            scene_states.extend(table["scene_state"])
+        else:
+            scene_states = None
     return Demonstrations(
         np.stack(images), np.asarray(states, np.float32), np.asarray(actions, np.float32), task_names,
-        np.asarray(episodes, np.int64),
+        np.asarray(episodes, np.int64), None if scene_states is None else np.asarray(scene_states, np.float32),
     )  # fmt: skip
 
 
 def _compute_stats(files: list[Path]) -> dict:
     import pyarrow.parquet as pq
 
-    actions, states = [], []
+    actions, states, scene_states = [], [], []
     for file in files:
-        table = pq.read_table(file, columns=["action", "state"]).to_pydict()
+        present = pq.read_schema(file).names
+        table = pq.read_table(file, columns=[c for c in ("action", "state", "scene_state") if c in present])
+        table = table.to_pydict()
         actions.extend(table["action"])
         states.extend(table["state"])
-    return {
+        if scene_states is not None and "scene_state" in table:
+            scene_states.extend(table["scene_state"])
+        else:
+            scene_states = None
+    stats = {
         "action": ActionNormalizer.from_actions(np.asarray(actions), ACTION_NORM_MASK).to_dict(),
         "state": ActionNormalizer.from_actions(np.asarray(states)).to_dict(),
         "num_frames": len(actions),
         "num_episodes": len(files),
     }
+    if scene_states:  # only when every episode has them
+        stats["scene_state"] = ActionNormalizer.from_actions(np.asarray(scene_states)).to_dict()
+    return stats
 
 
 def write_stats(root: str | Path) -> dict:
@@ -404,15 +425,33 @@ def write_stats(root: str | Path) -> dict:
     return stats
 
 
+def _read_stats_dict(roots: str | Path | list[str | Path]) -> dict:
+    roots = _as_roots(roots)
+    if len(roots) > 1:
+        return _compute_stats([f for root in roots for f in _episode_files(root)])
+    path = roots[0] / "meta" / "stats.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path} is missing; run hf-specvla collect (it writes the statistics)")
+    return json.loads(path.read_text())
+
+
 def read_stats(roots: str | Path | list[str | Path]) -> tuple[ActionNormalizer, ActionNormalizer]:
     """(action normaliser, state normaliser) of a dataset folder (its ``meta/stats.json``); of several folders,
     computed over all their episodes together."""
-    roots = _as_roots(roots)
-    if len(roots) > 1:
-        stats = _compute_stats([f for root in roots for f in _episode_files(root)])
-    else:
-        path = roots[0] / "meta" / "stats.json"
-        if not path.exists():
-            raise FileNotFoundError(f"{path} is missing; run hf-specvla collect (it writes the statistics)")
-        stats = json.loads(path.read_text())
+    stats = _read_stats_dict(roots)
     return ActionNormalizer.from_dict(stats["action"]), ActionNormalizer.from_dict(stats["state"])
+
+
+def read_scene_stats(roots: str | Path | list[str | Path]) -> ActionNormalizer:
+    """The scene-state normaliser of one or several dataset folders (as `read_stats`).
+
+    Raises:
+        ValueError: some episode was collected before scene states were recorded (re-collect it).
+    """
+    stats = _read_stats_dict(roots)
+    if "scene_state" not in stats:
+        raise ValueError(
+            f"{roots} has episodes without the scene_state column (collected by an older hf-specvla); "
+            "collect the data again to train with scene targets"
+        )
+    return ActionNormalizer.from_dict(stats["scene_state"])

@@ -52,7 +52,10 @@ class VLAPolicyConfig:
         action_dim / state_dim: action tokens per action, proprio numbers per observation.
         use_state: put the discretised proprio state in the prompt.
         vision_hidden_size, vision_layers, text_hidden_size, text_layers, text_heads: model sizes.
-        action_stats / state_stats: ``ActionNormalizer.to_dict()`` of the training data.
+        scene_state_dim: 0, or the number of scene-state values (object and goal xyz: 6) that training asks the
+            model to predict after the action tokens, an auxiliary target that makes the vision encoder locate
+            the object and the goal. Acting is unchanged: only the action tokens are generated.
+        action_stats / state_stats / scene_stats: ``ActionNormalizer.to_dict()`` of the training data.
     """
 
     image_size: int = 64
@@ -66,8 +69,10 @@ class VLAPolicyConfig:
     text_hidden_size: int = 192
     text_layers: int = 3
     text_heads: int = 6
+    scene_state_dim: int = 0
     action_stats: dict = field(default_factory=dict)
     state_stats: dict = field(default_factory=dict)
+    scene_stats: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.image_size % self.patch_size:
@@ -79,8 +84,11 @@ class VLAPolicyConfig:
                 "vision_hidden_size must be a positive multiple of 4 (the encoder's attention heads) and "
                 f"vision_layers >= 1, got {self.vision_hidden_size} and {self.vision_layers}"
             )
-        if self.action_dim < 1 or self.state_dim < 0:
-            raise ValueError(f"action_dim must be >= 1 and state_dim >= 0, got {self.action_dim}, {self.state_dim}")
+        if self.action_dim < 1 or self.state_dim < 0 or self.scene_state_dim < 0:
+            raise ValueError(
+                f"action_dim must be >= 1, state_dim and scene_state_dim >= 0, got {self.action_dim}, "
+                f"{self.state_dim}, {self.scene_state_dim}"
+            )
 
     @property
     def num_image_tokens(self) -> int:
@@ -102,6 +110,7 @@ class VLAPolicy:
         self.action_tokenizer = ActionTokenizer(len(tokenizer))
         self.action_normalizer = ActionNormalizer.from_dict(config.action_stats) if config.action_stats else None
         self.state_normalizer = ActionNormalizer.from_dict(config.state_stats) if config.state_stats else None
+        self.scene_normalizer = ActionNormalizer.from_dict(config.scene_stats) if config.scene_stats else None
         self.name_or_path: str | None = None  # the folder it was loaded from (from_pretrained)
         self._prefix_cache: dict[str, list[int]] = {}  # instruction -> [<s>, <image> x N, prompt text]
         self._state_word, self._out_words = self._encode("\nState:"), self._encode("\nOut:")
@@ -115,16 +124,25 @@ class VLAPolicy:
         state_normalizer: ActionNormalizer | None,
         config: VLAPolicyConfig | None = None,
         seed: int = 0,
+        scene_normalizer: ActionNormalizer | None = None,
     ) -> VLAPolicy:
-        """A new, untrained policy whose tokenizer covers ``instructions``."""
+        """A new, untrained policy whose tokenizer covers ``instructions`` (``scene_normalizer``: the scene-state
+        statistics, needed when ``config.scene_state_dim > 0``)."""
         config = config or VLAPolicyConfig()
         if action_normalizer.action_dim != config.action_dim:
             raise ValueError(
                 f"the action statistics have {action_normalizer.action_dim} dimensions, the policy "
                 f"action_dim={config.action_dim}"
             )
+        scene_dim = scene_normalizer.action_dim if scene_normalizer is not None else 0
+        if config.scene_state_dim and scene_dim != config.scene_state_dim:
+            raise ValueError(
+                f"scene_state_dim={config.scene_state_dim} needs scene-state statistics of that many dimensions, "
+                f"got {scene_dim}"
+            )
         config.action_stats = action_normalizer.to_dict()
         config.state_stats = state_normalizer.to_dict() if state_normalizer is not None else {}
+        config.scene_stats = scene_normalizer.to_dict() if config.scene_state_dim else {}
         tokenizer = build_vla_tokenizer([*instructions, "state:"])
         vision = CLIPVisionConfig(
             hidden_size=config.vision_hidden_size, intermediate_size=2 * config.vision_hidden_size,
@@ -197,13 +215,25 @@ class VLAPolicy:
         """Raw actions ``[..., action_dim]`` -> their token ids (normalised with the policy's statistics)."""
         return self.action_tokenizer.encode(self.action_normalizer.normalize(actions))
 
-    def training_batch(self, images, states, actions, instructions: list[str]) -> dict[str, torch.Tensor]:
+    def training_batch(
+        self, images, states, actions, instructions: list[str], scene_states=None
+    ) -> dict[str, torch.Tensor]:
         """Teacher-forcing inputs for behaviour cloning: ``input_ids`` ``[B, L]`` (right-padded), ``attention_mask``,
-        ``pixel_values``, ``labels`` (-100 except on the action tokens)."""
-        action_ids = self.action_token_ids(np.asarray(actions))  # [B, A]
+        ``pixel_values``, ``labels`` (-100 except on the target tokens: the ``action_dim`` action tokens, then,
+        when ``config.scene_state_dim``, the discretised ``scene_states`` ``[B, scene_state_dim]``)."""
+        target_ids = self.action_token_ids(np.asarray(actions))  # [B, A]
+        if self.config.scene_state_dim:
+            if scene_states is None:
+                raise ValueError(
+                    f"this policy learns scene_state_dim={self.config.scene_state_dim} scene targets: pass "
+                    "scene_states (demonstrations with the scene_state column)"
+                )
+            scene_ids = self.action_tokenizer.encode(self.scene_normalizer.normalize(np.asarray(scene_states)))
+            target_ids = np.concatenate([target_ids, scene_ids], axis=1)  # [B, A + scene_state_dim]
+        targets = target_ids.shape[1]
         sequences = [
             self.prompt_ids(instruction, state) + ids.tolist()
-            for instruction, state, ids in zip(instructions, states, action_ids)
+            for instruction, state, ids in zip(instructions, states, target_ids)
         ]
         length = max(len(s) for s in sequences)
         input_ids = torch.full((len(sequences), length), self.tokenizer.pad_token_id, dtype=torch.long)
@@ -212,9 +242,7 @@ class VLAPolicy:
         for i, seq in enumerate(sequences):
             input_ids[i, : len(seq)] = torch.tensor(seq)
             attention_mask[i, : len(seq)] = 1
-            labels[i, len(seq) - self.config.action_dim : len(seq)] = input_ids[
-                i, len(seq) - self.config.action_dim : len(seq)
-            ]
+            labels[i, len(seq) - targets : len(seq)] = input_ids[i, len(seq) - targets : len(seq)]
         return {
             "input_ids": input_ids.to(self.model.device),
             "attention_mask": attention_mask.to(self.model.device),

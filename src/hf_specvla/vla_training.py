@@ -1,6 +1,7 @@
 """Behaviour cloning of a [`VLAPolicy`] on Meta-World demonstrations, on accelerate.
 
-Next-token cross-entropy on the action tokens only (the prompt, image and state tokens carry no loss), AdamW with
+Next-token cross-entropy on the action tokens only (the prompt, image and state tokens carry no loss; a policy
+with ``scene_state_dim`` also learns the scene-state tokens after them, weighted by ``scene_loss_weight``), AdamW with
 warm-up and cosine decay, random-shift image augmentation (pad 4 px by edge replication, crop back: DrQ's
 augmentation, which matters for behaviour cloning from pixels). Validation on held-out *episodes*: loss and
 action-token accuracy (teacher-forced argmax == demonstrated token). Periodic checkpoints with full accelerate
@@ -40,6 +41,8 @@ class VLATrainingConfig:
         val_episodes: episodes per task held out for validation.
         eval_every / save_every / log_every: steps between validation, checkpoints, log lines.
         augment_shift: pixels of random-shift augmentation (0 = off).
+        scene_loss_weight: weight of the scene-state tokens' loss against the action tokens' (policies with
+            ``scene_state_dim`` only).
         resume / overwrite_output_dir / keep_checkpoints / seed: as in draft training.
     """
 
@@ -54,6 +57,7 @@ class VLATrainingConfig:
     save_every: int = 1000
     log_every: int = 100
     augment_shift: int = 4
+    scene_loss_weight: float = 0.5
     keep_checkpoints: int = 2
     resume: bool = False
     overwrite_output_dir: bool = False
@@ -65,13 +69,14 @@ class VLATrainingConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.learning_rate > 0:
             raise ValueError(f"learning_rate must be > 0, got {self.learning_rate}")
-        for name in ("save_every", "warmup_steps", "val_episodes", "augment_shift"):
+        for name in ("save_every", "warmup_steps", "val_episodes", "augment_shift", "scene_loss_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
 
 class FrameDataset(Dataset):
-    """Frames of some episodes of a [`Demonstrations`]: ``(image, state, action, instruction)``."""
+    """Frames of some episodes of a [`Demonstrations`]: ``(image, state, action, instruction, scene_state)``
+    (``scene_state`` None when the demonstrations have none)."""
 
     def __init__(self, demos: Demonstrations, indices: np.ndarray):
         self.demos, self.indices = demos, indices
@@ -81,7 +86,9 @@ class FrameDataset(Dataset):
 
     def __getitem__(self, i: int):
         j = int(self.indices[i])
-        return self.demos.images[j], self.demos.states[j], self.demos.actions[j], TASK_INSTRUCTIONS[self.demos.tasks[j]]
+        demos = self.demos
+        scene_state = None if demos.scene_states is None else demos.scene_states[j]
+        return demos.images[j], demos.states[j], demos.actions[j], TASK_INSTRUCTIONS[demos.tasks[j]], scene_state
 
 
 def split_episodes(demos: Demonstrations, val_episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -110,27 +117,63 @@ def random_shift(images: np.ndarray, pad: int, rng: np.random.Generator) -> np.n
 
 
 def _collate(batch):
-    images, states, actions, instructions = zip(*batch)
-    return np.stack(images), np.stack(states), np.stack(actions), list(instructions)
+    images, states, actions, instructions, scene_states = zip(*batch)
+    scene_states = None if scene_states[0] is None else np.stack(scene_states)
+    return np.stack(images), np.stack(states), np.stack(actions), list(instructions), scene_states
+
+
+def target_losses(logits: torch.Tensor, labels: torch.Tensor, action_dim: int) -> dict[str, torch.Tensor]:
+    """Next-token cross-entropy split into the action tokens and the scene-state tokens after them.
+
+    Args:
+        logits: ``[B, L, V]``; labels: ``[B, L]``, -100 except on the target tokens (``training_batch``).
+        action_dim: the first ``action_dim`` targets of each row are the action tokens.
+
+    Returns:
+        ``action_loss`` (mean over action tokens), ``action_correct`` (how many argmax predictions equal the
+        action tokens), ``action_count``, and ``scene_loss`` when the rows have scene-state targets.
+    """
+    labels = labels[:, 1:]
+    logits = logits[:, :-1]
+    is_target = labels != -100
+    is_action = is_target & (is_target.cumsum(dim=1) <= action_dim)
+    is_scene = is_target & ~is_action
+    losses = {
+        "action_loss": torch.nn.functional.cross_entropy(logits[is_action].float(), labels[is_action]),
+        "action_correct": (logits[is_action].argmax(-1) == labels[is_action]).sum(),
+        "action_count": is_action.sum(),
+    }
+    if is_scene.any():
+        losses["scene_loss"] = torch.nn.functional.cross_entropy(logits[is_scene].float(), labels[is_scene])
+    return losses
+
+
+def _forward(policy: VLAPolicy, images, states, actions, instructions, scene_states) -> dict[str, torch.Tensor]:
+    batch = policy.training_batch(images, states, actions, instructions, scene_states)
+    labels = batch.pop("labels")
+    return target_losses(policy.model(**batch).logits, labels, policy.config.action_dim)
 
 
 @torch.no_grad()
 def validate(policy: VLAPolicy, loader: DataLoader) -> dict[str, float]:
-    """Mean loss and action-token accuracy (teacher-forced) over a loader."""
+    """Mean action-token loss and action-token accuracy (teacher-forced) over a loader; and the scene-state
+    tokens' loss for a policy that learns them."""
     policy.model.eval()
-    total_loss = correct = count = batches = 0
-    for images, states, actions, instructions in loader:
-        batch = policy.training_batch(images, states, actions, instructions)
-        out = policy.model(**batch)
-        labels = batch["labels"][:, 1:]
-        predictions = out.logits[:, :-1].argmax(-1)
-        mask = labels != -100
-        correct += int((predictions[mask] == labels[mask]).sum())
-        count += int(mask.sum())
-        total_loss += out.loss.item()
+    sums: dict[str, float] = {}
+    correct = count = batches = 0
+    for images, states, actions, instructions, scene_states in loader:
+        losses = _forward(policy, images, states, actions, instructions, scene_states)
+        correct += int(losses.pop("action_correct"))
+        count += int(losses.pop("action_count"))
+        for name, value in losses.items():
+            sums[name] = sums.get(name, 0.0) + value.item()
         batches += 1
     policy.model.train()
-    return {"val_loss": total_loss / max(batches, 1), "val_action_token_accuracy": correct / max(count, 1)}
+    metrics = {"val_loss": sums.get("action_loss", 0.0) / max(batches, 1)}
+    metrics["val_action_token_accuracy"] = correct / max(count, 1)
+    if "scene_loss" in sums:
+        metrics["val_scene_loss"] = sums["scene_loss"] / batches
+    return metrics
 
 
 def _check_resumed_policy_config(output_dir: Path, policy_config) -> None:
@@ -141,7 +184,7 @@ def _check_resumed_policy_config(output_dir: Path, policy_config) -> None:
         return
     saved = json.loads(saved_path.read_text())
     # every option that shapes the model; the statistics are the data's, recomputed on each run
-    model_keys = [f.name for f in fields(policy_config) if f.name not in ("action_stats", "state_stats")]
+    model_keys = [f.name for f in fields(policy_config) if not f.name.endswith("_stats")]
     for key in model_keys:
         if key in saved and saved[key] != getattr(policy_config, key):
             raise ValueError(
@@ -158,6 +201,13 @@ def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfi
         raise ValueError(
             f"the demonstrations have {demos.actions.shape[1]}-dim actions, the policy action_dim="
             f"{policy.config.action_dim}; build the policy from this dataset's statistics"
+        )
+    scene_dim = 0 if demos.scene_states is None else demos.scene_states.shape[1]
+    if policy.config.scene_state_dim and scene_dim != policy.config.scene_state_dim:
+        raise ValueError(
+            f"the policy learns scene_state_dim={policy.config.scene_state_dim} scene targets but the "
+            f"demonstrations have {scene_dim or 'no'} scene-state values per frame (collected before the "
+            "scene_state column existed?); collect them again or train without scene targets"
         )
     if config.resume:
         _check_resumed_policy_config(output_dir, policy.config)
@@ -186,12 +236,13 @@ def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfi
         epoch, offset = divmod(step, len(train_loader))
         train_loader.set_epoch(epoch)
         loader = accelerator.skip_first_batches(train_loader, offset) if offset else train_loader
-        for images, states, actions, instructions in loader:
+        for images, states, actions, instructions, scene_states in loader:
             rng = np.random.default_rng((config.seed, step))  # per step: a resumed run augments identically
-            batch = policy.training_batch(
-                random_shift(images, config.augment_shift, rng), states, actions, instructions
-            )
-            loss = model(**batch).loss
+            images = random_shift(images, config.augment_shift, rng)
+            losses = _forward(policy, images, states, actions, instructions, scene_states)
+            loss = losses["action_loss"]
+            if "scene_loss" in losses:
+                loss = loss + config.scene_loss_weight * losses["scene_loss"]
             accelerator.backward(loss)
             accelerator.clip_grad_norm_(model.parameters(), 1.0)
             optimizer.step()
@@ -199,7 +250,9 @@ def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfi
             optimizer.zero_grad()
             step += 1
             bar.update(1)
-            metrics["loss"] = loss.item()
+            metrics["loss"] = losses["action_loss"].item()
+            if "scene_loss" in losses:
+                metrics["scene_loss"] = losses["scene_loss"].item()
             bar.set_postfix(loss=f"{metrics['loss']:.3f}")
             if step % config.eval_every == 0 or step == config.max_steps:
                 if len(val_idx):

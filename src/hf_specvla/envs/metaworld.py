@@ -98,6 +98,7 @@ FREE_CAMERAS = {
 CAMERAS = ("corner", "corner2", "corner3", "topview", "behindGripper", "gripperPOV", *FREE_CAMERAS)
 ACTION_DIM = 4  # xyz delta + gripper
 STATE_DIM = 4  # hand xyz + gripper opening
+SCENE_STATE_DIM = 6  # object xyz + goal xyz (privileged: recorded for auxiliary training targets, never observed)
 MAX_EPISODE_STEPS = 500  # Meta-World's max_path_length
 MAX_HAND_START_NOISE = 0.15  # metres: an upper bound that keeps starts near the table's workspace (0.1 is tested)
 
@@ -258,6 +259,18 @@ class MetaWorldEnv:
         success = bool(info.get("success", 0.0) > 0.5)
         truncated = self.steps >= self.config.max_episode_steps
         return self._observation(), float(reward), success or truncated, {"success": success, "truncated": truncated}
+
+    def scene_state(self) -> np.ndarray:
+        """Where the task's object and goal are, float32 ``[6]`` (object xyz, goal xyz) from the simulator.
+
+        Privileged information, not an observation: a policy never gets it. Demonstrations record it so that
+        training can ask the model to locate the object and the goal in the image (an auxiliary target).
+        The object is the task's first one (the puck, the button, the drawer or window handle, the peg).
+        """
+        if self._raw_obs is None:
+            raise RuntimeError("call reset(seed) before scene_state()")
+        raw = np.asarray(self._raw_obs, dtype=np.float32)
+        return np.concatenate([raw[4:7], raw[-3:]])
 
     def expert_action(self) -> np.ndarray:
         """The scripted expert's action for the current state, clipped to [-1, 1] (raw ones reach ~24)."""
