@@ -183,7 +183,7 @@ class VLAPolicy:
             raise ValueError(
                 f"images must have shape [{size}, {size}, 3] (or [B, {size}, {size}, 3]), got {images.shape}"
             )
-        pixels = torch.from_numpy(images).permute(0, 3, 1, 2).float() / 127.5 - 1.0
+        pixels = torch.tensor(images).permute(0, 3, 1, 2).float() / 127.5 - 1.0  # a copy: read-only arrays welcome
         return pixels.to(self.model.device, self.model.dtype)
 
     def state_token_ids(self, state) -> list[int]:
