@@ -76,6 +76,8 @@ def test_collect_train_eval(tmp_path, capsys):
     assert json.loads((scene / "training_config.json").read_text())["scene_loss_weight"] == 0.25
     last = json.loads((scene / "training_log.jsonl").read_text().splitlines()[-1])
     assert last["scene_loss"] > 0 and last["val_scene_loss"] > 0
+    with pytest.raises(SystemExit):  # a scene loss weight without scene targets to weigh
+        main(["train-vla", "--data", str(data), "--output-dir", str(tmp_path / "w"), "--scene-loss-weight", "1"])
 
 
 def test_eval_refuses_missing_policy_and_stray_flags(tmp_path):

@@ -109,16 +109,19 @@ def _collect(args, parser) -> int:
     return 0
 
 
-def _train_vla(args) -> int:
+def _train_vla(args, parser) -> int:
     from .demonstrations import dataset_info, load_demonstrations, read_scene_stats, read_stats
     from .envs.metaworld import SCENE_STATE_DIM, TASK_INSTRUCTIONS
     from .policy import VLAPolicy
     from .vla_training import train_vla
 
+    if args.scene_loss_weight is not None and not args.scene_targets:
+        parser.error("--scene-loss-weight needs --scene-targets (it weighs the scene-state tokens' loss)")
+    weight = {} if args.scene_loss_weight is None else {"scene_loss_weight": args.scene_loss_weight}
     config = VLATrainingConfig(
         args.output_dir, max_steps=args.max_steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
         eval_every=args.eval_every, save_every=args.save_every, resume=args.resume,
-        overwrite_output_dir=args.overwrite_output_dir, seed=args.seed, scene_loss_weight=args.scene_loss_weight,
+        overwrite_output_dir=args.overwrite_output_dir, seed=args.seed, **weight,
     )  # fmt: skip
     action_stats, state_stats = read_stats(args.data)
     scene_stats = read_scene_stats(args.data) if args.scene_targets else None  # before the slow load: fails fast
@@ -235,8 +238,9 @@ def main(argv: list[str] | None = None) -> int:
                        help="also learn to predict the object and goal positions (the data's scene_state column) "
                             "after the action tokens: an auxiliary target for the vision encoder; acting is "
                             "unchanged")  # fmt: skip
-    train.add_argument("--scene-loss-weight", type=float, default=VLATrainingConfig.scene_loss_weight,
-                       help="weight of the scene-state loss (with --scene-targets)")  # fmt: skip
+    train.add_argument("--scene-loss-weight", type=float, default=None,
+                       help="weight of the scene-state loss against the action tokens' (with --scene-targets; "
+                            f"default {VLATrainingConfig.scene_loss_weight})")  # fmt: skip
     train.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --output-dir")
     train.add_argument("--overwrite-output-dir", action="store_true", help="train from scratch into a non-empty folder")
     train.add_argument("--seed", type=int, default=VLATrainingConfig.seed, help="random seed")
@@ -267,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "collect":
         return _collect(args, collect)
     if args.command == "train-vla":
-        return _train_vla(args)
+        return _train_vla(args, train)
     if args.command == "eval":
         return _eval(args, parser)
 
