@@ -110,7 +110,7 @@ def _collect(args, parser) -> int:
 
 
 def _train_vla(args, parser) -> int:
-    from .demonstrations import dataset_info, load_demonstrations, read_scene_stats, read_stats
+    from .demonstrations import dataset_info, dataset_stats, load_demonstrations
     from .envs.metaworld import SCENE_STATE_DIM, TASK_INSTRUCTIONS
     from .policy import VLAPolicy
     from .vla_training import train_vla
@@ -123,8 +123,8 @@ def _train_vla(args, parser) -> int:
         eval_every=args.eval_every, save_every=args.save_every, resume=args.resume,
         overwrite_output_dir=args.overwrite_output_dir, seed=args.seed, **weight,
     )  # fmt: skip
-    action_stats, state_stats = read_stats(args.data)
-    scene_stats = read_scene_stats(args.data) if args.scene_targets else None  # before the slow load: fails fast
+    stats = dataset_stats(args.data)
+    scene_stats = stats.scene_normalizer() if args.scene_targets else None  # before the slow load: fails fast
     demos = load_demonstrations(args.data, args.tasks)
     info = dataset_info(args.data)
     policy_config = VLAPolicyConfig(
@@ -137,7 +137,7 @@ def _train_vla(args, parser) -> int:
         scene_state_dim=SCENE_STATE_DIM if args.scene_targets else 0,
     )
     policy = VLAPolicy.build(
-        list(TASK_INSTRUCTIONS.values()), action_stats, state_stats, policy_config, args.seed, scene_stats
+        list(TASK_INSTRUCTIONS.values()), stats.action, stats.state, policy_config, args.seed, scene_stats
     )
     metrics = train_vla(policy, demos, config)
     print(f"policy saved to {args.output_dir}: {metrics}")

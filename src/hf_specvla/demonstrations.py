@@ -394,9 +394,9 @@ def _compute_stats(files: list[Path]) -> dict:
 
     actions, states, scene_states = [], [], []
     for file in files:
-        present = pq.read_schema(file).names
-        table = pq.read_table(file, columns=[c for c in ("action", "state", "scene_state") if c in present])
-        table = table.to_pydict()
+        parquet = pq.ParquetFile(file)  # one open: the schema says which columns exist, then read those
+        present = parquet.schema_arrow.names
+        table = parquet.read(columns=[c for c in ("action", "state", "scene_state") if c in present]).to_pydict()
         actions.extend(table["action"])
         states.extend(table["state"])
         if scene_states is not None and "scene_state" in table:
@@ -425,33 +425,53 @@ def write_stats(root: str | Path) -> dict:
     return stats
 
 
-def _read_stats_dict(roots: str | Path | list[str | Path]) -> dict:
+@dataclass
+class DatasetStats:
+    """The normalisers of a dataset (`dataset_stats`); ``scene_state`` is None when some episode has no
+    ``scene_state`` column."""
+
+    action: ActionNormalizer
+    state: ActionNormalizer
+    scene_state: ActionNormalizer | None
+    source: str  # the folder(s), for error messages
+
+    def scene_normalizer(self) -> ActionNormalizer:
+        """The scene-state normaliser.
+
+        Raises:
+            ValueError: some episode was collected before scene states were recorded (re-collect it).
+        """
+        if self.scene_state is None:
+            raise ValueError(
+                f"{self.source} has episodes without the scene_state column (collected by an older hf-specvla); "
+                "collect the data again to train with scene targets"
+            )
+        return self.scene_state
+
+
+def dataset_stats(roots: str | Path | list[str | Path]) -> DatasetStats:
+    """The statistics of a dataset folder (its ``meta/stats.json``); of several folders, computed over all their
+    episodes together (one pass over the files)."""
+    source = str(roots)
     roots = _as_roots(roots)
     if len(roots) > 1:
-        return _compute_stats([f for root in roots for f in _episode_files(root)])
-    path = roots[0] / "meta" / "stats.json"
-    if not path.exists():
-        raise FileNotFoundError(f"{path} is missing; run hf-specvla collect (it writes the statistics)")
-    return json.loads(path.read_text())
+        stats = _compute_stats([f for root in roots for f in _episode_files(root)])
+    else:
+        path = roots[0] / "meta" / "stats.json"
+        if not path.exists():
+            raise FileNotFoundError(f"{path} is missing; run hf-specvla collect (it writes the statistics)")
+        stats = json.loads(path.read_text())
+    scene = ActionNormalizer.from_dict(stats["scene_state"]) if "scene_state" in stats else None
+    return DatasetStats(ActionNormalizer.from_dict(stats["action"]), ActionNormalizer.from_dict(stats["state"]),
+                        scene, source)  # fmt: skip
 
 
 def read_stats(roots: str | Path | list[str | Path]) -> tuple[ActionNormalizer, ActionNormalizer]:
-    """(action normaliser, state normaliser) of a dataset folder (its ``meta/stats.json``); of several folders,
-    computed over all their episodes together."""
-    stats = _read_stats_dict(roots)
-    return ActionNormalizer.from_dict(stats["action"]), ActionNormalizer.from_dict(stats["state"])
+    """(action normaliser, state normaliser) of one or several dataset folders (see `dataset_stats`)."""
+    stats = dataset_stats(roots)
+    return stats.action, stats.state
 
 
 def read_scene_stats(roots: str | Path | list[str | Path]) -> ActionNormalizer:
-    """The scene-state normaliser of one or several dataset folders (as `read_stats`).
-
-    Raises:
-        ValueError: some episode was collected before scene states were recorded (re-collect it).
-    """
-    stats = _read_stats_dict(roots)
-    if "scene_state" not in stats:
-        raise ValueError(
-            f"{roots} has episodes without the scene_state column (collected by an older hf-specvla); "
-            "collect the data again to train with scene targets"
-        )
-    return ActionNormalizer.from_dict(stats["scene_state"])
+    """The scene-state normaliser of one or several dataset folders (see `DatasetStats.scene_normalizer`)."""
+    return dataset_stats(roots).scene_normalizer()
