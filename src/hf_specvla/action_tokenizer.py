@@ -102,6 +102,29 @@ class ActionTokenizer:
         return hash((self.vocab_size, self.n_bins))
 
 
+@dataclass(frozen=True)
+class ActionLayout:
+    """Where a model's actions live in its output: the action-token range and the tokens per action.
+
+    The speculative engine needs it for relaxed acceptance (which tokens are actions, which action dimension a
+    token belongs to) and for bin-distance statistics. It comes from the call (``generate(action_layout=...)``),
+    the policy or processor, or a draft head's config, so that a model-free drafter can be verified relaxed too.
+
+    Args:
+        tokenizer: the [`ActionTokenizer`] (action ids ``vocab_size - n_bins .. vocab_size - 1``).
+        action_dim: action tokens per action (OpenVLA: 7; the Meta-World policy: 4).
+    """
+
+    tokenizer: ActionTokenizer
+    action_dim: int
+
+    def __post_init__(self):
+        if not isinstance(self.tokenizer, ActionTokenizer):
+            raise TypeError(f"ActionLayout.tokenizer must be an ActionTokenizer, got {type(self.tokenizer).__name__}")
+        if isinstance(self.action_dim, bool) or not isinstance(self.action_dim, (int, np.integer)) or self.action_dim < 1:
+            raise ValueError(f"ActionLayout.action_dim must be an int >= 1 (tokens per action), got {self.action_dim!r}")
+
+
 @dataclass
 class ActionNormalizer:
     """OpenVLA's ``BOUNDS_Q99`` normalisation of raw actions to [-1, 1].

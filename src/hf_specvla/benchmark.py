@@ -17,7 +17,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .action_tokenizer import ActionTokenizer
-from .stats import SpeculationStats
+from .speculative import SpeculationStats
 
 
 @dataclass

@@ -148,7 +148,7 @@ def _eval(args, parser) -> int:
     import json
 
     from .evaluation import evaluate, format_summary
-    from .modeling_draft_head import DraftHead
+    from .speculative import DraftHead
     from .policy import VLAPolicy
 
     policy = VLAPolicy.from_pretrained(args.policy)

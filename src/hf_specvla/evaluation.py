@@ -19,7 +19,7 @@ from tqdm.auto import tqdm
 
 from .envs.metaworld import EnvConfig, MetaWorldEnv, resolve_tasks
 from .policy import VLAPolicy
-from .stats import SpeculationStats
+from .speculative import SpeculationStats
 
 EVAL_SEED_START = 100_000
 

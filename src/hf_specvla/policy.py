@@ -35,7 +35,7 @@ from transformers import (
 
 from .action_tokenizer import ActionNormalizer, ActionTokenizer
 from .envs.metaworld import CAMERAS, EnvConfig
-from .generation import enable_speculation
+from .speculative import enable_speculation
 from .tokenization import build_vla_tokenizer
 
 POLICY_CONFIG_NAME = "policy_config.json"

@@ -225,8 +225,8 @@ def build_toy_pipeline(
 
     from transformers import PreTrainedTokenizerFast
 
-    from .generation import enable_speculation
-    from .modeling_draft_head import DraftHead
+    from .speculative import enable_speculation
+    from .speculative import DraftHead
     from .training import DraftTrainingConfig, build_distillation_dataset, train_draft_head
 
     root = Path(output_dir)

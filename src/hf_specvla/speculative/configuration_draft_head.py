@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from transformers import LlamaConfig, PretrainedConfig
 
-from .action_tokenizer import DEFAULT_N_BINS, ActionTokenizer
+from ..action_tokenizer import DEFAULT_N_BINS, ActionLayout, ActionTokenizer
 
 
 class DraftHeadConfig(PretrainedConfig):
@@ -98,6 +98,10 @@ class DraftHeadConfig(PretrainedConfig):
     def action_tokenizer(self) -> ActionTokenizer:
         """The [`ActionTokenizer`] this head was built for."""
         return ActionTokenizer(self.action_vocab_size, self.n_action_bins)
+
+    def action_layout(self) -> ActionLayout:
+        """The [`ActionLayout`] (action tokens and tokens per action) this head was built for."""
+        return ActionLayout(self.action_tokenizer(), self.action_dim)
 
     def to_llama_config(self) -> LlamaConfig:
         """The [`LlamaConfig`] of the head's single decoder layer."""

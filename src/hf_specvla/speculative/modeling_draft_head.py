@@ -20,8 +20,8 @@ from transformers import AutoConfig, AutoModel, PreTrainedModel
 from transformers.cache_utils import Cache
 from transformers.models.llama.modeling_llama import LlamaDecoderLayer, LlamaRMSNorm, LlamaRotaryEmbedding
 
-from .action_tokenizer import DEFAULT_N_BINS, ActionTokenizer
-from .attention_masks import causal_mask
+from ..action_tokenizer import DEFAULT_N_BINS, ActionTokenizer
+from .masks import causal_mask
 from .configuration_draft_head import DraftHeadConfig
 
 

@@ -1,0 +1,45 @@
+"""The speculative engine: a transformers extension that knows nothing of robots or simulators.
+
+Imports point down: this package uses transformers, torch and ``hf_specvla.action_tokenizer`` only.
+"""
+
+from .acceptance import AcceptanceRule, AcceptedPath, ExactMatch, RelaxedBinMatch, accept_tree, make_acceptance_rule
+from .config import SpeculationConfig
+from .configuration_draft_head import DraftHeadConfig
+from .drafter import CandidateDrafter, Commit, ComposedDrafter, DraftContext, Drafter, DraftRound, DraftSession
+from .drafters import ActionPriorDrafter, DraftHeadDrafter, DraftTreeConfig
+from .generation import SpeculativeGenerationMixin, disable_speculation, enable_speculation
+from .loop import speculative_generate
+from .modeling_draft_head import DraftHead
+from .outputs import SpeculativeDecoderOnlyOutput
+from .stats import SpeculationStats
+from .tree import DraftTree
+
+__all__ = [
+    "AcceptanceRule",
+    "AcceptedPath",
+    "ActionPriorDrafter",
+    "CandidateDrafter",
+    "Commit",
+    "ComposedDrafter",
+    "DraftContext",
+    "DraftHead",
+    "DraftHeadConfig",
+    "DraftHeadDrafter",
+    "DraftRound",
+    "DraftSession",
+    "DraftTree",
+    "DraftTreeConfig",
+    "Drafter",
+    "ExactMatch",
+    "RelaxedBinMatch",
+    "SpeculationConfig",
+    "SpeculationStats",
+    "SpeculativeDecoderOnlyOutput",
+    "SpeculativeGenerationMixin",
+    "accept_tree",
+    "disable_speculation",
+    "enable_speculation",
+    "make_acceptance_rule",
+    "speculative_generate",
+]

@@ -1,0 +1,37 @@
+"""The one place the speculative ``generate`` keyword arguments are declared, with their defaults."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from ..action_tokenizer import ActionLayout
+
+
+@dataclass
+class SpeculationConfig:
+    """Runtime settings of one speculative ``generate`` call (passed as ``generate`` keyword arguments).
+
+    Args:
+        bin_tolerance: the paper's r: accept a drafted action token within this many bins of the target's greedy
+            token. An int, or one int per action dimension. 0 = lossless (identical to greedy decoding).
+        num_draft_tokens: chain length k when the assistant is a bare ``DraftHead``; None = the head's
+            ``config.num_draft_tokens``. (For a tree, pass ``assistant_model=DraftHeadDrafter(head, tree=...)``.)
+        action_layout: which tokens are actions and how many make an action; None = the drafter's (a draft head's
+            config), needed only for relaxed acceptance and bin-distance statistics.
+        profile_speculation: synchronise the device around timed sections so the time split is exact.
+    """
+
+    bin_tolerance: int | Sequence[int] = 0
+    num_draft_tokens: int | None = None
+    action_layout: ActionLayout | None = None
+    profile_speculation: bool = False
+
+    def __post_init__(self):
+        k = self.num_draft_tokens
+        if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
+            raise ValueError(f"num_draft_tokens must be an int >= 1 (tokens drafted per verification), got {k!r}")
+        if self.action_layout is not None and not isinstance(self.action_layout, ActionLayout):
+            raise TypeError(
+                f"action_layout must be a hf_specvla.ActionLayout, got {type(self.action_layout).__name__}"
+            )

@@ -1,0 +1,198 @@
+"""The drafter seam: anything that proposes draft trees to the decode loop.
+
+The loop never looks inside a drafter. Per call it asks ``drafter.start(context)`` for a [`DraftSession`] (all
+per-call state lives there, nothing is stuck onto models), then each round
+
+    tree = session.propose(round)      # before the target's forward; at the prefill too (drafts known up front)
+    ... the target verifies the tree in one forward, the loop keeps the accepted path ...
+    session.observe(commit)            # what was kept: tokens, positions, and the target's hidden states
+
+transformers has the same split (``CandidateGenerator.get_candidates`` / ``update_candidate_strategy``); here the
+proposal is a tree, and drafts known before the target has run are verified inside the prefill itself.
+
+Built in: [`DraftHeadDrafter`] (EAGLE chain and EAGLE-2 dynamic tree), [`ActionPriorDrafter`] (previous actions, no
+model), [`CandidateDrafter`] (``generate(draft_ids=...)``), and [`ComposedDrafter`] (several at once: their trees
+are merged, so drafts known up front are verified at the prefill and a draft head continues from wherever they
+stop being accepted).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from transformers import PreTrainedModel
+
+from ..action_tokenizer import ActionLayout
+from .tree import DraftTree
+
+
+@dataclass
+class DraftContext:
+    """What a drafter may read about one ``generate`` call (fixed for the call).
+
+    Attributes:
+        model: the target.
+        action_layout: the action layout used for acceptance, or None (no relaxed acceptance possible).
+        eos_token_ids: the call's EOS ids.
+        prompt_padding: ``[B, S]`` 2D attention mask of the prompt (0 = padding), or None when there is none.
+    """
+
+    model: PreTrainedModel
+    action_layout: ActionLayout | None
+    eos_token_ids: list[int]
+    prompt_padding: torch.Tensor | None
+
+
+@dataclass
+class DraftRound:
+    """What a drafter sees when it proposes.
+
+    Attributes:
+        sequence: ``[B, L]`` prompt + emitted tokens (its last token is the root of the tree to propose).
+        num_generated: tokens emitted in this call so far.
+        max_depth: the deepest path the loop will verify (so that path + bonus token fit ``max_length``).
+        at_prefill: True before the target's first forward (no hidden states exist yet).
+        root_position: ``[B, 1]`` position id of the root; a node at depth d is fed at ``root_position + 1 + d``.
+    """
+
+    sequence: torch.Tensor
+    num_generated: int
+    max_depth: int
+    at_prefill: bool
+    root_position: torch.Tensor
+
+
+@dataclass
+class Commit:
+    """What one verification kept, told to every drafter.
+
+    The kept inputs are the tokens fed to the target in that forward and kept in its cache: the pending tokens
+    (the whole prompt at the prefill, else the previous bonus token) and the accepted path.
+
+    Attributes:
+        next_token_ids: ``[B, K]`` the token that follows each kept input (the last one is the new bonus token).
+        positions: ``[B, K]`` position ids of the kept inputs.
+        target_hidden: ``[B, K, H]`` the target's last hidden state at each kept input, or None when no drafter
+            asked for hidden states (``Drafter.needs_hidden_states``).
+        cache_length: the target cache's length after the commit.
+    """
+
+    next_token_ids: torch.Tensor
+    positions: torch.Tensor
+    target_hidden: torch.Tensor | None
+    cache_length: int
+
+
+class DraftSession:
+    """Per-call drafting state (see module docstring). ``num_forwards`` counts the model forwards it ran."""
+
+    num_forwards: int = 0
+
+    def propose(self, round: DraftRound) -> DraftTree:
+        """A draft tree below the root (may be empty)."""
+        raise NotImplementedError
+
+    def observe(self, commit: Commit) -> None:
+        """Told what the verification kept. Default: nothing to update."""
+
+
+class Drafter:
+    """Proposes draft trees; stateless across calls (``start`` returns the per-call [`DraftSession`]).
+
+    Attributes:
+        name: how statistics name the drafter's accepted tokens.
+        needs_hidden_states: whether [`Commit`] must carry the target's hidden states (draft heads do).
+        action_layout: the action layout the drafter knows of (a draft head's config), or None.
+    """
+
+    name: str = "drafter"
+    needs_hidden_states: bool = False
+    action_layout: ActionLayout | None = None
+
+    def start(self, context: DraftContext) -> DraftSession:
+        raise NotImplementedError
+
+
+# ----------------------------------------------------------------------------- drafts known up front
+class _PathSession(DraftSession):
+    """Proposes fixed token paths, aligned with the first generated token: after m tokens were emitted, each
+    path's remaining part ``path[m:]`` is proposed (a guess for the tokens still to come). Paths are taken in
+    order while the tree stays within ``max_nodes`` nodes (shared prefixes count once)."""
+
+    def __init__(self, paths: list[list[int]], source: str, device: torch.device, max_nodes: int | None = None):
+        self.paths, self.source, self.device, self.max_nodes = paths, source, device, max_nodes
+
+    def propose(self, round: DraftRound) -> DraftTree:
+        m = round.num_generated
+        kept, prefixes = [], set()
+        for path in self.paths:
+            suffix = tuple(path[m : m + round.max_depth])
+            new = {suffix[: d + 1] for d in range(len(suffix))} - prefixes
+            if not new or (self.max_nodes is not None and len(prefixes) + len(new) > self.max_nodes):
+                continue
+            prefixes |= new
+            kept.append(suffix)
+        return DraftTree.from_paths(kept, self.source, self.device)
+
+
+class CandidateDrafter(Drafter):
+    """Drafts given token sequences (``generate(draft_ids=...)``), no model.
+
+    Args:
+        candidates: ``C`` sequences of token ids, each a guess of the first generated tokens. They are verified
+            inside the prefill (one tree, shared prefixes merged); after a partial acceptance their remaining
+            tokens are proposed again for the positions still to come.
+        name: the statistics' name for them.
+    """
+
+    def __init__(self, candidates: Sequence[Sequence[int]], name: str = "draft_ids"):
+        self.candidates = [[int(t) for t in c] for c in candidates]
+        self.name = name
+
+    def start(self, context: DraftContext) -> DraftSession:
+        return _PathSession(self.candidates, self.name, context.model.device)
+
+
+# ----------------------------------------------------------------------------- composition
+class _ComposedSession(DraftSession):
+    def __init__(self, sessions: list[DraftSession]):
+        self.sessions = sessions
+
+    @property
+    def num_forwards(self) -> int:  # type: ignore[override]
+        return sum(s.num_forwards for s in self.sessions)
+
+    def propose(self, round: DraftRound) -> DraftTree:
+        tree = DraftTree.empty(round.sequence.device)
+        for session in self.sessions:
+            tree = tree.merge(session.propose(round))
+        return tree
+
+    def observe(self, commit: Commit) -> None:
+        for session in self.sessions:
+            session.observe(commit)
+
+
+class ComposedDrafter(Drafter):
+    """Several drafters at once: each round their trees are merged (nodes on the same token path become one,
+    credited to the earlier drafter). With an [`ActionPriorDrafter`] first and a [`DraftHeadDrafter`] second,
+    the prior's candidates are verified in the prefill and the head drafts from wherever they stop being accepted.
+    """
+
+    def __init__(self, drafters: Sequence[Drafter]):
+        flat: list[Drafter] = []
+        for drafter in drafters:
+            if not isinstance(drafter, Drafter):
+                raise TypeError(f"ComposedDrafter takes Drafters, got {type(drafter).__name__}")
+            flat.extend(drafter.drafters if isinstance(drafter, ComposedDrafter) else [drafter])
+        if not flat:
+            raise ValueError("ComposedDrafter needs at least one drafter")
+        self.drafters = flat
+        self.name = "+".join(d.name for d in flat)
+        self.needs_hidden_states = any(d.needs_hidden_states for d in flat)
+        self.action_layout = next((d.action_layout for d in flat if d.action_layout is not None), None)
+
+    def start(self, context: DraftContext) -> DraftSession:
+        return _ComposedSession([d.start(context) for d in self.drafters])

@@ -1,0 +1,95 @@
+"""Drafts from the previous actions: no model, known before the target runs, so verified inside the prefill.
+
+A policy's consecutive actions are close (on the shipped Meta-World policy the median per-dimension distance
+between consecutive actions is 0 bins). The prior proposes, as one tree, in this order:
+
+1. the previous action;
+2. constant velocity: ``2 * previous - the one before`` (per dimension, in bins, clipped to the action range);
+3. the action before the previous one;
+4. per-dimension alternatives: the previous action with one dimension replaced by a neighbouring bin
+   (``+-1 .. +-neighbour_bins``), by the constant-velocity value or by the older action's value.
+
+Paths are added in that order until the tree holds ``max_nodes`` nodes (shared prefixes cost nothing). After a
+partial acceptance the remaining dimensions of the same candidates are proposed again (see
+[`CandidateDrafter`]): verifying a few more tokens in a forward that runs anyway is almost free.
+This is transformers' prompt-lookup idea (drafts from what is already known) applied to actions.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from ...action_tokenizer import ActionLayout
+from ..drafter import DraftContext, Drafter, DraftSession, _PathSession
+
+
+class ActionPriorDrafter(Drafter):
+    """Candidate action-token sequences from the episode's previous actions (see module docstring).
+
+    Args:
+        previous_actions: the episode's previous actions as token ids, oldest first, each ``action_dim`` long.
+        action_layout: the action layout (for clipping extrapolations to the action range, and for relaxed
+            acceptance when no other drafter knows it).
+        neighbour_bins: per-dimension alternatives reach this many bins either side of the previous action.
+        max_nodes: the tree's node budget.
+    """
+
+    name = "prior"
+
+    def __init__(
+        self,
+        previous_actions: Sequence[Sequence[int]],
+        action_layout: ActionLayout,
+        neighbour_bins: int = 1,
+        max_nodes: int = 24,
+    ):
+        if not isinstance(action_layout, ActionLayout):
+            raise TypeError(f"action_layout must be an ActionLayout, got {type(action_layout).__name__}")
+        for name, value, low in (("neighbour_bins", neighbour_bins, 0), ("max_nodes", max_nodes, 1)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"ActionPriorDrafter {name} must be an int >= {low}, got {value!r}")
+        history = [[int(t) for t in action] for action in previous_actions]
+        tokenizer = action_layout.tokenizer
+        for action in history:
+            if len(action) != action_layout.action_dim or not all(tokenizer.is_action_token(t) for t in action):
+                raise ValueError(
+                    f"previous action {action} is not {action_layout.action_dim} action token ids "
+                    f"({tokenizer.action_token_begin}..{tokenizer.vocab_size - 1})"
+                )
+        self.previous_actions = history
+        self.action_layout = action_layout
+        self.neighbour_bins = neighbour_bins
+        self.max_nodes = max_nodes
+
+    def candidate_paths(self) -> list[list[int]]:
+        """The candidate action-token sequences, most likely first (before the node budget is applied)."""
+        if not self.previous_actions:
+            return []
+        tokenizer = self.action_layout.tokenizer
+        low, high = tokenizer.action_token_begin, tokenizer.vocab_size - 1
+        last = self.previous_actions[-1]
+        older = self.previous_actions[-2] if len(self.previous_actions) > 1 else None
+        paths = [last]
+        velocity = None
+        if older is not None:
+            velocity = [min(max(2 * a - b, low), high) for a, b in zip(last, older)]  # ids are bins, reversed
+            paths += [velocity, older]
+        for dim, value in enumerate(last):
+            alternatives = []
+            for step in range(1, self.neighbour_bins + 1):
+                alternatives += [value - step, value + step]
+            if velocity is not None:
+                alternatives += [velocity[dim], older[dim]]
+            for alternative in alternatives:
+                if low <= alternative <= high and alternative != value:
+                    paths.append(last[:dim] + [alternative] + last[dim + 1 :])
+        return paths
+
+    def start(self, context: DraftContext) -> DraftSession:
+        return _PathSession(self.candidate_paths(), self.name, context.model.device, self.max_nodes)
+
+    def __repr__(self) -> str:
+        return (
+            f"ActionPriorDrafter(previous_actions={len(self.previous_actions)}, "
+            f"neighbour_bins={self.neighbour_bins}, max_nodes={self.max_nodes})"
+        )

@@ -1,0 +1,104 @@
+"""``model.generate(..., assistant_model=drafter, draft_ids=...)``: the glue between transformers and the loop.
+
+transformers 5.x has no public hook for a new assistant type, but ``generate(custom_generate=callable)`` is public:
+generate() prepares inputs, cache, logits processors and stopping criteria and then calls the callable. The mixin
+below intercepts ``assistant_model`` when it is a [`DraftHead`] or a [`Drafter`] (``assistant_model`` is not
+forwarded to a callable), or ``draft_ids`` (drafts known up front, with or without an assistant), and hands over to
+[`speculative_generate`]. A transformers model as assistant, or none, goes to transformers untouched.
+"""
+
+from __future__ import annotations
+
+import inspect
+
+from transformers import PreTrainedModel
+
+from .config import SpeculationConfig
+from .drafter import Drafter
+from .loop import speculative_generate
+from .modeling_draft_head import DraftHead
+
+#: generate() keyword arguments that only mean something with speculative decoding.
+SPECULATION_KWARGS = tuple(
+    name
+    for name in inspect.signature(SpeculationConfig).parameters
+    if name in inspect.signature(speculative_generate).parameters
+)
+
+
+class SpeculativeGenerationMixin:
+    """Mix in before a transformers model class to make ``generate`` speculate.
+
+    ``generate(..., assistant_model=draft_head_or_drafter, draft_ids=..., bin_tolerance=r)`` runs speculative
+    decoding (see [`speculative_generate`]); every other call behaves exactly as the base class's ``generate``.
+    """
+
+    def generate(self, *args, assistant_model=None, draft_ids=None, **kwargs):
+        ours = isinstance(assistant_model, (DraftHead, Drafter))
+        if ours or draft_ids is not None:
+            if kwargs.get("custom_generate") is not None:
+                raise ValueError("pass either a hf_specvla assistant_model / draft_ids or custom_generate, not both")
+            if kwargs.get("streamer") is not None:
+                raise ValueError("streamer is not supported with speculative decoding; drop streamer=")
+            if assistant_model is not None and not ours:
+                raise TypeError(
+                    f"draft_ids= speculates with hf_specvla's loop, whose assistant must be a DraftHead or a Drafter, "
+                    f"got {type(assistant_model).__name__}"
+                )
+            return super().generate(
+                *args, custom_generate=speculative_generate, drafter=assistant_model, draft_ids=draft_ids, **kwargs
+            )
+        if assistant_model is not None and not isinstance(assistant_model, PreTrainedModel):
+            raise TypeError(
+                f"assistant_model must be a hf_specvla DraftHead or Drafter (DraftHeadDrafter, ActionPriorDrafter, "
+                f"ComposedDrafter, ...), or a transformers model for transformers' assisted generation; got "
+                f"{type(assistant_model).__name__}"
+            )
+        stray = [name for name in SPECULATION_KWARGS if name in kwargs and kwargs.get("custom_generate") is None]
+        if stray:
+            raise ValueError(
+                f"{', '.join(stray)} only apply to speculative decoding with a hf_specvla DraftHead / Drafter or "
+                f"draft_ids, but assistant_model is {type(assistant_model).__name__}; pass assistant_model=<DraftHead> "
+                f"or drop them"
+            )
+        return super().generate(*args, assistant_model=assistant_model, **kwargs)
+
+
+_SPECULATIVE_CLASSES: dict[type, type] = {}
+
+
+def speculative_class(model_class: type[PreTrainedModel]) -> type[PreTrainedModel]:
+    """``model_class`` with [`SpeculativeGenerationMixin`] mixed in (cached; keeps the class name, so that
+    ``save_pretrained`` records the original architecture)."""
+    if issubclass(model_class, SpeculativeGenerationMixin):
+        return model_class
+    if model_class not in _SPECULATIVE_CLASSES:
+        _SPECULATIVE_CLASSES[model_class] = type(
+            model_class.__name__,
+            (SpeculativeGenerationMixin, model_class),
+            {"__module__": model_class.__module__, "__qualname__": model_class.__qualname__},
+        )
+    return _SPECULATIVE_CLASSES[model_class]
+
+
+def enable_speculation(model: PreTrainedModel) -> PreTrainedModel:
+    """Makes ``model.generate`` accept ``assistant_model=<DraftHead | Drafter>`` and ``draft_ids=`` (in place).
+
+    Example:
+        ```python
+        model = enable_speculation(AutoModelForCausalLM.from_pretrained(path))
+        draft = DraftHead.from_pretrained(draft_path)
+        out = model.generate(**inputs, assistant_model=draft, bin_tolerance=2, max_new_tokens=7)
+        ```
+    """
+    if not isinstance(model, PreTrainedModel):
+        raise TypeError(f"enable_speculation expects a transformers PreTrainedModel, got {type(model).__name__}")
+    model.__class__ = speculative_class(type(model))
+    return model
+
+
+def disable_speculation(model: PreTrainedModel) -> PreTrainedModel:
+    """Undoes [`enable_speculation`] (in place; returns the model)."""
+    if isinstance(model, SpeculativeGenerationMixin):
+        model.__class__ = type(model).__mro__[2]
+    return model

@@ -1,0 +1,108 @@
+"""Explicit 4D attention masks for multi-token forwards against a KV cache.
+
+Both the target (prefill and verification) and the draft head (catch-up, tree drafting, training) run forwards
+with several query tokens on top of a cache. transformers would build a causal mask itself, but (see NOTES.md) a decoder layer called
+directly with ``attention_mask=None`` attends wrongly, eager attention reads bool masks wrongly, and tree
+verification needs non-causal masks. So masks are always built here, additive float, shape
+``[B, 1, q_len, past_len + q_len]`` (0 = attend, dtype min = masked).
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def to_additive_mask(allowed: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """Bool "may attend" mask ``[B, q, kv]`` -> additive float mask ``[B, 1, q, kv]``."""
+    mask = torch.zeros(allowed.shape, dtype=dtype, device=allowed.device)
+    mask.masked_fill_(~allowed, torch.finfo(dtype).min)
+    return mask[:, None]
+
+
+def causal_allowed(
+    q_len: int, past_len: int, device: torch.device, key_padding: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Bool mask ``[B, q_len, past_len + q_len]``: query i sees all past keys and new keys 0..i.
+
+    Args:
+        key_padding: optional ``[B, past_len + q_len]`` bool, False where a key is padding (never attended).
+    """
+    query_pos = torch.arange(q_len, device=device)[:, None] + past_len  # [q, 1]
+    key_pos = torch.arange(past_len + q_len, device=device)[None, :]  # [1, kv]
+    allowed = (key_pos <= query_pos)[None]  # [1, q, kv]
+    if key_padding is not None:
+        allowed = allowed & key_padding[:, None, :].bool()
+    return allowed
+
+
+def causal_mask(
+    q_len: int,
+    past_len: int,
+    dtype: torch.dtype,
+    device: torch.device,
+    key_padding: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Additive causal mask ``[B, 1, q_len, past_len + q_len]`` (B = 1 without ``key_padding``)."""
+    return to_additive_mask(causal_allowed(q_len, past_len, device, key_padding), dtype)
+
+
+def block_allowed(block: torch.Tensor, past_len: int, key_padding: torch.Tensor | None = None) -> torch.Tensor:
+    """Bool mask ``[B, q, past_len + k]``: every query sees all ``past_len`` cached keys (except padding) and the new
+    keys where ``block`` ``[q, k]`` is True.
+
+    Args:
+        key_padding: optional ``[B, >= past_len]`` bool, False where a cached key is padding.
+    """
+    q_len = block.shape[0]
+    past = torch.ones(q_len, past_len, dtype=torch.bool, device=block.device)
+    allowed = torch.cat([past, block.bool()], dim=1)[None]  # [1, q, past + k]
+    if key_padding is not None and past_len:
+        allowed = allowed.repeat(key_padding.shape[0], 1, 1)
+        allowed[:, :, :past_len] &= key_padding[:, None, :past_len].bool()
+    return allowed
+
+
+def tree_verification_allowed(
+    past_len: int,
+    num_pending: int,
+    ancestor_or_self: torch.Tensor,
+    key_padding: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Bool mask ``[B, P + N, past_len + P + N]`` of one target forward over ``P`` pending tokens then a draft tree.
+
+    Pending token i sees the cache and pending tokens 0..i (causal); tree node j sees the cache, every pending token
+    and its own ancestors and itself (``ancestor_or_self`` ``[N, N]``), never its siblings.
+
+    Args:
+        key_padding: optional ``[B, past_len + P]`` bool, False where a cached or pending key is padding.
+    """
+    num_nodes = ancestor_or_self.shape[0]
+    device = ancestor_or_self.device
+    pending_rows = torch.cat(
+        [
+            torch.ones(num_pending, num_pending, dtype=torch.bool, device=device).tril(),
+            torch.zeros(num_pending, num_nodes, dtype=torch.bool, device=device),
+        ],
+        dim=1,
+    )
+    tree_rows = torch.cat(
+        [torch.ones(num_nodes, num_pending, dtype=torch.bool, device=device), ancestor_or_self.bool()], dim=1
+    )
+    block = torch.cat([pending_rows, tree_rows], dim=0)  # [P + N, P + N]
+    allowed = block_allowed(block, past_len)  # [1, P + N, past + P + N]
+    if key_padding is None:
+        return allowed
+    keys = torch.cat([key_padding.bool(), torch.ones(key_padding.shape[0], num_nodes, dtype=torch.bool, device=device)], 1)
+    return allowed & keys[:, None, :]  # [B, P + N, past + P + N]
+
+
+def key_padding(prompt_padding: torch.Tensor | None, length: int) -> torch.Tensor | None:
+    """Bool ``[B, length]`` "is a real token" mask for the first ``length`` positions of a sequence whose prompt
+    has the 2D mask ``prompt_padding`` ``[B, S]``; positions past the prompt (generated or drafted) are real.
+    None when there is no padding at all."""
+    if prompt_padding is None:
+        return None
+    if length <= prompt_padding.shape[1]:
+        return prompt_padding[:, :length].bool()
+    extra = prompt_padding.new_ones(prompt_padding.shape[0], length - prompt_padding.shape[1])
+    return torch.cat([prompt_padding, extra], dim=1).bool()

@@ -1,0 +1,91 @@
+"""Per-call speculation statistics, returned as ``generate(...).speculation``."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+
+@dataclass
+class SpeculationStats:
+    """What one (or several merged) speculative ``generate`` calls did.
+
+    Attributes:
+        accept_lengths: tokens emitted by each target forward, in order: the accepted drafted tokens + 1 token of
+            the target's own. ``sum(accept_lengths)`` is the number of new tokens. The prefill is a target forward
+            too: it emits 1 token, or more when drafts known up front were verified inside it.
+        tree_sizes: drafted tokens (tree nodes) verified by each target forward (0 = a plain decoding step).
+        num_draft_forwards: forwards run by drafters (draft-head catch-ups and tree levels; model-free drafters 0).
+        drafted_per_position / accepted_per_position: ``[d]`` = how many verifications had a drafted token at
+            depth d / accepted a drafted token at depth d.
+        accepted_by_drafter: accepted drafted tokens per drafter name (e.g. ``{"prior": 9, "head-tree": 4}``).
+        action_bin_distances: for each emitted action token, its bin distance to the target's greedy token at that
+            position (0 under exact acceptance, at most the tolerance under relaxed acceptance).
+        target_seconds / draft_seconds / total_seconds: wall time in target forwards, in drafters, and in the
+            whole decode (the rest is bookkeeping). Device-synchronised only with ``profile_speculation=True``.
+    """
+
+    accept_lengths: list[int] = field(default_factory=list)
+    tree_sizes: list[int] = field(default_factory=list)
+    num_draft_forwards: int = 0
+    drafted_per_position: list[int] = field(default_factory=list)
+    accepted_per_position: list[int] = field(default_factory=list)
+    accepted_by_drafter: Counter = field(default_factory=Counter)
+    action_bin_distances: list[int] = field(default_factory=list)
+    target_seconds: float = 0.0
+    draft_seconds: float = 0.0
+    total_seconds: float = 0.0
+
+    @property
+    def num_target_forwards(self) -> int:
+        return len(self.accept_lengths)
+
+    @property
+    def num_new_tokens(self) -> int:
+        return sum(self.accept_lengths)
+
+    @property
+    def mean_accept_length(self) -> float:
+        """New tokens per target forward (the prefill included): the paper's tau counted over every forward."""
+        return self.num_new_tokens / max(self.num_target_forwards, 1)
+
+    tokens_per_target_forward = mean_accept_length
+
+    @property
+    def acceptance_rate_per_position(self) -> list[float]:
+        """Fraction of verifications that accepted a drafted token at each depth, among those that drafted one."""
+        return [a / d if d else 0.0 for a, d in zip(self.accepted_per_position, self.drafted_per_position)]
+
+    def record_verification(self, tree_depth: int, tree_size: int, accepted_sources: list[str]) -> None:
+        """Books one target forward that verified a tree of ``tree_size`` nodes and ``tree_depth`` levels and
+        accepted a path whose nodes came from ``accepted_sources`` (one name per accepted token)."""
+        self.tree_sizes.append(tree_size)
+        grow = tree_depth - len(self.drafted_per_position)
+        if grow > 0:
+            self.drafted_per_position.extend([0] * grow)
+            self.accepted_per_position.extend([0] * grow)
+        for depth in range(tree_depth):
+            self.drafted_per_position[depth] += 1
+            self.accepted_per_position[depth] += int(depth < len(accepted_sources))
+        self.accepted_by_drafter.update(accepted_sources)
+
+    def merge(self, other: SpeculationStats) -> SpeculationStats:
+        """Sum of two runs' statistics (e.g. over a benchmark)."""
+        return SpeculationStats(
+            accept_lengths=self.accept_lengths + other.accept_lengths,
+            tree_sizes=self.tree_sizes + other.tree_sizes,
+            num_draft_forwards=self.num_draft_forwards + other.num_draft_forwards,
+            drafted_per_position=_add_padded(self.drafted_per_position, other.drafted_per_position),
+            accepted_per_position=_add_padded(self.accepted_per_position, other.accepted_per_position),
+            accepted_by_drafter=self.accepted_by_drafter + other.accepted_by_drafter,
+            action_bin_distances=self.action_bin_distances + other.action_bin_distances,
+            target_seconds=self.target_seconds + other.target_seconds,
+            draft_seconds=self.draft_seconds + other.draft_seconds,
+            total_seconds=self.total_seconds + other.total_seconds,
+        )
+
+
+def _add_padded(a: list[int], b: list[int]) -> list[int]:
+    """Element-wise sum of two count lists, the shorter one padded with zeros."""
+    width = max(len(a), len(b))
+    return [x + y for x, y in zip(a + [0] * (width - len(a)), b + [0] * (width - len(b)))]

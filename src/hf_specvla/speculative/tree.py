@@ -1,0 +1,184 @@
+"""Draft trees: drafted tokens with parents, verified by the target in one forward.
+
+A [`DraftTree`] hangs below the *root*, the last token whose target logits will be known in the verification
+forward (the last prompt token at the prefill, the last emitted token afterwards). Node ``i`` holds a drafted
+token, the index of its parent (``-1`` = a child of the root) and the name of the drafter that proposed it.
+Nodes are stored parents-first (``parents[i] < i``), so one pass in index order visits every parent before its
+children. A chain of k drafts is a tree of width 1.
+
+What verification needs is derived here, once per tree (Medusa's ``generate_medusa_buffers`` idea, as data):
+
+* ``depths`` ``[N]``: 0 for the root's children; node i is fed at position ``root_position + 1 + depth``;
+* ``ancestor_or_self`` ``[N, N]`` bool: row i is True at i and at every ancestor of i. It is the tree's attention
+  mask (a node attends to its ancestors and itself, never to siblings or cousins) and it turns path questions
+  ("does every node on the path pass?", "total bin distance along the path") into one matrix product.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import torch
+
+
+@dataclass
+class DraftTree:
+    """Drafted tokens arranged as a tree below the root (see module docstring).
+
+    Args:
+        token_ids: ``[N]`` int64 drafted token ids.
+        parents: ``[N]`` int64 parent node index, ``-1`` for the root's children; ``parents[i] < i``.
+        sources: ``N`` names of the drafter that proposed each node (for statistics).
+    """
+
+    token_ids: torch.Tensor
+    parents: torch.Tensor
+    sources: list[str] = field(default_factory=list)
+
+    def __post_init__(self):
+        if self.token_ids.ndim != 1 or self.parents.shape != self.token_ids.shape:
+            raise ValueError(
+                f"DraftTree needs token_ids and parents of the same shape [N], got {tuple(self.token_ids.shape)} and "
+                f"{tuple(self.parents.shape)}"
+            )
+        n = self.token_ids.shape[0]
+        if not self.sources:
+            self.sources = ["draft"] * n
+        if len(self.sources) != n:
+            raise ValueError(f"DraftTree has {n} nodes but {len(self.sources)} sources")
+        if n and bool((self.parents >= torch.arange(n, device=self.parents.device)).any() | (self.parents < -1).any()):
+            raise ValueError(f"DraftTree parents must satisfy -1 <= parents[i] < i, got {self.parents.tolist()}")
+
+    # ----------------------------------------------------------------- building
+    @classmethod
+    def empty(cls, device: torch.device | str = "cpu") -> DraftTree:
+        none = torch.empty(0, dtype=torch.long, device=device)
+        return cls(none, none.clone(), [])
+
+    @classmethod
+    def from_paths(cls, paths: Iterable[Sequence[int]], source: str, device: torch.device | str = "cpu") -> DraftTree:
+        """A tree (a trie: shared prefixes become one node) from root-to-leaf token sequences."""
+        tokens, parents, sources = [], [], []
+        index: dict[tuple[int, ...], int] = {}  # path prefix -> node
+        for path in paths:
+            parent = -1
+            for depth in range(len(path)):
+                key = tuple(int(t) for t in path[: depth + 1])
+                if key not in index:
+                    index[key] = len(tokens)
+                    tokens.append(key[-1])
+                    parents.append(parent)
+                    sources.append(source)
+                parent = index[key]
+        return cls(
+            torch.tensor(tokens, dtype=torch.long, device=device),
+            torch.tensor(parents, dtype=torch.long, device=device),
+            sources,
+        )
+
+    @property
+    def num_nodes(self) -> int:
+        return self.token_ids.shape[0]
+
+    def __len__(self) -> int:
+        return self.num_nodes
+
+    # ----------------------------------------------------------------- derived buffers
+    @cached_property
+    def depths(self) -> torch.Tensor:
+        """``[N]`` int64 depth of each node (0 = child of the root)."""
+        parents = self.parents.tolist()
+        depths: list[int] = []
+        for parent in parents:
+            depths.append(0 if parent < 0 else depths[parent] + 1)
+        return torch.tensor(depths, dtype=torch.long, device=self.token_ids.device)
+
+    @cached_property
+    def ancestor_or_self(self) -> torch.Tensor:
+        """``[N, N]`` bool: ``[i, j]`` is True when node j is node i or one of its ancestors."""
+        n = self.num_nodes
+        rows = torch.eye(n, dtype=torch.bool, device=self.token_ids.device)
+        for i, parent in enumerate(self.parents.tolist()):
+            if parent >= 0:
+                rows[i] |= rows[parent]
+        return rows
+
+    @property
+    def max_depth(self) -> int:
+        """Depth of the deepest node + 1 (the longest path's length), 0 for an empty tree."""
+        return int(self.depths.max()) + 1 if self.num_nodes else 0
+
+    def path_to(self, node: int) -> list[int]:
+        """Node indices from the root's child down to ``node`` (ascending, parents first)."""
+        path, parents = [], self.parents.tolist()
+        while node >= 0:
+            path.append(node)
+            node = parents[node]
+        return path[::-1]
+
+    def paths(self) -> list[list[int]]:
+        """Every root-to-leaf path, as node indices."""
+        has_child = set(p for p in self.parents.tolist() if p >= 0)
+        return [self.path_to(i) for i in range(self.num_nodes) if i not in has_child]
+
+    def token_paths(self) -> list[list[int]]:
+        """Every root-to-leaf path, as token ids."""
+        tokens = self.token_ids.tolist()
+        return [[tokens[i] for i in path] for path in self.paths()]
+
+    # ----------------------------------------------------------------- editing (each returns a new tree)
+    def select(self, keep: torch.Tensor) -> DraftTree:
+        """The sub-tree of the nodes where ``keep`` (``[N]`` bool) is True; a kept node's ancestors must be kept."""
+        keep_list = keep.tolist()
+        new_index, parents = {}, self.parents.tolist()
+        for i, kept in enumerate(keep_list):
+            if kept:
+                if parents[i] >= 0 and parents[i] not in new_index:
+                    raise ValueError(f"DraftTree.select keeps node {i} but drops its parent {parents[i]}")
+                new_index[i] = len(new_index)
+        nodes = list(new_index)
+        index = torch.tensor(nodes, dtype=torch.long, device=self.token_ids.device)
+        new_parents = [new_index[parents[i]] if parents[i] >= 0 else -1 for i in nodes]
+        return DraftTree(
+            self.token_ids.index_select(0, index),
+            torch.tensor(new_parents, dtype=torch.long, device=self.token_ids.device),
+            [self.sources[i] for i in nodes],
+        )
+
+    def truncate_depth(self, max_depth: int) -> DraftTree:
+        """Drops every node at depth >= ``max_depth`` (so that no path drafts past a length limit)."""
+        if self.num_nodes == 0 or self.max_depth <= max_depth:
+            return self
+        return self.select(self.depths < max_depth)
+
+    def merge(self, other: DraftTree) -> DraftTree:
+        """Union of two trees: nodes with the same token path become one (the first tree's source is kept)."""
+        if other.num_nodes == 0:
+            return self
+        if self.num_nodes == 0:
+            return other
+        tokens, parents, sources = self.token_ids.tolist(), self.parents.tolist(), list(self.sources)
+        index = {(parents[i], tokens[i]): i for i in range(len(tokens))}  # (parent node, token) -> node
+        other_tokens, other_parents = other.token_ids.tolist(), other.parents.tolist()
+        mapped: list[int] = []
+        for j, token in enumerate(other_tokens):
+            parent = mapped[other_parents[j]] if other_parents[j] >= 0 else -1
+            key = (parent, token)
+            if key not in index:
+                index[key] = len(tokens)
+                tokens.append(token)
+                parents.append(parent)
+                sources.append(other.sources[j])
+            mapped.append(index[key])
+        device = self.token_ids.device
+        return DraftTree(
+            torch.tensor(tokens, dtype=torch.long, device=device),
+            torch.tensor(parents, dtype=torch.long, device=device),
+            sources,
+        )
+
+    def __repr__(self) -> str:
+        return f"DraftTree(nodes={self.num_nodes}, depth={self.max_depth}, paths={self.token_paths()})"
+
