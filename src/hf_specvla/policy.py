@@ -33,9 +33,11 @@ from transformers import (
     PreTrainedTokenizerFast,
 )
 
-from .action_tokenizer import ActionNormalizer, ActionTokenizer
+from .action_tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
 from .envs.metaworld import CAMERAS, EnvConfig
-from .speculative import enable_speculation
+from .speculative import ActionPriorDrafter, ComposedDrafter, DraftHead, Drafter, enable_speculation
+from .speculative.generation import SPECULATION_KWARGS
+from .speculative.loop import as_drafter
 from .tokenization import build_vla_tokenizer
 
 POLICY_CONFIG_NAME = "policy_config.json"
@@ -101,13 +103,21 @@ class VLAPolicy:
     Attributes:
         model: the Llava model (speculation enabled: ``generate`` accepts a DraftHead assistant).
         tokenizer, action_tokenizer, action_normalizer, state_normalizer, config.
+        action_layout: the action tokens and ``action_dim`` (what relaxed acceptance needs).
+        previous_action_ids: this episode's actions so far as token ids, oldest first (cleared by ``reset``); the
+            source of ``predict_action(action_prior=True)``'s drafts.
     """
+
+    #: previous actions kept for the action prior (it uses the last two).
+    HISTORY_LENGTH = 2
 
     def __init__(self, model, tokenizer, config: VLAPolicyConfig):
         self.model = enable_speculation(model)
         self.tokenizer = tokenizer
         self.config = config
         self.action_tokenizer = ActionTokenizer(len(tokenizer))
+        self.action_layout = ActionLayout(self.action_tokenizer, config.action_dim)
+        self.previous_action_ids: list[list[int]] = []
         self.action_normalizer = ActionNormalizer.from_dict(config.action_stats) if config.action_stats else None
         self.state_normalizer = ActionNormalizer.from_dict(config.state_stats) if config.state_stats else None
         self.scene_normalizer = ActionNormalizer.from_dict(config.scene_stats) if config.scene_stats else None
@@ -264,10 +274,19 @@ class VLAPolicy:
             )
 
     def reset(self) -> None:
-        """Start of an episode (the policy is stateless; kept for the LeRobot-style interface)."""
+        """Start of an episode: forgets the previous actions (the action prior's drafts)."""
+        self.previous_action_ids = []
 
     @torch.no_grad()
-    def predict_action(self, image, instruction: str, state=None, return_output: bool = False, **generate_kwargs):
+    def predict_action(
+        self,
+        image,
+        instruction: str,
+        state=None,
+        return_output: bool = False,
+        action_prior: bool = False,
+        **generate_kwargs,
+    ):
         """The action for one observation.
 
         Args:
@@ -275,7 +294,10 @@ class VLAPolicy:
             instruction: the task in words.
             state: the proprio state ``[state_dim]`` (required when ``config.use_state``).
             return_output: also return ``generate``'s output (with ``return_dict_in_generate=True``: sequences,
-                and ``.speculation`` when a DraftHead drafted).
+                and ``.speculation`` when speculative decoding ran).
+            action_prior: draft this action from the episode's previous actions ([`ActionPriorDrafter`]), verified
+                inside the prefill; combined with ``assistant_model`` when one is given (the head continues where
+                the prior's drafts stop being accepted). No effect on the first step of an episode.
             generate_kwargs: anything ``generate`` accepts, e.g. ``assistant_model=draft_head, bin_tolerance=2``.
 
         Returns:
@@ -286,11 +308,33 @@ class VLAPolicy:
         if return_output:
             kwargs["return_dict_in_generate"] = True
         kwargs.update(generate_kwargs)
+        drafter = self._drafter(kwargs.pop("assistant_model", None), action_prior, kwargs.pop("num_draft_tokens", None))
+        if drafter is not None:
+            kwargs["assistant_model"] = drafter
+            kwargs.setdefault("action_layout", self.action_layout)
+        elif action_prior:  # the episode's first step: nothing to draft from, plain greedy decoding
+            for name in SPECULATION_KWARGS:
+                kwargs.pop(name, None)
         output = self.model.generate(input_ids=input_ids, pixel_values=self.preprocess_images(image), **kwargs)
         sequences = output.sequences if hasattr(output, "sequences") else output
-        normalized = self.action_tokenizer.decode(sequences[0, -self.config.action_dim :])
+        action_ids = sequences[0, -self.config.action_dim :]
+        if bool(self.action_tokenizer.is_action_token(action_ids).all()):  # an untrained model may emit text ids
+            self.previous_action_ids = [*self.previous_action_ids, action_ids.tolist()][-self.HISTORY_LENGTH :]
+        else:
+            self.previous_action_ids = []
+        normalized = self.action_tokenizer.decode(action_ids)
         action = self.action_normalizer.unnormalize(normalized)
         return (action, output) if return_output else action
+
+    def _drafter(self, assistant: DraftHead | Drafter | None, action_prior: bool, num_draft_tokens) -> Drafter | None:
+        """The drafter for this step: the assistant's, the action prior's, or both composed (prior first)."""
+        drafter = as_drafter(assistant, num_draft_tokens)
+        if num_draft_tokens is not None and assistant is None:
+            raise ValueError("num_draft_tokens needs assistant_model=<DraftHead>")
+        if not action_prior or not self.previous_action_ids:
+            return drafter
+        prior = ActionPriorDrafter(self.previous_action_ids, self.action_layout)
+        return prior if drafter is None else ComposedDrafter([prior, drafter])
 
     # ----------------------------------------------------------------------------- persistence
     def save_pretrained(self, folder: str | Path) -> None:

@@ -12,6 +12,7 @@ from typing import NamedTuple
 
 import torch
 from transformers import LogitsProcessorList, PreTrainedModel
+from transformers.generation.logits_process import PrefixConstrainedLogitsProcessor
 
 from .masks import key_padding, to_additive_mask, tree_verification_allowed
 from .tree import DraftTree
@@ -73,13 +74,23 @@ def verify_tree(
     return TargetOutput(outputs.logits.float(), hidden)
 
 
+def apply_processors(logits_processor: LogitsProcessorList, input_ids: torch.Tensor, scores: torch.Tensor):
+    """``logits_processor(input_ids, scores)`` without the list's per-call ``inspect.signature`` of every processor
+    (the list only needs it to forward extra kwargs, and none are passed here)."""
+    for processor in logits_processor:
+        scores = processor(input_ids, scores)
+    return scores
+
+
 def target_greedy_ids(
     logits_processor: LogitsProcessorList, sequence: torch.Tensor, tree: DraftTree, logits: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The target's greedy token after the root and after each node, with the logits processors applied.
 
     The processors at node i see ``sequence`` + the tokens on node i's path: exactly what plain greedy decoding
-    would pass them had that path been generated.
+    would pass them had that path been generated. Nodes of one depth have prefixes of one length, so they are
+    processed as one batch (one call per depth), except under processors that read the batch index
+    (``prefix_allowed_tokens_fn``), which see each node alone as batch row 0.
 
     Args:
         sequence: ``[1, L]`` emitted so far (ending with the root); logits: ``[1, 1 + N, V]``.
@@ -88,9 +99,16 @@ def target_greedy_ids(
     """
     if len(logits_processor) == 0:
         return logits[0].argmax(dim=-1), logits[0]
-    rows = [logits_processor(sequence, logits[:, 0])]
-    for node in range(tree.num_nodes):
-        path_tokens = tree.token_ids[tree.path_to(node)][None]
-        rows.append(logits_processor(torch.cat([sequence, path_tokens], dim=1), logits[:, 1 + node]))
-    scores = torch.cat(rows, dim=0)  # [1 + N, V]
+    num_nodes = tree.num_nodes
+    prefixes = [sequence[0]]  # [L + depth] per row: row 0 is the root, row 1 + i node i
+    for node in range(num_nodes):
+        prefixes.append(torch.cat([sequence[0], tree.token_ids[tree.path_to(node)]]))
+    by_row = any(isinstance(p, PrefixConstrainedLogitsProcessor) for p in logits_processor)
+    groups: dict[int, list[int]] = {}
+    for row, prefix in enumerate(prefixes):
+        groups.setdefault(row if by_row else prefix.shape[0], []).append(row)
+    scores = torch.empty_like(logits[0])  # [1 + N, V]
+    for rows in groups.values():
+        input_ids = torch.stack([prefixes[r] for r in rows])  # [n, L + d]
+        scores[rows] = apply_processors(logits_processor, input_ids, logits[0, rows])
     return scores.argmax(dim=-1), scores
