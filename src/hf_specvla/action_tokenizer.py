@@ -121,8 +121,14 @@ class ActionLayout:
     def __post_init__(self):
         if not isinstance(self.tokenizer, ActionTokenizer):
             raise TypeError(f"ActionLayout.tokenizer must be an ActionTokenizer, got {type(self.tokenizer).__name__}")
-        if isinstance(self.action_dim, bool) or not isinstance(self.action_dim, (int, np.integer)) or self.action_dim < 1:
-            raise ValueError(f"ActionLayout.action_dim must be an int >= 1 (tokens per action), got {self.action_dim!r}")
+        if (
+            isinstance(self.action_dim, bool)
+            or not isinstance(self.action_dim, (int, np.integer))
+            or self.action_dim < 1
+        ):
+            raise ValueError(
+                f"ActionLayout.action_dim must be an int >= 1 (tokens per action), got {self.action_dim!r}"
+            )
 
 
 @dataclass

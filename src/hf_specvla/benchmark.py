@@ -114,3 +114,200 @@ def format_report(results: list[MethodResult]) -> str:
             f"{accept} | {split} | {statistics.mean(distances):.2f} / {max(distances)} |"
         )
     return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- episodes (previous actions are real)
+@dataclass
+class EpisodeMethod:
+    """One decoding configuration for [`run_episode_benchmark`]: ``generate`` options, and whether the episode's
+    previous actions are drafted ([`ActionPriorDrafter`], verified inside the prefill)."""
+
+    name: str
+    generate_kwargs: dict = field(default_factory=dict)
+    action_prior: bool = False
+
+
+@dataclass
+class EpisodeMethodResult:
+    """Per-action measurements of one method over every replayed step."""
+
+    name: str
+    latencies: list[float] = field(default_factory=list)
+    target_forwards: list[int] = field(default_factory=list)
+    draft_forwards: list[int] = field(default_factory=list)
+    new_tokens: list[int] = field(default_factory=list)
+    bin_distances: list[int] = field(default_factory=list)
+    target_seconds: float = 0.0
+    draft_seconds: float = 0.0
+    total_seconds: float = 0.0
+
+    @property
+    def median_latency(self) -> float:
+        return statistics.median(self.latencies)
+
+
+def run_episode_benchmark(
+    act,
+    episodes: list[list],
+    methods: list[EpisodeMethod],
+    action_dim: int,
+    repeats: int = 1,
+    warmup: int = 3,
+    seed: int = 0,
+    progress: bool = True,
+) -> list[EpisodeMethodResult]:
+    """Replays observation sequences with every method, interleaved; the first method is the baseline.
+
+    Args:
+        act: ``act(observation, previous_action_ids, action_prior, **generate_kwargs) -> (action_ids, output)``;
+            ``previous_action_ids`` is this method's own episode memory (its earlier actions in this episode,
+            oldest first), so each method drafts from the actions it produced itself.
+        episodes: lists of observations (whatever ``act`` reads).
+    At every step the methods run in a fresh random order on the same observation, so machine-load drift hits
+    them alike; bin distances compare each action token with the baseline's at the same step.
+    """
+    results = {m.name: EpisodeMethodResult(m.name) for m in methods}
+    first = episodes[0]
+    for method in methods:  # warm-up: allocator, lazy init, both code paths of every method
+        history: list[list[int]] = []
+        for observation in first[:warmup]:
+            ids, _ = act(observation, history, method.action_prior, **method.generate_kwargs)
+            history = [*history, ids][-2:]
+    rng = random.Random(seed)
+    order = list(methods)
+    total = repeats * sum(len(e) for e in episodes)
+    with tqdm(total=total, desc="episode benchmark", disable=not progress, mininterval=10) as bar:
+        for _ in range(repeats):
+            for episode in episodes:
+                histories: dict[str, list[list[int]]] = {m.name: [] for m in methods}
+                for observation in episode:
+                    rng.shuffle(order)
+                    actions = {}
+                    for method in order:
+                        start = time.perf_counter()
+                        ids, output = act(observation, histories[method.name], method.action_prior,
+                                          **method.generate_kwargs)  # fmt: skip
+                        elapsed = time.perf_counter() - start
+                        result = results[method.name]
+                        result.latencies.append(elapsed)
+                        spec = getattr(output, "speculation", None)
+                        result.target_forwards.append(spec.num_target_forwards if spec else action_dim)
+                        result.draft_forwards.append(spec.num_draft_forwards if spec else 0)
+                        result.new_tokens.append(spec.num_new_tokens if spec else action_dim)
+                        if spec is not None:
+                            result.target_seconds += spec.target_seconds
+                            result.draft_seconds += spec.draft_seconds
+                            result.total_seconds += spec.total_seconds
+                        histories[method.name] = [*histories[method.name], ids][-2:]
+                        actions[method.name] = ids
+                    reference = actions[methods[0].name]
+                    for name, ids in actions.items():
+                        results[name].bin_distances.extend(abs(a - b) for a, b in zip(ids, reference))
+                    bar.update(1)
+    return [results[m.name] for m in methods]
+
+
+def format_episode_report(results: list[EpisodeMethodResult]) -> str:
+    """Markdown table of [`run_episode_benchmark`] results; the first row is the baseline."""
+    baseline = results[0].median_latency
+    lines = [
+        "| method | median ms/action | speed-up | target forwards/action | one-forward actions | tokens/target "
+        "forward | draft forwards/action | target / draft / other time | bin distance to greedy (mean / max) |",
+        "|---|---:|---:|---:|---:|---:|---:|---|---|",
+    ]
+    for r in results:
+        forwards = statistics.mean(r.target_forwards)
+        one_forward = sum(f == 1 for f in r.target_forwards) / len(r.target_forwards)
+        tokens = sum(r.new_tokens) / sum(r.target_forwards)
+        if r.total_seconds:
+            t, d = r.target_seconds / r.total_seconds, r.draft_seconds / r.total_seconds
+            split = f"{t:.0%} / {d:.0%} / {1 - t - d:.0%}"
+        else:
+            split = "-"
+        lines.append(
+            f"| {r.name} | {1000 * r.median_latency:.2f} | {baseline / r.median_latency:.2f}x | {forwards:.2f} | "
+            f"{one_forward:.0%} | {tokens:.2f} | {statistics.mean(r.draft_forwards):.2f} | {split} | "
+            f"{statistics.mean(r.bin_distances):.2f} / {max(r.bin_distances)} |"
+        )
+    return "\n".join(lines)
+
+
+def episode_methods(
+    draft_head, bin_tolerances=(0, 1, 2, 4, 8), tree=None, chain_length: int = 3
+) -> list[EpisodeMethod]:
+    """Greedy; the action prior at every r; the draft head's chain and EAGLE-2 tree at r=0 and the largest r <= 4;
+    the prior followed by the tree at the same two r."""
+    from .speculative import DraftHeadDrafter
+
+    methods = [EpisodeMethod("greedy")]
+    for r in bin_tolerances:
+        methods.append(EpisodeMethod(f"prior r={r}", dict(bin_tolerance=r), action_prior=True))
+    if draft_head is None:
+        return methods
+    chain = DraftHeadDrafter(draft_head, num_draft_tokens=chain_length)
+    tree_drafter = DraftHeadDrafter(draft_head, tree=tree) if tree is not None else None
+    relaxed = max([r for r in bin_tolerances if 0 < r <= 4], default=None)
+    methods.append(EpisodeMethod(f"head chain k={chain_length} r=0", dict(assistant_model=chain)))
+    if tree_drafter is not None:
+        for r in [0] + ([relaxed] if relaxed else []):
+            methods.append(EpisodeMethod(f"head tree r={r}", dict(assistant_model=tree_drafter, bin_tolerance=r)))
+        for r in [0] + ([relaxed] if relaxed else []):
+            methods.append(
+                EpisodeMethod(f"prior+tree r={r}", dict(assistant_model=tree_drafter, bin_tolerance=r), True)
+            )
+    return methods
+
+
+def policy_actor(policy):
+    """``act`` for [`run_episode_benchmark`] over a [`VLAPolicy`]; observations are dicts with ``image``,
+    ``instruction`` and ``state``."""
+
+    def act(observation, previous_action_ids, action_prior, **generate_kwargs):
+        policy.previous_action_ids = list(previous_action_ids)
+        _, output = policy.predict_action(
+            observation["image"], observation["instruction"], observation["state"], return_output=True,
+            action_prior=action_prior, **generate_kwargs,
+        )  # fmt: skip
+        return output.sequences[0, -policy.config.action_dim :].tolist(), output
+
+    return act
+
+
+def toy_actor(pipeline):
+    """``act`` for [`run_episode_benchmark`] over the toy target; observations are [`DotScene`]s."""
+    from .action_tokenizer import ActionLayout
+    from .speculative.drafters import with_action_prior
+    from .speculative.loop import as_drafter
+    from .toy import ACTION_DIM, toy_inputs
+
+    layout = ActionLayout(pipeline.action_tokenizer, ACTION_DIM)
+
+    def act(scene, previous_action_ids, action_prior, **generate_kwargs):
+        kwargs = dict(generate_kwargs)
+        drafter = as_drafter(kwargs.pop("assistant_model", None), None)
+        if action_prior:
+            drafter = with_action_prior(drafter, previous_action_ids, layout)
+        if drafter is None:
+            kwargs = {k: v for k, v in kwargs.items() if k != "bin_tolerance"}
+        else:
+            kwargs.update(assistant_model=drafter, action_layout=layout)
+        output = pipeline.target.generate(
+            **toy_inputs([scene], pipeline.tokenizer), max_new_tokens=ACTION_DIM, min_new_tokens=ACTION_DIM,
+            do_sample=False, return_dict_in_generate=True, **kwargs,
+        )  # fmt: skip
+        return output.sequences[0, -ACTION_DIM:].tolist(), output
+
+    return act
+
+
+def toy_episodes(num_episodes: int) -> list[list]:
+    """Toy "episodes": a dot moving one grid cell per step along a row (held-out scenes included), so that
+    consecutive actions are close, as a robot's are."""
+    from .toy import COLOURS, GRID_SIZE, TASKS, DotScene
+
+    episodes = []
+    for i in range(num_episodes):
+        colour, task = list(COLOURS)[i % len(COLOURS)], list(TASKS)[(i // len(COLOURS)) % len(TASKS)]
+        row = (3 * i) % GRID_SIZE
+        episodes.append([DotScene(col, row, colour, task) for col in range(GRID_SIZE)])
+    return episodes

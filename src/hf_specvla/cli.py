@@ -12,12 +12,17 @@ Examples:
     # Re-run only the benchmark on a pipeline a previous demo saved
     hf-specvla benchmark --pipeline-dir runs/toy --chain-lengths 2 4 6 --bin-tolerances 1 2 4
 
+    # Replay recorded episodes (previous actions are real): greedy vs action prior vs draft head chain / tree
+    hf-specvla bench-episodes --policy policies/mt10_vla --tasks MT10 --episodes 1 --steps 40 --threads 1
+    hf-specvla bench-episodes --pipeline-dir runs/toy --episodes 16 --threads 1
+
     # Meta-World: expert demonstrations (resumable), behaviour cloning, evaluation on held-out seeds
     hf-specvla collect --tasks MT10 --episodes 50 --output-dir runs/mt10_demos
     hf-specvla train-vla --data runs/mt10_demos --output-dir runs/mt10_vla --max-steps 6000
     hf-specvla eval --policy policies/mt10_vla --tasks MT10 --episodes 20 --output-dir runs/eval_greedy
     hf-specvla eval --policy policies/mt10_vla --tasks reach push --episodes 5 --video runs/reach.gif
     hf-specvla eval --policy policies/mt10_vla --draft-head runs/draft --bin-tolerance 2 --output-dir runs/eval_spec
+    hf-specvla eval --policy policies/mt10_vla --action-prior --bin-tolerance 2 --output-dir runs/eval_prior
 
     # DAgger: the policy drives (a quarter of the steps run the expert), the expert labels every state it reaches
     hf-specvla collect --policy policies/mt10_vla --expert-mix 0.25 --episodes 30 --seed-start 20000 \\
@@ -29,6 +34,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from pathlib import Path
 
 import torch
 
@@ -82,6 +88,59 @@ def _benchmark(pipeline, args) -> None:
         f"{torch.get_num_threads()} CPU threads, methods interleaved in random order:\n"
     )
     print(format_report(results))
+
+
+def _bench_episodes(args, parser) -> int:
+    from .benchmark import episode_methods, format_episode_report, run_episode_benchmark
+    from .speculative import DraftHead, DraftTreeConfig
+
+    for name in ("episodes", "steps", "repeats", "chain_length"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if any(r < 0 for r in args.bin_tolerances):
+        parser.error(f"--bin-tolerances must be >= 0, got {args.bin_tolerances}")
+    tree_settings = {k: v for k, v in (("top_k", args.tree_top_k), ("depth", args.tree_depth),
+                                       ("total_tokens", args.tree_total_tokens)) if v is not None}  # fmt: skip
+    try:
+        tree = DraftTreeConfig(**tree_settings)
+    except ValueError as error:
+        parser.error(str(error))
+    if args.policy is not None:
+        from .benchmark import policy_actor
+        from .evaluation import record_observations
+        from .policy import VLAPolicy
+
+        policy = VLAPolicy.from_pretrained(args.policy)
+        seeds = [args.seed_start + i for i in range(args.episodes)]
+        episodes = record_observations(policy, args.tasks, seeds, args.steps)
+        act, action_dim, head_name = policy_actor(policy), policy.config.action_dim, args.draft_head
+        if args.draft_head:
+            draft_head = DraftHead.from_pretrained(args.draft_head).eval()
+        else:
+            torch.manual_seed(args.seed)
+            draft_head = DraftHead.from_target(policy.model, policy.action_tokenizer, policy.config.action_dim).eval()
+            head_name = f"an untrained DraftHead (seed {args.seed})"
+    else:
+        from .benchmark import toy_actor, toy_episodes
+        from .toy import ACTION_DIM, build_toy_pipeline
+
+        root = Path(args.pipeline_dir)
+        if not (root / "target" / "config.json").exists() or not (root / "draft_head" / "config.json").exists():
+            parser.error(f"--pipeline-dir {str(root)!r} has no target/ and draft_head/ saved by `hf-specvla demo`")
+        pipeline = build_toy_pipeline(str(root))
+        draft_head = DraftHead.from_pretrained(args.draft_head).eval() if args.draft_head else pipeline.draft_head
+        act, action_dim, episodes = toy_actor(pipeline), ACTION_DIM, toy_episodes(args.episodes)
+        head_name = args.draft_head or str(root / "draft_head")
+    methods = episode_methods(draft_head, args.bin_tolerances, tree, args.chain_length)
+    results = run_episode_benchmark(act, episodes, methods, action_dim, repeats=args.repeats, seed=args.seed)
+    steps = sum(len(e) for e in episodes)
+    print(
+        f"\n{len(episodes)} episodes, {steps} steps x {args.repeats} repeats, {action_dim} action tokens per action, "
+        f"{torch.get_num_threads()} CPU threads; draft head: {head_name}; tree: {tree}; methods interleaved in a "
+        f"fresh random order at every step:\n"
+    )
+    print(format_episode_report(results))
+    return 0
 
 
 def _collect(args, parser) -> int:
@@ -148,20 +207,30 @@ def _eval(args, parser) -> int:
     import json
 
     from .evaluation import evaluate, format_summary
-    from .speculative import DraftHead
     from .policy import VLAPolicy
+    from .speculative import DraftHead, DraftHeadDrafter, DraftTreeConfig
 
+    if (args.bin_tolerance is not None) and not (args.draft_head or args.action_prior):
+        parser.error("--bin-tolerance needs --draft-head and/or --action-prior (something to draft with)")
+    if (args.num_draft_tokens is not None or args.draft_tree) and not args.draft_head:
+        parser.error("--num-draft-tokens / --draft-tree need --draft-head")
+    if args.num_draft_tokens is not None and args.draft_tree:
+        parser.error("--num-draft-tokens sets a chain; --draft-tree drafts a tree: give one of them")
     policy = VLAPolicy.from_pretrained(args.policy)
     generate_kwargs = {}
     if args.draft_head:
-        generate_kwargs["assistant_model"] = DraftHead.from_pretrained(args.draft_head).eval()
-        if args.bin_tolerance is not None:
-            tolerance = args.bin_tolerance
-            generate_kwargs["bin_tolerance"] = tolerance[0] if len(tolerance) == 1 else tolerance
-        if args.num_draft_tokens is not None:
-            generate_kwargs["num_draft_tokens"] = args.num_draft_tokens
-    elif args.bin_tolerance is not None or args.num_draft_tokens is not None:
-        parser.error("--bin-tolerance / --num-draft-tokens need --draft-head")
+        draft_head = DraftHead.from_pretrained(args.draft_head).eval()
+        if args.draft_tree:
+            generate_kwargs["assistant_model"] = DraftHeadDrafter(draft_head, tree=DraftTreeConfig())
+        else:
+            generate_kwargs["assistant_model"] = draft_head
+            if args.num_draft_tokens is not None:
+                generate_kwargs["num_draft_tokens"] = args.num_draft_tokens
+    if args.action_prior:
+        generate_kwargs["action_prior"] = True
+    if args.bin_tolerance is not None:
+        tolerance = args.bin_tolerance
+        generate_kwargs["bin_tolerance"] = tolerance[0] if len(tolerance) == 1 else tolerance
     env_config = EnvConfig(policy.config.image_size, policy.config.camera, args.max_episode_steps)
     summary = evaluate(
         policy, args.tasks, args.episodes, args.output_dir, env_config, args.seed_start, generate_kwargs, args.video
@@ -193,6 +262,29 @@ def main(argv: list[str] | None = None) -> int:
     bench = _subcommand(commands, "benchmark", "benchmark a pipeline saved by `demo`")
     bench.add_argument("--pipeline-dir", required=True, help="a folder written by `hf-specvla demo`")
     _add_benchmark_arguments(bench)
+
+    episodes = _subcommand(commands, "bench-episodes", "replay recorded episodes: greedy vs prior / head / tree drafts")
+    source = episodes.add_mutually_exclusive_group(required=True)
+    source.add_argument("--policy", help="a policy folder: record its greedy Meta-World rollouts, then replay them")
+    source.add_argument("--pipeline-dir", help="a toy pipeline saved by `hf-specvla demo`: replay moving-dot episodes")
+    episodes.add_argument("--tasks", nargs="+", default=["MT10"], help="with --policy: suites and/or task names")
+    episodes.add_argument("--episodes", type=int, default=1, help="episodes per task (toy: episodes in all)")
+    episodes.add_argument("--steps", type=int, default=40, help="with --policy: steps recorded per episode (at most)")
+    episodes.add_argument("--seed-start", type=int, default=300_000, help="with --policy: first rollout seed")
+    episodes.add_argument("--bin-tolerances", type=int, nargs="+", default=[0, 1, 2, 4, 8], help="r for the prior")
+    episodes.add_argument("--draft-head", default=None,
+                          help="a DraftHead folder (default: --policy an untrained head, seeded; toy: its own)")  # fmt: skip
+    episodes.add_argument("--chain-length", type=int, default=3, help="draft-head chain length k")
+    episodes.add_argument(
+        "--tree-top-k", type=int, default=None, help="EAGLE-2 tree top_k (default: DraftTreeConfig's)"
+    )
+    episodes.add_argument(
+        "--tree-depth", type=int, default=None, help="EAGLE-2 tree depth (default: DraftTreeConfig's)"
+    )
+    episodes.add_argument("--tree-total-tokens", type=int, default=None, help="EAGLE-2 tree nodes kept")
+    episodes.add_argument("--repeats", type=int, default=1, help="timed passes over the episodes")
+    episodes.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    episodes.add_argument("--seed", type=int, default=0, help="random seed (method order, untrained head)")
 
     collect = _subcommand(commands, "collect", "record scripted-expert Meta-World demonstrations (Parquet; resumable)")
     collect.add_argument("--tasks", nargs="+", default=["MT10"], help="suites (MT10, MT50) and/or task names")
@@ -257,6 +349,9 @@ def main(argv: list[str] | None = None) -> int:
     ev.add_argument("--draft-head", default=None, help="speculative decoding with this DraftHead folder")
     ev.add_argument("--bin-tolerance", type=int, nargs="+", default=None, help="relaxed acceptance r (or one per dim)")
     ev.add_argument("--num-draft-tokens", type=int, default=None, help="chain length k (default: the head's)")
+    ev.add_argument("--draft-tree", action="store_true", help="the draft head drafts an EAGLE-2 tree, not a chain")
+    ev.add_argument("--action-prior", action="store_true",
+                    help="draft each action from the episode's previous actions, verified inside the prefill")  # fmt: skip
     ev.add_argument("--threads", type=int, default=None, help="torch CPU threads")
 
     args = parser.parse_args(argv)
@@ -266,14 +361,14 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "threads", None):
         torch.set_num_threads(args.threads)
 
-    from pathlib import Path
-
     if args.command == "collect":
         return _collect(args, collect)
     if args.command == "train-vla":
         return _train_vla(args, train)
     if args.command == "eval":
-        return _eval(args, parser)
+        return _eval(args, ev)
+    if args.command == "bench-episodes":
+        return _bench_episodes(args, episodes)
 
     from .toy import ToyTargetSize, build_toy_pipeline
 

@@ -68,6 +68,28 @@ def rollout(
             return result
 
 
+def record_observations(
+    policy: VLAPolicy, tasks: str | list[str], seeds: list[int], max_steps: int, env_config: EnvConfig | None = None
+) -> list[list[dict]]:
+    """Greedy rollouts of ``policy``, one per task and seed, cut at ``max_steps``: the observations it saw
+    (``image``, ``instruction``, ``state``), one list per episode. What the episode benchmark replays."""
+    env_config = env_config or EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)
+    policy.check_env_config(env_config)
+    episodes = []
+    for task in resolve_tasks(tasks):
+        with MetaWorldEnv(task, env_config) as env:
+            for seed in seeds:
+                obs, observations = env.reset(seed), []
+                policy.reset()
+                for _ in range(max_steps):
+                    observations.append({k: obs[k] for k in ("image", "instruction", "state")})
+                    obs, _, done, _ = env.step(policy.predict_action(obs["image"], obs["instruction"], obs["state"]))
+                    if done:
+                        break
+                episodes.append(observations)
+    return episodes
+
+
 def summarize(results: list[EpisodeResult]) -> dict:
     """Per-task and overall success rate, mean episode length, median per-action latency, mean accept length."""
 

@@ -35,7 +35,8 @@ from transformers import (
 
 from .action_tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
 from .envs.metaworld import CAMERAS, EnvConfig
-from .speculative import ActionPriorDrafter, ComposedDrafter, DraftHead, Drafter, enable_speculation
+from .speculative import Drafter, DraftHead, enable_speculation
+from .speculative.drafters import with_action_prior
 from .speculative.generation import SPECULATION_KWARGS
 from .speculative.loop import as_drafter
 from .tokenization import build_vla_tokenizer
@@ -328,13 +329,10 @@ class VLAPolicy:
 
     def _drafter(self, assistant: DraftHead | Drafter | None, action_prior: bool, num_draft_tokens) -> Drafter | None:
         """The drafter for this step: the assistant's, the action prior's, or both composed (prior first)."""
-        drafter = as_drafter(assistant, num_draft_tokens)
         if num_draft_tokens is not None and assistant is None:
             raise ValueError("num_draft_tokens needs assistant_model=<DraftHead>")
-        if not action_prior or not self.previous_action_ids:
-            return drafter
-        prior = ActionPriorDrafter(self.previous_action_ids, self.action_layout)
-        return prior if drafter is None else ComposedDrafter([prior, drafter])
+        drafter = as_drafter(assistant, num_draft_tokens)
+        return with_action_prior(drafter, self.previous_action_ids, self.action_layout) if action_prior else drafter
 
     # ----------------------------------------------------------------------------- persistence
     def save_pretrained(self, folder: str | Path) -> None:

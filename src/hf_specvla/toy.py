@@ -225,8 +225,7 @@ def build_toy_pipeline(
 
     from transformers import PreTrainedTokenizerFast
 
-    from .speculative import enable_speculation
-    from .speculative import DraftHead
+    from .speculative import DraftHead, enable_speculation
     from .training import DraftTrainingConfig, build_distillation_dataset, train_draft_head
 
     root = Path(output_dir)

@@ -30,9 +30,9 @@ from torch.utils.data import DataLoader, Dataset
 from tqdm.auto import tqdm
 from transformers import PreTrainedModel
 
-from .speculative.masks import causal_mask
 from .checkpointing import check_output_dir, latest_checkpoint, resume_step, save_checkpoint
 from .speculative.drafters.draft_head import embed_tokens
+from .speculative.masks import causal_mask
 from .speculative.modeling_draft_head import DraftHead, TargetHandles
 
 logger = logging.getLogger(__name__)

@@ -124,7 +124,9 @@ class RelaxedBinMatch(AcceptanceRule):
 
     def __repr__(self) -> str:
         tol = self.bin_tolerance[0] if len(set(self.bin_tolerance)) == 1 else list(self.bin_tolerance)
-        return f"RelaxedBinMatch(bin_tolerance={tol}, {self.action_tokenizer}, action_dim={self.action_layout.action_dim})"
+        return (
+            f"RelaxedBinMatch(bin_tolerance={tol}, {self.action_tokenizer}, action_dim={self.action_layout.action_dim})"
+        )
 
 
 def make_acceptance_rule(bin_tolerance: int | Sequence[int], action_layout: ActionLayout | None) -> AcceptanceRule:

@@ -32,6 +32,4 @@ class SpeculationConfig:
         if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
             raise ValueError(f"num_draft_tokens must be an int >= 1 (tokens drafted per verification), got {k!r}")
         if self.action_layout is not None and not isinstance(self.action_layout, ActionLayout):
-            raise TypeError(
-                f"action_layout must be a hf_specvla.ActionLayout, got {type(self.action_layout).__name__}"
-            )
+            raise TypeError(f"action_layout must be a hf_specvla.ActionLayout, got {type(self.action_layout).__name__}")

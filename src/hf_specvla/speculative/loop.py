@@ -123,7 +123,8 @@ def draft_id_candidates(draft_ids, batch_size: int, vocab_size: int) -> list[lis
         raise ValueError(f"draft_ids has no tokens (shape {tuple(draft_ids.shape)}); pass k >= 1 or leave it out")
     if draft_ids.numel() and (int(draft_ids.min()) < 0 or int(draft_ids.max()) >= vocab_size):
         raise ValueError(
-            f"draft_ids must be token ids in 0..{vocab_size - 1}, got values {int(draft_ids.min())}..{int(draft_ids.max())}"
+            f"draft_ids must be token ids in 0..{vocab_size - 1}, got values "
+            f"{int(draft_ids.min())}..{int(draft_ids.max())}"
         )
     candidates = draft_ids[0].reshape(-1, draft_ids.shape[-1])
     return candidates.tolist()

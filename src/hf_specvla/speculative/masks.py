@@ -1,8 +1,8 @@
 """Explicit 4D attention masks for multi-token forwards against a KV cache.
 
 Both the target (prefill and verification) and the draft head (catch-up, tree drafting, training) run forwards
-with several query tokens on top of a cache. transformers would build a causal mask itself, but (see NOTES.md) a decoder layer called
-directly with ``attention_mask=None`` attends wrongly, eager attention reads bool masks wrongly, and tree
+with several query tokens on top of a cache. transformers would build a causal mask itself, but (see NOTES.md)
+a decoder layer called directly with ``attention_mask=None`` attends wrongly, eager attention reads bool masks wrongly, and tree
 verification needs non-causal masks. So masks are always built here, additive float, shape
 ``[B, 1, q_len, past_len + q_len]`` (0 = attend, dtype min = masked).
 """
@@ -92,7 +92,9 @@ def tree_verification_allowed(
     allowed = block_allowed(block, past_len)  # [1, P + N, past + P + N]
     if key_padding is None:
         return allowed
-    keys = torch.cat([key_padding.bool(), torch.ones(key_padding.shape[0], num_nodes, dtype=torch.bool, device=device)], 1)
+    keys = torch.cat(
+        [key_padding.bool(), torch.ones(key_padding.shape[0], num_nodes, dtype=torch.bool, device=device)], 1
+    )
     return allowed & keys[:, None, :]  # [B, P + N, past + P + N]
 
 

@@ -21,8 +21,8 @@ from transformers.cache_utils import Cache
 from transformers.models.llama.modeling_llama import LlamaDecoderLayer, LlamaRMSNorm, LlamaRotaryEmbedding
 
 from ..action_tokenizer import DEFAULT_N_BINS, ActionTokenizer
-from .masks import causal_mask
 from .configuration_draft_head import DraftHeadConfig
+from .masks import causal_mask
 
 
 class TargetHandles(NamedTuple):

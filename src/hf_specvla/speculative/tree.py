@@ -181,4 +181,3 @@ class DraftTree:
 
     def __repr__(self) -> str:
         return f"DraftTree(nodes={self.num_nodes}, depth={self.max_depth}, paths={self.token_paths()})"
-

@@ -93,3 +93,17 @@ class ActionPriorDrafter(Drafter):
             f"ActionPriorDrafter(previous_actions={len(self.previous_actions)}, "
             f"neighbour_bins={self.neighbour_bins}, max_nodes={self.max_nodes})"
         )
+
+
+def with_action_prior(
+    drafter: Drafter | None, previous_actions: Sequence[Sequence[int]], action_layout: ActionLayout
+) -> Drafter | None:
+    """``drafter`` preceded by an [`ActionPriorDrafter`] over ``previous_actions`` (the prior's candidates are
+    verified inside the prefill, ``drafter`` continues where they stop being accepted); ``drafter`` unchanged
+    when there is no previous action yet."""
+    from ..drafter import ComposedDrafter
+
+    if not previous_actions:
+        return drafter
+    prior = ActionPriorDrafter(previous_actions, action_layout)
+    return prior if drafter is None else ComposedDrafter([prior, drafter])

@@ -94,7 +94,9 @@ class DraftHeadDrafter(Drafter):
         if num_draft_tokens is not None and (
             isinstance(num_draft_tokens, bool) or not isinstance(num_draft_tokens, int) or num_draft_tokens < 1
         ):
-            raise ValueError(f"num_draft_tokens must be an int >= 1 (tokens drafted per verification), got {num_draft_tokens!r}")
+            raise ValueError(
+                f"num_draft_tokens must be an int >= 1 (tokens drafted per verification), got {num_draft_tokens!r}"
+            )
         self.draft_head = draft_head
         if tree is None:
             k = num_draft_tokens or draft_head.config.num_draft_tokens
