@@ -23,3 +23,25 @@ def test_benchmark_refuses_a_folder_without_a_pipeline(tmp_path):
     with pytest.raises(SystemExit) as exit_info:
         main(["benchmark", "--pipeline-dir", str(tmp_path)])
     assert exit_info.value.code == 2
+
+
+def test_bench_episodes_on_the_toy(toy_pipeline, capsys):
+    tree = ["--tree-top-k", "2", "--tree-depth", "3", "--tree-total-tokens", "5"]
+    args = ["bench-episodes", "--pipeline-dir", toy_pipeline.output_dir, "--episodes", "1", "--bin-tolerances", "0", "2"]
+    assert main([*args, "--chain-length", "2", *tree]) == 0
+    out = capsys.readouterr().out
+    for row in ("| greedy |", "| prior r=0 |", "| prior r=2 |", "| head chain k=2 r=0 |", "| head tree r=2 |",
+                "| prior+tree r=0 |"):  # fmt: skip
+        assert row in out
+    # prior r=0 is lossless: its actions never move from greedy's
+    assert "| prior r=0 |" in out and out.split("| prior r=0 |")[1].split("\n")[0].endswith("0.00 / 0 |")
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [(["--tree-total-tokens", "2", "--tree-depth", "4"], "total_tokens"), (["--steps", "0"], "--steps must be >= 1")],
+)
+def test_bench_episodes_usage_errors(tmp_path, capsys, extra, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["bench-episodes", "--pipeline-dir", str(tmp_path), *extra])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err

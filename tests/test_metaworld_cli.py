@@ -47,6 +47,16 @@ def test_collect_train_eval(tmp_path, capsys):
     # resuming an evaluation reuses the episodes already on disk
     assert main(eval_args) == 0
     assert len((results / "episodes.jsonl").read_text().splitlines()) == 2
+    # the action prior at r=0 (lossless): the same episodes as greedy decoding
+    prior_args = [*eval_args[:9], "--output-dir", str(tmp_path / "prior"), "--action-prior"]
+    assert main(prior_args) == 0
+    greedy_lengths = [json.loads(x)["length"] for x in (results / "episodes.jsonl").read_text().splitlines()]
+    prior_log = (tmp_path / "prior" / "episodes.jsonl").read_text().splitlines()
+    assert [json.loads(x)["length"] for x in prior_log] == greedy_lengths
+    # the episode benchmark on the policy's own recorded rollouts
+    bench = ["bench-episodes", "--policy", str(policy), "--tasks", "reach", "--steps", "3", "--bin-tolerances", "0"]
+    assert main([*bench, "--chain-length", "2", "--tree-depth", "2", "--tree-total-tokens", "4"]) == 0
+    assert "| prior+tree r=0 |" in capsys.readouterr().out
     # a policy only sees the camera it was trained on
     from hf_specvla.envs.metaworld import EnvConfig
     from hf_specvla.evaluation import evaluate
@@ -78,6 +88,21 @@ def test_collect_train_eval(tmp_path, capsys):
     assert last["scene_loss"] > 0 and last["val_scene_loss"] > 0
     with pytest.raises(SystemExit):  # a scene loss weight without scene targets to weigh
         main(["train-vla", "--data", str(data), "--output-dir", str(tmp_path / "w"), "--scene-loss-weight", "1"])
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--bin-tolerance", "2"], "--bin-tolerance needs --draft-head and/or --action-prior"),
+        (["--draft-tree"], "--draft-tree need --draft-head"),
+        (["--draft-head", "d", "--draft-tree", "--num-draft-tokens", "2"], "give one of them"),
+    ],
+)
+def test_eval_speculation_flag_misuse_is_a_usage_error(tmp_path, capsys, flags, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["eval", "--policy", str(tmp_path / "none"), "--output-dir", str(tmp_path / "e"), *flags])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "e").exists()
 
 
 def test_eval_refuses_missing_policy_and_stray_flags(tmp_path):

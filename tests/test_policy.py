@@ -114,6 +114,48 @@ def test_speculative_decoding_on_the_policy_is_lossless(policy):
         assert out.speculation.num_new_tokens == 4
 
 
+def test_action_prior_remembers_the_episode_and_is_lossless(policy):
+    """predict_action keeps the episode's actions (cleared by reset) and, with action_prior=True, drafts the next
+    one from them inside the prefill: identical actions at r=0, one target forward when the draft is right."""
+    draft = DraftHead.from_target(policy.model, policy.action_tokenizer, action_dim=4, num_draft_tokens=2).eval()
+    policy.reset()
+    assert policy.previous_action_ids == []
+    one_forward = 0
+    for seed in range(4):
+        image, state = observation(seed)
+        plain, out = policy.predict_action(image, "reach the goal", state, return_output=True)
+        greedy_ids = out.sequences[0, -4:].tolist()
+        if not all(policy.action_tokenizer.is_action_token(t) for t in greedy_ids):
+            assert policy.previous_action_ids == []  # text ids never become drafts
+            continue
+        assert policy.previous_action_ids[-1] == greedy_ids
+        # the same observation again: the previous action is exactly right
+        for kwargs in ({}, {"assistant_model": draft}):
+            again, out = policy.predict_action(
+                image, "reach the goal", state, return_output=True, action_prior=True, **kwargs
+            )
+            np.testing.assert_array_equal(plain, again)
+            assert out.speculation.num_target_forwards == 1 and out.speculation.accepted_by_drafter["prior"] == 3
+            one_forward += 1
+        # another observation: whatever the prior drafts, r=0 gives greedy's action
+        other_image, other_state = observation(seed + 10)
+        expected = policy.predict_action(other_image, "reach the goal", other_state)
+        policy.previous_action_ids = [greedy_ids]
+        np.testing.assert_array_equal(
+            expected, policy.predict_action(other_image, "reach the goal", other_state, action_prior=True)
+        )
+    assert one_forward > 0
+    assert len(policy.previous_action_ids) <= VLAPolicy.HISTORY_LENGTH
+    policy.reset()
+    assert policy.previous_action_ids == []
+    # the first step of an episode has nothing to draft from: plain greedy, bin_tolerance is harmless there
+    image, state = observation(0)
+    np.testing.assert_array_equal(
+        policy.predict_action(image, "reach the goal", state, action_prior=True, bin_tolerance=2),
+        policy.predict_action(image, "reach the goal", state),
+    )
+
+
 def test_bad_inputs(policy, tmp_path):
     image, state = observation()
     with pytest.raises(ValueError, match=r"shape \[32, 32, 3\]"):

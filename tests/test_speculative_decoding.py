@@ -524,3 +524,17 @@ def test_bad_drafter_settings(random_draft, action_tokenizer):
         ActionPriorDrafter([[70, 71]], ActionLayout(action_tokenizer, 7))
     with pytest.raises(TypeError, match="Drafters"):
         ComposedDrafter([random_draft])
+
+
+def test_prefix_allowed_tokens_fn_sees_batch_row_0_for_every_node(tiny_llama):
+    input_ids = random_prompts(1, seed=18)[0]
+
+    def allowed(batch_id, prefix):  # a batch of 1: anything but row 0 would be a bug, and would allow nothing
+        return list(range(64, 320)) if batch_id == 0 else []
+
+    kwargs = dict(max_new_tokens=6, prefix_allowed_tokens_fn=allowed)
+    expected = greedy(tiny_llama, input_ids=input_ids, **kwargs)
+    generated = expected[0, input_ids.shape[1] :].tolist()
+    candidates = torch.tensor([[[generated[0], 64, 65], generated[:3], [generated[0], generated[1], 70]]])
+    out = tiny_llama.generate(input_ids=input_ids, do_sample=False, draft_ids=candidates, **kwargs)
+    assert torch.equal(out, expected)

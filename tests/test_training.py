@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from hf_specvla import DraftHead
+from hf_specvla import DraftHead, DraftHeadDrafter, DraftTreeConfig
 from hf_specvla.toy import ACTION_DIM, split_scenes, toy_inputs
 from hf_specvla.training import (
     DraftTrainingConfig,
@@ -45,6 +45,18 @@ def test_trained_draft_accepts_at_least_3_tokens_per_target_forward(toy_pipeline
         )
     assert trained_stats.mean_accept_length >= 3.0, trained_stats
     assert untrained_stats.mean_accept_length < 1.5, untrained_stats
+
+
+def test_eagle2_tree_with_a_trained_head_is_lossless_and_accepts(toy_pipeline):
+    drafter = DraftHeadDrafter(toy_pipeline.draft_head, tree=DraftTreeConfig(top_k=3, depth=6, total_tokens=30))
+    stats = None
+    for prompt in held_out_prompts(toy_pipeline, 16):
+        expected = toy_pipeline.target.generate(**prompt, max_new_tokens=ACTION_DIM, do_sample=False)
+        out = run(toy_pipeline, prompt, drafter)
+        assert torch.equal(out.sequences, expected)  # r=0
+        stats = out.speculation if stats is None else stats.merge(out.speculation)
+    assert stats.mean_accept_length >= 3.0, stats  # the trained head's tree: 2 forwards for most 7-token actions
+    assert stats.accepted_by_drafter["head-tree"] > 0
 
 
 @pytest.mark.parametrize("bin_tolerance", [2, [4, 4, 4, 4, 4, 4, 0]])

@@ -99,16 +99,16 @@ def target_greedy_ids(
     """
     if len(logits_processor) == 0:
         return logits[0].argmax(dim=-1), logits[0]
-    num_nodes = tree.num_nodes
-    prefixes = [sequence[0]]  # [L + depth] per row: row 0 is the root, row 1 + i node i
-    for node in range(num_nodes):
-        prefixes.append(torch.cat([sequence[0], tree.token_ids[tree.path_to(node)]]))
     by_row = any(isinstance(p, PrefixConstrainedLogitsProcessor) for p in logits_processor)
-    groups: dict[int, list[int]] = {}
-    for row, prefix in enumerate(prefixes):
-        groups.setdefault(row if by_row else prefix.shape[0], []).append(row)
     scores = torch.empty_like(logits[0])  # [1 + N, V]
-    for rows in groups.values():
-        input_ids = torch.stack([prefixes[r] for r in rows])  # [n, L + d]
-        scores[rows] = apply_processors(logits_processor, input_ids, logits[0, rows])
+    scores[:1] = apply_processors(logits_processor, sequence, logits[:, 0])
+    for depth in range(tree.max_depth):
+        nodes = (tree.depths == depth).nonzero()[:, 0]  # [n] nodes at this depth
+        # their paths: ancestors (and self) in index order, which is depth order (parents first)
+        path_nodes = tree.ancestor_or_self[nodes].nonzero()[:, 1].view(len(nodes), depth + 1)
+        input_ids = torch.cat([sequence.expand(len(nodes), -1), tree.token_ids[path_nodes]], dim=1)  # [n, L + d + 1]
+        groups = [[i] for i in range(len(nodes))] if by_row else [list(range(len(nodes)))]
+        for group in groups:
+            rows = nodes[group] + 1
+            scores[rows] = apply_processors(logits_processor, input_ids[group], logits[0, rows])
     return scores.argmax(dim=-1), scores

@@ -178,7 +178,8 @@ class _DraftHeadSession(DraftSession):
                                     key_padding(self.prompt_padding, self.cache_length))  # fmt: skip
             mask = to_additive_mask(allowed, frontier_features.dtype)
             tokens = torch.tensor([token_ids[n] for n in frontier], device=device)[None]  # [1, F]
-            positions = (root_position + level).expand(1, num)  # node at depth d is fed at root + 1 + d
+            # EAGLE's pair (token x[p+1], feature ~h[p]) sits at p: a depth-d node pairs with its parent, at root + d
+            positions = (root_position + level - 1).expand(1, num)
             features = self.head(embed_tokens(self.handles, tokens), frontier_features, positions, mask, self.cache)
             self.num_forwards += 1
             for node in frontier:
