@@ -27,7 +27,16 @@ def test_benchmark_refuses_a_folder_without_a_pipeline(tmp_path):
 
 def test_bench_episodes_on_the_toy(toy_pipeline, capsys):
     tree = ["--tree-top-k", "2", "--tree-depth", "3", "--tree-total-tokens", "5"]
-    args = ["bench-episodes", "--pipeline-dir", toy_pipeline.output_dir, "--episodes", "1", "--bin-tolerances", "0", "2"]
+    args = [
+        "bench-episodes",
+        "--pipeline-dir",
+        toy_pipeline.output_dir,
+        "--episodes",
+        "1",
+        "--bin-tolerances",
+        "0",
+        "2",
+    ]
     assert main([*args, "--chain-length", "2", *tree]) == 0
     out = capsys.readouterr().out
     for row in ("| greedy |", "| prior r=0 |", "| prior r=2 |", "| head chain k=2 r=0 |", "| head tree r=2 |",

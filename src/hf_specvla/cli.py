@@ -273,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
     episodes.add_argument("--seed-start", type=int, default=300_000, help="with --policy: first rollout seed")
     episodes.add_argument("--bin-tolerances", type=int, nargs="+", default=[0, 1, 2, 4, 8], help="r for the prior")
     episodes.add_argument("--draft-head", default=None,
-                          help="a DraftHead folder (default: --policy an untrained head, seeded; toy: its own)")  # fmt: skip
+                          help="a DraftHead folder (default: an untrained head, seeded; toy: its own)")  # fmt: skip
     episodes.add_argument("--chain-length", type=int, default=3, help="draft-head chain length k")
     episodes.add_argument(
         "--tree-top-k", type=int, default=None, help="EAGLE-2 tree top_k (default: DraftTreeConfig's)"
@@ -350,8 +350,11 @@ def main(argv: list[str] | None = None) -> int:
     ev.add_argument("--bin-tolerance", type=int, nargs="+", default=None, help="relaxed acceptance r (or one per dim)")
     ev.add_argument("--num-draft-tokens", type=int, default=None, help="chain length k (default: the head's)")
     ev.add_argument("--draft-tree", action="store_true", help="the draft head drafts an EAGLE-2 tree, not a chain")
-    ev.add_argument("--action-prior", action="store_true",
-                    help="draft each action from the episode's previous actions, verified inside the prefill")  # fmt: skip
+    ev.add_argument(
+        "--action-prior",
+        action="store_true",
+        help="draft each action from the episode's previous actions (verified inside the prefill)",
+    )
     ev.add_argument("--threads", type=int, default=None, help="torch CPU threads")
 
     args = parser.parse_args(argv)

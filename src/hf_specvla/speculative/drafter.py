@@ -3,7 +3,7 @@
 The loop never looks inside a drafter. Per call it asks ``drafter.start(context)`` for a [`DraftSession`] (all
 per-call state lives there, nothing is stuck onto models), then each round
 
-    tree = session.propose(round)      # before the target's forward; at the prefill too (drafts known up front)
+    tree = session.propose(draft_round)      # before the target's forward; at the prefill too (drafts known up front)
     ... the target verifies the tree in one forward, the loop keeps the accepted path ...
     session.observe(commit)            # what was kept: tokens, positions, and the target's hidden states
 
@@ -90,7 +90,7 @@ class DraftSession:
 
     num_forwards: int = 0
 
-    def propose(self, round: DraftRound) -> DraftTree:
+    def propose(self, draft_round: DraftRound) -> DraftTree:
         """A draft tree below the root (may be empty)."""
         raise NotImplementedError
 
@@ -124,11 +124,11 @@ class _PathSession(DraftSession):
     def __init__(self, paths: list[list[int]], source: str, device: torch.device, max_nodes: int | None = None):
         self.paths, self.source, self.device, self.max_nodes = paths, source, device, max_nodes
 
-    def propose(self, round: DraftRound) -> DraftTree:
-        m = round.num_generated
+    def propose(self, draft_round: DraftRound) -> DraftTree:
+        m = draft_round.num_generated
         kept, prefixes = [], set()
         for path in self.paths:
-            suffix = tuple(path[m : m + round.max_depth])
+            suffix = tuple(path[m : m + draft_round.max_depth])
             new = {suffix[: d + 1] for d in range(len(suffix))} - prefixes
             if not new or (self.max_nodes is not None and len(prefixes) + len(new) > self.max_nodes):
                 continue
@@ -164,10 +164,10 @@ class _ComposedSession(DraftSession):
     def num_forwards(self) -> int:  # type: ignore[override]
         return sum(s.num_forwards for s in self.sessions)
 
-    def propose(self, round: DraftRound) -> DraftTree:
-        tree = DraftTree.empty(round.sequence.device)
+    def propose(self, draft_round: DraftRound) -> DraftTree:
+        tree = DraftTree.empty(draft_round.sequence.device)
         for session in self.sessions:
-            tree = tree.merge(session.propose(round))
+            tree = tree.merge(session.propose(draft_round))
         return tree
 
     def observe(self, commit: Commit) -> None:

@@ -288,7 +288,7 @@ def speculative_generate(
     while not finished:
         at_prefill = state.num_generated == 0
         # 1. Propose a tree below the root; no path may draft past max_length (the bonus takes the last slot).
-        round = DraftRound(
+        draft_round = DraftRound(
             sequence=state.sequence,
             num_generated=state.num_generated,
             max_depth=max(0, max_length - state.sequence.shape[1] - 1),
@@ -296,7 +296,7 @@ def speculative_generate(
             root_position=state.pending_positions[:, -1:],
         )
         with stopwatch.section("draft_seconds"):
-            tree = session.propose(round).truncate_depth(round.max_depth)
+            tree = session.propose(draft_round).truncate_depth(draft_round.max_depth)
 
         # 2. Verify every node in one target forward (the prefill's forward when at_prefill).
         past_length = state.target_cache.get_seq_length()

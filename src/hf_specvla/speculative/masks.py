@@ -2,8 +2,8 @@
 
 Both the target (prefill and verification) and the draft head (catch-up, tree drafting, training) run forwards
 with several query tokens on top of a cache. transformers would build a causal mask itself, but (see NOTES.md)
-a decoder layer called directly with ``attention_mask=None`` attends wrongly, eager attention reads bool masks wrongly, and tree
-verification needs non-causal masks. So masks are always built here, additive float, shape
+a decoder layer called directly with ``attention_mask=None`` attends wrongly, eager attention reads bool masks
+wrongly, and tree verification needs non-causal masks. So masks are always built here, additive float, shape
 ``[B, 1, q_len, past_len + q_len]`` (0 = attend, dtype min = masked).
 """
 
@@ -98,7 +98,7 @@ def tree_verification_allowed(
     return allowed & keys[:, None, :]  # [B, P + N, past + P + N]
 
 
-def key_padding(prompt_padding: torch.Tensor | None, length: int) -> torch.Tensor | None:
+def sequence_key_padding(prompt_padding: torch.Tensor | None, length: int) -> torch.Tensor | None:
     """Bool ``[B, length]`` "is a real token" mask for the first ``length`` positions of a sequence whose prompt
     has the 2D mask ``prompt_padding`` ``[B, S]``; positions past the prompt (generated or drafted) are real.
     None when there is no padding at all."""

@@ -14,7 +14,7 @@ import torch
 from transformers import LogitsProcessorList, PreTrainedModel
 from transformers.generation.logits_process import PrefixConstrainedLogitsProcessor
 
-from .masks import key_padding, to_additive_mask, tree_verification_allowed
+from .masks import sequence_key_padding, to_additive_mask, tree_verification_allowed
 from .tree import DraftTree
 
 
@@ -60,12 +60,12 @@ def verify_tree(
     root_position = pending_positions[:, -1:]
     if num_nodes:
         inputs["position_ids"] = torch.cat([pending_positions, root_position + 1 + tree.depths[None]], dim=1)
-        padding = key_padding(prompt_padding, past_length + num_pending)
+        padding = sequence_key_padding(prompt_padding, past_length + num_pending)
         allowed = tree_verification_allowed(past_length, num_pending, tree.ancestor_or_self, padding)
         inputs["attention_mask"] = to_additive_mask(allowed, model.dtype)
     else:
         inputs["position_ids"] = pending_positions
-        padding = key_padding(prompt_padding, past_length + num_pending)
+        padding = sequence_key_padding(prompt_padding, past_length + num_pending)
         inputs["attention_mask"] = None if padding is None else padding.long()
     inputs["logits_to_keep"] = num_nodes + 1
     inputs["use_cache"] = True

@@ -41,7 +41,7 @@ class ActionPriorDrafter(Drafter):
         previous_actions: Sequence[Sequence[int]],
         action_layout: ActionLayout,
         neighbour_bins: int = 1,
-        max_nodes: int = 24,
+        max_nodes: int = 16,
     ):
         if not isinstance(action_layout, ActionLayout):
             raise TypeError(f"action_layout must be an ActionLayout, got {type(action_layout).__name__}")

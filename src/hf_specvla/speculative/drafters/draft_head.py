@@ -32,7 +32,7 @@ from transformers.cache_utils import DynamicCache
 
 from ..cache import truncate_cache
 from ..drafter import Commit, DraftContext, Drafter, DraftRound, DraftSession
-from ..masks import block_allowed, causal_mask, key_padding, to_additive_mask
+from ..masks import block_allowed, causal_mask, sequence_key_padding, to_additive_mask
 from ..modeling_draft_head import DraftHead, DraftScorer, TargetHandles
 from ..tree import DraftTree
 
@@ -139,7 +139,7 @@ class _DraftHeadSession(DraftSession):
         positions = torch.cat([c.positions for c in self.unfed], dim=1)  # [B, q]
         truncate_cache(self.cache, self.cache_length)  # drop the previous proposal's tree entries
         q_len = tokens.shape[1]
-        padding = key_padding(self.prompt_padding, self.cache_length + q_len)
+        padding = sequence_key_padding(self.prompt_padding, self.cache_length + q_len)
         mask = causal_mask(q_len, self.cache_length, hidden.dtype, hidden.device, padding)
         features = self.head(embed_tokens(self.handles, tokens), hidden, positions, mask, self.cache)
         self.num_forwards += 1
@@ -147,14 +147,14 @@ class _DraftHeadSession(DraftSession):
         self.unfed = []
         self.root_feature = features[:, -1:]
 
-    def propose(self, round: DraftRound) -> DraftTree:
-        depth = min(self.config.depth, round.max_depth)
-        if round.at_prefill or depth < 1:
-            return DraftTree.empty(round.sequence.device)
+    def propose(self, draft_round: DraftRound) -> DraftTree:
+        depth = min(self.config.depth, draft_round.max_depth)
+        if draft_round.at_prefill or depth < 1:
+            return DraftTree.empty(draft_round.sequence.device)
         if self.unfed:
             self._catch_up()
         try:
-            return self._expand(depth, round.root_position)
+            return self._expand(depth, draft_round.root_position)
         finally:
             truncate_cache(self.cache, self.cache_length)
 
@@ -175,7 +175,7 @@ class _DraftHeadSession(DraftSession):
             # 1. feed the frontier (nodes at depth level-1) with their parents' features, one forward.
             num = len(frontier)
             allowed = block_allowed(self._tree_block(frontier, parents, fed_index, device), self.cache_length,
-                                    key_padding(self.prompt_padding, self.cache_length))  # fmt: skip
+                                    sequence_key_padding(self.prompt_padding, self.cache_length))  # fmt: skip
             mask = to_additive_mask(allowed, frontier_features.dtype)
             tokens = torch.tensor([token_ids[n] for n in frontier], device=device)[None]  # [1, F]
             # EAGLE's pair (token x[p+1], feature ~h[p]) sits at p: a depth-d node pairs with its parent, at root + d
