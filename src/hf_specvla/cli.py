@@ -90,6 +90,23 @@ def _benchmark(pipeline, args) -> None:
     print(format_report(results))
 
 
+def _demo_episodes(pipeline, args) -> None:
+    """The demo's second table: moving-dot episodes, so that the action prior has previous actions to draft."""
+    from .benchmark import episode_methods, format_episode_report, run_episode_benchmark, toy_actor, toy_episodes
+    from .speculative import DraftTreeConfig
+    from .toy import ACTION_DIM
+
+    tolerances = [0, *args.bin_tolerances[:1]]
+    methods = episode_methods(pipeline.draft_head, tolerances, DraftTreeConfig(), chain_length=ACTION_DIM - 1)
+    episodes = toy_episodes(args.episodes)
+    results = run_episode_benchmark(toy_actor(pipeline), episodes, methods, ACTION_DIM, seed=args.seed)
+    print(
+        f"\n{len(episodes)} moving-dot episodes ({sum(map(len, episodes))} steps): drafts from the previous actions "
+        f"(prior), the draft head (chain / EAGLE-2 tree) or both, interleaved at every step:\n"
+    )
+    print(format_episode_report(results))
+
+
 def _bench_episodes(args, parser) -> int:
     from .benchmark import episode_methods, format_episode_report, run_episode_benchmark
     from .speculative import DraftHead, DraftTreeConfig
@@ -257,6 +274,7 @@ def main(argv: list[str] | None = None) -> int:
     demo.add_argument("--size", choices=sorted(SIZES), default="small", help="toy target size")
     demo.add_argument("--target-steps", type=int, default=300, help="toy target training steps")
     demo.add_argument("--draft-steps", type=int, default=800, help="draft head training steps")
+    demo.add_argument("--episodes", type=int, default=16, help="moving-dot episodes to replay (0: skip that table)")
     _add_benchmark_arguments(demo)
 
     bench = _subcommand(commands, "benchmark", "benchmark a pipeline saved by `demo`")
@@ -385,6 +403,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--pipeline-dir {str(root)!r} has no target/ and draft_head/ saved by `hf-specvla demo`")
         pipeline = build_toy_pipeline(str(root))
     _benchmark(pipeline, args)
+    if args.command == "demo" and args.episodes:
+        _demo_episodes(pipeline, args)
     return 0
 
 
