@@ -217,6 +217,21 @@ def test_left_padded_prompt(tiny_llama, random_draft):
     assert torch.equal(out, expected)
 
 
+def test_left_padded_prompt_with_drafts_in_the_prefill(tiny_llama):
+    input_ids = torch.cat([torch.zeros(1, 3, dtype=torch.long), random_prompts(1, seed=9)[0]], dim=1)
+    attention_mask = torch.ones_like(input_ids)
+    attention_mask[:, :3] = 0
+    expected = greedy(tiny_llama, input_ids=input_ids, attention_mask=attention_mask, max_new_tokens=8)
+    generated = expected[0, input_ids.shape[1] :].tolist()
+    wrong = [generated[0], (generated[1] + 1) % 320, *generated[2:5]]
+    candidates = torch.tensor([[wrong, generated[:5]]])  # the right one second
+    out = tiny_llama.generate(
+        input_ids=input_ids, attention_mask=attention_mask, max_new_tokens=8, do_sample=False,
+        draft_ids=candidates, return_dict_in_generate=True,
+    )  # fmt: skip
+    assert torch.equal(out.sequences, expected) and out.speculation.accept_lengths[0] == 6
+
+
 # ------------------------------------------------------------------------------- relaxed acceptance
 def assert_within_tolerance(model, prompt: dict, sequence: torch.Tensor, tolerance: list[int], action_tokenizer):
     """Every generated action token is within tolerance[dim] bins of the target's greedy token given the same

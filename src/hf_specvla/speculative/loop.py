@@ -56,7 +56,6 @@ class DecodeState:
     target_cache: Cache
     num_generated: int  # tokens emitted in this call
     num_action_tokens: int  # action tokens emitted in this call (for action dimensions)
-    stats: SpeculationStats
 
 
 class _Stopwatch:
@@ -281,7 +280,6 @@ def speculative_generate(
         target_cache=model_inputs["past_key_values"],
         num_generated=0,
         num_action_tokens=0,
-        stats=stats,
     )
     max_length = generation_config.max_length
     finished = False
