@@ -48,9 +48,27 @@ def test_bench_episodes_on_the_toy(toy_pipeline, capsys):
 
 @pytest.mark.parametrize(
     "extra, message",
-    [(["--tree-total-tokens", "2", "--tree-depth", "4"], "total_tokens"), (["--steps", "0"], "--steps must be >= 1")],
+    [(["--tree-total-tokens", "2", "--tree-depth", "4"], "total_tokens"), (["--steps", "0"], "--steps: must be >= 1")],
 )
 def test_bench_episodes_usage_errors(tmp_path, capsys, extra, message):
     with pytest.raises(SystemExit) as exit_info:
         main(["bench-episodes", "--pipeline-dir", str(tmp_path), *extra])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["benchmark", "--pipeline-dir", "p", "--prompts", "0"], "argument --prompts: must be >= 1, got 0"),
+        (["benchmark", "--pipeline-dir", "p", "--repeats", "0"], "argument --repeats: must be >= 1, got 0"),
+        (["eval", "--policy", "p", "--output-dir", "o", "--threads", "-1"], "argument --threads: must be >= 1, got -1"),
+        (["eval", "--policy", "p", "--output-dir", "o", "--threads", "0"], "argument --threads: must be >= 1, got 0"),
+        (["demo", "--threads", "two"], "argument --threads: expected an integer >= 1, got 'two'"),
+    ],
+)
+def test_bad_numbers_are_usage_errors(capsys, argv, message):
+    """Regression (reliability issue, case 6): crashes (ZeroDivisionError, StatisticsError, RuntimeError) and a
+    silent '--threads 0 means default' are now argparse usage errors, before anything is loaded."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
     assert exit_info.value.code == 2 and message in capsys.readouterr().err

@@ -69,3 +69,32 @@ def test_action_only_scorer_drafts_only_actions_and_eos(tiny_llama):
     assert scorer.weight.shape == (257, 64)
     ids = scorer.token_ids(torch.randn(50, 64))
     assert bool(((ids >= 64) | (ids == 2)).all())
+
+
+@pytest.mark.parametrize("kind", ["missing relative", "missing absolute", "not a draft head", "no config"])
+def test_from_pretrained_checks_a_local_folder_and_never_asks_the_hub(tmp_path, monkeypatch, tiny_llama, kind):
+    """Regression (reliability issue, case 4): a wrong local path fails at once, naming the path and what is wrong;
+    a path like the --help example ``runs/draft`` is local (its first component is a local folder)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "runs").mkdir()
+    tiny_llama.save_pretrained(tmp_path / "runs" / "target")  # a model folder, but not a draft head
+    (tmp_path / "runs" / "empty").mkdir()
+    path, error, match = {
+        "missing relative": ("runs/draft", FileNotFoundError, "'runs/draft' does not exist .*not looked up on the hub"),
+        "missing absolute": (str(tmp_path / "nowhere"), FileNotFoundError, "does not exist"),
+        "not a draft head": ("runs/target", ValueError, "'runs/target' holds a 'llama' model, not a hf_specvla draft"),
+        "no config": ("runs/empty", FileNotFoundError, "'runs/empty' has no config.json"),
+    }[kind]
+    with pytest.raises(error, match=match):
+        DraftHead.from_pretrained(path)
+
+
+def test_a_hf_specvla_assistant_on_a_target_without_speculation_says_how_to_enable_it(random_draft):
+    """Regression (reliability issue, case 10): transformers' assisted generation probes the assistant; the error
+    says to call enable_speculation instead of a bare AttributeError."""
+    from hf_specvla import DraftHeadDrafter
+
+    plain = LlamaForCausalLM(tiny_llama_config()).eval()
+    for assistant in (random_draft, DraftHeadDrafter(random_draft)):
+        with pytest.raises(AttributeError, match="enable_speculation"):
+            plain.generate(input_ids=torch.tensor([[1, 5, 6]]), max_new_tokens=2, assistant_model=assistant)

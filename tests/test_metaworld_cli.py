@@ -96,6 +96,7 @@ def test_collect_train_eval(tmp_path, capsys):
         (["--bin-tolerance", "2"], "--bin-tolerance needs --draft-head and/or --action-prior"),
         (["--draft-tree"], "--draft-tree need --draft-head"),
         (["--draft-head", "d", "--draft-tree", "--num-draft-tokens", "2"], "give one of them"),
+        (["--draft-head", "./runs/draft"], "--draft-head: draft head folder './runs/draft' does not exist"),
     ],
 )
 def test_eval_speculation_flag_misuse_is_a_usage_error(tmp_path, capsys, flags, message):

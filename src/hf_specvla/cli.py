@@ -55,6 +55,25 @@ SIZES = {
 }
 
 
+def _at_least(minimum: int):
+    """argparse ``type``: an int >= ``minimum``, else a usage error naming the value (exit code 2)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    parse.__name__ = f"int >= {minimum}"  # what argparse names in its error
+    return parse
+
+
+POSITIVE, NON_NEGATIVE = _at_least(1), _at_least(0)
+
+
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
     """Keeps the examples' line breaks and shows every option's default."""
 
@@ -64,11 +83,13 @@ def _subcommand(commands, name: str, help: str) -> argparse.ArgumentParser:
 
 
 def _add_benchmark_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--chain-lengths", type=int, nargs="+", default=[2, 4, 6], help="strict chains k to time")
-    parser.add_argument("--bin-tolerances", type=int, nargs="+", default=[1, 2, 4], help="relaxed r to time (k=6)")
-    parser.add_argument("--prompts", type=int, default=48, help="held-out toy scenes to decode (of 256)")
-    parser.add_argument("--repeats", type=int, default=3, help="timed passes over the prompts")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--chain-lengths", type=POSITIVE, nargs="+", default=[2, 4, 6], help="strict chains k to time")
+    parser.add_argument(
+        "--bin-tolerances", type=NON_NEGATIVE, nargs="+", default=[1, 2, 4], help="relaxed r to time (k=6)"
+    )
+    parser.add_argument("--prompts", type=POSITIVE, default=48, help="held-out toy scenes to decode (of 256)")
+    parser.add_argument("--repeats", type=POSITIVE, default=3, help="timed passes over the prompts")
+    parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0, help="random seed")
 
 
@@ -88,6 +109,18 @@ def _benchmark(pipeline, args) -> None:
         f"{torch.get_num_threads()} CPU threads, methods interleaved in random order:\n"
     )
     print(format_report(results))
+
+
+def _check_draft_head_flag(draft_head: str | None, parser) -> None:
+    """``--draft-head`` must be a saved draft head (or a hub id): a usage error before anything is loaded."""
+    from .speculative.modeling_draft_head import check_draft_head_folder
+
+    if draft_head is None:
+        return
+    try:
+        check_draft_head_folder(draft_head)
+    except (FileNotFoundError, ValueError) as error:
+        parser.error(f"--draft-head: {error}")
 
 
 def _demo_episodes(pipeline, args) -> None:
@@ -111,17 +144,13 @@ def _bench_episodes(args, parser) -> int:
     from .benchmark import episode_methods, format_episode_report, run_episode_benchmark
     from .speculative import DraftHead, DraftTreeConfig
 
-    for name in ("episodes", "steps", "repeats", "chain_length"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
-    if any(r < 0 for r in args.bin_tolerances):
-        parser.error(f"--bin-tolerances must be >= 0, got {args.bin_tolerances}")
     tree_settings = {k: v for k, v in (("top_k", args.tree_top_k), ("depth", args.tree_depth),
                                        ("total_tokens", args.tree_total_tokens)) if v is not None}  # fmt: skip
     try:
         tree = DraftTreeConfig(**tree_settings)
     except ValueError as error:
         parser.error(str(error))
+    _check_draft_head_flag(args.draft_head, parser)
     if args.policy is not None:
         from .benchmark import policy_actor
         from .evaluation import record_observations
@@ -233,6 +262,7 @@ def _eval(args, parser) -> int:
         parser.error("--num-draft-tokens / --draft-tree need --draft-head")
     if args.num_draft_tokens is not None and args.draft_tree:
         parser.error("--num-draft-tokens sets a chain; --draft-tree drafts a tree: give one of them")
+    _check_draft_head_flag(args.draft_head, parser)
     policy = VLAPolicy.from_pretrained(args.policy)
     generate_kwargs = {}
     if args.draft_head:
@@ -274,7 +304,9 @@ def main(argv: list[str] | None = None) -> int:
     demo.add_argument("--size", choices=sorted(SIZES), default="small", help="toy target size")
     demo.add_argument("--target-steps", type=int, default=300, help="toy target training steps")
     demo.add_argument("--draft-steps", type=int, default=800, help="draft head training steps")
-    demo.add_argument("--episodes", type=int, default=16, help="moving-dot episodes to replay (0: skip that table)")
+    demo.add_argument(
+        "--episodes", type=NON_NEGATIVE, default=16, help="moving-dot episodes to replay (0: skip that table)"
+    )
     _add_benchmark_arguments(demo)
 
     bench = _subcommand(commands, "benchmark", "benchmark a pipeline saved by `demo`")
@@ -286,22 +318,26 @@ def main(argv: list[str] | None = None) -> int:
     source.add_argument("--policy", help="a policy folder: record its greedy Meta-World rollouts, then replay them")
     source.add_argument("--pipeline-dir", help="a toy pipeline saved by `hf-specvla demo`: replay moving-dot episodes")
     episodes.add_argument("--tasks", nargs="+", default=["MT10"], help="with --policy: suites and/or task names")
-    episodes.add_argument("--episodes", type=int, default=1, help="episodes per task (toy: episodes in all)")
-    episodes.add_argument("--steps", type=int, default=40, help="with --policy: steps recorded per episode (at most)")
+    episodes.add_argument("--episodes", type=POSITIVE, default=1, help="episodes per task (toy: episodes in all)")
+    episodes.add_argument(
+        "--steps", type=POSITIVE, default=40, help="with --policy: steps recorded per episode (at most)"
+    )
     episodes.add_argument("--seed-start", type=int, default=300_000, help="with --policy: first rollout seed")
-    episodes.add_argument("--bin-tolerances", type=int, nargs="+", default=[0, 1, 2, 4, 8], help="r for the prior")
+    episodes.add_argument(
+        "--bin-tolerances", type=NON_NEGATIVE, nargs="+", default=[0, 1, 2, 4, 8], help="r for the prior"
+    )
     episodes.add_argument("--draft-head", default=None,
                           help="a DraftHead folder (default: an untrained head, seeded; toy: its own)")  # fmt: skip
-    episodes.add_argument("--chain-length", type=int, default=3, help="draft-head chain length k")
+    episodes.add_argument("--chain-length", type=POSITIVE, default=3, help="draft-head chain length k")
     episodes.add_argument(
-        "--tree-top-k", type=int, default=None, help="EAGLE-2 tree top_k (default: DraftTreeConfig's)"
+        "--tree-top-k", type=POSITIVE, default=None, help="EAGLE-2 tree top_k (default: DraftTreeConfig's)"
     )
     episodes.add_argument(
-        "--tree-depth", type=int, default=None, help="EAGLE-2 tree depth (default: DraftTreeConfig's)"
+        "--tree-depth", type=POSITIVE, default=None, help="EAGLE-2 tree depth (default: DraftTreeConfig's)"
     )
-    episodes.add_argument("--tree-total-tokens", type=int, default=None, help="EAGLE-2 tree nodes kept")
-    episodes.add_argument("--repeats", type=int, default=1, help="timed passes over the episodes")
-    episodes.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    episodes.add_argument("--tree-total-tokens", type=POSITIVE, default=None, help="EAGLE-2 tree nodes kept")
+    episodes.add_argument("--repeats", type=POSITIVE, default=1, help="timed passes over the episodes")
+    episodes.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
     episodes.add_argument("--seed", type=int, default=0, help="random seed (method order, untrained head)")
 
     collect = _subcommand(commands, "collect", "record scripted-expert Meta-World demonstrations (Parquet; resumable)")
@@ -325,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
                          help="DAgger: this policy folder drives, the expert labels the states it reaches")  # fmt: skip
     collect.add_argument("--expert-mix", type=float, default=None,
                          help="with --policy: probability that a step runs the expert instead (default 0)")  # fmt: skip
-    collect.add_argument("--threads", type=int, default=None, help="torch CPU threads (with --policy)")
+    collect.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (with --policy)")
 
     train = _subcommand(commands, "train-vla", "behaviour-clone an OpenVLA-style policy on demonstrations (resumable)")
     train.add_argument("--data", required=True, nargs="+",
@@ -354,32 +390,34 @@ def main(argv: list[str] | None = None) -> int:
     train.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --output-dir")
     train.add_argument("--overwrite-output-dir", action="store_true", help="train from scratch into a non-empty folder")
     train.add_argument("--seed", type=int, default=VLATrainingConfig.seed, help="random seed")
-    train.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    train.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
 
     ev = _subcommand(commands, "eval", "roll a policy out on Meta-World and report per-task success (resumable)")
     ev.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
     ev.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
-    ev.add_argument("--episodes", type=int, default=20, help="episodes per task")
+    ev.add_argument("--episodes", type=POSITIVE, default=20, help="episodes per task")
     ev.add_argument("--output-dir", required=True, help="episodes.jsonl + summary.json go here (resumes)")
     ev.add_argument("--seed-start", type=int, default=EVAL_SEED_START, help="first evaluation seed")
     ev.add_argument("--max-episode-steps", type=int, default=EnvConfig.max_episode_steps, help="step limit")
     ev.add_argument("--video", default=None, help="save the first episode as .gif / .mp4")
     ev.add_argument("--draft-head", default=None, help="speculative decoding with this DraftHead folder")
-    ev.add_argument("--bin-tolerance", type=int, nargs="+", default=None, help="relaxed acceptance r (or one per dim)")
-    ev.add_argument("--num-draft-tokens", type=int, default=None, help="chain length k (default: the head's)")
+    ev.add_argument(
+        "--bin-tolerance", type=NON_NEGATIVE, nargs="+", default=None, help="relaxed acceptance r (or one per dim)"
+    )
+    ev.add_argument("--num-draft-tokens", type=POSITIVE, default=None, help="chain length k (default: the head's)")
     ev.add_argument("--draft-tree", action="store_true", help="the draft head drafts an EAGLE-2 tree, not a chain")
     ev.add_argument(
         "--action-prior",
         action="store_true",
         help="draft each action from the episode's previous actions (verified inside the prefill)",
     )
-    ev.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    ev.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads")
 
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
     )
-    if getattr(args, "threads", None):
+    if getattr(args, "threads", None) is not None:
         torch.set_num_threads(args.threads)
 
     if args.command == "collect":

@@ -25,6 +25,7 @@ import torch
 from transformers import PreTrainedModel
 
 from ..action_tokenizer import ActionLayout
+from .config import NOT_ENABLED_HINT
 from .tree import DraftTree
 
 
@@ -113,6 +114,13 @@ class Drafter:
 
     def start(self, context: DraftContext) -> DraftSession:
         raise NotImplementedError
+
+    def __getattr__(self, name: str):
+        # Only reached for missing attributes: e.g. transformers' assisted generation probing ``.config`` because
+        # the target's generate was never speculation-enabled. Say how to fix it.
+        if name.startswith("__"):
+            raise AttributeError(name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}: {NOT_ENABLED_HINT}")
 
 
 # ----------------------------------------------------------------------------- drafts known up front

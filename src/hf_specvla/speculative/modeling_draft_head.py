@@ -12,6 +12,9 @@ Deviation from EAGLE-1: a final RMSNorm, because the target's last hidden state 
 
 from __future__ import annotations
 
+import json
+import os
+from pathlib import Path
 from typing import NamedTuple
 
 import torch
@@ -21,8 +24,50 @@ from transformers.cache_utils import Cache
 from transformers.models.llama.modeling_llama import LlamaDecoderLayer, LlamaRMSNorm, LlamaRotaryEmbedding
 
 from ..action_tokenizer import DEFAULT_N_BINS, ActionTokenizer
+from .config import NOT_ENABLED_HINT
 from .configuration_draft_head import DraftHeadConfig
 from .masks import causal_mask
+
+
+def is_local_path(name_or_path: str | os.PathLike) -> bool:
+    """Whether ``name_or_path`` means a local file or folder rather than a hub repo id (see
+    [`DraftHead.from_pretrained`])."""
+    if isinstance(name_or_path, os.PathLike):
+        return True
+    text = str(name_or_path)
+    first = text.split("/", 1)[0]
+    return (
+        Path(text).expanduser().exists()
+        or text.startswith(("/", "./", "../", "~", "."))
+        or "\\" in text
+        or text.count("/") > 1
+        or ("/" in text and Path(first).is_dir())
+    )
+
+
+def check_draft_head_folder(name_or_path: str | os.PathLike) -> None:
+    """Raises when a local ``name_or_path`` is not a saved draft head; does nothing for a hub repo id."""
+    if not is_local_path(name_or_path):
+        return
+    folder = Path(name_or_path).expanduser()
+    if not folder.is_dir():
+        raise FileNotFoundError(
+            f"draft head folder {str(name_or_path)!r} does not exist (a local path: it is not looked up on the hub)"
+        )
+    config_file = folder / "config.json"
+    if not config_file.is_file():
+        raise FileNotFoundError(
+            f"{str(name_or_path)!r} has no config.json: not a draft head saved by DraftHead.save_pretrained"
+        )
+    try:
+        model_type = json.loads(config_file.read_text()).get("model_type")
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{str(config_file)!r} is not valid JSON ({error}): a damaged draft head folder") from None
+    if model_type != DraftHeadConfig.model_type:
+        raise ValueError(
+            f"{str(name_or_path)!r} holds a {model_type!r} model, not a hf_specvla draft head (whose config.json says "
+            f"model_type {DraftHeadConfig.model_type!r}); pass a folder written by DraftHead.save_pretrained"
+        )
 
 
 class TargetHandles(NamedTuple):
@@ -81,7 +126,27 @@ class DraftHead(PreTrainedModel):
         self.rotary_emb = LlamaRotaryEmbedding(layer_config)
         self.post_init()
 
+    def __getattr__(self, name: str):
+        try:
+            return super().__getattr__(name)  # nn.Module: parameters, buffers, submodules
+        except AttributeError as error:
+            if name == "generation_config":  # transformers' assisted generation, on a target without the mixin
+                raise AttributeError(f"{error}: {NOT_ENABLED_HINT}") from None
+            raise
+
     # ------------------------------------------------------------------ building
+    @classmethod
+    def from_pretrained(cls, pretrained_model_name_or_path, *model_args, **kwargs) -> DraftHead:
+        """``PreTrainedModel.from_pretrained``, after checking a local folder: it must exist and hold a draft-head
+        ``config.json``. A local path (an existing file or folder, ``/``, ``./``, ``~``, or a first component that is
+        a local folder, like ``runs/draft``) is never sent to the hub; anything else is a hub repo id.
+
+        Raises:
+            FileNotFoundError / ValueError naming the path and what it holds instead.
+        """
+        check_draft_head_folder(pretrained_model_name_or_path)
+        return super().from_pretrained(pretrained_model_name_or_path, *model_args, **kwargs)
+
     @classmethod
     def from_target(
         cls,
