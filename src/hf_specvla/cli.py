@@ -279,9 +279,11 @@ def _eval(args, parser) -> int:
         tolerance = args.bin_tolerance
         generate_kwargs["bin_tolerance"] = tolerance[0] if len(tolerance) == 1 else tolerance
     env_config = EnvConfig(policy.config.image_size, policy.config.camera, args.max_episode_steps)
-    summary = evaluate(
-        policy, args.tasks, args.episodes, args.output_dir, env_config, args.seed_start, generate_kwargs, args.video
-    )
+    try:
+        summary = evaluate(policy, args.tasks, args.episodes, args.output_dir, env_config, args.seed_start,
+                           generate_kwargs, args.video, overwrite=args.overwrite_output_dir)  # fmt: skip
+    except FileExistsError as error:
+        parser.error(str(error))
     print(format_summary(summary))
     print(json.dumps(summary["overall"]))
     return 0
@@ -400,6 +402,9 @@ def main(argv: list[str] | None = None) -> int:
     ev.add_argument("--seed-start", type=int, default=EVAL_SEED_START, help="first evaluation seed")
     ev.add_argument("--max-episode-steps", type=int, default=EnvConfig.max_episode_steps, help="step limit")
     ev.add_argument("--video", default=None, help="save the first episode as .gif / .mp4")
+    ev.add_argument(
+        "--overwrite-output-dir", action="store_true", help="move a folder holding another run aside, start over"
+    )
     ev.add_argument("--draft-head", default=None, help="speculative decoding with this DraftHead folder")
     ev.add_argument(
         "--bin-tolerance", type=NON_NEGATIVE, nargs="+", default=None, help="relaxed acceptance r (or one per dim)"

@@ -2,8 +2,9 @@
 
 Evaluation seeds start at ``EVAL_SEED_START`` (100000), far from the collection seeds (0, 1, ...), so a policy is
 never scored on a start it was trained on. Results are appended to ``episodes.jsonl`` one episode at a time; an
-interrupted evaluation resumes where it stopped. Any ``generate`` option passes through (``generate_kwargs``), so
-plain and speculative decoding are one flag apart.
+interrupted evaluation resumes where it stopped, and only an evaluation of the same policy weights, env settings,
+seeds and decoding settings continues a folder (``run.json``, see [`hf_specvla.run_folder`]). Any ``generate``
+option passes through (``generate_kwargs``), so plain and speculative decoding are one flag apart.
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ from tqdm.auto import tqdm
 
 from .envs.metaworld import EnvConfig, MetaWorldEnv, resolve_tasks
 from .policy import VLAPolicy
-from .speculative import SpeculationStats
+from .run_folder import RunRecord, fingerprint, open_run_folder, read_jsonl, write_json_atomic
+from .speculative import DraftHead, DraftHeadDrafter, SpeculationStats
 
 EVAL_SEED_START = 100_000
 
@@ -128,6 +130,21 @@ def format_summary(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def describe_decoding(generate_kwargs: dict) -> dict:
+    """JSON form of ``generate_kwargs`` for a folder's record: draft heads by weight fingerprint, drafters by
+    their settings, plain values as they are."""
+    described = {}
+    for key, value in sorted(generate_kwargs.items()):
+        if isinstance(value, DraftHead):
+            value = {"draft_head": fingerprint(value)}
+        elif isinstance(value, DraftHeadDrafter):
+            value = {"draft_head": fingerprint(value.draft_head), "tree": asdict(value.tree_config)}
+        elif not isinstance(value, (bool, int, float, str, list, tuple, dict, type(None))):
+            value = repr(value)
+        described[key] = value
+    return described
+
+
 def evaluate(
     policy: VLAPolicy,
     tasks: str | list[str],
@@ -138,11 +155,14 @@ def evaluate(
     generate_kwargs: dict | None = None,
     video_path: str | Path | None = None,
     progress: bool = True,
+    overwrite: bool = False,
 ) -> dict:
     """Evaluates ``policy`` on ``episodes_per_task`` seeded episodes of each task; resumable.
 
-    Writes ``output_dir/episodes.jsonl`` (one line per episode) and ``output_dir/summary.json``; returns the
-    summary. ``video_path`` (``.gif`` or ``.mp4``) saves the first episode's frames.
+    Writes ``output_dir/run.json`` (what produced the folder), ``output_dir/episodes.jsonl`` (one line per
+    episode) and ``output_dir/summary.json``; returns the summary. ``video_path`` (``.gif`` or ``.mp4``) saves the
+    first episode's frames. A folder holding another evaluation (other policy weights, env settings, seeds or
+    decoding settings) is refused unless ``overwrite`` (which moves it aside); more tasks or episodes continue it.
     """
     if episodes_per_task < 1:
         raise ValueError(f"episodes_per_task must be >= 1, got {episodes_per_task}")
@@ -150,11 +170,12 @@ def evaluate(
     env_config = env_config or EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)
     policy.check_env_config(env_config)
     output_dir = Path(output_dir)
-    output_dir.mkdir(parents=True, exist_ok=True)
+    generate_kwargs = dict(generate_kwargs or {})
+    settings = {"policy": fingerprint(policy.model), "env": asdict(env_config), "seed_start": seed_start,
+                "decoding": describe_decoding(generate_kwargs)}  # fmt: skip
+    open_run_folder(output_dir, RunRecord("eval", settings), overwrite)
     log_path = output_dir / "episodes.jsonl"
-    results = (
-        [EpisodeResult(**json.loads(line)) for line in log_path.read_text().splitlines()] if log_path.exists() else []
-    )
+    results = [EpisodeResult(**record) for record in read_jsonl(log_path)]
     done = {(r.task, r.seed) for r in results}
     bar = tqdm(
         total=len(tasks) * episodes_per_task, initial=len(done), desc="eval", unit="episode", disable=not progress
@@ -178,7 +199,7 @@ def evaluate(
     bar.close()
     wanted = {(t, seed_start + i) for t in tasks for i in range(episodes_per_task)}
     summary = summarize([r for r in results if (r.task, r.seed) in wanted])
-    (output_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_json_atomic(output_dir / "summary.json", summary)
     return summary
 
 

@@ -1,0 +1,109 @@
+"""The folder rule: a folder records what produced it; only the same run continues it; overwrite moves it aside;
+a torn last log line is redone."""
+
+import json
+import logging
+
+import pytest
+import torch
+
+from hf_specvla.run_folder import RUN_FILE, RunRecord, fingerprint, open_run_folder, read_jsonl
+
+
+def test_new_same_other_and_unrecorded_folders(tmp_path):
+    folder = tmp_path / "run"
+    record = RunRecord("eval", {"policy": "abc", "seed_start": 1})
+    assert open_run_folder(folder, record) is False  # new: the record is written first
+    assert json.loads((folder / RUN_FILE).read_text())["settings"] == {"policy": "abc", "seed_start": 1}
+    (folder / "episodes.jsonl").write_text("{}\n")
+    assert open_run_folder(folder, RunRecord("eval", {"policy": "abc", "seed_start": 1})) is True  # continues
+    with pytest.raises(FileExistsError, match="policy='abc' there, 'xyz' now.*--overwrite-output-dir"):
+        open_run_folder(folder, RunRecord("eval", {"policy": "xyz", "seed_start": 1}))
+    with pytest.raises(FileExistsError, match="written by `hf-specvla eval`, this is `hf-specvla compare`"):
+        open_run_folder(folder, RunRecord("compare", {"policy": "abc", "seed_start": 1}))
+    unrecorded = tmp_path / "old"
+    unrecorded.mkdir()
+    (unrecorded / "episodes.jsonl").write_text("{}\n")
+    with pytest.raises(FileExistsError, match="has no run.json"):
+        open_run_folder(unrecorded, record)
+    assert open_run_folder(tmp_path / "empty_but_there", record) is False
+
+
+def test_overwrite_moves_the_previous_run_aside_whole(tmp_path):
+    folder = tmp_path / "run"
+    open_run_folder(folder, RunRecord("eval", {"policy": "abc"}))
+    (folder / "episodes.jsonl").write_text('{"old": 1}\n')
+    assert open_run_folder(folder, RunRecord("eval", {"policy": "xyz"}), overwrite=True) is False
+    assert sorted(p.name for p in folder.iterdir()) == [RUN_FILE]  # nothing of the old run is mixed in
+    (aside,) = tmp_path.glob("run.replaced-*")
+    assert (aside / "episodes.jsonl").read_text() == '{"old": 1}\n'  # and nothing was lost
+
+
+def test_a_torn_last_line_is_dropped_and_redone(tmp_path, caplog):
+    log = tmp_path / "episodes.jsonl"
+    log.write_text('{"seed": 1}\n{"seed": 2}\n{"seed": 3, "succ')
+    with caplog.at_level(logging.WARNING):
+        assert read_jsonl(log) == [{"seed": 1}, {"seed": 2}]
+    assert "torn last line" in caplog.text and log.read_text() == '{"seed": 1}\n{"seed": 2}\n'
+    log.write_text('{"seed": 1}\n{"se\n{"seed": 3}\n')
+    with pytest.raises(ValueError, match="line 2 is not valid JSON"):
+        read_jsonl(log)
+
+
+def test_fingerprint_is_about_weights_not_paths():
+    a, b = torch.nn.Linear(3, 2), torch.nn.Linear(3, 2)
+    assert fingerprint(a) != fingerprint(b)
+    b.load_state_dict(a.state_dict())
+    assert fingerprint(a) == fingerprint(b)
+
+
+# ------------------------------------------------------------------------------- evaluation folders
+pytest.importorskip("metaworld")
+
+
+@pytest.fixture(scope="module")
+def tiny_policy():
+    from hf_specvla import ActionNormalizer
+    from hf_specvla.policy import VLAPolicy, VLAPolicyConfig
+
+    config = VLAPolicyConfig(image_size=32, patch_size=16, vision_hidden_size=32, vision_layers=1,
+                             text_hidden_size=64, text_layers=2, text_heads=4)  # fmt: skip
+    actions = ActionNormalizer(q01=[-1.0] * 4, q99=[1.0] * 4)
+    states = ActionNormalizer(q01=[-0.5, 0.3, 0.0, 0.0], q99=[0.5, 1.0, 0.4, 1.0])
+    return VLAPolicy.build(["reach the goal"], actions, states, config, seed=3)
+
+
+def test_eval_refuses_another_run_and_redoes_a_torn_episode(tmp_path, tiny_policy):
+    """Regression (reliability issue, cases 3 and 9): evaluating into a folder that holds results of another
+    policy, decoding setting or step limit used to "resume" and report the old numbers; a torn last line of
+    episodes.jsonl used to stop resume with a raw JSONDecodeError."""
+    from hf_specvla.envs.metaworld import EnvConfig
+    from hf_specvla.evaluation import evaluate
+    from hf_specvla.policy import VLAPolicy
+
+    env = EnvConfig(32, tiny_policy.config.camera, max_episode_steps=2)
+    out = tmp_path / "eval"
+    first = evaluate(tiny_policy, "reach", 2, out, env, progress=False)
+    lines = (out / "episodes.jsonl").read_text().splitlines()
+    assert len(lines) == 2
+    with pytest.raises(FileExistsError, match="decoding="):
+        evaluate(tiny_policy, "reach", 2, out, env, generate_kwargs={"action_prior": True}, progress=False)
+    with pytest.raises(FileExistsError, match="max_episode_steps"):
+        evaluate(tiny_policy, "reach", 2, out, EnvConfig(32, env.camera, max_episode_steps=3), progress=False)
+    other = VLAPolicy.build(["reach the goal"], tiny_policy.action_normalizer, tiny_policy.state_normalizer,
+                            tiny_policy.config, seed=4)  # fmt: skip
+    with pytest.raises(FileExistsError, match="policy="):
+        evaluate(other, "reach", 2, out, env, progress=False)
+    # a crash mid-write of the second episode: its line is dropped and the episode redone, identically
+    (out / "episodes.jsonl").write_text(lines[0] + "\n" + lines[1][: len(lines[1]) // 2])
+    again = evaluate(tiny_policy, "reach", 2, out, env, progress=False)
+
+    def without_latencies(text_lines):  # wall times differ between runs; everything else must not
+        return [{k: v for k, v in json.loads(x).items() if k != "latencies_ms"} for x in text_lines]
+
+    assert without_latencies((out / "episodes.jsonl").read_text().splitlines()) == without_latencies(lines)
+    assert again["overall"]["success_rate"] == first["overall"]["success_rate"]
+    # the explicit way out: the old run is moved aside, the new one starts clean
+    evaluate(other, "reach", 1, out, env, overwrite=True, progress=False)
+    assert len((out / "episodes.jsonl").read_text().splitlines()) == 1
+    assert len(list(tmp_path.glob("eval.replaced-*/episodes.jsonl"))) == 1
