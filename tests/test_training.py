@@ -147,3 +147,35 @@ def test_checkpoints_resume_and_never_clobber(tmp_path, toy_pipeline, small_data
 def test_training_config_validation(tmp_path, overrides, match):
     with pytest.raises(ValueError, match=match):
         DraftTrainingConfig(str(tmp_path), **overrides)
+
+
+def test_overwrite_moves_the_old_run_aside_and_resume_needs_a_checkpoint(tmp_path, toy_pipeline, small_dataset):
+    """Regressions (reliability issue, cases 1 and 2): overwriting a folder that held an older run with more
+    checkpoints used to keep the old checkpoints (a later --resume continued the *old* run); --resume on a finished
+    folder without checkpoints used to train from scratch over it silently."""
+
+    def train(folder, **overrides):
+        torch.manual_seed(0)
+        head = DraftHead.from_target(toy_pipeline.target, toy_pipeline.action_tokenizer, action_dim=ACTION_DIM)
+        settings = {**dict(batch_size=4, learning_rate=1e-3, save_every=1, keep_checkpoints=5), **overrides}
+        return train_draft_head(head, toy_pipeline.target, small_dataset, DraftTrainingConfig(str(folder), **settings),
+                                progress=False)  # fmt: skip
+
+    folder = tmp_path / "run"
+    train(folder, max_steps=5, learning_rate=3e-3)  # the old run: checkpoints 1..4
+    train(folder, max_steps=2, overwrite_output_dir=True)  # a new run, other settings
+    assert sorted(p.name for p in folder.glob("checkpoint-*")) == ["checkpoint-1"]  # nothing of the old run
+    (aside,) = tmp_path.glob("run.replaced-*")
+    assert sorted(p.name for p in aside.glob("checkpoint-*")) == [f"checkpoint-{i}" for i in range(1, 5)]
+    resumed = train(folder, max_steps=3, resume=True)  # continues the new run, not the old one
+    straight = train(tmp_path / "straight", max_steps=3)
+    for (name, a), b in zip(resumed.state_dict().items(), straight.state_dict().values()):
+        torch.testing.assert_close(a, b, msg=name, rtol=1e-4, atol=1e-5)
+    with pytest.raises(FileExistsError, match="learning_rate=0.001 there, 0.003 now"):
+        train(folder, max_steps=4, resume=True, learning_rate=3e-3)  # resuming is only for the same run
+
+    finished = tmp_path / "finished"
+    train(finished, max_steps=2, save_every=0)  # final weights only
+    with pytest.raises(FileExistsError, match="no checkpoint-\\* to resume from"):
+        train(finished, max_steps=3, resume=True)
+    assert (finished / "config.json").exists()  # the finished run is untouched

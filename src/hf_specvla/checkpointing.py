@@ -1,16 +1,24 @@
 """Training checkpoints shared by the trainers: ``output_dir/checkpoint-<step>/`` folders holding the model
 (``save_pretrained``), the accelerate state (optimizer, scheduler, RNG) and ``trainer_state.pt`` (written last:
-a checkpoint without it is incomplete and ignored)."""
+a checkpoint without it is incomplete and ignored).
+
+The output folder follows the folder rule of [`hf_specvla.run_folder`]: ``run.json`` records the settings that
+shape the run (not ``max_steps``: a resumed run may train longer) and the fingerprints of what it learns from;
+``--resume`` continues only a matching run that has a checkpoint; ``--overwrite-output-dir`` moves the previous
+run aside whole (its checkpoints and logs never mix with the new run's)."""
 
 from __future__ import annotations
 
 import re
 import shutil
 from collections.abc import Callable
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
 from accelerate import Accelerator
+
+from .run_folder import RunRecord, open_run_folder
 
 CHECKPOINT_PATTERN = re.compile(r"^checkpoint-(\d+)$")
 TRAINER_STATE = "trainer_state.pt"
@@ -33,14 +41,43 @@ def latest_checkpoint(output_dir: str | Path) -> Path | None:
     return found[-1][1] if found else None
 
 
-def check_output_dir(output_dir: Path, resume: bool, overwrite: bool) -> None:
-    """Refuses to train into a non-empty folder unless resuming or explicitly overwriting."""
-    if not output_dir.exists() or not any(output_dir.iterdir()) or resume or overwrite:
+#: Training settings that do not change what a run computes: a resumed run may change them.
+RUN_INDEPENDENT_SETTINGS = frozenset(
+    {"output_dir", "resume", "overwrite_output_dir", "max_steps", "eval_every", "save_every", "log_every",
+     "keep_checkpoints"}
+)  # fmt: skip
+
+
+def training_record(command: str, config, inputs: dict) -> RunRecord:
+    """The [`RunRecord`] of a training run: ``config``'s run-shaping fields and ``inputs`` (fingerprints)."""
+    settings = {k: v for k, v in asdict(config).items() if k not in RUN_INDEPENDENT_SETTINGS}
+    return RunRecord(command, {**settings, **inputs})
+
+
+def prepare_output_dir(output_dir: Path, record: RunRecord, resume: bool, overwrite: bool) -> None:
+    """Applies the folder rule before anything is written.
+
+    Raises:
+        FileExistsError: a non-empty folder without ``resume`` / ``overwrite``; ``resume`` with no checkpoint to
+            resume from; or a folder that holds another run (naming the differing setting).
+    """
+    output_dir = Path(output_dir)
+    empty = not output_dir.exists() or not any(output_dir.iterdir())
+    if empty or overwrite:
+        open_run_folder(output_dir, record, overwrite=overwrite)
         return
-    raise FileExistsError(
-        f"output_dir {str(output_dir)!r} is not empty; pass resume=True (--resume) to continue its training, "
-        f"overwrite_output_dir=True (--overwrite-output-dir) to train from scratch into it, or choose another folder"
-    )
+    if not resume:
+        raise FileExistsError(
+            f"output_dir {str(output_dir)!r} is not empty; pass resume=True (--resume) to continue its training, "
+            f"overwrite_output_dir=True (--overwrite-output-dir) to move it aside and train from scratch, or choose "
+            f"another folder"
+        )
+    if latest_checkpoint(output_dir) is None:
+        raise FileExistsError(
+            f"--resume: {str(output_dir)!r} has no checkpoint-* to resume from (a finished run keeps only its final "
+            f"weights); pass --overwrite-output-dir to move it aside and train from scratch, or choose another folder"
+        )
+    open_run_folder(output_dir, record)
 
 
 def resume_step(accelerator: Accelerator, output_dir: Path) -> int:

@@ -390,7 +390,9 @@ def main(argv: list[str] | None = None) -> int:
                        help="weight of the scene-state loss against the action tokens' (with --scene-targets; "
                             f"default {VLATrainingConfig.scene_loss_weight})")  # fmt: skip
     train.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --output-dir")
-    train.add_argument("--overwrite-output-dir", action="store_true", help="train from scratch into a non-empty folder")
+    train.add_argument(
+        "--overwrite-output-dir", action="store_true", help="move the folder's previous run aside, train from scratch"
+    )
     train.add_argument("--seed", type=int, default=VLATrainingConfig.seed, help="random seed")
     train.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
 

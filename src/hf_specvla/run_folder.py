@@ -43,6 +43,17 @@ def fingerprint(module: torch.nn.Module) -> str:
     return digest.hexdigest()[:16]
 
 
+def fingerprint_arrays(*arrays) -> str:
+    """Content fingerprint (16 hex digits) of numpy arrays / tensors, e.g. a dataset's actions and states."""
+    digest = hashlib.sha256()
+    for array in arrays:
+        if isinstance(array, torch.Tensor):
+            array = array.detach().cpu().numpy()
+        digest.update(f"{array.shape}:{array.dtype}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()[:16]
+
+
 def code_version() -> str:
     """hf_specvla's version (recorded, compared only to warn)."""
     from . import __version__

@@ -30,7 +30,8 @@ from torch.utils.data import DataLoader, Dataset
 from tqdm.auto import tqdm
 from transformers import PreTrainedModel
 
-from .checkpointing import check_output_dir, latest_checkpoint, resume_step, save_checkpoint
+from .checkpointing import latest_checkpoint, prepare_output_dir, resume_step, save_checkpoint, training_record
+from .run_folder import fingerprint, fingerprint_arrays
 from .speculative.drafters.draft_head import embed_tokens
 from .speculative.masks import causal_mask
 from .speculative.modeling_draft_head import DraftHead, TargetHandles
@@ -57,8 +58,8 @@ class DraftTrainingConfig:
         save_every: steps between checkpoints (0 = only the final save).
         keep_checkpoints: most recent checkpoints kept on disk.
         resume: continue from the newest ``checkpoint-*`` in output_dir if there is one.
-        overwrite_output_dir: allow writing into a non-empty output_dir without resuming (never deletes a
-            final model that is not ours to delete: only checkpoint-* folders and the head's own files).
+        overwrite_output_dir: train from scratch into a non-empty output_dir: the previous contents are moved aside
+            whole to ``<output_dir>.replaced-<UTC time>`` (nothing deleted, nothing of the old run mixed in).
         seed: data order and noise.
         mixed_precision: accelerate's "no" / "fp16" / "bf16".
     """
@@ -245,7 +246,13 @@ def train_draft_head(
     saved to ``output_dir`` and returned (unwrapped, in eval mode).
     """
     output_dir = Path(config.output_dir)
-    check_output_dir(output_dir, config.resume, config.overwrite_output_dir)
+    inputs = {
+        "target": fingerprint(target),
+        "draft_head_config": {k: v for k, v in draft_head.config.to_dict().items() if k != "transformers_version"},
+        "data": fingerprint_arrays(*[example["input_ids"] for example in dataset.examples]),
+    }
+    prepare_output_dir(output_dir, training_record("train-draft", config, inputs), config.resume,
+                       config.overwrite_output_dir)  # fmt: skip
     accelerator = accelerator or Accelerator(
         mixed_precision=config.mixed_precision,
         dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),

@@ -22,10 +22,11 @@ from accelerate.utils import DataLoaderConfiguration, set_seed
 from torch.utils.data import DataLoader, Dataset
 from tqdm.auto import tqdm
 
-from .checkpointing import check_output_dir, latest_checkpoint, resume_step, save_checkpoint
+from .checkpointing import latest_checkpoint, prepare_output_dir, resume_step, save_checkpoint, training_record
 from .demonstrations import Demonstrations
 from .envs.metaworld import TASK_INSTRUCTIONS
 from .policy import POLICY_CONFIG_NAME, VLAPolicy
+from .run_folder import fingerprint_arrays
 from .training import learning_rate_factor
 
 logger = logging.getLogger(__name__)
@@ -196,7 +197,6 @@ def _check_resumed_policy_config(output_dir: Path, policy_config) -> None:
 def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfig, progress: bool = True) -> dict:
     """Behaviour-clones ``policy`` on ``demos``; saves it to ``config.output_dir``; returns the last metrics."""
     output_dir = Path(config.output_dir)
-    check_output_dir(output_dir, config.resume, config.overwrite_output_dir)
     if demos.actions.shape[1] != policy.config.action_dim:
         raise ValueError(
             f"the demonstrations have {demos.actions.shape[1]}-dim actions, the policy action_dim="
@@ -209,8 +209,14 @@ def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfi
             f"demonstrations have {scene_dim or 'no'} scene-state values per frame (collected before the "
             "scene_state column existed?); collect them again or train without scene targets"
         )
-    if config.resume:
+    if config.resume and not config.overwrite_output_dir:
         _check_resumed_policy_config(output_dir, policy.config)
+    model_settings = {f.name: getattr(policy.config, f.name) for f in fields(policy.config)
+                      if not f.name.endswith("_stats")}  # fmt: skip
+    inputs = {"policy_config": model_settings,
+              "data": fingerprint_arrays(demos.actions, demos.states, demos.episode_index)}  # fmt: skip
+    record = training_record("train-vla", config, inputs)
+    prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir)
     accelerator = Accelerator(dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True))
     set_seed(config.seed)
     train_idx, val_idx = split_episodes(demos, config.val_episodes, config.seed)
