@@ -72,3 +72,23 @@ def test_bad_numbers_are_usage_errors(capsys, argv, message):
     with pytest.raises(SystemExit) as exit_info:
         main(argv)
     assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_progress_bars_are_slow_when_redirected_and_logs_stay_ours():
+    """Regression (reliability issue, case 11): a 300-step job used to write 38 KB of bar redraws to a log, and
+    third-party INFO (OpenGL, accelerate) showed on every run."""
+    import io
+    import logging
+
+    from hf_specvla.cli import configure_logging
+    from hf_specvla.progress import progress_bar
+
+    redirected = io.StringIO()  # not a terminal
+    with progress_bar(total=300, desc="train", file=redirected) as bar:
+        for _ in range(300):
+            bar.update(1)
+    assert redirected.getvalue().count("\r") <= 3  # first draw, maybe one timed update, the final one
+    configure_logging()
+    assert logging.getLogger("hf_specvla.training").isEnabledFor(logging.INFO)
+    assert not logging.getLogger("OpenGL.acceleratesupport").isEnabledFor(logging.INFO)
+    assert not logging.getLogger("accelerate.checkpointing").isEnabledFor(logging.INFO)

@@ -14,9 +14,9 @@ import time
 from dataclasses import dataclass, field
 
 import torch
-from tqdm.auto import tqdm
 
 from .action_tokenizer import ActionTokenizer
+from .progress import progress_bar
 from .speculative import SpeculationStats
 
 
@@ -71,7 +71,7 @@ def run_benchmark(
             target.generate(**prompt, **base, **method.generate_kwargs)
     rng = random.Random(seed)
     order = list(methods)
-    for _ in tqdm(range(repeats), desc="benchmark", disable=not progress):
+    for _ in progress_bar(range(repeats), desc="benchmark", disable=not progress):
         for prompt in prompts:
             rng.shuffle(order)
             outputs = {}
@@ -176,7 +176,7 @@ def run_episode_benchmark(
     rng = random.Random(seed)
     order = list(methods)
     total = repeats * sum(len(e) for e in episodes)
-    with tqdm(total=total, desc="episode benchmark", disable=not progress, mininterval=10) as bar:
+    with progress_bar(total=total, desc="episode benchmark", disable=not progress, mininterval=10) as bar:
         for _ in range(repeats):
             for episode in episodes:
                 histories: dict[str, list[list[int]]] = {m.name: [] for m in methods}

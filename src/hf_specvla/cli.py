@@ -289,6 +289,22 @@ def _eval(args, parser) -> int:
     return 0
 
 
+def configure_logging(verbose: bool = False) -> None:
+    """hf_specvla's own messages at INFO (DEBUG with ``-v``), each on its own line even while a progress bar is
+    drawn; other libraries' INFO (OpenGL, accelerate, ...) and transformers' weight-loading bars are left out."""
+    from transformers.utils import logging as transformers_logging
+
+    from .progress import ProgressAwareHandler
+
+    handler = ProgressAwareHandler()
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers = [handler]
+    root.setLevel(logging.WARNING)
+    logging.getLogger("hf_specvla").setLevel(logging.DEBUG if verbose else logging.INFO)
+    transformers_logging.disable_progress_bar()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="hf-specvla",
@@ -421,9 +437,7 @@ def main(argv: list[str] | None = None) -> int:
     ev.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads")
 
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s"
-    )
+    configure_logging(args.verbose)
     if getattr(args, "threads", None) is not None:
         torch.set_num_threads(args.threads)
 

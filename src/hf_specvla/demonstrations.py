@@ -32,7 +32,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from .action_tokenizer import ActionNormalizer
 from .envs.metaworld import (
@@ -45,6 +44,7 @@ from .envs.metaworld import (
     MetaWorldEnv,
     resolve_tasks,
 )
+from .progress import progress_bar
 
 logger = logging.getLogger(__name__)
 
@@ -270,7 +270,7 @@ def collect_demonstrations(
     written = failures = driven_successes = 0
     total = len(tasks) * episodes_per_task
     done = {task: collected_seeds(root, task) for task in tasks}
-    bar = tqdm(total=total, initial=sum(min(len(s), episodes_per_task) for s in done.values()),
+    bar = progress_bar(total=total, initial=sum(min(len(s), episodes_per_task) for s in done.values()),
                desc="collect", unit="episode", disable=not progress)  # fmt: skip
     for task in tasks:
         have = set(done[task])
@@ -372,7 +372,7 @@ def load_demonstrations(
     if not files:
         raise FileNotFoundError(f"no episodes in {', '.join(str(r / 'data') for r in roots)}")
     images, states, actions, task_names, episodes, scene_states = [], [], [], [], [], []
-    for position, file in tqdm(files, desc="load episodes", disable=not progress):
+    for position, file in progress_bar(files, desc="load episodes", disable=not progress):
         table = pq.read_table(file).to_pydict()
         images.extend(decode_png(b) for b in table["image"])
         states.extend(table["state"])

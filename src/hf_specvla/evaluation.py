@@ -16,10 +16,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from .envs.metaworld import EnvConfig, MetaWorldEnv, resolve_tasks
 from .policy import VLAPolicy
+from .progress import progress_bar
 from .run_folder import RunRecord, fingerprint, open_run_folder, read_jsonl, write_json_atomic
 from .speculative import DraftHead, DraftHeadDrafter, SpeculationStats
 
@@ -177,7 +177,7 @@ def evaluate(
     log_path = output_dir / "episodes.jsonl"
     results = [EpisodeResult(**record) for record in read_jsonl(log_path)]
     done = {(r.task, r.seed) for r in results}
-    bar = tqdm(
+    bar = progress_bar(
         total=len(tasks) * episodes_per_task, initial=len(done), desc="eval", unit="episode", disable=not progress
     )
     frames: list | None = [] if video_path is not None and not done else None

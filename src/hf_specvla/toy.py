@@ -16,10 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 from transformers import CLIPVisionConfig, LlamaConfig, LlavaConfig, LlavaForConditionalGeneration
 
 from .action_tokenizer import ActionTokenizer
+from .progress import progress_bar
 from .tokenization import build_vla_tokenizer, encode_prompt
 
 logger = logging.getLogger(__name__)
@@ -166,7 +166,7 @@ def train_toy_target(
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=learning_rate, total_steps=steps, pct_start=0.1)
     model.train()
     losses = []
-    for _ in tqdm(range(steps), desc="train toy target", disable=not progress):
+    for _ in progress_bar(range(steps), desc="train toy target", disable=not progress):
         batch = [scenes[i] for i in rng.integers(0, len(scenes), batch_size)]
         inputs = toy_inputs(batch, tokenizer)
         action_ids = torch.as_tensor(action_tokenizer.encode(np.stack([s.action() for s in batch])))  # [B, 7]

@@ -27,10 +27,10 @@ import torch
 from accelerate import Accelerator
 from accelerate.utils import DataLoaderConfiguration, set_seed
 from torch.utils.data import DataLoader, Dataset
-from tqdm.auto import tqdm
 from transformers import PreTrainedModel
 
 from .checkpointing import latest_checkpoint, prepare_output_dir, resume_step, save_checkpoint, training_record
+from .progress import progress_bar
 from .run_folder import fingerprint, fingerprint_arrays
 from .speculative.drafters.draft_head import embed_tokens
 from .speculative.masks import causal_mask
@@ -147,7 +147,7 @@ def build_distillation_dataset(
     """
     target.eval()
     examples = []
-    for inputs in tqdm(list(prompts), desc="self-distillation data", disable=not progress):
+    for inputs in progress_bar(list(prompts), desc="self-distillation data", disable=not progress):
         inputs = {k: v.to(target.device) if isinstance(v, torch.Tensor) else v for k, v in inputs.items()}
         mask = inputs.get("attention_mask")
         if inputs["input_ids"].shape[0] != 1 and mask is not None and not bool(mask.all()):
@@ -282,7 +282,7 @@ def train_draft_head(
         logger.info("nothing to do: checkpoint step %d >= max_steps %d", step, config.max_steps)
 
     generator = torch.Generator()
-    bar = tqdm(
+    bar = progress_bar(
         total=config.max_steps,
         initial=step,
         desc="train draft head",

@@ -20,12 +20,12 @@ import torch
 from accelerate import Accelerator
 from accelerate.utils import DataLoaderConfiguration, set_seed
 from torch.utils.data import DataLoader, Dataset
-from tqdm.auto import tqdm
 
 from .checkpointing import latest_checkpoint, prepare_output_dir, resume_step, save_checkpoint, training_record
 from .demonstrations import Demonstrations
 from .envs.metaworld import TASK_INSTRUCTIONS
 from .policy import POLICY_CONFIG_NAME, VLAPolicy
+from .progress import progress_bar
 from .run_folder import fingerprint_arrays
 from .training import learning_rate_factor
 
@@ -237,7 +237,7 @@ def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfi
         logger.info("resuming VLA training from step %d", step)
     history_path = output_dir / "training_log.jsonl"
     metrics: dict[str, float] = {}
-    bar = tqdm(total=config.max_steps, initial=step, desc="train-vla", disable=not progress)
+    bar = progress_bar(total=config.max_steps, initial=step, desc="train-vla", disable=not progress)
     while step < config.max_steps:
         epoch, offset = divmod(step, len(train_loader))
         train_loader.set_epoch(epoch)
