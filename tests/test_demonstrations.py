@@ -215,3 +215,17 @@ def test_policy_driven_bad_input(tiny_policy, tmp_path):
         collect_demonstrations(tmp_path, "reach", 2, SHORT, progress=False, policy=tiny_policy, expert_mix=0.25)
     with pytest.raises(ValueError, match="policy='in-memory', but this collection uses None"):
         collect_demonstrations(tmp_path, "reach", 2, SHORT, progress=False)
+
+
+def test_a_bad_collection_writes_nothing(tmp_path):
+    """Regression (reliability issue, case 8): `collect --seed-start -5` used to write meta/info.json first, and the
+    half-made folder then refused the corrected command."""
+    folder = tmp_path / "demos"
+    with pytest.raises(ValueError, match="seed_start must be >= 0.*got -5"):
+        collect_demonstrations(folder, "reach", 1, EnvConfig(image_size=32), seed_start=-5, progress=False)
+    assert not folder.exists()
+    from hf_specvla.cli import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["collect", "--tasks", "reach", "--seed-start", "-5", "--output-dir", str(folder)])
+    assert exit_info.value.code == 2 and not folder.exists()

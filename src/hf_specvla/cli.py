@@ -340,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
     episodes.add_argument(
         "--steps", type=POSITIVE, default=40, help="with --policy: steps recorded per episode (at most)"
     )
-    episodes.add_argument("--seed-start", type=int, default=300_000, help="with --policy: first rollout seed")
+    episodes.add_argument("--seed-start", type=NON_NEGATIVE, default=300_000, help="with --policy: first rollout seed")
     episodes.add_argument(
         "--bin-tolerances", type=NON_NEGATIVE, nargs="+", default=[0, 1, 2, 4, 8], help="r for the prior"
     )
@@ -360,14 +360,14 @@ def main(argv: list[str] | None = None) -> int:
 
     collect = _subcommand(commands, "collect", "record scripted-expert Meta-World demonstrations (Parquet; resumable)")
     collect.add_argument("--tasks", nargs="+", default=["MT10"], help="suites (MT10, MT50) and/or task names")
-    collect.add_argument("--episodes", type=int, default=50,
+    collect.add_argument("--episodes", type=POSITIVE, default=50,
                          help="successful episodes per task (with --policy: episodes, failed ones kept)")  # fmt: skip
     collect.add_argument("--output-dir", required=True, help="dataset folder (resumes if it exists)")
     collect.add_argument("--image-size", type=int, default=None,
                          help=f"image side (px) (default: the --policy's, else {EnvConfig.image_size})")  # fmt: skip
     collect.add_argument("--camera", default=None, choices=CAMERAS,
                          help=f"camera to render from (default: the --policy's, else {EnvConfig.camera})")  # fmt: skip
-    collect.add_argument("--seed-start", type=int, default=0, help="first seed tried per task")
+    collect.add_argument("--seed-start", type=NON_NEGATIVE, default=0, help="first seed tried per task")
     collect.add_argument("--action-noise", type=float, default=0.0,
                          help="std of Gaussian noise added to the executed expert action (recorded actions stay "
                               "clean): recovery data for behaviour cloning (DART)")  # fmt: skip
@@ -417,7 +417,7 @@ def main(argv: list[str] | None = None) -> int:
     ev.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
     ev.add_argument("--episodes", type=POSITIVE, default=20, help="episodes per task")
     ev.add_argument("--output-dir", required=True, help="episodes.jsonl + summary.json go here (resumes)")
-    ev.add_argument("--seed-start", type=int, default=EVAL_SEED_START, help="first evaluation seed")
+    ev.add_argument("--seed-start", type=NON_NEGATIVE, default=EVAL_SEED_START, help="first evaluation seed")
     ev.add_argument("--max-episode-steps", type=int, default=EnvConfig.max_episode_steps, help="step limit")
     ev.add_argument("--video", default=None, help="save the first episode as .gif / .mp4")
     ev.add_argument(

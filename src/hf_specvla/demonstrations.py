@@ -256,6 +256,8 @@ def collect_demonstrations(
     """
     if episodes_per_task < 1:
         raise ValueError(f"episodes_per_task must be >= 1, got {episodes_per_task}")
+    if seed_start < 0 or max_seed_tries < 1:  # checked before anything is written (a seed is a uint32)
+        raise ValueError(f"seed_start must be >= 0 and max_seed_tries >= 1, got {seed_start} and {max_seed_tries}")
     _check_action_noise(action_noise)
     _check_expert_mix(expert_mix)
     root = Path(output_dir)
