@@ -107,3 +107,38 @@ def test_eval_refuses_another_run_and_redoes_a_torn_episode(tmp_path, tiny_polic
     evaluate(other, "reach", 1, out, env, overwrite=True, progress=False)
     assert len((out / "episodes.jsonl").read_text().splitlines()) == 1
     assert len(list(tmp_path.glob("eval.replaced-*/episodes.jsonl"))) == 1
+
+
+def test_video_is_checked_up_front_and_never_costs_an_episode(tmp_path, tiny_policy, monkeypatch, caplog):
+    """Regression (reliability issue, case 7): `--video x.mp4` failed after the first rollout (no mp4 writer), that
+    episode was never logged, and every rerun failed the same way; `--video` on a resumed folder was dropped."""
+    import hf_specvla.evaluation as evaluation
+    from hf_specvla.cli import main
+    from hf_specvla.envs.metaworld import EnvConfig
+
+    with pytest.raises(ValueError, match="extension must be one of"):
+        evaluation.check_video_path("x.avi")
+    monkeypatch.setattr(evaluation.importlib.util, "find_spec", lambda name: None)  # no imageio-ffmpeg
+    with pytest.raises(ValueError, match="needs imageio-ffmpeg"):
+        evaluation.check_video_path(tmp_path / "x.mp4")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["eval", "--policy", "p", "--output-dir", str(tmp_path / "e"), "--video", str(tmp_path / "x.mp4")])
+    assert exit_info.value.code == 2 and not (tmp_path / "e").exists()  # refused before anything is written
+    monkeypatch.undo()
+
+    env = EnvConfig(32, tiny_policy.config.camera, max_episode_steps=2)
+    out = tmp_path / "eval"
+
+    def broken_writer(frames, path):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(evaluation, "_save_video", broken_writer)
+    with pytest.raises(OSError, match="disk full"):
+        evaluation.evaluate(tiny_policy, "reach", 2, out, env, video_path=tmp_path / "v.gif", progress=False)
+    assert len((out / "episodes.jsonl").read_text().splitlines()) == 1  # the episode was logged first
+    monkeypatch.undo()
+    evaluation.evaluate(tiny_policy, "reach", 2, out, env, video_path=tmp_path / "v.gif", progress=False)
+    assert (tmp_path / "v.gif").exists()  # the rerun records the first episode it runs
+    with caplog.at_level(logging.WARNING):
+        evaluation.evaluate(tiny_policy, "reach", 2, out, env, video_path=tmp_path / "w.gif", progress=False)
+    assert "no video written" in caplog.text and not (tmp_path / "w.gif").exists()

@@ -20,7 +20,8 @@ Examples:
     hf-specvla collect --tasks MT10 --episodes 50 --output-dir runs/mt10_demos
     hf-specvla train-vla --data runs/mt10_demos --output-dir runs/mt10_vla --max-steps 6000
     hf-specvla eval --policy policies/mt10_vla --tasks MT10 --episodes 20 --output-dir runs/eval_greedy
-    hf-specvla eval --policy policies/mt10_vla --tasks reach push --episodes 5 --video runs/reach.gif
+    hf-specvla eval --policy policies/mt10_vla --tasks reach push --episodes 5 --video runs/reach.gif \\
+        --output-dir runs/eval_reach_push
     hf-specvla eval --policy policies/mt10_vla --draft-head runs/draft --bin-tolerance 2 --output-dir runs/eval_spec
     hf-specvla eval --policy policies/mt10_vla --action-prior --bin-tolerance 2 --output-dir runs/eval_prior
 
@@ -263,6 +264,13 @@ def _eval(args, parser) -> int:
     if args.num_draft_tokens is not None and args.draft_tree:
         parser.error("--num-draft-tokens sets a chain; --draft-tree drafts a tree: give one of them")
     _check_draft_head_flag(args.draft_head, parser)
+    if args.video is not None:
+        from .evaluation import check_video_path
+
+        try:
+            check_video_path(args.video)
+        except ValueError as error:
+            parser.error(f"--video: {error}")
     policy = VLAPolicy.from_pretrained(args.policy)
     generate_kwargs = {}
     if args.draft_head:
@@ -299,7 +307,9 @@ def configure_logging(verbose: bool = False) -> None:
     handler = ProgressAwareHandler()
     handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
     root = logging.getLogger()
-    root.handlers = [handler]
+    for existing in [h for h in root.handlers if isinstance(h, ProgressAwareHandler)]:  # main() called again
+        root.removeHandler(existing)
+    root.addHandler(handler)
     root.setLevel(logging.WARNING)
     logging.getLogger("hf_specvla").setLevel(logging.DEBUG if verbose else logging.INFO)
     transformers_logging.disable_progress_bar()

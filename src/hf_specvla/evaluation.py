@@ -9,7 +9,9 @@ option passes through (``generate_kwargs``), so plain and speculative decoding a
 
 from __future__ import annotations
 
+import importlib.util
 import json
+import logging
 import statistics
 import time
 from dataclasses import asdict, dataclass, field
@@ -22,6 +24,8 @@ from .policy import VLAPolicy
 from .progress import progress_bar
 from .run_folder import RunRecord, fingerprint, open_run_folder, read_jsonl, write_json_atomic
 from .speculative import DraftHead, DraftHeadDrafter, SpeculationStats
+
+logger = logging.getLogger(__name__)
 
 EVAL_SEED_START = 100_000
 
@@ -167,6 +171,8 @@ def evaluate(
     if episodes_per_task < 1:
         raise ValueError(f"episodes_per_task must be >= 1, got {episodes_per_task}")
     tasks = resolve_tasks(tasks)
+    if video_path is not None:
+        check_video_path(video_path)
     env_config = env_config or EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)
     policy.check_env_config(env_config)
     output_dir = Path(output_dir)
@@ -180,7 +186,7 @@ def evaluate(
     bar = progress_bar(
         total=len(tasks) * episodes_per_task, initial=len(done), desc="eval", unit="episode", disable=not progress
     )
-    frames: list | None = [] if video_path is not None and not done else None
+    frames: list | None = [] if video_path is not None else None  # the first episode this call runs
     for task in tasks:
         seeds = [seed_start + i for i in range(episodes_per_task) if (task, seed_start + i) not in done]
         if not seeds:
@@ -188,19 +194,37 @@ def evaluate(
         with MetaWorldEnv(task, env_config) as env:
             for seed in seeds:
                 result = rollout(policy, env, seed, generate_kwargs, frames)
-                if frames is not None and video_path is not None:
-                    _save_video(frames, video_path)
-                    frames = None
                 results.append(result)
                 with log_path.open("a") as log:
                     log.write(json.dumps(asdict(result)) + "\n")
+                if frames is not None:  # after the episode is logged: a failing writer never costs an episode
+                    _save_video(frames, video_path)
+                    logger.info("saved %s (%s seed %d)", video_path, task, seed)
+                    frames = None
                 bar.update(1)
                 bar.set_postfix(task=task, success=f"{np.mean([r.success for r in results]):.0%}")
     bar.close()
+    if frames is not None:
+        logger.warning("no video written: every requested episode was already in %s (nothing ran)", log_path)
     wanted = {(t, seed_start + i) for t in tasks for i in range(episodes_per_task)}
     summary = summarize([r for r in results if (r.task, r.seed) in wanted])
     write_json_atomic(output_dir / "summary.json", summary)
     return summary
+
+
+VIDEO_SUFFIXES = (".gif", ".mp4")
+
+
+def check_video_path(path: str | Path) -> None:
+    """Raises ValueError, before anything runs, when ``path`` cannot be written: an unknown extension, or ``.mp4``
+    without an mp4 writer (``imageio-ffmpeg``)."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in VIDEO_SUFFIXES:
+        raise ValueError(f"video {str(path)!r}: the extension must be one of {VIDEO_SUFFIXES}, got {suffix!r}")
+    if suffix == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise ValueError(
+            f"video {str(path)!r}: writing .mp4 needs imageio-ffmpeg (pip install imageio-ffmpeg); or use a .gif"
+        )
 
 
 def _save_video(frames: list, path: str | Path) -> None:
