@@ -1,6 +1,7 @@
 """The command line: help shows examples; benchmark runs on a saved pipeline and refuses a wrong folder."""
 
 import pytest
+import torch
 
 from hf_specvla.cli import main
 
@@ -92,3 +93,15 @@ def test_progress_bars_are_slow_when_redirected_and_logs_stay_ours():
     assert logging.getLogger("hf_specvla.training").isEnabledFor(logging.INFO)
     assert not logging.getLogger("OpenGL.acceleratesupport").isEnabledFor(logging.INFO)
     assert not logging.getLogger("accelerate.checkpointing").isEnabledFor(logging.INFO)
+
+
+def test_demo_refuses_a_folder_holding_another_pipeline(toy_pipeline, capsys):
+    """Regression (reliability issue, case 5): `demo --size medium` into a folder holding the small pipeline used
+    to reuse the small one silently; the same settings still reuse it (nothing retrained)."""
+    from hf_specvla.toy import build_toy_pipeline
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["demo", "--size", "medium", "--output-dir", toy_pipeline.output_dir])
+    assert exit_info.value.code == 2 and "size=" in capsys.readouterr().err
+    again = build_toy_pipeline(toy_pipeline.output_dir, progress=False)  # same settings: loaded, not retrained
+    assert torch.equal(again.draft_head.fuse.weight, toy_pipeline.draft_head.fuse.weight)

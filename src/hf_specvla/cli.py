@@ -35,7 +35,6 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from pathlib import Path
 
 import torch
 
@@ -124,6 +123,16 @@ def _check_draft_head_flag(draft_head: str | None, parser) -> None:
         parser.error(f"--draft-head: {error}")
 
 
+def _load_pipeline(pipeline_dir: str, parser):
+    """The toy pipeline a previous `demo` saved in ``pipeline_dir``; a usage error when there is none."""
+    from .toy import load_toy_pipeline
+
+    try:
+        return load_toy_pipeline(pipeline_dir)
+    except FileNotFoundError as error:
+        parser.error(f"--pipeline-dir: {error}")
+
+
 def _demo_episodes(pipeline, args) -> None:
     """The demo's second table: moving-dot episodes, so that the action prior has previous actions to draft."""
     from .benchmark import episode_methods, format_episode_report, run_episode_benchmark, toy_actor, toy_episodes
@@ -169,15 +178,12 @@ def _bench_episodes(args, parser) -> int:
             head_name = f"an untrained DraftHead (seed {args.seed})"
     else:
         from .benchmark import toy_actor, toy_episodes
-        from .toy import ACTION_DIM, build_toy_pipeline
+        from .toy import ACTION_DIM
 
-        root = Path(args.pipeline_dir)
-        if not (root / "target" / "config.json").exists() or not (root / "draft_head" / "config.json").exists():
-            parser.error(f"--pipeline-dir {str(root)!r} has no target/ and draft_head/ saved by `hf-specvla demo`")
-        pipeline = build_toy_pipeline(str(root))
+        pipeline = _load_pipeline(args.pipeline_dir, parser)
         draft_head = DraftHead.from_pretrained(args.draft_head).eval() if args.draft_head else pipeline.draft_head
         act, action_dim, episodes = toy_actor(pipeline), ACTION_DIM, toy_episodes(args.episodes)
-        head_name = args.draft_head or str(root / "draft_head")
+        head_name = args.draft_head or f"{pipeline.output_dir}/draft_head"
     methods = episode_methods(draft_head, args.bin_tolerances, tree, args.chain_length)
     results = run_episode_benchmark(act, episodes, methods, action_dim, repeats=args.repeats, seed=args.seed)
     steps = sum(len(e) for e in episodes)
@@ -327,11 +333,14 @@ def main(argv: list[str] | None = None) -> int:
 
     demo = _subcommand(commands, "demo", "train a toy VLA target + draft head on the spot and benchmark them")
     demo.add_argument(
-        "--output-dir", default="runs/toy", help="where target and draft head are kept (reused if present)"
+        "--output-dir", default="runs/toy", help="where target and draft head are kept (reused: same settings)"
     )
     demo.add_argument("--size", choices=sorted(SIZES), default="small", help="toy target size")
     demo.add_argument("--target-steps", type=int, default=300, help="toy target training steps")
     demo.add_argument("--draft-steps", type=int, default=800, help="draft head training steps")
+    demo.add_argument(
+        "--overwrite-output-dir", action="store_true", help="move a pipeline built with other settings aside"
+    )
     demo.add_argument(
         "--episodes", type=NON_NEGATIVE, default=16, help="moving-dot episodes to replay (0: skip that table)"
     )
@@ -463,14 +472,14 @@ def main(argv: list[str] | None = None) -> int:
     from .toy import ToyTargetSize, build_toy_pipeline
 
     if args.command == "demo":
-        pipeline = build_toy_pipeline(
-            args.output_dir, ToyTargetSize(**SIZES[args.size]), args.target_steps, args.draft_steps, seed=args.seed
-        )
+        size = ToyTargetSize(**SIZES[args.size])
+        try:
+            pipeline = build_toy_pipeline(args.output_dir, size, args.target_steps, args.draft_steps, seed=args.seed,
+                                          overwrite=args.overwrite_output_dir)  # fmt: skip
+        except FileExistsError as error:
+            demo.error(str(error))
     else:
-        root = Path(args.pipeline_dir)
-        if not (root / "target" / "config.json").exists() or not (root / "draft_head" / "config.json").exists():
-            parser.error(f"--pipeline-dir {str(root)!r} has no target/ and draft_head/ saved by `hf-specvla demo`")
-        pipeline = build_toy_pipeline(str(root))
+        pipeline = _load_pipeline(args.pipeline_dir, bench)
     _benchmark(pipeline, args)
     if args.command == "demo" and args.episodes:
         _demo_episodes(pipeline, args)

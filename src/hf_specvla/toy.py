@@ -214,27 +214,31 @@ def build_toy_pipeline(
     draft_learning_rate: float = 3e-3,
     seed: int = 0,
     progress: bool = True,
+    overwrite: bool = False,
 ) -> ToyPipeline:
     """Builds and trains the toy target, then self-distils a draft head for it (about a minute on 2 cores).
     Both see only the training scenes of [`split_scenes`].
 
-    The target is saved to ``output_dir/target`` and the draft head to ``output_dir/draft_head``; an existing,
-    complete pipeline there is loaded instead of retrained (nothing is overwritten).
+    The target is saved to ``output_dir/target`` and the draft head to ``output_dir/draft_head``. The folder follows
+    the folder rule (``run.json``, see [`hf_specvla.run_folder`]): a complete pipeline built with the same settings
+    is loaded instead of retrained; one built with other settings (e.g. another ``size``) is refused, naming the
+    setting, unless ``overwrite`` (which moves it aside).
     """
+    from dataclasses import asdict
     from pathlib import Path
 
-    from transformers import PreTrainedTokenizerFast
-
+    from .run_folder import RunRecord, open_run_folder
     from .speculative import DraftHead, enable_speculation
     from .training import DraftTrainingConfig, build_distillation_dataset, train_draft_head
 
+    size = size or ToyTargetSize()
     root = Path(output_dir)
+    settings = dict(size=asdict(size), target_steps=target_steps, draft_steps=draft_steps,
+                    draft_learning_rate=draft_learning_rate, seed=seed)  # fmt: skip
+    open_run_folder(root, RunRecord("demo", settings), overwrite)
     target_dir, draft_dir = root / "target", root / "draft_head"
     if (target_dir / "config.json").exists():
-        logger.info("loading toy target from %s", target_dir)
-        target = LlavaForConditionalGeneration.from_pretrained(target_dir)
-        tokenizer = PreTrainedTokenizerFast.from_pretrained(target_dir)
-        action_tokenizer = ActionTokenizer(len(tokenizer))
+        target, tokenizer, action_tokenizer = _load_toy_target(target_dir)
     else:
         target, tokenizer, action_tokenizer = build_toy_target(size, seed)
         train_toy_target(target, tokenizer, action_tokenizer, steps=target_steps, seed=seed, progress=progress)
@@ -256,3 +260,31 @@ def build_toy_pipeline(
         )  # fmt: skip
         draft_head = train_draft_head(draft_head, target, dataset, config, progress=progress)
     return ToyPipeline(str(root), target, tokenizer, action_tokenizer, draft_head.eval())
+
+
+def load_toy_pipeline(output_dir: str) -> ToyPipeline:
+    """A complete pipeline saved by [`build_toy_pipeline`], read as it is (nothing is trained or written).
+
+    Raises:
+        FileNotFoundError: naming the folder when its ``target/`` or ``draft_head/`` is missing.
+    """
+    from pathlib import Path
+
+    from .speculative import DraftHead, enable_speculation
+
+    root = Path(output_dir)
+    target_dir, draft_dir = root / "target", root / "draft_head"
+    if not (target_dir / "config.json").exists() or not (draft_dir / "config.json").exists():
+        raise FileNotFoundError(f"{str(root)!r} has no target/ and draft_head/ saved by `hf-specvla demo`")
+    target, tokenizer, action_tokenizer = _load_toy_target(target_dir)
+    draft_head = DraftHead.from_pretrained(draft_dir)
+    return ToyPipeline(str(root), enable_speculation(target.eval()), tokenizer, action_tokenizer, draft_head.eval())
+
+
+def _load_toy_target(target_dir):
+    from transformers import PreTrainedTokenizerFast
+
+    logger.info("loading toy target from %s", target_dir)
+    target = LlavaForConditionalGeneration.from_pretrained(target_dir)
+    tokenizer = PreTrainedTokenizerFast.from_pretrained(target_dir)
+    return target, tokenizer, ActionTokenizer(len(tokenizer))
