@@ -25,8 +25,9 @@ def test_collect_train_eval(tmp_path, capsys):
     assert (policy / "policy_config.json").exists() and (policy / "checkpoint-2" / "policy" / "config.json").exists()
     saved_config = json.loads((policy / "policy_config.json").read_text())
     assert saved_config["patch_size"] == 8 and saved_config["camera"] == "workspace"  # evaluation renders from it
-    with pytest.raises(FileExistsError, match="--resume"):
+    with pytest.raises(SystemExit) as exit_info:  # a usage error, before the data is loaded
         main(args)
+    assert exit_info.value.code == 2 and "pass --resume" in capsys.readouterr().err
     with pytest.raises(ValueError, match="patch_size=8"):  # resuming must rebuild the same model
         main([*args[:6], "--max-steps", "4", "--batch-size", "8", "--resume"])
     with pytest.raises(ValueError, match="vision_layers=3"):

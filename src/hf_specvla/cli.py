@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from pathlib import Path
 
 import torch
 
@@ -109,6 +110,25 @@ def _benchmark(pipeline, args) -> None:
         f"{torch.get_num_threads()} CPU threads, methods interleaved in random order:\n"
     )
     print(format_report(results))
+
+
+def _check_training_folder(output_dir: Path, resume: bool, overwrite: bool, parser) -> None:
+    """The common folder mistakes as usage errors before any data is loaded (the full check of the folder's
+    run.json runs once the data's fingerprint is known)."""
+    from .checkpointing import latest_checkpoint
+
+    if overwrite or not output_dir.exists() or not any(output_dir.iterdir()):
+        return
+    if not resume:
+        parser.error(
+            f"--output-dir {str(output_dir)!r} is not empty: pass --resume to continue its training, "
+            "--overwrite-output-dir to move it aside and train from scratch, or choose another folder"
+        )
+    if latest_checkpoint(output_dir) is None:
+        parser.error(
+            f"--resume: {str(output_dir)!r} has no checkpoint-* to resume from (a finished run keeps only its final "
+            "weights); pass --overwrite-output-dir to move it aside and train from scratch, or choose another folder"
+        )
 
 
 def _check_draft_head_flag(draft_head: str | None, parser) -> None:
@@ -229,6 +249,7 @@ def _train_vla(args, parser) -> int:
 
     if args.scene_loss_weight is not None and not args.scene_targets:
         parser.error("--scene-loss-weight needs --scene-targets (it weighs the scene-state tokens' loss)")
+    _check_training_folder(Path(args.output_dir), args.resume, args.overwrite_output_dir, parser)
     weight = {} if args.scene_loss_weight is None else {"scene_loss_weight": args.scene_loss_weight}
     config = VLATrainingConfig(
         args.output_dir, max_steps=args.max_steps, batch_size=args.batch_size, learning_rate=args.learning_rate,

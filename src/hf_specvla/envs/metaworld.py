@@ -8,7 +8,7 @@ context (envs are closed explicitly and every render makes its own context curre
 
 Example:
     ```python
-    with MetaWorldEnv("push-v3", image_size=64) as env:
+    with MetaWorldEnv("push-v3", EnvConfig(image_size=64)) as env:
         obs = env.reset(seed=0)            # {"image": uint8 [64, 64, 3], "state": float32 [4], "instruction": str}
         obs, reward, done, info = env.step(env.expert_action())
     ```
