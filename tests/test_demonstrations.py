@@ -229,3 +229,37 @@ def test_a_bad_collection_writes_nothing(tmp_path):
     with pytest.raises(SystemExit) as exit_info:
         main(["collect", "--tasks", "reach", "--seed-start", "-5", "--output-dir", str(folder)])
     assert exit_info.value.code == 2 and not folder.exists()
+
+
+def test_a_torn_stats_file_is_recomputed(dataset, caplog):
+    """Regression (reliability issue, case 9): a torn meta/stats.json (a crash mid-write) stopped everything with a
+    raw JSONDecodeError; the statistics are derived data, so they are recomputed from the episodes."""
+    import logging
+
+    from hf_specvla.demonstrations import dataset_stats
+
+    path = dataset / "meta" / "stats.json"
+    good = path.read_text()
+    expected = dataset_stats(dataset).action.to_dict()
+    path.write_text(good[: len(good) // 2])
+    with caplog.at_level(logging.WARNING):
+        assert dataset_stats(dataset).action.to_dict() == expected
+    assert "damaged" in caplog.text and json.loads(path.read_text())  # and the file is whole again
+
+
+def test_a_batch_larger_than_the_training_frames_is_a_clear_error(dataset, tmp_path):
+    """Regression (reliability issue, case 6): `train-vla --batch-size` larger than the frames crashed with a
+    ZeroDivisionError."""
+    from hf_specvla.demonstrations import dataset_stats
+    from hf_specvla.policy import VLAPolicy, VLAPolicyConfig
+    from hf_specvla.vla_training import VLATrainingConfig, train_vla
+
+    demos = load_demonstrations(dataset, progress=False)
+    stats = dataset_stats(dataset)
+    policy = VLAPolicy.build(["reach the goal"], stats.action, stats.state,
+                             VLAPolicyConfig(image_size=32, vision_hidden_size=32, vision_layers=1, text_hidden_size=64,
+                                             text_layers=1, text_heads=4))  # fmt: skip
+    config = VLATrainingConfig(str(tmp_path / "out"), max_steps=1, batch_size=10_000, val_episodes=1)
+    with pytest.raises(ValueError, match="batch_size=10000 is larger than the .* training frames"):
+        train_vla(policy, demos, config, progress=False)
+    assert not (tmp_path / "out").exists()  # nothing written

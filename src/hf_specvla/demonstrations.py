@@ -45,6 +45,7 @@ from .envs.metaworld import (
     resolve_tasks,
 )
 from .progress import progress_bar
+from .run_folder import write_json_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -423,7 +424,7 @@ def write_stats(root: str | Path) -> dict:
     if not files:
         return {}
     stats = _compute_stats(files)
-    (root / "meta" / "stats.json").write_text(json.dumps(stats, indent=2))
+    write_json_atomic(root / "meta" / "stats.json", stats)  # a crash leaves the old file or the new one
     return stats
 
 
@@ -462,7 +463,11 @@ def dataset_stats(roots: str | Path | list[str | Path]) -> DatasetStats:
         path = roots[0] / "meta" / "stats.json"
         if not path.exists():
             raise FileNotFoundError(f"{path} is missing; run hf-specvla collect (it writes the statistics)")
-        stats = json.loads(path.read_text())
+        try:
+            stats = json.loads(path.read_text())
+        except json.JSONDecodeError:  # torn by a crash mid-write (older versions wrote it in place): derived data
+            logger.warning("%s is damaged; recomputing it from the episodes", path)
+            stats = write_stats(roots[0])
     scene = ActionNormalizer.from_dict(stats["scene_state"]) if "scene_state" in stats else None
     return DatasetStats(ActionNormalizer.from_dict(stats["action"]), ActionNormalizer.from_dict(stats["state"]),
                         scene, source)  # fmt: skip

@@ -209,6 +209,13 @@ def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfi
             f"demonstrations have {scene_dim or 'no'} scene-state values per frame (collected before the "
             "scene_state column existed?); collect them again or train without scene targets"
         )
+    train_idx, val_idx = split_episodes(demos, config.val_episodes, config.seed)
+    if len(train_idx) < config.batch_size:  # drop_last would leave no batch at all
+        raise ValueError(
+            f"batch_size={config.batch_size} is larger than the {len(train_idx)} training frames (after holding out "
+            f"{config.val_episodes} validation episodes); use --batch-size {max(1, len(train_idx))} or less, or "
+            "collect more episodes"
+        )
     if config.resume and not config.overwrite_output_dir:
         _check_resumed_policy_config(output_dir, policy.config)
     model_settings = {f.name: getattr(policy.config, f.name) for f in fields(policy.config)
@@ -219,7 +226,6 @@ def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfi
     prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir)
     accelerator = Accelerator(dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True))
     set_seed(config.seed)
-    train_idx, val_idx = split_episodes(demos, config.val_episodes, config.seed)
     train_loader = DataLoader(FrameDataset(demos, train_idx), batch_size=config.batch_size, shuffle=True,
                               collate_fn=_collate, drop_last=True)  # fmt: skip
     val_loader = DataLoader(FrameDataset(demos, val_idx), batch_size=config.batch_size, collate_fn=_collate)
