@@ -213,8 +213,15 @@ def test_policy_driven_bad_input(tiny_policy, tmp_path):
     collect_demonstrations(tmp_path, "reach", 1, SHORT, progress=False, policy=tiny_policy, expert_mix=0.5)
     with pytest.raises(ValueError, match="expert_mix=0.5, but this collection uses 0.25"):
         collect_demonstrations(tmp_path, "reach", 2, SHORT, progress=False, policy=tiny_policy, expert_mix=0.25)
-    with pytest.raises(ValueError, match="policy='in-memory', but this collection uses None"):
+    with pytest.raises(ValueError, match="policy_weights='[0-9a-f]{16}', but this collection uses None"):
         collect_demonstrations(tmp_path, "reach", 2, SHORT, progress=False)
+    # another policy is refused even where both are "in-memory" (identity by weights, not by path)
+    from hf_specvla.policy import VLAPolicy
+
+    other = VLAPolicy.build(["reach the goal"], tiny_policy.action_normalizer, tiny_policy.state_normalizer,
+                            tiny_policy.config, seed=99)  # fmt: skip
+    with pytest.raises(ValueError, match="policy_weights="):
+        collect_demonstrations(tmp_path, "reach", 2, SHORT, progress=False, policy=other, expert_mix=0.5)
 
 
 def test_a_bad_collection_writes_nothing(tmp_path):

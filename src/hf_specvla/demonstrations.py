@@ -45,7 +45,7 @@ from .envs.metaworld import (
     resolve_tasks,
 )
 from .progress import progress_bar
-from .run_folder import write_json_atomic
+from .run_folder import fingerprint, write_json_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -170,6 +170,7 @@ _INFO_DEFAULTS = {
     "max_episode_steps": MAX_EPISODE_STEPS,
     "policy": None,
     "expert_mix": None,
+    "policy_weights": None,
 }
 
 
@@ -203,7 +204,11 @@ def _check_info(root: Path, env_config: EnvConfig, action_noise: float, driver: 
         existing = json.loads(info_path.read_text())
         for key, default in _INFO_DEFAULTS.items():
             existing.setdefault(key, default)  # datasets written before the option existed
-        for key in ("format", "image_size", "camera", "action_dim", *_INFO_DEFAULTS):
+        # a driving policy is identified by its weights (a moved folder is the same policy); by its path only in
+        # datasets written before the fingerprint was recorded
+        identity = "policy_weights" if existing.get("policy_weights") is not None else "policy"
+        compared = [identity] + [k for k in _INFO_DEFAULTS if k not in ("policy", "policy_weights")]
+        for key in ("format", "image_size", "camera", "action_dim", *compared):
             if existing.get(key) != info[key]:
                 raise ValueError(
                     f"{root} holds a dataset with {key}={existing.get(key)!r}, but this collection uses "
@@ -264,10 +269,11 @@ def collect_demonstrations(
     root = Path(output_dir)
     env_config = env_config or EnvConfig()
     tasks = resolve_tasks(tasks)
-    driver = {"policy": None, "expert_mix": None}
+    driver = {"policy": None, "expert_mix": None, "policy_weights": None}
     if policy is not None:
         policy.check_env_config(env_config)
-        driver = {"policy": policy.name_or_path or "in-memory", "expert_mix": float(expert_mix)}
+        driver = {"policy": policy.name_or_path or "in-memory", "expert_mix": float(expert_mix),
+                  "policy_weights": fingerprint(policy.model)}  # fmt: skip
         max_seed_tries = 1  # every seed gives an episode
     _check_info(root, env_config, float(action_noise), driver)
     written = failures = driven_successes = 0
