@@ -86,8 +86,9 @@ def test_progress_bars_are_slow_when_redirected_and_logs_stay_ours():
 
     redirected = io.StringIO()  # not a terminal
     with progress_bar(total=300, desc="train", file=redirected) as bar:
-        for _ in range(300):
+        for step in range(300):
             bar.update(1)
+            bar.set_postfix(loss=f"{1 / (step + 1):.3f}")  # tqdm's default would redraw here every step
     assert redirected.getvalue().count("\r") <= 3  # first draw, maybe one timed update, the final one
     configure_logging()
     assert logging.getLogger("hf_specvla.training").isEnabledFor(logging.INFO)

@@ -12,13 +12,21 @@ from tqdm.auto import tqdm
 REDIRECTED_INTERVAL = 30.0
 
 
+class _ProgressBar(tqdm):
+    """A tqdm whose ``set_postfix`` never forces a redraw (tqdm's default would redraw at every call, whatever
+    ``mininterval`` says); the postfix shows at the next timed redraw."""
+
+    def set_postfix(self, ordered_dict=None, refresh=True, **kwargs):
+        super().set_postfix(ordered_dict, refresh=False, **kwargs)
+
+
 def progress_bar(*args, **kwargs) -> tqdm:
     """``tqdm(*args, **kwargs)``, slowed down when stderr is not a terminal (see module docstring)."""
     stream = kwargs.get("file") or sys.stderr
     if not getattr(stream, "isatty", lambda: False)():
         kwargs["mininterval"] = max(kwargs.get("mininterval", 0.1), REDIRECTED_INTERVAL)
         kwargs.setdefault("maxinterval", 2 * REDIRECTED_INTERVAL)
-    return tqdm(*args, **kwargs)
+    return _ProgressBar(*args, **kwargs)
 
 
 class ProgressAwareHandler(logging.Handler):
