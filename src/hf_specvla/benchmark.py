@@ -17,7 +17,7 @@ import torch
 
 from .action_tokenizer import ActionTokenizer
 from .progress import progress_bar
-from .speculative import SpeculationStats
+from .speculative import ActionPriorDrafter, SpeculationStats
 
 
 @dataclass
@@ -172,7 +172,7 @@ def run_episode_benchmark(
         history: list[list[int]] = []
         for observation in first[:warmup]:
             ids, _ = act(observation, history, method.action_prior, **method.generate_kwargs)
-            history = [*history, ids][-2:]
+            history = [*history, ids][-ActionPriorDrafter.history_length :]
     rng = random.Random(seed)
     order = list(methods)
     total = repeats * sum(len(e) for e in episodes)
@@ -198,7 +198,7 @@ def run_episode_benchmark(
                             result.target_seconds += spec.target_seconds
                             result.draft_seconds += spec.draft_seconds
                             result.total_seconds += spec.total_seconds
-                        histories[method.name] = [*histories[method.name], ids][-2:]
+                        histories[method.name] = [*histories[method.name], ids][-ActionPriorDrafter.history_length :]
                         actions[method.name] = ids
                     reference = actions[methods[0].name]
                     for name, ids in actions.items():

@@ -35,7 +35,7 @@ from transformers import (
 
 from .action_tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
 from .envs.metaworld import CAMERAS, EnvConfig
-from .speculative import Drafter, DraftHead, enable_speculation
+from .speculative import ActionPriorDrafter, Drafter, DraftHead, enable_speculation
 from .speculative.drafters import with_action_prior
 from .speculative.generation import SPECULATION_KWARGS
 from .speculative.loop import as_drafter
@@ -109,8 +109,8 @@ class VLAPolicy:
             source of ``predict_action(action_prior=True)``'s drafts.
     """
 
-    #: previous actions kept for the action prior (it uses the last two).
-    HISTORY_LENGTH = 2
+    #: previous actions kept for the action prior (as many as it reads).
+    HISTORY_LENGTH = ActionPriorDrafter.history_length
 
     def __init__(self, model, tokenizer, config: VLAPolicyConfig):
         self.model = enable_speculation(model)

@@ -35,6 +35,8 @@ class ActionPriorDrafter(Drafter):
     """
 
     name = "prior"
+    #: previous actions the prior reads (the last one, and the one before for constant velocity)
+    history_length = 2
 
     def __init__(
         self,
