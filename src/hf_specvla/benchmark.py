@@ -277,6 +277,7 @@ def toy_actor(pipeline):
     """``act`` for [`run_episode_benchmark`] over the toy target; observations are [`DotScene`]s."""
     from .action_tokenizer import ActionLayout
     from .speculative.drafters import with_action_prior
+    from .speculative.generation import SPECULATION_KWARGS
     from .speculative.loop import as_drafter
     from .toy import ACTION_DIM, toy_inputs
 
@@ -287,8 +288,8 @@ def toy_actor(pipeline):
         drafter = as_drafter(kwargs.pop("assistant_model", None), None)
         if action_prior:
             drafter = with_action_prior(drafter, previous_action_ids, layout)
-        if drafter is None:
-            kwargs = {k: v for k, v in kwargs.items() if k != "bin_tolerance"}
+        if drafter is None:  # nothing to draft from (an episode's first step): plain greedy, as the policy does
+            kwargs = {k: v for k, v in kwargs.items() if k not in SPECULATION_KWARGS}
         else:
             kwargs.update(assistant_model=drafter, action_layout=layout)
         output = pipeline.target.generate(

@@ -124,7 +124,7 @@ class Drafter:
 
 
 # ----------------------------------------------------------------------------- drafts known up front
-class _PathSession(DraftSession):
+class PathSession(DraftSession):
     """Proposes fixed token paths, aligned with the first generated token: after m tokens were emitted, each
     path's remaining part ``path[m:]`` is proposed (a guess for the tokens still to come). Paths are taken in
     order while the tree stays within ``max_nodes`` nodes (shared prefixes count once)."""
@@ -160,7 +160,7 @@ class CandidateDrafter(Drafter):
         self.name = name
 
     def start(self, context: DraftContext) -> DraftSession:
-        return _PathSession(self.candidates, self.name, context.model.device)
+        return PathSession(self.candidates, self.name, context.model.device)
 
 
 # ----------------------------------------------------------------------------- composition

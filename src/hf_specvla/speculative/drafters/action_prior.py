@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from ...action_tokenizer import ActionLayout
-from ..drafter import DraftContext, Drafter, DraftSession, _PathSession
+from ..drafter import DraftContext, Drafter, DraftSession, PathSession
 
 
 class ActionPriorDrafter(Drafter):
@@ -88,7 +88,7 @@ class ActionPriorDrafter(Drafter):
         return paths
 
     def start(self, context: DraftContext) -> DraftSession:
-        return _PathSession(self.candidate_paths(), self.name, context.model.device, self.max_nodes)
+        return PathSession(self.candidate_paths(), self.name, context.model.device, self.max_nodes)
 
     def __repr__(self) -> str:
         return (
