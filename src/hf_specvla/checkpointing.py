@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 from accelerate import Accelerator
 
-from .run_folder import RunRecord, open_run_folder
+from .run_folder import RunRecord, check_run_folder, open_run_folder
 
 CHECKPOINT_PATTERN = re.compile(r"^checkpoint-(\d+)$")
 TRAINER_STATE = "trainer_state.pt"
@@ -54,17 +54,15 @@ def training_record(command: str, config, inputs: dict) -> RunRecord:
     return RunRecord(command, {**settings, **inputs})
 
 
-def prepare_output_dir(output_dir: Path, record: RunRecord, resume: bool, overwrite: bool) -> None:
-    """Applies the folder rule before anything is written.
+def check_output_dir(output_dir: Path, record: RunRecord, resume: bool, overwrite: bool) -> None:
+    """The refusals of [`prepare_output_dir`], without writing anything (call it before a long preparation).
 
     Raises:
         FileExistsError: a non-empty folder without ``resume`` / ``overwrite``; ``resume`` with no checkpoint to
             resume from; or a folder that holds another run (naming the differing setting).
     """
     output_dir = Path(output_dir)
-    empty = not output_dir.exists() or not any(output_dir.iterdir())
-    if empty or overwrite:
-        open_run_folder(output_dir, record, overwrite=overwrite)
+    if overwrite or not output_dir.exists() or not any(output_dir.iterdir()):
         return
     if not resume:
         raise FileExistsError(
@@ -77,7 +75,14 @@ def prepare_output_dir(output_dir: Path, record: RunRecord, resume: bool, overwr
             f"--resume: {str(output_dir)!r} has no checkpoint-* to resume from (a finished run keeps only its final "
             f"weights); pass --overwrite-output-dir to move it aside and train from scratch, or choose another folder"
         )
-    open_run_folder(output_dir, record)
+    check_run_folder(output_dir, record)
+
+
+def prepare_output_dir(output_dir: Path, record: RunRecord, resume: bool, overwrite: bool) -> None:
+    """Applies the folder rule before anything is written: the refusals of [`check_output_dir`], then a new
+    folder gets ``record`` as its ``run.json`` (an overwritten one is moved aside first)."""
+    check_output_dir(output_dir, record, resume, overwrite)
+    open_run_folder(output_dir, record, overwrite=overwrite)
 
 
 def resume_step(accelerator: Accelerator, output_dir: Path) -> int:

@@ -25,6 +25,19 @@ Examples:
     hf-specvla eval --policy policies/mt10_vla --draft-head runs/draft --bin-tolerance 2 --output-dir runs/eval_spec
     hf-specvla eval --policy policies/mt10_vla --action-prior --bin-tolerance 2 --output-dir runs/eval_prior
 
+    # A draft head for a policy: self-distillation on its own rollouts (+ demonstrations), validated by the engine
+    hf-specvla train-draft --policy policies/mt10_vla --tasks MT10 --max-steps 3000 --output-dir runs/mt10_draft
+    hf-specvla train-draft --policy policies/mt10_vla --tasks reach --rollout-episodes 2 --max-steps 20 \\
+        --output-dir runs/reach_draft_smoke
+
+    # Paired side-by-side of decoding methods (same seeds; every method runs a seed before the next): success with
+    # 95% intervals, speed-up, forwards per action, bin deviation; a table, JSON and plots (resumable)
+    hf-specvla compare --policy policies/mt10_vla --draft-head policies/mt10_vla_draft --tasks MT10 --episodes 20 \\
+        --methods greedy head tree tree:r=4 prior prior:r=2 prior:r=4 prior:r=8 prior+tree:r=4 --workers 2 \\
+        --output-dir runs/compare_mt10
+    hf-specvla compare --policy policies/mt10_vla --tasks reach --episodes 2 --methods greedy prior prior:r=4 \\
+        --output-dir runs/compare_smoke
+
     # DAgger: the policy drives (a quarter of the steps run the expert), the expert labels every state it reaches
     hf-specvla collect --policy policies/mt10_vla --expert-mix 0.25 --episodes 30 --seed-start 20000 \\
         --max-episode-steps 250 --output-dir runs/mt10_dagger
@@ -42,6 +55,9 @@ import torch
 from .envs.metaworld import CAMERAS, EnvConfig
 from .evaluation import EVAL_SEED_START
 from .policy import VLAPolicyConfig
+from .comparison import DRAFTER_CHOICES, CompareConfig
+from .policy_draft import POLICY_DRAFT_DEFAULTS, DraftDataConfig
+from .training import DraftTrainingConfig
 from .vla_training import VLATrainingConfig
 
 EXAMPLES = __doc__.split("Examples:", 1)[1]
@@ -143,6 +159,18 @@ def _check_draft_head_flag(draft_head: str | None, parser) -> None:
         parser.error(f"--draft-head: {error}")
 
 
+def _load_draft_head_for(policy, draft_head: str, parser):
+    """The ``--draft-head`` for ``policy``; a usage error when it was made for another model."""
+    from .speculative import DraftHead
+
+    head = DraftHead.from_pretrained(draft_head).eval()
+    try:
+        policy.check_draft_head(head)
+    except ValueError as error:
+        parser.error(f"--draft-head {draft_head}: {error}")
+    return head
+
+
 def _load_pipeline(pipeline_dir: str, parser):
     """The toy pipeline a previous `demo` saved in ``pipeline_dir``; a usage error when there is none."""
     from .toy import load_toy_pipeline
@@ -187,12 +215,12 @@ def _bench_episodes(args, parser) -> int:
         from .policy import VLAPolicy
 
         policy = VLAPolicy.from_pretrained(args.policy)
+        if args.draft_head:
+            draft_head = _load_draft_head_for(policy, args.draft_head, parser)
         seeds = [args.seed_start + i for i in range(args.episodes)]
         episodes = record_observations(policy, args.tasks, seeds, args.steps)
         act, action_dim, head_name = policy_actor(policy), policy.config.action_dim, args.draft_head
-        if args.draft_head:
-            draft_head = DraftHead.from_pretrained(args.draft_head).eval()
-        else:
+        if not args.draft_head:
             torch.manual_seed(args.seed)
             draft_head = DraftHead.from_target(policy.model, policy.action_tokenizer, policy.config.action_dim).eval()
             head_name = f"an untrained DraftHead (seed {args.seed})"
@@ -277,6 +305,74 @@ def _train_vla(args, parser) -> int:
     return 0
 
 
+def _train_draft(args, parser) -> int:
+    import shlex
+
+    from .demonstrations import dataset_info
+    from .policy import VLAPolicy
+    from .policy_draft import DraftDataConfig, train_policy_draft_head
+    from .training import DraftTrainingConfig
+
+    _check_training_folder(Path(args.output_dir), args.resume, args.overwrite_output_dir, parser)
+    try:
+        data_config = DraftDataConfig(
+            args.tasks, args.rollout_episodes, args.rollout_max_steps, args.rollout_seed_start,
+            args.validation_episodes, args.validation_frames, args.demo_frames_per_task, seed=args.seed,
+        )  # fmt: skip
+        training_config = DraftTrainingConfig(
+            args.output_dir, max_steps=args.max_steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
+            warmup_steps=args.warmup_steps, lr_schedule=args.lr_schedule, save_every=args.save_every,
+            eval_every=args.eval_every, resume=args.resume, overwrite_output_dir=args.overwrite_output_dir,
+            seed=args.seed,
+        )  # fmt: skip
+        for root in args.data or []:
+            dataset_info(root)
+    except (ValueError, FileNotFoundError) as error:
+        parser.error(str(error))
+    try:
+        policy = VLAPolicy.from_pretrained(args.policy)
+    except FileNotFoundError as error:
+        parser.error(f"--policy: {error}")
+    command = shlex.join(["hf-specvla", *args.argv])
+    try:
+        head = train_policy_draft_head(policy, training_config, data_config, args.data or [], args.num_draft_tokens,
+                                       command=command)  # fmt: skip
+    except FileExistsError as error:
+        parser.error(str(error))
+    print(f"draft head saved to {args.output_dir} ({head.num_parameters():,} parameters); see its README.md")
+    return 0
+
+
+def _compare(args, parser) -> int:
+    from .comparison import CompareConfig, format_comparison, run_comparison
+    from .policy import VLAPolicy
+    from .speculative import DraftHead
+
+    try:
+        config = CompareConfig(args.tasks, args.episodes, args.methods, args.seed_start, args.max_episode_steps,
+                               args.workers, args.threads, args.seed)  # fmt: skip
+    except ValueError as error:
+        parser.error(str(error))
+    needs_head = [m.name for m in config.decoding_methods() if m.uses_draft_head]
+    if needs_head and not args.draft_head:
+        parser.error(f"methods {needs_head} draft with a draft head: pass --draft-head <folder>")
+    _check_draft_head_flag(args.draft_head, parser)
+    try:
+        policy = VLAPolicy.from_pretrained(args.policy)
+    except FileNotFoundError as error:
+        parser.error(f"--policy: {error}")
+    torch.set_num_threads(args.threads)
+    draft_head = DraftHead.from_pretrained(args.draft_head).eval() if args.draft_head else None
+    try:
+        summary = run_comparison(policy, config, args.output_dir, draft_head, args.policy, args.draft_head,
+                                 overwrite=args.overwrite_output_dir)  # fmt: skip
+    except (FileExistsError, ValueError) as error:
+        parser.error(str(error))
+    print(format_comparison(summary))
+    print(f"table, JSON and plots in {args.output_dir}")
+    return 0
+
+
 def _eval(args, parser) -> int:
     import json
 
@@ -301,7 +397,7 @@ def _eval(args, parser) -> int:
     policy = VLAPolicy.from_pretrained(args.policy)
     generate_kwargs = {}
     if args.draft_head:
-        draft_head = DraftHead.from_pretrained(args.draft_head).eval()
+        draft_head = _load_draft_head_for(policy, args.draft_head, parser)
         if args.draft_tree:
             generate_kwargs["assistant_model"] = DraftHeadDrafter(draft_head, tree=DraftTreeConfig())
         else:
@@ -452,6 +548,68 @@ def main(argv: list[str] | None = None) -> int:
     train.add_argument("--seed", type=int, default=VLATrainingConfig.seed, help="random seed")
     train.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
 
+    draft = _subcommand(commands, "train-draft",
+                        "train a draft head for a policy: self-distillation on its rollouts (resumable)")  # fmt: skip
+    draft.add_argument("--policy", required=True, help="the policy folder (train-vla output)")
+    draft.add_argument("--output-dir", required=True, help="the draft head folder (and checkpoints)")
+    draft.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
+    draft.add_argument("--data", nargs="+", default=None,
+                       help="also distil on frames of these `hf-specvla collect` folders (default: rollouts only)")  # fmt: skip
+    draft.add_argument("--demo-frames-per-task", type=NON_NEGATIVE, default=DraftDataConfig.demo_frames_per_task,
+                       help="with --data: frames sampled per task")  # fmt: skip
+    draft.add_argument("--rollout-episodes", type=POSITIVE, default=DraftDataConfig.rollout_episodes,
+                       help="greedy on-policy episodes per task (the last --validation-episodes are held out)")  # fmt: skip
+    draft.add_argument("--rollout-max-steps", type=POSITIVE, default=DraftDataConfig.rollout_max_steps,
+                       help="steps kept per rollout")  # fmt: skip
+    draft.add_argument("--rollout-seed-start", type=NON_NEGATIVE, default=DraftDataConfig.rollout_seed_start,
+                       help="first rollout seed")  # fmt: skip
+    draft.add_argument("--validation-episodes", type=POSITIVE, default=DraftDataConfig.validation_episodes,
+                       help="held-out rollouts per task")  # fmt: skip
+    draft.add_argument("--validation-frames", type=POSITIVE, default=DraftDataConfig.validation_frames,
+                       help="held-out frames the engine validates on (evenly spread)")  # fmt: skip
+    draft.add_argument("--num-draft-tokens", type=POSITIVE, default=POLICY_DRAFT_DEFAULTS["num_draft_tokens"],
+                       help="the head's default chain length k")  # fmt: skip
+    draft.add_argument("--max-steps", type=POSITIVE, default=POLICY_DRAFT_DEFAULTS["max_steps"], help="optimizer steps")
+    draft.add_argument("--batch-size", type=POSITIVE, default=POLICY_DRAFT_DEFAULTS["batch_size"],
+                       help="sequences per step")  # fmt: skip
+    draft.add_argument("--learning-rate", type=float, default=POLICY_DRAFT_DEFAULTS["learning_rate"],
+                       help="peak AdamW learning rate")  # fmt: skip
+    draft.add_argument("--lr-schedule", choices=("constant", "cosine"), default=POLICY_DRAFT_DEFAULTS["lr_schedule"],
+                       help="after warm-up")  # fmt: skip
+    draft.add_argument("--warmup-steps", type=NON_NEGATIVE, default=POLICY_DRAFT_DEFAULTS["warmup_steps"],
+                       help="linear warm-up steps")  # fmt: skip
+    draft.add_argument("--eval-every", type=NON_NEGATIVE, default=POLICY_DRAFT_DEFAULTS["eval_every"],
+                       help="steps between validations (0: only at the end)")  # fmt: skip
+    draft.add_argument("--save-every", type=NON_NEGATIVE, default=POLICY_DRAFT_DEFAULTS["save_every"],
+                       help="steps between checkpoints (0: only the final head)")  # fmt: skip
+    draft.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --output-dir")
+    draft.add_argument(
+        "--overwrite-output-dir", action="store_true", help="move the folder's previous run aside, train from scratch"
+    )
+    draft.add_argument("--seed", type=int, default=DraftTrainingConfig.seed, help="random seed")
+    draft.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
+
+    compare = _subcommand(commands, "compare",
+                          "paired side-by-side of decoding methods on the same seeds: success, speed (resumable)")  # fmt: skip
+    compare.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
+    compare.add_argument("--draft-head", default=None, help="the DraftHead folder the head / tree methods use")
+    compare.add_argument("--methods", nargs="+", default=list(CompareConfig.methods),
+                         help="<drafters>[:r=<int>][,k=<int>], drafters one of " + ", ".join(DRAFTER_CHOICES)
+                              + " (greedy always runs: the baseline)")  # fmt: skip
+    compare.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
+    compare.add_argument("--episodes", type=POSITIVE, default=CompareConfig.episodes_per_task, help="seeds per task")
+    compare.add_argument("--seed-start", type=NON_NEGATIVE, default=CompareConfig.seed_start, help="first seed")
+    compare.add_argument("--max-episode-steps", type=POSITIVE, default=CompareConfig.max_episode_steps,
+                         help="step limit")  # fmt: skip
+    compare.add_argument("--workers", type=POSITIVE, default=CompareConfig.workers,
+                         help="processes the seeds are split between (timings compared within a worker)")  # fmt: skip
+    compare.add_argument("--threads", type=POSITIVE, default=CompareConfig.threads, help="torch CPU threads per worker")
+    compare.add_argument("--seed", type=int, default=CompareConfig.order_seed, help="seeds the method order per seed")
+    compare.add_argument("--output-dir", required=True, help="logs, summary.json, compare.md, plots (resumes)")
+    compare.add_argument(
+        "--overwrite-output-dir", action="store_true", help="move a folder holding another run aside, start over"
+    )
+
     ev = _subcommand(commands, "eval", "roll a policy out on Meta-World and report per-task success (resumable)")
     ev.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
     ev.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
@@ -476,7 +634,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     ev.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads")
 
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)
+    args.argv = argv
     configure_logging(args.verbose)
     if getattr(args, "threads", None) is not None:
         torch.set_num_threads(args.threads)
@@ -487,6 +647,10 @@ def main(argv: list[str] | None = None) -> int:
         return _train_vla(args, train)
     if args.command == "eval":
         return _eval(args, ev)
+    if args.command == "train-draft":
+        return _train_draft(args, draft)
+    if args.command == "compare":
+        return _compare(args, compare)
     if args.command == "bench-episodes":
         return _bench_episodes(args, episodes)
 

@@ -35,6 +35,7 @@ from transformers import (
 
 from .action_tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
 from .envs.metaworld import CAMERAS, EnvConfig
+from .run_folder import fingerprint
 from .speculative import ActionPriorDrafter, Drafter, DraftHead, enable_speculation
 from .speculative.drafters import with_action_prior
 from .speculative.generation import SPECULATION_KWARGS
@@ -123,6 +124,7 @@ class VLAPolicy:
         self.state_normalizer = ActionNormalizer.from_dict(config.state_stats) if config.state_stats else None
         self.scene_normalizer = ActionNormalizer.from_dict(config.scene_stats) if config.scene_stats else None
         self.name_or_path: str | None = None  # the folder it was loaded from (from_pretrained)
+        self._weights_fingerprint: str | None = None
         self._prefix_cache: dict[str, list[int]] = {}  # instruction -> [<s>, <image> x N, prompt text]
         self._state_word, self._out_words = self._encode("\nState:"), self._encode("\nOut:")
 
@@ -333,6 +335,18 @@ class VLAPolicy:
             raise ValueError("num_draft_tokens needs assistant_model=<DraftHead>")
         drafter = as_drafter(assistant, num_draft_tokens)
         return with_action_prior(drafter, self.previous_action_ids, self.action_layout) if action_prior else drafter
+
+    def weights_fingerprint(self) -> str:
+        """Content fingerprint of the model's weights (computed once; a policy's weights do not change at
+        inference)."""
+        if self._weights_fingerprint is None:
+            self._weights_fingerprint = fingerprint(self.model)
+        return self._weights_fingerprint
+
+    def check_draft_head(self, draft_head: DraftHead) -> None:
+        """Raises ValueError when ``draft_head`` was made for another model (shapes, or distilled from other
+        weights: see [`DraftHead.check_target`])."""
+        draft_head.check_target(self.model, self.weights_fingerprint())
 
     # ----------------------------------------------------------------------------- persistence
     def save_pretrained(self, folder: str | Path) -> None:

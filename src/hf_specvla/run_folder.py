@@ -85,26 +85,16 @@ class RunRecord:
         ]
 
 
-def open_run_folder(folder: str | Path, record: RunRecord, overwrite: bool = False) -> bool:
-    """Applies the module's rule to ``folder`` for a run described by ``record``.
+def check_run_folder(folder: str | Path, record: RunRecord, overwrite: bool = False) -> bool:
+    """The refusals of [`open_run_folder`] without writing anything: call it before a long preparation (data,
+    models) so that a folder that would be refused is refused first.
 
     Returns:
-        True when an existing run is continued, False when a new run starts (``run.json`` is then written).
-    Raises:
-        FileExistsError: the folder holds another run's (or an unrecorded) results; the message names the
-            differing setting and the two ways out.
+        True when an existing run would be continued.
     """
     folder = Path(folder)
     run_file = folder / RUN_FILE
-    empty = not folder.exists() or not any(folder.iterdir())
-    if overwrite and not empty:
-        aside = folder.with_name(f"{folder.name}.replaced-{time.strftime('%Y%m%dT%H%M%S', time.gmtime())}")
-        os.replace(folder, aside)
-        logger.warning("moved the previous contents of %s aside to %s (--overwrite-output-dir)", folder, aside)
-        empty = True
-    if empty:
-        folder.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(run_file, asdict(record))
+    if overwrite or not folder.exists() or not any(folder.iterdir()):
         return False
     ways_out = "choose another output folder, or pass --overwrite-output-dir to move this one aside and start over"
     if not run_file.is_file():
@@ -120,6 +110,28 @@ def open_run_folder(folder: str | Path, record: RunRecord, overwrite: bool = Fal
         logger.warning("%s was written by hf_specvla %s; continuing with %s", folder, saved.code_version,
                        record.code_version)  # fmt: skip
     return True
+
+
+def open_run_folder(folder: str | Path, record: RunRecord, overwrite: bool = False) -> bool:
+    """Applies the module's rule to ``folder`` for a run described by ``record``.
+
+    Returns:
+        True when an existing run is continued, False when a new run starts (``run.json`` is then written).
+    Raises:
+        FileExistsError: the folder holds another run's (or an unrecorded) results; the message names the
+            differing setting and the two ways out.
+    """
+    folder = Path(folder)
+    empty = not folder.exists() or not any(folder.iterdir())
+    if overwrite and not empty:
+        aside = folder.with_name(f"{folder.name}.replaced-{time.strftime('%Y%m%dT%H%M%S', time.gmtime())}")
+        os.replace(folder, aside)
+        logger.warning("moved the previous contents of %s aside to %s (--overwrite-output-dir)", folder, aside)
+    if check_run_folder(folder, record):
+        return True
+    folder.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(folder / RUN_FILE, asdict(record))
+    return False
 
 
 def write_json_atomic(path: str | Path, data) -> None:

@@ -17,9 +17,10 @@ Recipe (Spec-VLA section 3.2, following EAGLE):
 
 from __future__ import annotations
 
+import json
 import logging
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -32,13 +33,22 @@ from transformers import PreTrainedModel
 from .checkpointing import latest_checkpoint, prepare_output_dir, resume_step, save_checkpoint, training_record
 from .progress import progress_bar
 from .run_folder import fingerprint, fingerprint_arrays
+from .speculative import SpeculationStats, speculative_generate
 from .speculative.drafters.draft_head import embed_tokens
 from .speculative.masks import causal_mask
 from .speculative.modeling_draft_head import DraftHead, TargetHandles
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DraftTrainingConfig", "build_distillation_dataset", "latest_checkpoint", "train_draft_head"]
+__all__ = [
+    "DraftTrainingConfig",
+    "build_distillation_dataset",
+    "latest_checkpoint",
+    "speculative_acceptance",
+    "train_draft_head",
+]
+
+VALIDATION_LOG = "validation.jsonl"
 
 
 @dataclass
@@ -56,6 +66,7 @@ class DraftTrainingConfig:
         feature_loss_weight / token_loss_weight: weights of the SmoothL1 feature loss and the soft cross-entropy.
         feature_noise: width of the uniform noise added to the input hidden states (U(-a/2, a/2)).
         save_every: steps between checkpoints (0 = only the final save).
+        eval_every: steps between validations (0 = only after the last step); needs a ``validate`` callable.
         keep_checkpoints: most recent checkpoints kept on disk.
         resume: continue from the newest ``checkpoint-*`` in output_dir if there is one.
         overwrite_output_dir: train from scratch into a non-empty output_dir: the previous contents are moved aside
@@ -77,6 +88,7 @@ class DraftTrainingConfig:
     token_loss_weight: float = 0.1
     feature_noise: float = 0.2
     save_every: int = 500
+    eval_every: int = 0
     keep_checkpoints: int = 2
     resume: bool = False
     overwrite_output_dir: bool = False
@@ -90,7 +102,7 @@ class DraftTrainingConfig:
         for name in ("learning_rate", "max_grad_norm"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("save_every", "warmup_steps", "feature_noise", "feature_loss_weight", "token_loss_weight"):
+        for name in ("save_every", "eval_every", "warmup_steps", "feature_noise", "feature_loss_weight", "token_loss_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.lr_schedule not in ("constant", "cosine"):
@@ -237,21 +249,30 @@ def train_draft_head(
     config: DraftTrainingConfig,
     accelerator: Accelerator | None = None,
     progress: bool = True,
+    validate: Callable[[DraftHead], dict] | None = None,
+    inputs: dict | None = None,
 ) -> DraftHead:
     """Trains ``draft_head`` against the frozen ``target`` on a [`DistillationDataset`].
 
     Only the draft head is optimised; the target's embedding and lm_head are used frozen. Checkpoints
     (``output_dir/checkpoint-<step>/``: the head via ``save_pretrained`` plus the accelerate state) are written
-    every ``save_every`` steps; with ``resume=True`` training continues from the newest one. The final head is
+    every ``save_every`` steps and after the last one; with ``resume=True`` training continues from the newest
+    one (so a finished run can be continued with a larger ``max_steps``). The final head is
     saved to ``output_dir`` and returned (unwrapped, in eval mode).
+
+    Args:
+        validate: called with the head (in eval mode, without gradients) every ``eval_every`` steps and after the
+            last one, e.g. ``lambda head: speculative_acceptance(target, head, held_out_prompts, 7)``; its numbers
+            are logged and appended to ``output_dir/validation.jsonl`` with the step.
+        inputs: what the data is, for the folder's ``run.json`` (so that ``resume`` refuses a run fed from elsewhere):
+            by default a fingerprint of the dataset's token ids; a caller whose data is a deterministic recipe
+            (e.g. a policy's rollouts on given seeds) passes the recipe, and can check the folder with
+            [`draft_training_record`] and ``checkpointing.check_output_dir`` before building the data.
     """
     output_dir = Path(config.output_dir)
-    inputs = {
-        "target": fingerprint(target),
-        "draft_head_config": {k: v for k, v in draft_head.config.to_dict().items() if k != "transformers_version"},
-        "data": fingerprint_arrays(*[example["input_ids"] for example in dataset.examples]),
-    }
-    prepare_output_dir(output_dir, training_record("train-draft", config, inputs), config.resume,
+    if inputs is None:
+        inputs = {"data": fingerprint_arrays(*[example["input_ids"] for example in dataset.examples])}
+    prepare_output_dir(output_dir, draft_training_record(draft_head, target, config, inputs), config.resume,
                        config.overwrite_output_dir)  # fmt: skip
     accelerator = accelerator or Accelerator(
         mixed_precision=config.mixed_precision,
@@ -308,7 +329,9 @@ def train_draft_head(
             metrics = {k: v.item() for k, v in losses.items()}
             bar.update(1)
             bar.set_postfix(loss=f"{metrics['loss']:.4f}", acc=f"{metrics['token_accuracy']:.3f}")
-            if config.save_every and step % config.save_every == 0 and step < config.max_steps:
+            if validate and config.eval_every and step % config.eval_every == 0 and step < config.max_steps:
+                _run_validation(validate, accelerator.unwrap_model(draft_head), step, output_dir, accelerator)
+            if config.save_every and (step % config.save_every == 0 or step == config.max_steps):
                 save_checkpoint(
                     accelerator, output_dir, step,
                     lambda folder: accelerator.unwrap_model(draft_head).save_pretrained(folder / "draft_head"),
@@ -319,6 +342,8 @@ def train_draft_head(
     bar.close()
 
     model = accelerator.unwrap_model(draft_head)
+    if validate:
+        metrics.update(_run_validation(validate, model, step, output_dir, accelerator))
     model.eval()
     if accelerator.is_main_process:
         output_dir.mkdir(parents=True, exist_ok=True)
@@ -327,6 +352,70 @@ def train_draft_head(
     accelerator.wait_for_everyone()
     logger.info("draft head trained for %d steps: %s", step, metrics)
     return model
+
+
+def draft_training_record(draft_head: DraftHead, target: PreTrainedModel, config: DraftTrainingConfig, inputs: dict):
+    """The ``run.json`` record of a draft-head training: its settings, the target's and the head's identity, and
+    ``inputs`` (what the data is)."""
+    head_config = {k: v for k, v in draft_head.config.to_dict().items() if k != "transformers_version"}
+    identity = {"target": fingerprint(target), "draft_head_config": head_config}
+    return training_record("train-draft", config, {**identity, **inputs})
+
+
+def _run_validation(validate, model: DraftHead, step: int, output_dir: Path, accelerator: Accelerator) -> dict:
+    """Runs ``validate`` on the head in eval mode; logs the result and appends it to ``validation.jsonl``."""
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        results = validate(model)
+    model.train(was_training)
+    if accelerator.is_main_process:
+        logger.info("validation at step %d: %s", step, json.dumps(results))
+        output_dir.mkdir(parents=True, exist_ok=True)
+        with (output_dir / VALIDATION_LOG).open("a") as log:
+            log.write(json.dumps({"step": step, **results}) + "\n")
+    return {f"validation_{k}": v for k, v in results.items()}
+
+
+@torch.no_grad()
+def speculative_acceptance(
+    target: PreTrainedModel,
+    draft_head: DraftHead,
+    prompts: Iterable[dict[str, torch.Tensor]],
+    max_new_tokens: int,
+    **generate_kwargs,
+) -> dict:
+    """What speculative decoding with ``draft_head`` does on held-out ``prompts``, at ``bin_tolerance=0`` unless
+    ``generate_kwargs`` say otherwise: the engine itself runs, so these are the numbers a user will see.
+
+    Args:
+        prompts: model inputs of one example each (``input_ids`` ``[1, S]``, images...).
+        generate_kwargs: more speculation settings (``num_draft_tokens``, ``action_layout``...).
+
+    Returns:
+        ``acceptance_per_position`` (``[d]``: of the verifications that drafted a token at depth d, the fraction
+        that accepted it), ``tokens_per_target_forward``, ``target_forwards_per_sequence`` and ``sequences``.
+    """
+    stats, sequences = SpeculationStats(), 0
+    for inputs in prompts:
+        if inputs["input_ids"].shape[0] != 1:
+            raise ValueError(f"speculative_acceptance takes prompts of one example, got {inputs['input_ids'].shape}")
+        inputs = {k: v.to(target.device) if isinstance(v, torch.Tensor) else v for k, v in inputs.items()}
+        output = target.generate(
+            **inputs, max_new_tokens=max_new_tokens, min_new_tokens=max_new_tokens, do_sample=False,
+            custom_generate=speculative_generate, drafter=draft_head, return_dict_in_generate=True,
+            **{"bin_tolerance": 0, **generate_kwargs},
+        )  # fmt: skip
+        stats = stats.merge(output.speculation)
+        sequences += 1
+    if not sequences:
+        raise ValueError("speculative_acceptance needs at least one prompt")
+    return {
+        "acceptance_per_position": [round(x, 4) for x in stats.acceptance_rate_per_position],
+        "tokens_per_target_forward": round(stats.tokens_per_target_forward, 4),
+        "target_forwards_per_sequence": round(stats.num_target_forwards / sequences, 4),
+        "sequences": sequences,
+    }
 
 
 def learning_rate_factor(step: int, warmup_steps: int, max_steps: int, schedule: str) -> float:

@@ -27,6 +27,9 @@ class DraftHeadConfig(PretrainedConfig):
         draft_action_tokens_only: score only action tokens (and EOS) when drafting. This makes each draft step's
             lm_head product n_action_bins+1 wide instead of vocab_size, and the head can then only draft actions.
         target_model_type, target_name_or_path: what the head was built for (informational + compatibility check).
+        target_fingerprint: content fingerprint of the target weights the head was distilled from (set by
+            ``hf-specvla train-draft``); a head whose fingerprint differs from a target's was trained for another
+            model and is refused by [`DraftHead.check_target`] (it would still be lossless, only slow).
     """
 
     model_type = "specvla_draft_head"
@@ -53,6 +56,7 @@ class DraftHeadConfig(PretrainedConfig):
         draft_action_tokens_only: bool = True,
         target_model_type: str | None = None,
         target_name_or_path: str | None = None,
+        target_fingerprint: str | None = None,
         **kwargs,
     ):
         self.hidden_size = hidden_size
@@ -75,6 +79,7 @@ class DraftHeadConfig(PretrainedConfig):
         self.draft_action_tokens_only = draft_action_tokens_only
         self.target_model_type = target_model_type
         self.target_name_or_path = target_name_or_path
+        self.target_fingerprint = target_fingerprint
         super().__init__(**kwargs)
         self._validate()
 

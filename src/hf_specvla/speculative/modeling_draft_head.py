@@ -223,6 +223,24 @@ class DraftHead(PreTrainedModel):
             )
         return TargetHandles(embed_tokens, lm_head)
 
+    def check_target(self, target: PreTrainedModel, target_fingerprint: str | None = None) -> None:
+        """Refuses a target this head was not made for, before any decoding: shapes (as [`target_handles`]) and,
+        when both are known, the weights the head was distilled from (``config.target_fingerprint``) against
+        ``target_fingerprint`` (the caller's fingerprint of ``target``'s weights).
+
+        Raises:
+            ValueError: naming both sides.
+        """
+        self.target_handles(target)
+        trained_for = self.config.target_fingerprint
+        if trained_for and target_fingerprint and trained_for != target_fingerprint:
+            built_for = self.config.target_name_or_path or "another model"
+            raise ValueError(
+                f"this DraftHead was distilled from the weights of {built_for!r} (fingerprint {trained_for}), but the "
+                f"target's weights have fingerprint {target_fingerprint}: it was trained for another model. Train one "
+                f"for this target (hf-specvla train-draft --policy <this policy>)"
+            )
+
     def scorer(self, lm_head: nn.Linear, eos_token_ids: list[int] | None = None) -> DraftScorer:
         """A [`DraftScorer`] over the tokens this head drafts (all, or actions + EOS)."""
         if not self.config.draft_action_tokens_only:

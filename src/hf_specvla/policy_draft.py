@@ -1,0 +1,280 @@
+"""A draft head for a [`VLAPolicy`]: what ``hf-specvla train-draft`` runs.
+
+Self-distillation (see [`hf_specvla.training`]) on the policy's own greedy actions, over two kinds of frames:
+
+* **on-policy**: the states the policy itself reaches in greedy rollouts (seeds from ``DRAFT_SEED_START``,
+  400000), which is where the head is used; the last ``validation_episodes`` rollouts of every task are held out;
+* **demonstrations** (optional): frames of ``hf-specvla collect`` folders, sampled per task.
+
+Validation runs the speculative engine itself (draft-head chain, ``bin_tolerance=0``) on the held-out rollouts'
+frames and reports its per-position acceptance and tokens per target forward: the numbers a user will see.
+
+Seed ranges, kept apart: demonstrations 0.., evaluation 100000.., the second fidelity range 200000.., the episode
+benchmark 300000.., draft training 400000.., so that a head is never measured on a start it was trained on.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .checkpointing import check_output_dir
+from .demonstrations import dataset_info, load_demonstrations
+from .envs.metaworld import TASK_INSTRUCTIONS, EnvConfig, resolve_tasks
+from .evaluation import record_observations
+from .policy import VLAPolicy
+from .run_folder import read_jsonl
+from .speculative import DraftHead
+from .training import (
+    VALIDATION_LOG,
+    DraftTrainingConfig,
+    build_distillation_dataset,
+    draft_training_record,
+    speculative_acceptance,
+    train_draft_head,
+)
+
+logger = logging.getLogger(__name__)
+
+DRAFT_SEED_START = 400_000
+MODEL_CARD = "README.md"
+
+#: ``train-draft``'s training settings for a policy-sized target (a few-million-parameter policy on a CPU): a
+#: larger learning rate than [`DraftTrainingConfig`]'s (the paper's, for a 7B target) and a chain of 3 for 4-token
+#: actions (the prefill makes the first token, so 3 drafted tokens complete an action).
+POLICY_DRAFT_DEFAULTS = dict(num_draft_tokens=3, max_steps=3000, batch_size=32, learning_rate=3e-3,
+                             lr_schedule="cosine", warmup_steps=50, eval_every=500, save_every=500)  # fmt: skip
+
+
+@dataclass
+class DraftDataConfig:
+    """What a policy's draft head learns from.
+
+    Args:
+        tasks: Meta-World tasks (names or a suite, e.g. "MT10").
+        rollout_episodes: greedy on-policy episodes per task (seeds ``rollout_seed_start``, +1, ...); the last
+            ``validation_episodes`` of each task are held out for validation.
+        rollout_max_steps: steps kept per rollout (an episode is cut there).
+        rollout_seed_start: first rollout seed.
+        validation_episodes: held-out rollouts per task (>= 1).
+        validation_frames: at most this many held-out frames are validated (evenly spread; the engine runs once
+            per frame).
+        demo_frames_per_task: frames sampled per task from the demonstration folders (when given).
+        prompt_batch_size: prompts per batched greedy pass when the targets are computed.
+        seed: the demonstration sampling.
+    """
+
+    tasks: str | list[str] = "MT10"
+    rollout_episodes: int = 6
+    rollout_max_steps: int = 150
+    rollout_seed_start: int = DRAFT_SEED_START
+    validation_episodes: int = 1
+    validation_frames: int = 200
+    demo_frames_per_task: int = 300
+    prompt_batch_size: int = 32
+    seed: int = 0
+
+    def __post_init__(self):
+        self.tasks = resolve_tasks(self.tasks)
+        for name in ("rollout_max_steps", "validation_episodes", "validation_frames", "prompt_batch_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("demo_frames_per_task", "rollout_seed_start"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.rollout_episodes <= self.validation_episodes:
+            raise ValueError(
+                f"rollout_episodes ({self.rollout_episodes}) must exceed validation_episodes "
+                f"({self.validation_episodes}): the last validation_episodes rollouts of each task are held out"
+            )
+
+
+# ----------------------------------------------------------------------------- frames
+def rollout_frames(policy: VLAPolicy, config: DraftDataConfig, env_config: EnvConfig) -> tuple[list, list]:
+    """Greedy rollouts of ``policy``: (training frames, held-out frames), each a list of observation dicts."""
+    seeds = [config.rollout_seed_start + i for i in range(config.rollout_episodes)]
+    held_out = set(seeds[-config.validation_episodes :])
+    train, validation = [], []
+    for task in config.tasks:
+        episodes = record_observations(policy, [task], seeds, config.rollout_max_steps, env_config)
+        for seed, episode in zip(seeds, episodes):
+            (validation if seed in held_out else train).extend(episode)
+    return train, validation
+
+
+def demonstration_frames(roots: list[str | Path], config: DraftDataConfig, policy: VLAPolicy) -> list[dict]:
+    """``demo_frames_per_task`` frames of each task sampled from demonstration folders (fewer if a task has
+    fewer); each an observation dict."""
+    info = dataset_info(roots)
+    if info.get("image_size") != policy.config.image_size or info.get("camera") != policy.config.camera:
+        raise ValueError(
+            f"the demonstrations have image_size={info.get('image_size')}, camera={info.get('camera')!r}; the policy "
+            f"sees image_size={policy.config.image_size}, camera={policy.config.camera!r}: collect them with the "
+            f"policy's settings"
+        )
+    demos = load_demonstrations(roots, config.tasks, progress=False)
+    rng = np.random.default_rng(config.seed)
+    tasks = np.asarray(demos.tasks)
+    frames = []
+    for task in config.tasks:
+        indices = np.flatnonzero(tasks == task)
+        if len(indices) == 0:
+            raise ValueError(f"the demonstrations in {[str(r) for r in roots]} have no frames of {task!r}")
+        chosen = np.sort(rng.choice(indices, min(config.demo_frames_per_task, len(indices)), replace=False))
+        frames.extend(
+            {"image": demos.images[i], "instruction": TASK_INSTRUCTIONS[task], "state": demos.states[i]}
+            for i in chosen
+        )
+    return frames
+
+
+def policy_prompts(policy: VLAPolicy, frames: list[dict], batch_size: int) -> list[dict[str, torch.Tensor]]:
+    """Model inputs for ``frames``, batched by instruction (one prompt length per batch, so no padding):
+    ``input_ids`` ``[B, S]``, ``pixel_values`` ``[B, 3, H, W]``."""
+    by_instruction: dict[str, list[dict]] = {}
+    for frame in frames:
+        by_instruction.setdefault(frame["instruction"], []).append(frame)
+    prompts = []
+    for group in by_instruction.values():
+        for start in range(0, len(group), batch_size):
+            chunk = group[start : start + batch_size]
+            input_ids = torch.tensor([policy.prompt_ids(f["instruction"], f["state"]) for f in chunk])
+            pixel_values = policy.preprocess_images(np.stack([f["image"] for f in chunk]))
+            prompts.append({"input_ids": input_ids.to(policy.model.device), "pixel_values": pixel_values})
+    return prompts
+
+
+def _spread(frames: list, count: int) -> list:
+    """At most ``count`` of ``frames``, evenly spread (deterministic)."""
+    if len(frames) <= count:
+        return frames
+    return [frames[int(i)] for i in np.linspace(0, len(frames) - 1, count).round()]
+
+
+# ----------------------------------------------------------------------------- training
+def train_policy_draft_head(
+    policy: VLAPolicy,
+    training_config: DraftTrainingConfig,
+    data_config: DraftDataConfig | None = None,
+    demonstrations: list[str | Path] | tuple = (),
+    num_draft_tokens: int = POLICY_DRAFT_DEFAULTS["num_draft_tokens"],
+    progress: bool = True,
+    command: str | None = None,
+) -> DraftHead:
+    """Trains a [`DraftHead`] for ``policy`` (see module docstring) into ``training_config.output_dir``.
+
+    The head records the policy it was distilled from (``target_name_or_path``, ``target_fingerprint``), so that
+    a head used with another policy is refused. The folder gets the head, ``validation.jsonl`` and a model card
+    (``README.md``, with the measured acceptance and ``command``). The folder rule (``run.json``: the policy's
+    weights, the data recipe, the training settings) is checked before any rollout runs.
+    """
+    data_config = data_config or DraftDataConfig()
+    demonstrations = [str(Path(root)) for root in demonstrations]
+    output_dir = Path(training_config.output_dir)
+    if num_draft_tokens < 1:
+        raise ValueError(f"num_draft_tokens must be >= 1, got {num_draft_tokens}")
+    env_config = EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)
+    torch.manual_seed(training_config.seed)
+    head = DraftHead.from_target(
+        policy.model, policy.action_tokenizer, action_dim=policy.config.action_dim, num_draft_tokens=num_draft_tokens,
+        target_name_or_path=policy.name_or_path, target_fingerprint=policy.weights_fingerprint(),
+    )  # fmt: skip
+    recipe = {"data": {**asdict(data_config), "demonstrations": demonstrations,
+                       "demonstration_info": [dataset_info(root) for root in demonstrations]}}  # fmt: skip
+    record = draft_training_record(head, policy.model, training_config, recipe)
+    check_output_dir(output_dir, record, training_config.resume, training_config.overwrite_output_dir)
+
+    logger.info("on-policy rollouts: %d per task on %d tasks", data_config.rollout_episodes, len(data_config.tasks))
+    train_frames, validation_frames = rollout_frames(policy, data_config, env_config)
+    if demonstrations:
+        train_frames += demonstration_frames(demonstrations, data_config, policy)
+    validation_frames = _spread(validation_frames, data_config.validation_frames)
+    logger.info("%d training frames, %d held-out frames", len(train_frames), len(validation_frames))
+    dataset = build_distillation_dataset(
+        policy.model, policy_prompts(policy, train_frames, data_config.prompt_batch_size), policy.config.action_dim,
+        policy.action_tokenizer, progress=progress,
+    )  # fmt: skip
+    validation_prompts = policy_prompts(policy, validation_frames, batch_size=1)
+
+    def validate(draft_head: DraftHead) -> dict:
+        return speculative_acceptance(policy.model, draft_head, validation_prompts, policy.config.action_dim,
+                                      action_layout=policy.action_layout)  # fmt: skip
+
+    head = train_draft_head(head, policy.model, dataset, training_config, progress=progress, validate=validate,
+                            inputs=recipe)  # fmt: skip
+    write_model_card(output_dir, head, training_config, data_config, demonstrations, len(dataset), command)
+    return head
+
+
+# ----------------------------------------------------------------------------- model card
+def write_model_card(
+    output_dir: Path,
+    head: DraftHead,
+    training_config: DraftTrainingConfig,
+    data_config: DraftDataConfig,
+    demonstrations: list[str],
+    num_examples: int,
+    command: str | None,
+) -> None:
+    """``README.md`` with YAML metadata, as hub models have: target, data, command, measured acceptance."""
+    validations = read_jsonl(output_dir / VALIDATION_LOG)
+    final = validations[-1] if validations else {}
+    acceptance = final.get("acceptance_per_position", [])
+    rows = "\n".join(f"| {depth + 1} | {rate:.1%} |" for depth, rate in enumerate(acceptance))
+    config = head.config
+    card = f"""---
+library_name: hf_specvla
+pipeline_tag: robotics
+tags:
+- speculative-decoding
+- draft-head
+- eagle
+- vision-language-action
+base_model: {config.target_name_or_path}
+---
+
+# Draft head for `{config.target_name_or_path}`
+
+An EAGLE-style draft head (one decoder layer, {head.num_parameters():,} parameters) for speculative decoding of
+the vision-language-action policy `{config.target_name_or_path}` (weights fingerprint `{config.target_fingerprint}`;
+a head is refused by a policy with other weights). It borrows the policy's embedding and lm_head at run time.
+
+```python
+from hf_specvla import DraftHead, VLAPolicy
+
+policy = VLAPolicy.from_pretrained("{config.target_name_or_path}")
+draft_head = DraftHead.from_pretrained("{output_dir}")
+action = policy.predict_action(image, instruction, state, assistant_model=draft_head)  # identical to greedy
+```
+
+## Training
+
+Self-distillation on the policy's own greedy actions (`hf-specvla train-draft`), {num_examples} frames:
+greedy rollouts of the policy on {", ".join(data_config.tasks)} ({data_config.rollout_episodes - data_config.validation_episodes}
+per task, seeds from {data_config.rollout_seed_start}, cut at {data_config.rollout_max_steps} steps)
+{f"and {data_config.demo_frames_per_task} demonstration frames per task from {', '.join(demonstrations)}" if demonstrations else "(no demonstrations)"};
+{training_config.max_steps} steps, batch {training_config.batch_size}, learning rate {training_config.learning_rate}
+({training_config.lr_schedule}), chain length {config.num_draft_tokens}.
+
+```bash
+{command or "(trained from Python: hf_specvla.policy_draft.train_policy_draft_head)"}
+```
+
+## Measured acceptance
+
+The speculative engine itself (draft-head chain, `bin_tolerance=0`) on {final.get("sequences", 0)} held-out frames (the
+last {data_config.validation_episodes} rollout(s) of each task), after {final.get("step", 0)} steps: tokens per target
+forward **{final.get("tokens_per_target_forward", float("nan")):.2f}**, target forwards per action
+**{final.get("target_forwards_per_sequence", float("nan")):.2f}** (greedy: {config.action_dim}).
+
+| drafted position | accepted |
+|---:|---:|
+{rows}
+
+Every validation is in `validation.jsonl`; what produced this folder is in `run.json`.
+"""
+    (output_dir / MODEL_CARD).write_text(card)
