@@ -108,3 +108,14 @@ def test_draft_data_config_validates():
     with pytest.raises(ValueError, match="validation_frames must be >= 1"):
         DraftDataConfig(validation_frames=0)
     assert DraftDataConfig(tasks="MT10").tasks[0].endswith("-v3")
+
+
+def test_the_shipped_draft_head_loads_and_fits_the_shipped_policy():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "policies"
+    head = DraftHead.from_pretrained(root / "mt10_vla_draft")
+    assert isinstance(AutoModel.from_pretrained(root / "mt10_vla_draft"), DraftHead)
+    VLAPolicy.from_pretrained(root / "mt10_vla").check_draft_head(head)  # distilled from exactly these weights
+    card = (root / "mt10_vla_draft" / "README.md").read_text()
+    assert card.startswith("---\nlibrary_name: hf_specvla") and "## Measured acceptance" in card
