@@ -140,3 +140,21 @@ def test_compare_refuses_a_draft_head_of_another_policy(policy_dir, tmp_path, ca
               "--methods", "head", "--output-dir", str(tmp_path / "out")])  # fmt: skip
     assert exit_info.value.code == 2 and "trained for another model" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_compare_refuses_a_folder_another_live_run_is_writing(policy_dir, tmp_path, capsys):
+    import os
+
+    from hf_specvla.comparison import folder_lock
+
+    out = tmp_path / "locked"
+    args = ["compare", "--policy", policy_dir, "--tasks", "reach", "--episodes", "1", "--max-episode-steps", "2",
+            "--methods", "prior", "--output-dir", str(out)]  # fmt: skip
+    assert main(args) == 0
+    assert not (out / ".lock").exists()  # released after the run
+    with folder_lock(out):  # a live holder (this process)
+        with pytest.raises(SystemExit) as exit_info:
+            main(args)
+    assert exit_info.value.code == 2 and f"pid {os.getpid()}" in capsys.readouterr().err
+    (out / ".lock").write_text("999999999")  # a holder that is gone: a stale lock is taken over
+    assert main(args) == 0

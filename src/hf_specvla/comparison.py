@@ -27,8 +27,10 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import random
 import statistics
+import threading
 import time
 from collections import Counter
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
@@ -266,9 +268,27 @@ def _run_shard(
                         bar.update(1)
 
 
+def _exit_with_parent(poll_seconds: float = 1.0) -> None:
+    """Ends this worker when the process that started it is gone (killed, crashed): an orphaned worker would go
+    on appending to a folder that a new run may be resuming."""
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(poll_seconds)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="exit-with-parent").start()
+
+
 def _worker_main(policy_dir: str, draft_head_dir: str | None, config: dict, pairs: list, log_path: str,
                  done: list) -> None:  # fmt: skip
     """Entry point of a worker process (spawned: loads its own policy and head)."""
+    from transformers.utils import logging as transformers_logging
+
+    _exit_with_parent()
+    transformers_logging.disable_progress_bar()  # a worker's weight loading draws no bars of its own
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     config = CompareConfig(**config)
     torch.set_num_threads(config.threads)
     policy = VLAPolicy.from_pretrained(policy_dir)
@@ -317,6 +337,44 @@ def run_comparison(
         "order_seed": config.order_seed,
     }  # fmt: skip
     open_run_folder(output_dir, RunRecord("compare", settings), overwrite)
+    with folder_lock(output_dir):
+        return _compare_in(output_dir, policy, draft_head, config, settings, policy_dir, draft_head_dir, progress)
+
+
+def folder_lock(folder: Path):
+    """Holds ``folder/.lock`` (this process's pid) while a comparison writes there.
+
+    Raises:
+        FileExistsError: another live process holds it (two runs appending to one folder would mix their logs).
+    """
+    import contextlib
+
+    lock = folder / ".lock"
+
+    @contextlib.contextmanager
+    def held():
+        if lock.exists():
+            try:
+                holder = int(lock.read_text().strip() or 0)
+                os.kill(holder, 0)
+            except (ValueError, ProcessLookupError):
+                holder = None  # a stale lock: its process is gone
+            except PermissionError:
+                pass  # alive, another user's
+            if holder:
+                raise FileExistsError(f"another comparison (pid {holder}) is writing to {str(folder)!r}; wait for it")
+        lock.write_text(str(os.getpid()))
+        try:
+            yield
+        finally:
+            lock.unlink(missing_ok=True)
+
+    return held()
+
+
+def _compare_in(output_dir, policy, draft_head, config, settings, policy_dir, draft_head_dir, progress) -> dict:
+    """The body of [`run_comparison`], with the folder locked."""
+    methods = config.decoding_methods()
     done = {(r["task"], r["seed"], r["method"]) for r in read_episode_logs(output_dir)}
     pairs = config.pairs()
     total = len(pairs) * len(methods)
@@ -340,7 +398,9 @@ def run_comparison(
                 finished, pending = wait(pending, timeout=10, return_when=FIRST_EXCEPTION)
                 for future in finished:
                     future.result()  # a worker's exception surfaces here
-                bar.n = min(total, len(read_episode_logs(output_dir)))
+                # count finished lines only: repairing a log (read_jsonl) while its worker appends would race
+                finished_lines = sum(path.read_bytes().count(b"\n") for path in output_dir.glob(LOG_PATTERN))
+                bar.n = min(total, finished_lines)
                 bar.refresh()
     bar.close()
     records = read_episode_logs(output_dir)
