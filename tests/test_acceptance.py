@@ -133,3 +133,9 @@ def test_action_dimension_follows_the_path(layout):
     assert accept_tree(tree, targets(100, [203, 1]), rule, layout, 5).nodes == [0]
     # 7 came before: node 0 is dimension 0 (strict, exact here), node 1 dimension 1 (within 5)
     assert accept_tree(tree, targets(100, [203, 1]), rule, layout, 7).nodes == [0, 1]
+
+
+def test_a_chain_is_known_as_one_so_that_it_verifies_under_the_causal_mask():
+    assert DraftTree.from_paths([[5, 6, 7]], "x").is_chain
+    assert not DraftTree.from_paths([[5, 6], [5, 7]], "x").is_chain  # siblings: a real tree mask is needed
+    assert DraftTree.empty().is_chain

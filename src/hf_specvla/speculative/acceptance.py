@@ -192,7 +192,8 @@ def accept_tree(
     strict_ancestors = tree.ancestor_or_self & ~torch.eye(tree.num_nodes, dtype=torch.bool, device=tokens.device)
     if action_layout is not None:
         is_action = action_layout.tokenizer.is_action_token(tokens)
-        before = num_prior_action_tokens + strict_ancestors.long() @ is_action.long()  # action tokens before node
+        # (integer products as masked sums: CUDA has no integer matmul)
+        before = num_prior_action_tokens + (strict_ancestors.long() * is_action.long()[None, :]).sum(-1)
         action_dims = before % action_layout.action_dim
         both_actions = is_action & action_layout.tokenizer.is_action_token(parent_targets)
         distances = torch.where(both_actions, action_layout.tokenizer.bin_distance(tokens, parent_targets), 0)
@@ -203,7 +204,7 @@ def accept_tree(
     path_passes = ~(tree.ancestor_or_self & ~passes[None]).any(dim=-1)  # [N] the node and all its ancestors
     if not bool(path_passes.any()):
         return AcceptedPath([], int(target_ids[0]), [])
-    total_distance = tree.ancestor_or_self.long() @ distances  # [N] summed along the path
+    total_distance = (tree.ancestor_or_self.long() * distances[None, :]).sum(-1)  # [N] summed along the path
     depths, totals = tree.depths.tolist(), total_distance.tolist()
     candidates = [i for i, ok in enumerate(path_passes.tolist()) if ok]
     best = min(candidates, key=lambda i: (-depths[i], totals[i], i))  # deepest, then closest, then first

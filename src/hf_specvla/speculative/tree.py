@@ -105,6 +105,11 @@ class DraftTree:
                 rows[i] |= rows[parent]
         return rows
 
+    @cached_property
+    def is_chain(self) -> bool:
+        """True when the tree is one path (node i's parent is node i-1): its tree mask is the causal mask."""
+        return self.parents.tolist() == list(range(-1, self.num_nodes - 1))
+
     @property
     def max_depth(self) -> int:
         """Depth of the deepest node + 1 (the longest path's length), 0 for an empty tree."""
