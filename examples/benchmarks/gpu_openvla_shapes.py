@@ -110,7 +110,8 @@ def lossless_checks(model, draft_head, tree_drafter, input_ids) -> dict:
     scores = model.generate(input_ids, max_new_tokens=ACTION_DIM, min_new_tokens=ACTION_DIM, do_sample=False,
                             output_logits=True, return_dict_in_generate=True).logits  # fmt: skip
     top2 = torch.stack(scores).float().topk(2, dim=-1).values  # [steps, 1, 2]
-    checks["greedy top-1 minus top-2 logit, per step"] = [round(x, 4) for x in (top2[..., 0] - top2[..., 1]).flatten().tolist()]
+    margins = (top2[..., 0] - top2[..., 1]).flatten().tolist()
+    checks["greedy top-1 minus top-2 logit, per step"] = [round(x, 4) for x in margins]
     drafted = model(torch.cat([input_ids, greedy_ids], 1)).logits[:, input_ids.shape[1] - 1 : -1].float()
     checks["max |logit| difference, decode steps vs one prefill with the drafts"] = round(
         float((torch.stack(scores)[:, 0].float() - drafted[0]).abs().max()), 4

@@ -52,10 +52,10 @@ from pathlib import Path
 
 import torch
 
+from .comparison import DRAFTER_CHOICES, CompareConfig
 from .envs.metaworld import CAMERAS, EnvConfig
 from .evaluation import EVAL_SEED_START
 from .policy import VLAPolicyConfig
-from .comparison import DRAFTER_CHOICES, CompareConfig
 from .policy_draft import POLICY_DRAFT_DEFAULTS, DraftDataConfig
 from .training import DraftTrainingConfig
 from .vla_training import VLATrainingConfig
@@ -378,7 +378,7 @@ def _eval(args, parser) -> int:
 
     from .evaluation import evaluate, format_summary
     from .policy import VLAPolicy
-    from .speculative import DraftHead, DraftHeadDrafter, DraftTreeConfig
+    from .speculative import DraftHeadDrafter, DraftTreeConfig
 
     if (args.bin_tolerance is not None) and not (args.draft_head or args.action_prior):
         parser.error("--bin-tolerance needs --draft-head and/or --action-prior (something to draft with)")
@@ -554,11 +554,11 @@ def main(argv: list[str] | None = None) -> int:
     draft.add_argument("--output-dir", required=True, help="the draft head folder (and checkpoints)")
     draft.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
     draft.add_argument("--data", nargs="+", default=None,
-                       help="also distil on frames of these `hf-specvla collect` folders (default: rollouts only)")  # fmt: skip
+                       help="also distil on frames of these `collect` folders (default: rollouts only)")  # fmt: skip
     draft.add_argument("--demo-frames-per-task", type=NON_NEGATIVE, default=DraftDataConfig.demo_frames_per_task,
                        help="with --data: frames sampled per task")  # fmt: skip
     draft.add_argument("--rollout-episodes", type=POSITIVE, default=DraftDataConfig.rollout_episodes,
-                       help="greedy on-policy episodes per task (the last --validation-episodes are held out)")  # fmt: skip
+                       help="greedy on-policy episodes per task (the last --validation-episodes held out)")  # fmt: skip
     draft.add_argument("--rollout-max-steps", type=POSITIVE, default=DraftDataConfig.rollout_max_steps,
                        help="steps kept per rollout")  # fmt: skip
     draft.add_argument("--rollout-seed-start", type=NON_NEGATIVE, default=DraftDataConfig.rollout_seed_start,
@@ -590,7 +590,7 @@ def main(argv: list[str] | None = None) -> int:
     draft.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
 
     compare = _subcommand(commands, "compare",
-                          "paired side-by-side of decoding methods on the same seeds: success, speed (resumable)")  # fmt: skip
+                          "paired side-by-side of decoding methods on the same seeds (resumable)")  # fmt: skip
     compare.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
     compare.add_argument("--draft-head", default=None, help="the DraftHead folder the head / tree methods use")
     compare.add_argument("--methods", nargs="+", default=list(CompareConfig.methods),

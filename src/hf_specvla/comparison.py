@@ -34,7 +34,7 @@ import threading
 import time
 from collections import Counter
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -388,8 +388,15 @@ def _compare_in(output_dir, policy, draft_head, config, settings, policy_dir, dr
         context = get_context("spawn")
         with ProcessPoolExecutor(config.workers, mp_context=context) as pool:
             futures = [
-                pool.submit(_worker_main, policy_dir, draft_head_dir, asdict(config), shard,
-                            str(output_dir / f"episodes.worker-{i}.jsonl"), sorted(done))  # fmt: skip
+                pool.submit(
+                    _worker_main,
+                    policy_dir,
+                    draft_head_dir,
+                    asdict(config),
+                    shard,
+                    str(output_dir / f"episodes.worker-{i}.jsonl"),
+                    sorted(done),
+                )  # fmt: skip
                 for i, shard in enumerate(shards)
                 if shard
             ]
@@ -486,8 +493,9 @@ def summarize_comparison(records: list[dict], methods: list[str]) -> dict:
             "target_forwards_per_action": forwards / actions,
             "tokens_per_target_forward": sum(r["new_tokens"] for r in episodes.values()) / forwards,
             "accept_length_counts": {str(k): v for k, v in sorted(accept_counts.items())},
-            "mean_bin_deviation": (sum(r["bin_distance_sum"] for r in episodes.values()) / distance_count
-                                   if distance_count else 0.0),  # fmt: skip
+            "mean_bin_deviation": (
+                sum(r["bin_distance_sum"] for r in episodes.values()) / distance_count if distance_count else 0.0
+            ),  # fmt: skip
             "max_bin_deviation": max(r["bin_distance_max"] for r in episodes.values()),
             "identical_to_greedy": sum(episodes[k]["actions_digest"] == greedy[k]["actions_digest"] for k in paired),
         }
@@ -502,8 +510,9 @@ def summarize_comparison(records: list[dict], methods: list[str]) -> dict:
 def format_comparison(summary: dict) -> str:
     """The markdown table of a comparison summary."""
     lines = [
-        "| method | episodes | success | vs greedy (95% CI) | greedy-only / method-only | mean length | median ms/action "
-        "| speed-up | target fwd/action | tokens/target fwd | bin dev. mean / max | identical to greedy |",
+        "| method | episodes | success | vs greedy (95% CI) | greedy-only / method-only | mean length "
+        "| median ms/action | speed-up | target fwd/action | tokens/target fwd | bin dev. mean / max "
+        "| identical to greedy |",
         "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---|---:|",
     ]
     for name, row in summary["methods"].items():

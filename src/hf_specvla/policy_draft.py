@@ -126,8 +126,7 @@ def demonstration_frames(roots: list[str | Path], config: DraftDataConfig, polic
             raise ValueError(f"the demonstrations in {[str(r) for r in roots]} have no frames of {task!r}")
         chosen = np.sort(rng.choice(indices, min(config.demo_frames_per_task, len(indices)), replace=False))
         frames.extend(
-            {"image": demos.images[i], "instruction": TASK_INSTRUCTIONS[task], "state": demos.states[i]}
-            for i in chosen
+            {"image": demos.images[i], "instruction": TASK_INSTRUCTIONS[task], "state": demos.states[i]} for i in chosen
         )
     return frames
 
@@ -226,6 +225,13 @@ def write_model_card(
     acceptance = final.get("acceptance_per_position", [])
     rows = "\n".join(f"| {depth + 1} | {rate:.1%} |" for depth, rate in enumerate(acceptance))
     config = head.config
+    tasks = ", ".join(data_config.tasks)
+    kept_rollouts = data_config.rollout_episodes - data_config.validation_episodes
+    demo_text = (
+        f"and {data_config.demo_frames_per_task} demonstration frames per task from {', '.join(demonstrations)}"
+        if demonstrations
+        else "(no demonstrations)"
+    )
     card = f"""---
 library_name: hf_specvla
 pipeline_tag: robotics
@@ -254,11 +260,10 @@ action = policy.predict_action(image, instruction, state, assistant_model=draft_
 ## Training
 
 Self-distillation on the policy's own greedy actions (`hf-specvla train-draft`), {num_examples} frames:
-greedy rollouts of the policy on {", ".join(data_config.tasks)} ({data_config.rollout_episodes - data_config.validation_episodes}
-per task, seeds from {data_config.rollout_seed_start}, cut at {data_config.rollout_max_steps} steps)
-{f"and {data_config.demo_frames_per_task} demonstration frames per task from {', '.join(demonstrations)}" if demonstrations else "(no demonstrations)"};
-{training_config.max_steps} steps, batch {training_config.batch_size}, learning rate {training_config.learning_rate}
-({training_config.lr_schedule}), chain length {config.num_draft_tokens}.
+greedy rollouts of the policy on {tasks} ({kept_rollouts} per task, seeds from {data_config.rollout_seed_start},
+cut at {data_config.rollout_max_steps} steps) {demo_text}; {training_config.max_steps} steps, batch
+{training_config.batch_size}, learning rate {training_config.learning_rate} ({training_config.lr_schedule}), chain
+length {config.num_draft_tokens}.
 
 ```bash
 {command or "(trained from Python: hf_specvla.policy_draft.train_policy_draft_head)"}

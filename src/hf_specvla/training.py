@@ -102,7 +102,9 @@ class DraftTrainingConfig:
         for name in ("learning_rate", "max_grad_norm"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("save_every", "eval_every", "warmup_steps", "feature_noise", "feature_loss_weight", "token_loss_weight"):
+        non_negative = ("save_every", "eval_every", "warmup_steps", "feature_noise", "feature_loss_weight",
+                        "token_loss_weight")  # fmt: skip
+        for name in non_negative:
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.lr_schedule not in ("constant", "cosine"):
