@@ -407,8 +407,8 @@ def _compare_in(output_dir, policy, draft_head, config, settings, policy_dir, dr
                     future.result()  # a worker's exception surfaces here
                 # count finished lines only: repairing a log (read_jsonl) while its worker appends would race
                 finished_lines = sum(path.read_bytes().count(b"\n") for path in output_dir.glob(LOG_PATTERN))
-                bar.n = min(total, finished_lines)
-                bar.refresh()
+                if min(total, finished_lines) > bar.n:  # update() keeps the bar's redraw interval
+                    bar.update(min(total, finished_lines) - bar.n)
     bar.close()
     records = read_episode_logs(output_dir)
     wanted = {(t, s) for t, s in pairs}
