@@ -102,7 +102,8 @@ def test_checkpoints_resume_and_never_clobber(tmp_path, toy_pipeline, small_data
         DraftTrainingConfig(str(tmp_path), max_steps=4, **settings),
         progress=False,
     )
-    assert latest_checkpoint(tmp_path).name == "checkpoint-2"
+    # every save_every steps and after the last step (so that a finished run can be continued)
+    assert sorted(p.name for p in tmp_path.glob("checkpoint-*")) == ["checkpoint-2", "checkpoint-4"]
     assert (tmp_path / "checkpoint-2" / "draft_head" / "config.json").exists() and (tmp_path / "config.json").exists()
 
     # an existing run is not silently overwritten
@@ -115,7 +116,7 @@ def test_checkpoints_resume_and_never_clobber(tmp_path, toy_pipeline, small_data
             progress=False,
         )
 
-    # resuming continues from step 2 and equals an uninterrupted run of the same length
+    # resuming continues from step 4 and equals an uninterrupted run of the same length
     resumed = train_draft_head(
         head(),
         toy_pipeline.target,
@@ -124,7 +125,7 @@ def test_checkpoints_resume_and_never_clobber(tmp_path, toy_pipeline, small_data
         progress=False,
     )
     assert torch.load(tmp_path / "training_state.pt", weights_only=True)["step"] == 6
-    assert latest_checkpoint(tmp_path).name == "checkpoint-4"
+    assert latest_checkpoint(tmp_path).name == "checkpoint-6"
     straight = train_draft_head(
         head(),
         toy_pipeline.target,
@@ -162,11 +163,11 @@ def test_overwrite_moves_the_old_run_aside_and_resume_needs_a_checkpoint(tmp_pat
                                 progress=False)  # fmt: skip
 
     folder = tmp_path / "run"
-    train(folder, max_steps=5, learning_rate=3e-3)  # the old run: checkpoints 1..4
+    train(folder, max_steps=5, learning_rate=3e-3)  # the old run: checkpoints 1..5
     train(folder, max_steps=2, overwrite_output_dir=True)  # a new run, other settings
-    assert sorted(p.name for p in folder.glob("checkpoint-*")) == ["checkpoint-1"]  # nothing of the old run
+    assert sorted(p.name for p in folder.glob("checkpoint-*")) == ["checkpoint-1", "checkpoint-2"]  # only its own
     (aside,) = tmp_path.glob("run.replaced-*")
-    assert sorted(p.name for p in aside.glob("checkpoint-*")) == [f"checkpoint-{i}" for i in range(1, 5)]
+    assert sorted(p.name for p in aside.glob("checkpoint-*")) == [f"checkpoint-{i}" for i in range(1, 6)]
     resumed = train(folder, max_steps=3, resume=True)  # continues the new run, not the old one
     straight = train(tmp_path / "straight", max_steps=3)
     for (name, a), b in zip(resumed.state_dict().items(), straight.state_dict().values()):

@@ -128,6 +128,16 @@ def _benchmark(pipeline, args) -> None:
     print(format_report(results))
 
 
+def _add_training_run_arguments(parser: argparse.ArgumentParser, seed: int) -> None:
+    """--resume, --overwrite-output-dir, --seed, --threads: shared by the trainers."""
+    parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --output-dir")
+    parser.add_argument(
+        "--overwrite-output-dir", action="store_true", help="move the folder's previous run aside, train from scratch"
+    )
+    parser.add_argument("--seed", type=int, default=seed, help="random seed")
+    parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
+
+
 def _check_training_folder(output_dir: Path, resume: bool, overwrite: bool, parser) -> None:
     """The common folder mistakes as usage errors before any data is loaded (the full check of the folder's
     run.json runs once the data's fingerprint is known)."""
@@ -541,12 +551,7 @@ def main(argv: list[str] | None = None) -> int:
     train.add_argument("--scene-loss-weight", type=float, default=None,
                        help="weight of the scene-state loss against the action tokens' (with --scene-targets; "
                             f"default {VLATrainingConfig.scene_loss_weight})")  # fmt: skip
-    train.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --output-dir")
-    train.add_argument(
-        "--overwrite-output-dir", action="store_true", help="move the folder's previous run aside, train from scratch"
-    )
-    train.add_argument("--seed", type=int, default=VLATrainingConfig.seed, help="random seed")
-    train.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
+    _add_training_run_arguments(train, VLATrainingConfig.seed)
 
     draft = _subcommand(commands, "train-draft",
                         "train a draft head for a policy: self-distillation on its rollouts (resumable)")  # fmt: skip
@@ -582,12 +587,7 @@ def main(argv: list[str] | None = None) -> int:
                        help="steps between validations (0: only at the end)")  # fmt: skip
     draft.add_argument("--save-every", type=NON_NEGATIVE, default=POLICY_DRAFT_DEFAULTS["save_every"],
                        help="steps between checkpoints (0: only the final head)")  # fmt: skip
-    draft.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --output-dir")
-    draft.add_argument(
-        "--overwrite-output-dir", action="store_true", help="move the folder's previous run aside, train from scratch"
-    )
-    draft.add_argument("--seed", type=int, default=DraftTrainingConfig.seed, help="random seed")
-    draft.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
+    _add_training_run_arguments(draft, DraftTrainingConfig.seed)
 
     compare = _subcommand(commands, "compare",
                           "paired side-by-side of decoding methods on the same seeds (resumable)")  # fmt: skip

@@ -535,6 +535,16 @@ def format_comparison(summary: dict) -> str:
 
 
 # ----------------------------------------------------------------------------- plots
+def _finish_plot(plt, figure, axis, baseline: float, ylabel: str, title: str, path: Path) -> None:
+    """Greedy's level as a grey line, labels, legend; saves and closes the figure."""
+    axis.axhline(baseline, color="grey", linewidth=0.8)
+    axis.set(xlabel="bin tolerance r", ylabel=ylabel, title=title)
+    axis.legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
 def plot_comparison(summary: dict, output_dir: str | Path) -> list[Path]:
     """Writes the PNG plots of [`PLOTS`]: speed-up vs r and success difference vs r (95% CI) per drafter family,
     and each method's histogram of tokens per target forward."""
@@ -554,12 +564,7 @@ def plot_comparison(summary: dict, output_dir: str | Path) -> list[Path]:
     for family, points in families.items():
         points = sorted((r, row["speedup"]) for r, row in points if row["speedup"] is not None)
         axis.plot([p[0] for p in points], [p[1] for p in points], marker="o", label=family)
-    axis.axhline(1.0, color="grey", linewidth=0.8)
-    axis.set(xlabel="bin tolerance r", ylabel="speed-up vs greedy (per action)", title="Speed-up")
-    axis.legend()
-    figure.tight_layout()
-    figure.savefig(paths[0], dpi=120)
-    plt.close(figure)
+    _finish_plot(plt, figure, axis, 1.0, "speed-up vs greedy (per action)", "Speed-up", paths[0])
 
     figure, axis = plt.subplots(figsize=(6, 4))
     for offset, (family, points) in enumerate(families.items()):
@@ -569,12 +574,7 @@ def plot_comparison(summary: dict, output_dir: str | Path) -> list[Path]:
         errors = [[100 * (p[1]["difference"] - p[1]["ci_low"]) for p in points],
                   [100 * (p[1]["ci_high"] - p[1]["difference"]) for p in points]]  # fmt: skip
         axis.errorbar(x, y, yerr=errors, marker="o", capsize=3, label=family)
-    axis.axhline(0.0, color="grey", linewidth=0.8)
-    axis.set(xlabel="bin tolerance r", ylabel="success - greedy's (points, 95% CI)", title="Success, paired")
-    axis.legend()
-    figure.tight_layout()
-    figure.savefig(paths[1], dpi=120)
-    plt.close(figure)
+    _finish_plot(plt, figure, axis, 0.0, "success - greedy's (points, 95% CI)", "Success, paired", paths[1])
 
     columns = min(3, len(rows))
     lines = -(-len(rows) // columns)
