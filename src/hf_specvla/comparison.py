@@ -296,6 +296,10 @@ def _worker_main(policy_dir: str, draft_head_dir: str | None, config: dict, pair
     _run_shard(policy, draft_head, config, [tuple(p) for p in pairs], Path(log_path), {tuple(d) for d in done})
 
 
+def _count_log_lines(output_dir: Path) -> int:
+    return sum(path.read_bytes().count(b"\n") for path in output_dir.glob(LOG_PATTERN))
+
+
 def read_episode_logs(output_dir: Path) -> list[dict]:
     """Every episode record of a comparison folder (all workers' logs)."""
     return [record for path in sorted(output_dir.glob(LOG_PATTERN)) for record in read_jsonl(path)]
@@ -385,6 +389,7 @@ def _compare_in(output_dir, policy, draft_head, config, settings, policy_dir, dr
         _run_shard(policy, draft_head, config, pairs, output_dir / "episodes.worker-0.jsonl", done, bar)
     else:
         shards = [pairs[i :: config.workers] for i in range(config.workers)]
+        bar_start, lines_at_start = total - remaining, _count_log_lines(output_dir)
         context = get_context("spawn")
         with ProcessPoolExecutor(config.workers, mp_context=context) as pool:
             futures = [
@@ -405,10 +410,11 @@ def _compare_in(output_dir, policy, draft_head, config, settings, policy_dir, dr
                 finished, pending = wait(pending, timeout=10, return_when=FIRST_EXCEPTION)
                 for future in finished:
                     future.result()  # a worker's exception surfaces here
-                # count finished lines only: repairing a log (read_jsonl) while its worker appends would race
-                finished_lines = sum(path.read_bytes().count(b"\n") for path in output_dir.glob(LOG_PATTERN))
-                if min(total, finished_lines) > bar.n:  # update() keeps the bar's redraw interval
-                    bar.update(min(total, finished_lines) - bar.n)
+                # count new finished lines only (workers write only wanted episodes; repairing a log with
+                # read_jsonl while its worker appends would race)
+                finished = bar_start + _count_log_lines(output_dir) - lines_at_start
+                if min(total, finished) > bar.n:  # update() keeps the bar's redraw interval
+                    bar.update(min(total, finished) - bar.n)
     bar.close()
     records = read_episode_logs(output_dir)
     wanted = {(t, s) for t, s in pairs}
