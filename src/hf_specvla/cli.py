@@ -371,7 +371,6 @@ def _compare(args, parser) -> int:
         policy = VLAPolicy.from_pretrained(args.policy)
     except FileNotFoundError as error:
         parser.error(f"--policy: {error}")
-    torch.set_num_threads(args.threads)
     draft_head = DraftHead.from_pretrained(args.draft_head).eval() if args.draft_head else None
     try:
         summary = run_comparison(policy, config, args.output_dir, draft_head, args.policy, args.draft_head,

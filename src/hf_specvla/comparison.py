@@ -24,6 +24,7 @@ continue a folder), ``summary.json``, ``compare.md`` and PNG plots.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -342,90 +343,84 @@ def run_comparison(
     }  # fmt: skip
     open_run_folder(output_dir, RunRecord("compare", settings), overwrite)
     with folder_lock(output_dir):
-        return _compare_in(output_dir, policy, draft_head, config, settings, policy_dir, draft_head_dir, progress)
+        done = {(r["task"], r["seed"], r["method"]) for r in read_episode_logs(output_dir)}
+        pairs = config.pairs()
+        total = len(pairs) * len(methods)
+        remaining = sum((t, s, m.name) not in done for t, s in pairs for m in methods)
+        logger.info("compare: %d episodes (%d methods x %d seeds), %d to run", total, len(methods), len(pairs),
+                    remaining)  # fmt: skip
+        bar = progress_bar(total=total, initial=total - remaining, desc="compare", unit="episode", disable=not progress)
+        if config.workers == 1:
+            _run_shard(policy, draft_head, config, pairs, output_dir / "episodes.worker-0.jsonl", done, bar)
+        else:
+            _run_in_workers(config, pairs, done, output_dir, policy_dir, draft_head_dir, bar)
+        bar.close()
+        records = read_episode_logs(output_dir)
+        wanted = {(t, s) for t, s in pairs}
+        records = [r for r in records if (r["task"], r["seed"]) in wanted and r["method"] in config.methods]
+        summary = summarize_comparison(records, config.methods)
+        summary["settings"] = {**settings, "tasks": config.tasks, "episodes_per_task": config.episodes_per_task,
+                               "workers": config.workers, "threads": config.threads}  # fmt: skip
+        write_json_atomic(output_dir / "summary.json", summary)
+        (output_dir / "compare.md").write_text(format_comparison(summary) + "\n")
+        plot_comparison(summary, output_dir)
+        return summary
 
 
+def _run_in_workers(config: CompareConfig, pairs: list, done: set, output_dir: Path, policy_dir: str | None,
+                    draft_head_dir: str | None, bar) -> None:  # fmt: skip
+    """Splits ``pairs`` between ``config.workers`` spawned processes (a seed never spans two) and follows their
+    logs on ``bar``."""
+    shards = [pairs[i :: config.workers] for i in range(config.workers)]
+    bar_start, lines_at_start = bar.n, _count_log_lines(output_dir)
+    with ProcessPoolExecutor(config.workers, mp_context=get_context("spawn")) as pool:
+        pending = {
+            pool.submit(
+                _worker_main,
+                policy_dir,
+                draft_head_dir,
+                asdict(config),
+                shard,
+                str(output_dir / f"episodes.worker-{i}.jsonl"),
+                sorted(done),
+            )  # fmt: skip
+            for i, shard in enumerate(shards)
+            if shard
+        }
+        while pending:
+            finished, pending = wait(pending, timeout=10, return_when=FIRST_EXCEPTION)
+            for future in finished:
+                future.result()  # a worker's exception surfaces here
+            # new finished lines only (workers write only wanted episodes; repairing a log with read_jsonl while
+            # its worker appends would race); update() keeps the bar's redraw interval
+            written = min(bar.total, bar_start + _count_log_lines(output_dir) - lines_at_start)
+            if written > bar.n:
+                bar.update(written - bar.n)
+
+
+@contextlib.contextmanager
 def folder_lock(folder: Path):
     """Holds ``folder/.lock`` (this process's pid) while a comparison writes there.
 
     Raises:
         FileExistsError: another live process holds it (two runs appending to one folder would mix their logs).
     """
-    import contextlib
-
     lock = folder / ".lock"
-
-    @contextlib.contextmanager
-    def held():
-        if lock.exists():
-            try:
-                holder = int(lock.read_text().strip() or 0)
-                os.kill(holder, 0)
-            except (ValueError, ProcessLookupError):
-                holder = None  # a stale lock: its process is gone
-            except PermissionError:
-                pass  # alive, another user's
-            if holder:
-                raise FileExistsError(f"another comparison (pid {holder}) is writing to {str(folder)!r}; wait for it")
-        lock.write_text(str(os.getpid()))
+    if lock.exists():
         try:
-            yield
-        finally:
-            lock.unlink(missing_ok=True)
-
-    return held()
-
-
-def _compare_in(output_dir, policy, draft_head, config, settings, policy_dir, draft_head_dir, progress) -> dict:
-    """The body of [`run_comparison`], with the folder locked."""
-    methods = config.decoding_methods()
-    done = {(r["task"], r["seed"], r["method"]) for r in read_episode_logs(output_dir)}
-    pairs = config.pairs()
-    total = len(pairs) * len(methods)
-    remaining = sum((t, s, m.name) not in done for t, s in pairs for m in methods)
-    logger.info("compare: %d episodes (%d methods x %d seeds), %d to run", total, len(methods), len(pairs), remaining)
-    bar = progress_bar(total=total, initial=total - remaining, desc="compare", unit="episode", disable=not progress)
-    if config.workers == 1:
-        _run_shard(policy, draft_head, config, pairs, output_dir / "episodes.worker-0.jsonl", done, bar)
-    else:
-        shards = [pairs[i :: config.workers] for i in range(config.workers)]
-        bar_start, lines_at_start = total - remaining, _count_log_lines(output_dir)
-        context = get_context("spawn")
-        with ProcessPoolExecutor(config.workers, mp_context=context) as pool:
-            futures = [
-                pool.submit(
-                    _worker_main,
-                    policy_dir,
-                    draft_head_dir,
-                    asdict(config),
-                    shard,
-                    str(output_dir / f"episodes.worker-{i}.jsonl"),
-                    sorted(done),
-                )  # fmt: skip
-                for i, shard in enumerate(shards)
-                if shard
-            ]
-            pending = set(futures)
-            while pending:
-                finished, pending = wait(pending, timeout=10, return_when=FIRST_EXCEPTION)
-                for future in finished:
-                    future.result()  # a worker's exception surfaces here
-                # count new finished lines only (workers write only wanted episodes; repairing a log with
-                # read_jsonl while its worker appends would race)
-                finished = bar_start + _count_log_lines(output_dir) - lines_at_start
-                if min(total, finished) > bar.n:  # update() keeps the bar's redraw interval
-                    bar.update(min(total, finished) - bar.n)
-    bar.close()
-    records = read_episode_logs(output_dir)
-    wanted = {(t, s) for t, s in pairs}
-    records = [r for r in records if (r["task"], r["seed"]) in wanted and r["method"] in config.methods]
-    summary = summarize_comparison(records, config.methods)
-    summary["settings"] = {**settings, "tasks": config.tasks, "episodes_per_task": config.episodes_per_task,
-                           "workers": config.workers, "threads": config.threads}  # fmt: skip
-    write_json_atomic(output_dir / "summary.json", summary)
-    (output_dir / "compare.md").write_text(format_comparison(summary) + "\n")
-    plot_comparison(summary, output_dir)
-    return summary
+            holder = int(lock.read_text().strip() or 0)
+            os.kill(holder, 0)
+        except (ValueError, ProcessLookupError):
+            holder = None  # a stale lock: its process is gone
+        except PermissionError:
+            pass  # alive, another user's
+        if holder:
+            raise FileExistsError(f"another comparison (pid {holder}) is writing to {str(folder)!r}; wait for it")
+    lock.write_text(str(os.getpid()))
+    try:
+        yield
+    finally:
+        lock.unlink(missing_ok=True)
 
 
 # ----------------------------------------------------------------------------- statistics

@@ -184,7 +184,7 @@ def train_policy_draft_head(
     )  # fmt: skip
     recipe = {"data": {**asdict(data_config), "demonstrations": demonstrations,
                        "demonstration_info": [dataset_info(root) for root in demonstrations]}}  # fmt: skip
-    record = draft_training_record(head, policy.model, training_config, recipe)
+    record = draft_training_record(head, policy.weights_fingerprint(), training_config, recipe)
     check_output_dir(output_dir, record, training_config.resume, training_config.overwrite_output_dir)
 
     logger.info("on-policy rollouts: %d per task on %d tasks", data_config.rollout_episodes, len(data_config.tasks))
@@ -204,7 +204,7 @@ def train_policy_draft_head(
                                       action_layout=policy.action_layout)  # fmt: skip
 
     head = train_draft_head(head, policy.model, dataset, training_config, progress=progress, validate=validate,
-                            inputs=recipe)  # fmt: skip
+                            inputs=recipe, target_fingerprint=policy.weights_fingerprint())  # fmt: skip
     write_model_card(output_dir, head, training_config, data_config, demonstrations, len(dataset), command)
     return head
 

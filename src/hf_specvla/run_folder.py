@@ -85,7 +85,7 @@ class RunRecord:
         ]
 
 
-def check_run_folder(folder: str | Path, record: RunRecord, overwrite: bool = False) -> bool:
+def check_run_folder(folder: str | Path, record: RunRecord) -> bool:
     """The refusals of [`open_run_folder`] without writing anything: call it before a long preparation (data,
     models) so that a folder that would be refused is refused first.
 
@@ -94,7 +94,7 @@ def check_run_folder(folder: str | Path, record: RunRecord, overwrite: bool = Fa
     """
     folder = Path(folder)
     run_file = folder / RUN_FILE
-    if overwrite or not folder.exists() or not any(folder.iterdir()):
+    if not folder.exists() or not any(folder.iterdir()):
         return False
     ways_out = "choose another output folder, or pass --overwrite-output-dir to move this one aside and start over"
     if not run_file.is_file():

@@ -253,6 +253,7 @@ def train_draft_head(
     progress: bool = True,
     validate: Callable[[DraftHead], dict] | None = None,
     inputs: dict | None = None,
+    target_fingerprint: str | None = None,
 ) -> DraftHead:
     """Trains ``draft_head`` against the frozen ``target`` on a [`DistillationDataset`].
 
@@ -270,12 +271,13 @@ def train_draft_head(
             by default a fingerprint of the dataset's token ids; a caller whose data is a deterministic recipe
             (e.g. a policy's rollouts on given seeds) passes the recipe, and can check the folder with
             [`draft_training_record`] and ``checkpointing.check_output_dir`` before building the data.
+        target_fingerprint: ``run_folder.fingerprint(target)`` when the caller already has it (hashed otherwise).
     """
     output_dir = Path(config.output_dir)
     if inputs is None:
         inputs = {"data": fingerprint_arrays(*[example["input_ids"] for example in dataset.examples])}
-    prepare_output_dir(output_dir, draft_training_record(draft_head, target, config, inputs), config.resume,
-                       config.overwrite_output_dir)  # fmt: skip
+    record = draft_training_record(draft_head, target_fingerprint or fingerprint(target), config, inputs)
+    prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir)
     accelerator = accelerator or Accelerator(
         mixed_precision=config.mixed_precision,
         dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
@@ -356,11 +358,11 @@ def train_draft_head(
     return model
 
 
-def draft_training_record(draft_head: DraftHead, target: PreTrainedModel, config: DraftTrainingConfig, inputs: dict):
-    """The ``run.json`` record of a draft-head training: its settings, the target's and the head's identity, and
-    ``inputs`` (what the data is)."""
+def draft_training_record(draft_head: DraftHead, target_fingerprint: str, config: DraftTrainingConfig, inputs: dict):
+    """The ``run.json`` record of a draft-head training: its settings, the target's weights (``fingerprint``) and
+    the head's identity, and ``inputs`` (what the data is)."""
     head_config = {k: v for k, v in draft_head.config.to_dict().items() if k != "transformers_version"}
-    identity = {"target": fingerprint(target), "draft_head_config": head_config}
+    identity = {"target": target_fingerprint, "draft_head_config": head_config}
     return training_record("train-draft", config, {**identity, **inputs})
 
 

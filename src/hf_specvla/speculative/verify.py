@@ -58,17 +58,17 @@ def verify_tree(
     inputs = dict(model_inputs)
     inputs["input_ids"] = torch.cat([pending_ids, tree.token_ids[None]], dim=1) if num_nodes else pending_ids
     root_position = pending_positions[:, -1:]
-    if num_nodes and not (tree.is_chain and prompt_padding is None):
+    if num_nodes:
         inputs["position_ids"] = torch.cat([pending_positions, root_position + 1 + tree.depths[None]], dim=1)
-        padding = sequence_key_padding(prompt_padding, past_length + num_pending)
-        allowed = tree_verification_allowed(past_length, num_pending, tree.ancestor_or_self, padding)
-        inputs["attention_mask"] = to_additive_mask(allowed, model.dtype)
-    elif num_nodes:
-        # A chain without padding: its tree mask is the causal mask, so the model runs its own causal path (the
-        # kernels a plain forward uses: in bf16 an explicit mask selects other kernels, whose rounding can flip a
-        # near-tied argmax away from plain greedy decoding's).
-        inputs["position_ids"] = torch.cat([pending_positions, root_position + 1 + tree.depths[None]], dim=1)
-        inputs["attention_mask"] = None
+        if tree.is_chain and prompt_padding is None:
+            # A chain's tree mask is the causal mask: the model runs its own causal path (the kernels a plain
+            # forward uses; in bf16 an explicit mask selects other kernels, whose rounding can flip a near-tied
+            # argmax away from plain greedy decoding's).
+            inputs["attention_mask"] = None
+        else:
+            padding = sequence_key_padding(prompt_padding, past_length + num_pending)
+            allowed = tree_verification_allowed(past_length, num_pending, tree.ancestor_or_self, padding)
+            inputs["attention_mask"] = to_additive_mask(allowed, model.dtype)
     else:
         inputs["position_ids"] = pending_positions
         padding = sequence_key_padding(prompt_padding, past_length + num_pending)
