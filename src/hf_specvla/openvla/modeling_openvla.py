@@ -1,0 +1,359 @@
+"""``OpenVLAForActionPrediction``: OpenVLA on transformers 5.x, computing what the official code computes.
+
+The model is the official one, module for module, so that ``state_dict()`` keys are the checkpoint's own (no key
+mapping, sharded or single-file checkpoints load as they are): ``vision_backbone`` (one or two ViTs, see
+``vision.py``), ``projector`` and ``language_model`` (transformers' own ``LlamaForCausalLM``).
+
+The image enters the language model as ``num_patches`` projected patch embeddings right after BOS. Two equivalent
+inputs say so:
+
+* the official one: ``input_ids`` without image rows plus ``pixel_values``; ``forward`` inserts the patches after
+  position 0 (logits then have ``num_patches`` more rows than ``input_ids``), exactly as the official code does;
+* the generation one: ``input_ids`` that already hold ``num_patches`` copies of ``config.image_token_id`` where the
+  patches go (as Llava's prompts do). Sequence length, cache length and position ids then agree, which is what
+  ``generate`` and the speculative loop (tree verification inside the prefill, cache surgery) rely on.
+  ``generate`` turns the first form into the second and takes the image rows out of the returned sequences, so
+  ``generate(input_ids, pixel_values=...)`` returns the official ``input_ids + new tokens``.
+
+Speculation: ``generate(..., assistant_model=draft_head | drafter, draft_ids=..., bin_tolerance=r)`` and
+``predict_action`` with the same options (see [`SpeculativeGenerationMixin`]).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+from transformers import AutoModelForCausalLM, GenerationMixin, PreTrainedModel
+from transformers import initialization as init
+from transformers.modeling_outputs import ModelOutput
+
+from ..action_tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
+from ..speculative import Drafter, DraftHead, SpeculativeGenerationMixin
+from .configuration_openvla import OpenVLAConfig
+from .vision import AttentionPoolLatent, LayerScale, OpenVLAProjector, OpenVLAVisionBackbone, VisionTransformer
+
+#: The token the official ``predict_action`` appends to a prompt that does not end with it (``"▁"``, what
+#: "Out: " ends with when tokenized during training).
+PROMPT_END_TOKEN_ID = 29871
+
+IGNORE_INDEX = -100
+
+
+@dataclass
+class OpenVLACausalLMOutputWithPast(ModelOutput):
+    """The language model's output, plus the projected patch features when asked for.
+
+    Attributes:
+        logits: ``[B, L, V]`` (``L`` counts the image rows).
+        projector_features: ``[B, num_patches, llm_dim]`` or None.
+    """
+
+    loss: torch.FloatTensor | None = None
+    logits: torch.FloatTensor | None = None
+    past_key_values: object | None = None
+    hidden_states: tuple[torch.FloatTensor, ...] | None = None
+    attentions: tuple[torch.FloatTensor, ...] | None = None
+    projector_features: torch.FloatTensor | None = None
+
+
+class OpenVLAPreTrainedModel(PreTrainedModel):
+    config_class = OpenVLAConfig
+    base_model_prefix = "model"
+    main_input_name = "input_ids"
+    supports_gradient_checkpointing = False
+    _no_split_modules = ["VisionBlock", "OpenVLAProjector", "LlamaDecoderLayer"]
+    _skip_keys_device_placement = "past_key_values"
+    _supports_sdpa = True
+    _supports_flash_attn = True
+
+    def _init_weights(self, module: nn.Module) -> None:
+        super()._init_weights(module)
+        std = self.config.text_config.initializer_range
+        if isinstance(module, VisionTransformer):
+            for token in (module.cls_token, module.reg_token, module.pos_embed):
+                if token is not None:
+                    init.normal_(token, mean=0.0, std=std)
+        elif isinstance(module, LayerScale):
+            init.constant_(module.scale_factor, 1e-5)
+        elif isinstance(module, AttentionPoolLatent):
+            init.normal_(module.latent, mean=0.0, std=module.latent.shape[-1] ** -0.5)
+
+
+class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedModel, GenerationMixin):
+    """OpenVLA: vision backbone -> projector -> Llama, with ``predict_action`` (7 action tokens -> un-normalised
+    action).
+
+    Attributes:
+        action_tokenizer: the action tokens (the last ``n_action_bins`` ids below ``config.action_vocab_end``).
+        norm_stats: ``config.norm_stats``.
+    """
+
+    def __init__(self, config: OpenVLAConfig):
+        super().__init__(config)
+        self.vision_backbone = OpenVLAVisionBackbone(
+            config.timm_model_ids, config.image_sizes, config.use_fused_vision_backbone
+        )
+        self.projector = OpenVLAProjector(
+            self.vision_backbone.embed_dim, config.text_config.hidden_size, config.use_fused_vision_backbone
+        )
+        self.language_model = AutoModelForCausalLM.from_config(config.text_config)
+        self.action_tokenizer = ActionTokenizer(config.action_vocab_end, config.n_action_bins)
+        self.norm_stats = config.norm_stats
+        self.post_init()
+
+    # --- transformers plumbing -------------------------------------------------------------------------------
+    def get_input_embeddings(self) -> nn.Module:
+        return self.language_model.get_input_embeddings()
+
+    def set_input_embeddings(self, value: nn.Module) -> None:
+        self.language_model.set_input_embeddings(value)
+
+    def get_output_embeddings(self) -> nn.Module:
+        return self.language_model.get_output_embeddings()
+
+    def set_output_embeddings(self, value: nn.Module) -> None:
+        self.language_model.set_output_embeddings(value)
+
+    def get_decoder(self) -> nn.Module:
+        return self.language_model.get_decoder()
+
+    @property
+    def num_patches(self) -> int:
+        """Image rows in the language model's sequence (256 at 224 px)."""
+        return self.vision_backbone.num_patches
+
+    # --- forward --------------------------------------------------------------------------------------------
+    def get_image_features(self, pixel_values: torch.Tensor) -> torch.Tensor:
+        """``[B, 3 or 6, H, W]`` -> projected patches ``[B, num_patches, llm_dim]``."""
+        vision_dtype = self.projector.fc1.weight.dtype
+        return self.projector(self.vision_backbone(pixel_values.to(vision_dtype)))
+
+    def forward(
+        self,
+        input_ids: torch.LongTensor | None = None,
+        attention_mask: torch.Tensor | None = None,
+        pixel_values: torch.FloatTensor | None = None,
+        labels: torch.LongTensor | None = None,
+        inputs_embeds: torch.FloatTensor | None = None,
+        past_key_values=None,
+        position_ids: torch.LongTensor | None = None,
+        use_cache: bool | None = None,
+        output_hidden_states: bool | None = None,
+        output_projector_features: bool | None = None,
+        return_dict: bool | None = None,
+        **kwargs,
+    ) -> OpenVLACausalLMOutputWithPast:
+        """One forward of the language model over text, image rows and (in generation) cached tokens.
+
+        Args:
+            input_ids: ``[B, L]``. With ``pixel_values`` and no ``config.image_token_id`` in them, the patches are
+                inserted after position 0 (the official layout); with ``num_patches`` image tokens per row, the
+                patches replace those rows.
+            pixel_values: ``[B, 6, H, W]`` (fused backbone) or ``[B, 3, H, W]``; None for text-only or cached steps.
+            attention_mask: ``[B, L]`` 2D padding mask or a 4D mask (generation); extended with ones when
+                patches are inserted.
+            labels: ``[B, L]``; extended with ``IGNORE_INDEX`` when patches are inserted.
+            kwargs: passed to the language model (``logits_to_keep``, ...).
+        """
+        if (input_ids is None) == (inputs_embeds is None):
+            raise ValueError("pass exactly one of input_ids and inputs_embeds")
+        projected = None
+        if pixel_values is not None:
+            if input_ids is None:
+                raise ValueError("pixel_values need input_ids (the image rows are placed by token position)")
+            if pixel_values.shape[0] != input_ids.shape[0]:
+                raise ValueError(
+                    f"pixel_values has {pixel_values.shape[0]} images for {input_ids.shape[0]} prompts; pass one image "
+                    f"per prompt"
+                )
+            projected = self.get_image_features(pixel_values)
+            inputs_embeds = self.get_input_embeddings()(input_ids)
+            image_rows = input_ids == self.config.image_token_id
+            counts = image_rows.sum(dim=1)
+            if bool((counts == 0).all()):
+                if position_ids is not None:
+                    raise ValueError(
+                        "position_ids cannot be given when the image is inserted after BOS (input_ids without image "
+                        "tokens); put config.image_token_id rows in input_ids instead"
+                    )
+                inputs_embeds = torch.cat([inputs_embeds[:, :1], projected.to(inputs_embeds.dtype), inputs_embeds[:, 1:]], 1)
+                if attention_mask is not None:
+                    if attention_mask.ndim != 2:
+                        raise ValueError("with the image inserted after BOS, attention_mask must be the 2D [B, L] mask")
+                    ones = attention_mask.new_ones(attention_mask.shape[0], self.num_patches)
+                    attention_mask = torch.cat([attention_mask[:, :1], ones, attention_mask[:, 1:]], dim=1)
+                if labels is not None:
+                    ignored = labels.new_full((labels.shape[0], self.num_patches), IGNORE_INDEX)
+                    labels = torch.cat([labels[:, :1], ignored, labels[:, 1:]], dim=1)
+            elif bool((counts == self.num_patches).all()):
+                inputs_embeds = inputs_embeds.masked_scatter(
+                    image_rows[..., None].expand_as(inputs_embeds), projected.to(inputs_embeds.dtype)
+                )
+            else:
+                raise ValueError(
+                    f"each prompt must hold either no image token or exactly {self.num_patches} "
+                    f"(config.image_token_id={self.config.image_token_id}); got {counts.tolist()}"
+                )
+            input_ids = None
+        elif input_ids is not None and bool((input_ids == self.config.image_token_id).any()) and past_key_values is None:
+            raise ValueError(
+                f"input_ids hold image tokens (config.image_token_id={self.config.image_token_id}) but no pixel_values "
+                f"were given"
+            )
+        outputs = self.language_model(
+            input_ids=input_ids,
+            inputs_embeds=inputs_embeds,
+            attention_mask=attention_mask,
+            position_ids=position_ids,
+            past_key_values=past_key_values,
+            labels=labels,
+            use_cache=use_cache,
+            output_hidden_states=output_hidden_states,
+            return_dict=True,
+            **kwargs,
+        )
+        return OpenVLACausalLMOutputWithPast(
+            loss=outputs.loss,
+            logits=outputs.logits,
+            past_key_values=outputs.past_key_values,
+            hidden_states=outputs.hidden_states,
+            attentions=outputs.attentions,
+            projector_features=projected if output_projector_features else None,
+        )
+
+    # --- generation -----------------------------------------------------------------------------------------
+    def add_image_tokens(
+        self, input_ids: torch.LongTensor, attention_mask: torch.Tensor | None = None
+    ) -> tuple[torch.LongTensor, torch.Tensor | None]:
+        """The official layout's prompt with ``num_patches`` image tokens after position 0 (and its 2D mask)."""
+        batch = input_ids.shape[0]
+        image_ids = input_ids.new_full((batch, self.num_patches), self.config.image_token_id)
+        input_ids = torch.cat([input_ids[:, :1], image_ids, input_ids[:, 1:]], dim=1)
+        if attention_mask is not None:
+            ones = attention_mask.new_ones(batch, self.num_patches)
+            attention_mask = torch.cat([attention_mask[:, :1], ones, attention_mask[:, 1:]], dim=1)
+        return input_ids, attention_mask
+
+    def generate(self, input_ids=None, pixel_values=None, attention_mask=None, **kwargs):
+        """``GenerationMixin.generate`` (speculative with a hf_specvla assistant or ``draft_ids``).
+
+        Prompts in the official layout (no image tokens) get their image rows for the call, and lose them again in
+        the returned sequences, so the result is ``input_ids`` followed by the new tokens, as with the official code.
+        """
+        inserted = (
+            pixel_values is not None
+            and input_ids is not None
+            and not bool((input_ids == self.config.image_token_id).any())
+        )
+        if inserted:
+            input_ids, attention_mask = self.add_image_tokens(input_ids, attention_mask)
+        if attention_mask is not None:
+            kwargs["attention_mask"] = attention_mask
+        output = super().generate(input_ids, pixel_values=pixel_values, **kwargs)
+        if not inserted:
+            return output
+        if isinstance(output, torch.Tensor):
+            return self._drop_image_rows(output)
+        output.sequences = self._drop_image_rows(output.sequences)
+        return output
+
+    def _drop_image_rows(self, sequences: torch.Tensor) -> torch.Tensor:
+        return torch.cat([sequences[:, :1], sequences[:, 1 + self.num_patches :]], dim=1)
+
+    # --- actions --------------------------------------------------------------------------------------------
+    def check_unnorm_key(self, unnorm_key: str | None) -> str:
+        """The dataset whose statistics un-normalise actions.
+
+        Raises:
+            ValueError: when ``unnorm_key`` is unknown, or None while the checkpoint has several datasets (lists
+                the valid keys).
+        """
+        keys = sorted(self.norm_stats or {})
+        if not keys:
+            raise ValueError("this checkpoint has no norm_stats, so it cannot un-normalise actions")
+        if unnorm_key is None:
+            if len(keys) > 1:
+                raise ValueError(f"this checkpoint was trained on {len(keys)} datasets; pass unnorm_key, one of {keys}")
+            return keys[0]
+        if unnorm_key not in self.norm_stats:
+            raise ValueError(f"unnorm_key={unnorm_key!r} is not in this checkpoint's norm_stats; valid keys: {keys}")
+        return unnorm_key
+
+    def get_action_stats(self, unnorm_key: str | None = None) -> dict:
+        """The action statistics (q01, q99, mask, ...) of a dataset."""
+        return self.norm_stats[self.check_unnorm_key(unnorm_key)]["action"]
+
+    def get_action_dim(self, unnorm_key: str | None = None) -> int:
+        """Action tokens per action (the length of the dataset's ``q01``)."""
+        return len(self.get_action_stats(unnorm_key)["q01"])
+
+    def action_normalizer(self, unnorm_key: str | None = None) -> ActionNormalizer:
+        """The dataset's q01/q99 (un-)normalisation, with its mask."""
+        stats = self.get_action_stats(unnorm_key)
+        return ActionNormalizer(stats["q01"], stats["q99"], stats.get("mask"))
+
+    def action_layout(self, unnorm_key: str | None = None) -> ActionLayout:
+        """What relaxed acceptance needs: the action tokens and the tokens per action."""
+        return ActionLayout(self.action_tokenizer, self.get_action_dim(unnorm_key))
+
+    def action_token_ids(self, action, unnorm_key: str | None = None) -> list[int]:
+        """The action tokens of an (un-normalised) action, e.g. the previous one as ``draft_ids`` for the next."""
+        return self.action_tokenizer.encode(self.action_normalizer(unnorm_key).normalize(action)).tolist()
+
+    def predict_action(
+        self,
+        input_ids: torch.LongTensor | None = None,
+        unnorm_key: str | None = None,
+        *,
+        image=None,
+        instruction: str | None = None,
+        processor=None,
+        **kwargs,
+    ) -> np.ndarray:
+        """One action, ``[action_dim]`` float64, un-normalised with the dataset's q01/q99 (where its mask is True).
+
+        Two calls:
+
+        * the official one: ``predict_action(input_ids=..., pixel_values=..., unnorm_key=..., do_sample=False)``
+          (``attention_mask`` may be passed as well);
+        * ``predict_action(image=..., instruction="pick up the red block", processor=processor, unnorm_key=...)``,
+          which builds the official prompt with the [`OpenVLAProcessor`].
+
+        Every other keyword goes to ``generate``, speculation included: ``assistant_model=draft_head`` (or a
+        drafter), ``draft_ids=`` (e.g. ``self.action_token_ids(previous_action)``), ``bin_tolerance=r``.
+
+        Differences from the official code (bugs there): ``attention_mask`` is extended with the appended 29871
+        token (the official call passes a mask one token short); the action tokens are always ``action_dim`` new
+        tokens (EOS is suppressed until then, where the official code would decode prompt tokens as actions).
+        """
+        unnorm_key = self.check_unnorm_key(unnorm_key)
+        action_dim = self.get_action_dim(unnorm_key)
+        if image is not None or instruction is not None:
+            if input_ids is not None or "pixel_values" in kwargs:
+                raise ValueError("pass either input_ids / pixel_values or image / instruction, not both")
+            if image is None or instruction is None or processor is None:
+                raise ValueError("predict_action(image=..., instruction=...) needs all of image, instruction, processor")
+            inputs = processor(processor.prompt(instruction), image)
+            input_ids = inputs["input_ids"].to(self.device)
+            kwargs["attention_mask"] = inputs["attention_mask"].to(self.device)
+            kwargs["pixel_values"] = inputs["pixel_values"].to(self.device)
+        if input_ids is None:
+            raise ValueError("predict_action needs input_ids (with pixel_values) or image, instruction and processor")
+        if input_ids.shape[0] != 1:
+            raise ValueError(f"predict_action predicts one action; got a batch of {input_ids.shape[0]} prompts")
+        if not bool((input_ids[:, -1] == PROMPT_END_TOKEN_ID).all()):
+            input_ids = torch.cat([input_ids, input_ids.new_full((input_ids.shape[0], 1), PROMPT_END_TOKEN_ID)], dim=1)
+            mask = kwargs.get("attention_mask")
+            if mask is not None and mask.shape[1] == input_ids.shape[1] - 1:
+                kwargs["attention_mask"] = torch.cat([mask, mask.new_ones(mask.shape[0], 1)], dim=1)
+        if isinstance(kwargs.get("assistant_model"), (DraftHead, Drafter)) or kwargs.get("draft_ids") is not None:
+            kwargs.setdefault("action_layout", self.action_layout(unnorm_key))
+        kwargs.setdefault("min_new_tokens", action_dim)
+        generated = self.generate(input_ids, max_new_tokens=action_dim, **kwargs)
+        sequences = generated if isinstance(generated, torch.Tensor) else generated.sequences
+        action_token_ids = sequences[0, -action_dim:].cpu().numpy()
+        normalized = self.action_tokenizer.decode(action_token_ids)
+        return self.action_normalizer(unnorm_key).unnormalize(normalized)
