@@ -21,7 +21,10 @@ Speculation: ``generate(..., assistant_model=draft_head | drafter, draft_ids=...
 
 from __future__ import annotations
 
+import json
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -32,6 +35,7 @@ from transformers.modeling_outputs import ModelOutput
 
 from ..action_tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
 from ..speculative import Drafter, DraftHead, SpeculativeGenerationMixin
+from ..speculative.modeling_draft_head import is_local_path
 from .configuration_openvla import OpenVLAConfig
 from .vision import AttentionPoolLatent, LayerScale, OpenVLAProjector, OpenVLAVisionBackbone, VisionTransformer
 
@@ -40,6 +44,50 @@ from .vision import AttentionPoolLatent, LayerScale, OpenVLAProjector, OpenVLAVi
 PROMPT_END_TOKEN_ID = 29871
 
 IGNORE_INDEX = -100
+
+#: How many offending key names an error message shows.
+_KEYS_SHOWN = 5
+
+
+def check_checkpoint_folder(name_or_path: str | os.PathLike) -> None:
+    """Raises when a local ``name_or_path`` is not a complete OpenVLA checkpoint; does nothing for a hub repo id.
+
+    Complete: ``config.json`` with ``model_type: "openvla"``, and ``model.safetensors`` or an index whose every shard
+    is present.
+
+    Raises:
+        FileNotFoundError / ValueError: naming the path and what is missing or wrong.
+    """
+    if not is_local_path(name_or_path):
+        return
+    folder = Path(name_or_path).expanduser()
+    if not folder.is_dir():
+        raise FileNotFoundError(
+            f"OpenVLA checkpoint folder {str(name_or_path)!r} does not exist (a local path: it is "
+            f"not looked up on the hub)"
+        )
+    config_file = folder / "config.json"
+    if not config_file.is_file():
+        raise FileNotFoundError(f"{str(name_or_path)!r} has no config.json: not an OpenVLA checkpoint folder")
+    model_type = json.loads(config_file.read_text()).get("model_type")
+    if model_type != OpenVLAConfig.model_type:
+        raise ValueError(
+            f"{str(name_or_path)!r} holds a {model_type!r} model, not an OpenVLA checkpoint "
+            f"(model_type {OpenVLAConfig.model_type!r})"
+        )
+    index_file = folder / "model.safetensors.index.json"
+    if index_file.is_file():
+        shards = sorted(set(json.loads(index_file.read_text())["weight_map"].values()))
+        missing = [shard for shard in shards if not (folder / shard).is_file()]
+        if missing:
+            raise FileNotFoundError(
+                f"{str(name_or_path)!r} is missing {len(missing)} of the {len(shards)} weight "
+                f"shards its index lists: {missing[:_KEYS_SHOWN]}"
+            )
+    elif not (folder / "model.safetensors").is_file():
+        raise FileNotFoundError(
+            f"{str(name_or_path)!r} has neither model.safetensors nor model.safetensors.index.json: no weights to load"
+        )
 
 
 @dataclass
@@ -103,6 +151,31 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         self.action_tokenizer = ActionTokenizer(config.action_vocab_end, config.n_action_bins)
         self.norm_stats = config.norm_stats
         self.post_init()
+
+    @classmethod
+    def from_pretrained(cls, pretrained_model_name_or_path, *model_args, **kwargs):
+        """``PreTrainedModel.from_pretrained`` for official OpenVLA checkpoints, strict about what it loads.
+
+        A local folder is checked first (see [`check_checkpoint_folder`]; a local path is never sent to the hub);
+        every checkpoint key must match a parameter and every parameter must be loaded, otherwise a ValueError names
+        the first few keys (transformers would only warn and leave random weights).
+        """
+        check_checkpoint_folder(pretrained_model_name_or_path)
+        output_loading_info = kwargs.pop("output_loading_info", False)
+        model, loading_info = super().from_pretrained(
+            pretrained_model_name_or_path, *model_args, output_loading_info=True, **kwargs
+        )
+        problems = []
+        for kind in ("missing_keys", "unexpected_keys", "mismatched_keys"):
+            keys = sorted(str(key) for key in loading_info.get(kind) or [])
+            if keys:
+                problems.append(f"{len(keys)} {kind.replace('_', ' ')} (e.g. {keys[:_KEYS_SHOWN]})")
+        if problems:
+            raise ValueError(
+                f"the checkpoint at {str(pretrained_model_name_or_path)!r} does not match the OpenVLA architecture its "
+                f"config.json describes: {'; '.join(problems)}"
+            )
+        return (model, loading_info) if output_loading_info else model
 
     # --- transformers plumbing -------------------------------------------------------------------------------
     def get_input_embeddings(self) -> nn.Module:
@@ -179,7 +252,9 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
                         "position_ids cannot be given when the image is inserted after BOS (input_ids without image "
                         "tokens); put config.image_token_id rows in input_ids instead"
                     )
-                inputs_embeds = torch.cat([inputs_embeds[:, :1], projected.to(inputs_embeds.dtype), inputs_embeds[:, 1:]], 1)
+                inputs_embeds = torch.cat(
+                    [inputs_embeds[:, :1], projected.to(inputs_embeds.dtype), inputs_embeds[:, 1:]], 1
+                )
                 if attention_mask is not None:
                     if attention_mask.ndim != 2:
                         raise ValueError("with the image inserted after BOS, attention_mask must be the 2D [B, L] mask")
@@ -198,7 +273,9 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
                     f"(config.image_token_id={self.config.image_token_id}); got {counts.tolist()}"
                 )
             input_ids = None
-        elif input_ids is not None and bool((input_ids == self.config.image_token_id).any()) and past_key_values is None:
+        elif (
+            input_ids is not None and bool((input_ids == self.config.image_token_id).any()) and past_key_values is None
+        ):
             raise ValueError(
                 f"input_ids hold image tokens (config.image_token_id={self.config.image_token_id}) but no pixel_values "
                 f"were given"
@@ -299,9 +376,11 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         """What relaxed acceptance needs: the action tokens and the tokens per action."""
         return ActionLayout(self.action_tokenizer, self.get_action_dim(unnorm_key))
 
-    def action_token_ids(self, action, unnorm_key: str | None = None) -> list[int]:
-        """The action tokens of an (un-normalised) action, e.g. the previous one as ``draft_ids`` for the next."""
-        return self.action_tokenizer.encode(self.action_normalizer(unnorm_key).normalize(action)).tolist()
+    def action_token_ids(self, action, unnorm_key: str | None = None) -> torch.LongTensor:
+        """The action tokens ``[1, action_dim]`` of an un-normalised action ``[action_dim]``: the previous action as
+        ``draft_ids`` for the next call (``predict_action(..., draft_ids=model.action_token_ids(previous))``)."""
+        tokens = self.action_tokenizer.encode(self.action_normalizer(unnorm_key).normalize(action))
+        return torch.as_tensor(tokens, dtype=torch.long, device=self.device)[None]
 
     def predict_action(
         self,
@@ -335,7 +414,9 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
             if input_ids is not None or "pixel_values" in kwargs:
                 raise ValueError("pass either input_ids / pixel_values or image / instruction, not both")
             if image is None or instruction is None or processor is None:
-                raise ValueError("predict_action(image=..., instruction=...) needs all of image, instruction, processor")
+                raise ValueError(
+                    "predict_action(image=..., instruction=...) needs all of image, instruction, processor"
+                )
             inputs = processor(processor.prompt(instruction), image)
             input_ids = inputs["input_ids"].to(self.device)
             kwargs["attention_mask"] = inputs["attention_mask"].to(self.device)

@@ -96,7 +96,9 @@ class OpenVLAImageProcessor:
         ):
             interpolation = resize.get("interpolation", 3)
             if interpolation not in _RESAMPLING:
-                raise ValueError(f"interpolation mode {interpolation} is not supported; supported: {sorted(_RESAMPLING)}")
+                raise ValueError(
+                    f"interpolation mode {interpolation} is not supported; supported: {sorted(_RESAMPLING)}"
+                )
             transforms.append(
                 TowerTransform(
                     size=tuple(resize["size"]),

@@ -59,7 +59,13 @@ class VisionTowerSpec:
 
 def _dinov2_reg4(embed_dim: int, depth: int, num_heads: int) -> VisionTowerSpec:
     return VisionTowerSpec(
-        embed_dim, depth, num_heads, 4 * embed_dim, class_token=True, num_register_tokens=4, no_embed_class=True,
+        embed_dim,
+        depth,
+        num_heads,
+        4 * embed_dim,
+        class_token=True,
+        num_register_tokens=4,
+        no_embed_class=True,
         layer_scale=True,
     )
 
@@ -217,7 +223,9 @@ class VisionTransformer(nn.Module):
         self.num_patches = (image_size // spec.patch_size) ** 2
         width = spec.embed_dim
         self.cls_token = nn.Parameter(torch.zeros(1, 1, width)) if spec.class_token else None
-        self.reg_token = nn.Parameter(torch.zeros(1, spec.num_register_tokens, width)) if spec.num_register_tokens else None
+        self.reg_token = (
+            nn.Parameter(torch.zeros(1, spec.num_register_tokens, width)) if spec.num_register_tokens else None
+        )
         table_length = self.num_patches + (0 if spec.no_embed_class else spec.num_prefix_tokens)
         self.pos_embed = nn.Parameter(torch.zeros(1, table_length, width))
         self.patch_embed = PatchEmbed(spec.patch_size, width)

@@ -159,7 +159,8 @@ class DraftHead(PreTrainedModel):
 
         Args:
             target: a causal LM or a VLM with a language model (e.g. Llama, Llava).
-            action_tokenizer: the target's action layout; defaults to the last 256 ids of the text vocabulary.
+            action_tokenizer: the target's action layout; defaults to the target's own ``action_tokenizer`` attribute
+                (e.g. OpenVLA's: the 256 ids below 32000), else the last 256 ids of the text vocabulary.
             action_dim: action tokens per action.
             config_overrides: any other [`DraftHeadConfig`] field (e.g. ``num_draft_tokens=4``,
                 ``intermediate_size=...``).
@@ -168,6 +169,8 @@ class DraftHead(PreTrainedModel):
         lm_head = target.get_output_embeddings()
         if lm_head is None:
             raise ValueError(f"{type(target).__name__} has no lm_head (get_output_embeddings() is None)")
+        if action_tokenizer is None:
+            action_tokenizer = getattr(target, "action_tokenizer", None)
         if action_tokenizer is None:
             action_tokenizer = ActionTokenizer(text_config.vocab_size, DEFAULT_N_BINS)
         settings = dict(
