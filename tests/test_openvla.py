@@ -23,7 +23,9 @@ from hf_specvla.openvla import (
     VisionTowerSpec,
     register_vision_tower,
 )
+from hf_specvla.openvla.draft_training import FRAMES_FILE, load_frames, openvla_prompts, train_openvla_draft_head
 from hf_specvla.openvla.modeling_openvla import PROMPT_END_TOKEN_ID
+from hf_specvla.training import DraftTrainingConfig
 
 HUB_7B = Path(__file__).resolve().parents[2] / "shared" / "openvla-reference" / "hub-openvla-7b"
 needs_hub_files = pytest.mark.skipif(not HUB_7B.is_dir(), reason=f"{HUB_7B} (the shared OpenVLA reference) is absent")
@@ -55,6 +57,14 @@ PREPROCESSOR_FIELDS = {
     "tvf_normalize_params": [{"mean": [0.5] * 3, "std": [0.5] * 3}] * 2,
 }
 PROMPT = [1, 512, 29901, 1724, 3158, 881, 278, 19964, 2125, 304, 5839, 701, 278, 2654, 2908, 29973, 13, 3744, 29901]
+
+
+class FakePromptTokenizer:
+    """Stands in for the Llama-2 tokenizer (not in the tests' files): every prompt gets ids from its words."""
+
+    def __call__(self, text, padding=False, return_tensors="pt"):
+        ids = [1] + [100 + sum(map(ord, word)) % 20000 for word in text.split()]
+        return {"input_ids": torch.tensor([ids]), "attention_mask": torch.ones(1, len(ids), dtype=torch.long)}
 
 
 def tiny_config(**overrides) -> OpenVLAConfig:
@@ -358,3 +368,62 @@ def test_broken_checkpoint_folders_are_named(tiny_openvla, tmp_path):
     )
     with pytest.raises(FileNotFoundError, match=r"missing 1 of the 1 weight shards.*model-00001-of-00002"):
         OpenVLAForActionPrediction.from_pretrained(folder)
+
+
+# --- draft-head training on OpenVLA frames --------------------------------------------------------------------------
+def write_frames(folder: Path, count: int) -> None:
+    rng = np.random.default_rng(3)
+    (folder / "images").mkdir(parents=True)
+    lines = []
+    for index in range(count):
+        Image.fromarray(rng.integers(0, 256, (30, 40, 3), dtype=np.uint8)).save(folder / "images" / f"{index:03d}.png")
+        instruction = ["Pick up the red block", "open the drawer"][index % 2]
+        lines.append(json.dumps({"image": f"images/{index:03d}.png", "instruction": instruction}))
+    (folder / FRAMES_FILE).write_text("\n".join(lines) + "\n")
+
+
+def test_draft_head_training_on_openvla_frames(tiny_openvla, tmp_path):
+    processor = OpenVLAProcessor(OpenVLAImageProcessor.from_dict(PREPROCESSOR_FIELDS), FakePromptTokenizer())
+    write_frames(tmp_path / "frames", 6)
+    frames = load_frames(tmp_path / "frames")
+    assert len(frames) == 6 and frames[1].instruction == "open the drawer" and frames[0].image.size == (40, 30)
+    config = DraftTrainingConfig(
+        output_dir=str(tmp_path / "head"), max_steps=4, batch_size=2, learning_rate=1e-3, save_every=2
+    )
+    head = train_openvla_draft_head(
+        tiny_openvla, processor, frames[:4], frames[4:], config, unnorm_key="tiny_dataset", progress=False
+    )
+    assert (tmp_path / "head" / "validation.jsonl").is_file()
+    loaded = DraftHead.from_pretrained(tmp_path / "head")
+    assert loaded.config.target_fingerprint == head.config.target_fingerprint is not None
+    prompt = openvla_prompts(tiny_openvla, processor, frames[4:5])[0]
+    greedy = tiny_openvla.generate(**prompt, max_new_tokens=ACTION_DIM, do_sample=False)
+    with torch.no_grad():
+        drafted = tiny_openvla.generate(**prompt, max_new_tokens=ACTION_DIM, assistant_model=loaded, bin_tolerance=0)
+    assert torch.equal(drafted, greedy)
+    # resume continues the same run; the same folder with another model is refused before anything is labelled
+    more = DraftTrainingConfig(**{**config.__dict__, "max_steps": 6, "resume": True})
+    train_openvla_draft_head(
+        tiny_openvla, processor, frames[:4], frames[4:], more, unnorm_key="tiny_dataset", progress=False
+    )
+    assert (tmp_path / "head" / "checkpoint-6").is_dir()
+    torch.manual_seed(5)
+    other = OpenVLAForActionPrediction(tiny_config()).eval()
+    with pytest.raises(FileExistsError, match="holds another run: .*target="):
+        train_openvla_draft_head(
+            other, processor, frames[:4], frames[4:], more, unnorm_key="tiny_dataset", progress=False
+        )
+
+
+def test_bad_frame_folders_are_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match="has no frames.jsonl"):
+        load_frames(tmp_path)
+    (tmp_path / FRAMES_FILE).write_text('{"image": "missing.png", "instruction": "go"}\n')
+    with pytest.raises(FileNotFoundError, match=r"frames.jsonl:1 names image 'missing.png'"):
+        load_frames(tmp_path)
+    (tmp_path / FRAMES_FILE).write_text('{"image": "missing.png"}\n')
+    with pytest.raises(ValueError, match=r"frames.jsonl:1 has no instruction"):
+        load_frames(tmp_path)
+    (tmp_path / FRAMES_FILE).write_text("not json\n")
+    with pytest.raises(ValueError, match=r"frames.jsonl:1 is not valid JSON"):
+        load_frames(tmp_path)
