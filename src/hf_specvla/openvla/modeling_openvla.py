@@ -147,7 +147,9 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         self.projector = OpenVLAProjector(
             self.vision_backbone.embed_dim, config.text_config.hidden_size, config.use_fused_vision_backbone
         )
-        self.language_model = AutoModelForCausalLM.from_config(config.text_config)
+        # the dtype the rest is built in (from_pretrained sets it); not text_config.dtype ("bfloat16" in the 7B's
+        # config.json), which would build a bf16 Llama beside fp32 towers
+        self.language_model = AutoModelForCausalLM.from_config(config.text_config, dtype=torch.get_default_dtype())
         self.action_tokenizer = ActionTokenizer(config.action_vocab_end, config.n_action_bins)
         self.norm_stats = config.norm_stats
         self.post_init()
