@@ -201,6 +201,14 @@ def test_save_and_load_through_the_auto_class(tiny_openvla, tmp_path):
     )
     bf16 = OpenVLAForActionPrediction.from_pretrained(tmp_path, dtype=torch.bfloat16)
     assert bf16.dtype == torch.bfloat16 and bf16(input_ids=ids, pixel_values=pixels).logits.dtype == torch.bfloat16
+    assert {p.dtype for p in bf16.parameters()} == {torch.bfloat16}
+    # sharded like the 7B (an index + shards), through accelerate's device_map and low_cpu_mem_usage
+    tiny_openvla.save_pretrained(tmp_path / "sharded", max_shard_size="2MB")
+    assert (tmp_path / "sharded" / "model.safetensors.index.json").is_file()
+    sharded = OpenVLAForActionPrediction.from_pretrained(tmp_path / "sharded", device_map="cpu", low_cpu_mem_usage=True)
+    torch.testing.assert_close(
+        sharded(input_ids=ids, pixel_values=pixels).logits, tiny_openvla(input_ids=ids, pixel_values=pixels).logits
+    )
 
 
 @torch.no_grad()
