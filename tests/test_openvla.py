@@ -14,7 +14,7 @@ from PIL import Image
 from safetensors.torch import load_file, save_file
 from transformers import AutoConfig, AutoModelForImageTextToText
 
-from hf_specvla import DraftHead
+from hf_specvla import ActionPriorDrafter, ComposedDrafter, DraftHead, DraftHeadDrafter, DraftTreeConfig
 from hf_specvla.openvla import (
     OpenVLAConfig,
     OpenVLAForActionPrediction,
@@ -250,8 +250,13 @@ def test_speculation_at_r0_equals_greedy(tiny_openvla):
     greedy_tokens = greedy[0, -ACTION_DIM:].tolist()
     wrong = [31744 + (t - 31744 + 50) % 256 for t in greedy_tokens]
     half_right = greedy_tokens[:3] + wrong[3:]
+    layout = model.action_layout("tiny_dataset")
+    tree = DraftHeadDrafter(head, tree=DraftTreeConfig(top_k=4, depth=4, total_tokens=12))
+    prior = ActionPriorDrafter([wrong, half_right], layout)
     for kwargs in (
         dict(assistant_model=head),
+        dict(assistant_model=tree),
+        dict(assistant_model=ComposedDrafter([prior, tree]), action_layout=layout),
         dict(draft_ids=torch.tensor([greedy_tokens])),
         dict(draft_ids=torch.tensor([wrong])),
         dict(draft_ids=torch.tensor([half_right])),
