@@ -176,6 +176,11 @@ def test_official_layout_equals_image_token_layout(tiny_openvla):
     assert int((with_tokens == model.config.image_token_id).sum()) == model.num_patches == 4
     placed = model(input_ids=with_tokens, attention_mask=mask, pixel_values=pixels).logits
     torch.testing.assert_close(placed, official, rtol=0, atol=0)
+    # training: the same loss either way (image rows ignored)
+    labels = ids.clone()
+    official_loss = model(input_ids=ids, labels=labels, pixel_values=pixels).loss
+    placed_loss = model(input_ids=with_tokens, labels=model.add_image_tokens(labels)[0], pixel_values=pixels).loss
+    torch.testing.assert_close(placed_loss, official_loss, rtol=0, atol=0)
     # generate: the official layout's sequences come back without image rows, equal to the other layout's
     generated = model.generate(ids, pixel_values=pixels, max_new_tokens=ACTION_DIM, do_sample=False)
     generated_with_tokens = model.generate(with_tokens, pixel_values=pixels, max_new_tokens=ACTION_DIM, do_sample=False)

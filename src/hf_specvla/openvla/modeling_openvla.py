@@ -269,6 +269,8 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
                 inputs_embeds = inputs_embeds.masked_scatter(
                     image_rows[..., None].expand_as(inputs_embeds), projected.to(inputs_embeds.dtype)
                 )
+                if labels is not None:  # image rows are never predicted (as with the official layout's -100s)
+                    labels = labels.masked_fill(image_rows, IGNORE_INDEX)
             else:
                 raise ValueError(
                     f"each prompt must hold either no image token or exactly {self.num_patches} "
