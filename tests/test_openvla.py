@@ -378,6 +378,13 @@ def test_broken_checkpoint_folders_are_named(tiny_openvla, tmp_path):
         ValueError, match=r"1 missing keys \(e.g. \['vision_backbone.featurizer.blocks.0.ls1.scale_factor'\]\)"
     ):
         AutoModelForImageTextToText.from_pretrained(renamed)
+    with pytest.raises(FileNotFoundError, match="has no preprocessor_config.json: not an OpenVLA checkpoint folder"):
+        OpenVLAProcessor.from_pretrained(folder)
+    no_config = tmp_path / "no_config"
+    shutil.copytree(folder, no_config)
+    (no_config / "config.json").unlink()
+    with pytest.raises(FileNotFoundError, match="has no config.json"):
+        OpenVLAForActionPrediction.from_pretrained(no_config)
     (folder / "model.safetensors").unlink()
     with pytest.raises(FileNotFoundError, match="neither model.safetensors nor model.safetensors.index.json"):
         OpenVLAForActionPrediction.from_pretrained(folder)
