@@ -36,7 +36,7 @@ from ..training import (
     speculative_acceptance,
     train_draft_head,
 )
-from .modeling_openvla import PROMPT_END_TOKEN_ID, OpenVLAForActionPrediction
+from .modeling_openvla import OpenVLAForActionPrediction
 from .processing_openvla import OpenVLAProcessor
 
 logger = logging.getLogger(__name__)
@@ -94,11 +94,7 @@ def openvla_prompts(
     prompts = []
     for frame in frames:
         inputs = processor(processor.prompt(frame.instruction), frame.image)
-        input_ids, mask = inputs["input_ids"], inputs["attention_mask"]
-        if int(input_ids[0, -1]) != PROMPT_END_TOKEN_ID:
-            input_ids = torch.cat([input_ids, input_ids.new_full((1, 1), PROMPT_END_TOKEN_ID)], dim=1)
-            mask = torch.cat([mask, mask.new_ones(1, 1)], dim=1)
-        input_ids, mask = model.add_image_tokens(input_ids, mask)
+        input_ids, mask = model.add_image_tokens(*model.end_prompt(inputs["input_ids"], inputs["attention_mask"]))
         prompts.append({"input_ids": input_ids, "attention_mask": mask, "pixel_values": inputs["pixel_values"]})
     return prompts
 

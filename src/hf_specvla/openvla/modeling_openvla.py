@@ -318,6 +318,20 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
             attention_mask = torch.cat([attention_mask[:, :1], ones, attention_mask[:, 1:]], dim=1)
         return input_ids, attention_mask
 
+    @staticmethod
+    def end_prompt(
+        input_ids: torch.LongTensor, attention_mask: torch.Tensor | None = None
+    ) -> tuple[torch.LongTensor, torch.Tensor | None]:
+        """``input_ids`` ``[B, L]`` ending with ``PROMPT_END_TOKEN_ID`` (appended unless every row ends with it, as
+        the official ``predict_action`` does), and the 2D mask extended to match (the official code leaves it one
+        token short)."""
+        if bool((input_ids[:, -1] == PROMPT_END_TOKEN_ID).all()):
+            return input_ids, attention_mask
+        input_ids = torch.cat([input_ids, input_ids.new_full((input_ids.shape[0], 1), PROMPT_END_TOKEN_ID)], dim=1)
+        if attention_mask is not None and attention_mask.shape[1] == input_ids.shape[1] - 1:
+            attention_mask = torch.cat([attention_mask, attention_mask.new_ones(attention_mask.shape[0], 1)], dim=1)
+        return input_ids, attention_mask
+
     def generate(self, input_ids=None, pixel_values=None, attention_mask=None, **kwargs):
         """``GenerationMixin.generate`` (speculative with a hf_specvla assistant or ``draft_ids``).
 
@@ -429,11 +443,9 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
             raise ValueError("predict_action needs input_ids (with pixel_values) or image, instruction and processor")
         if input_ids.shape[0] != 1:
             raise ValueError(f"predict_action predicts one action; got a batch of {input_ids.shape[0]} prompts")
-        if not bool((input_ids[:, -1] == PROMPT_END_TOKEN_ID).all()):
-            input_ids = torch.cat([input_ids, input_ids.new_full((input_ids.shape[0], 1), PROMPT_END_TOKEN_ID)], dim=1)
-            mask = kwargs.get("attention_mask")
-            if mask is not None and mask.shape[1] == input_ids.shape[1] - 1:
-                kwargs["attention_mask"] = torch.cat([mask, mask.new_ones(mask.shape[0], 1)], dim=1)
+        input_ids, mask = self.end_prompt(input_ids, kwargs.get("attention_mask"))
+        if mask is not None:
+            kwargs["attention_mask"] = mask
         if isinstance(kwargs.get("assistant_model"), (DraftHead, Drafter)) or kwargs.get("draft_ids") is not None:
             kwargs.setdefault("action_layout", self.action_layout(unnorm_key))
         kwargs.setdefault("min_new_tokens", action_dim)
