@@ -5,6 +5,11 @@ with ``AutoModelForImageTextToText`` and ``AutoModelForCausalLM``, so an officia
 ``AutoModelForImageTextToText.from_pretrained(folder)``.
 """
 
+import importlib.util
+
+if importlib.util.find_spec("PIL") is None:  # the processor and the draft-training frames read images with Pillow
+    raise ImportError("hf_specvla.openvla needs Pillow, which is not installed: pip install 'hf_specvla[openvla]'")
+
 from transformers import AutoConfig, AutoModelForCausalLM, AutoModelForImageTextToText
 
 from .configuration_openvla import OpenVLAConfig
