@@ -270,3 +270,40 @@ def test_a_batch_larger_than_the_training_frames_is_a_clear_error(dataset, tmp_p
     with pytest.raises(ValueError, match="batch_size=10000 is larger than the .* training frames"):
         train_vla(policy, demos, config, progress=False)
     assert not (tmp_path / "out").exists()  # nothing written
+
+
+def test_vectorised_evaluation_gives_the_one_at_a_time_episodes(tiny_policy, tmp_path):
+    """Episodes run in lockstep (one batched policy call per step) are the episodes run one at a time (greedy)."""
+    from hf_specvla.evaluation import evaluate, rollout_batch
+
+    def episodes(folder):
+        lines = (folder / "episodes.jsonl").read_text().splitlines()
+        return sorted((json.loads(line) for line in lines), key=lambda e: (e["task"], e["seed"]))
+
+    settings = dict(env_config=SHORT, seed_start=100, progress=False)
+    evaluate(tiny_policy, ["reach", "push"], 3, tmp_path / "one", **settings)
+    evaluate(tiny_policy, ["reach", "push"], 3, tmp_path / "four", num_envs=4, **settings)  # chunks mix tasks
+    one, four = episodes(tmp_path / "one"), episodes(tmp_path / "four")
+    assert [(e["task"], e["seed"], e["success"], e["length"]) for e in one] == [
+        (e["task"], e["seed"], e["success"], e["length"]) for e in four
+    ]
+    with pytest.raises(ValueError, match="num_envs must be an int >= 1"):
+        evaluate(tiny_policy, "reach", 1, tmp_path / "bad", num_envs=0, **settings)
+    from hf_specvla.envs.metaworld import MetaWorldEnv
+    from hf_specvla.evaluation import rollout
+
+    # where each episode ends up (the hand's state after its last action): the same actions were taken
+    tasks, seeds = ["reach", "push", "reach"], [5, 6, 7]
+    envs = [MetaWorldEnv(task, SHORT) for task in tasks]
+    try:
+        alone = [rollout(tiny_policy, env, seed) for env, seed in zip(envs, seeds)]
+        alone_states = [env._observation()["state"] for env in envs]
+        batched = rollout_batch(tiny_policy, envs, seeds)
+        assert [(r.success, r.length) for r in alone] == [(r.success, r.length) for r in batched]
+        for env, state in zip(envs, alone_states):
+            np.testing.assert_array_equal(env._observation()["state"], state)
+        with pytest.raises(ValueError, match="distinct environment objects"):
+            rollout_batch(tiny_policy, [envs[0], envs[0]], [1, 2])
+    finally:
+        for env in envs:
+            env.close()

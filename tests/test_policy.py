@@ -193,3 +193,52 @@ def test_dataset_with_other_action_dim_is_refused(policy, tmp_path):
     demos.actions = np.zeros((4, 4), np.float32)  # no scene states: collected before the column existed
     with pytest.raises(ValueError, match="scene_state_dim=6 scene targets but the demonstrations have no"):
         train_vla(scene_policy, demos, VLATrainingConfig(str(tmp_path / "out"), max_steps=1))
+
+
+# ----------------------------------------------------------------------------- a batch of observations
+def batch_of_observations(n):
+    images, states = zip(*(observation(seed) for seed in range(n)))
+    instructions = [INSTRUCTIONS[i % 2] for i in range(n)]  # two prompt lengths: the batch is left-padded
+    return np.stack(images), instructions, np.stack(states)
+
+
+def test_a_batch_gives_each_row_its_own_action(policy):
+    images, instructions, states = batch_of_observations(5)
+    expected = np.stack([policy.predict_action(i, t, s) for i, t, s in zip(images, instructions, states)])
+    np.testing.assert_array_equal(policy.predict_action(images, instructions, states), expected)
+    draft = DraftHead.from_target(policy.model, policy.action_tokenizer, action_dim=4, num_draft_tokens=3).eval()
+    actions, out = policy.predict_action(images, instructions, states, return_output=True, assistant_model=draft)
+    np.testing.assert_array_equal(actions, expected)
+    assert len(out.speculation.rows) == 5 and all(row.num_new_tokens == 4 for row in out.speculation.rows)
+
+
+def test_a_batch_with_per_row_action_priors_is_lossless_and_keeps_each_rows_memory(policy):
+    images, instructions, states = batch_of_observations(4)
+    memories = [[] for _ in range(4)]
+    first = policy.predict_action(images, instructions, states, previous_action_ids=memories, action_prior=True)
+    if not all(memories):
+        pytest.skip("the untrained policy emitted text ids for some row: no memory to draft from")
+    assert [m[-1] for m in memories] == policy.action_token_ids(first).tolist()
+    memories[1] = [[int(t) + 5 for t in memories[1][-1]]]  # row 1's memory is wrong, the others right
+    for kwargs in ({}, {"assistant_model": DraftHead.from_target(policy.model, policy.action_tokenizer, 4).eval()}):
+        again, out = policy.predict_action(
+            images, instructions, states, previous_action_ids=[list(m) for m in memories], action_prior=True,
+            return_output=True, **kwargs,
+        )  # fmt: skip
+        np.testing.assert_array_equal(again, first)
+        forwards = [row.num_target_forwards for row in out.speculation.rows]
+        assert forwards[0] == forwards[2] == forwards[3] == 1 and forwards[1] > 1  # right memories: one forward
+
+
+def test_bad_batches(policy):
+    images, instructions, states = batch_of_observations(3)
+    with pytest.raises(ValueError, match="a batch of 3 images needs 3 instruction rows, got 2"):
+        policy.predict_action(images, instructions[:2], states)
+    with pytest.raises(ValueError, match="a batch of 3 images needs 3 state rows, got 1"):
+        policy.predict_action(images, instructions, states[:1])
+    with pytest.raises(ValueError, match="needs 3 previous_action_ids rows, got 2"):
+        policy.predict_action(images, instructions, states, previous_action_ids=[[], []])
+    with pytest.raises(ValueError, match=r"\[B, 32, 32, 3\]\), got \(3, 16, 16, 3\)"):
+        policy.predict_action(images[:, :16, :16], instructions, states)
+    with pytest.raises(ValueError, match="previous_action_ids is for a batch"):
+        policy.predict_action(images[0], instructions[0], states[0], previous_action_ids=[[]])

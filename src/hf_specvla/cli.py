@@ -24,6 +24,7 @@ Examples:
         --output-dir runs/eval_reach_push
     hf-specvla eval --policy policies/mt10_vla --draft-head runs/draft --bin-tolerance 2 --output-dir runs/eval_spec
     hf-specvla eval --policy policies/mt10_vla --action-prior --bin-tolerance 2 --output-dir runs/eval_prior
+    hf-specvla eval --policy policies/mt10_vla --tasks MT10 --episodes 2 --num-envs 10 --output-dir runs/eval_batched
 
     # A draft head for a policy: self-distillation on its own rollouts (+ demonstrations), validated by the engine
     hf-specvla train-draft --policy policies/mt10_vla --tasks MT10 --max-steps 3000 --output-dir runs/mt10_draft
@@ -421,7 +422,8 @@ def _eval(args, parser) -> int:
     env_config = EnvConfig(policy.config.image_size, policy.config.camera, args.max_episode_steps)
     try:
         summary = evaluate(policy, args.tasks, args.episodes, args.output_dir, env_config, args.seed_start,
-                           generate_kwargs, args.video, overwrite=args.overwrite_output_dir)  # fmt: skip
+                           generate_kwargs, args.video, overwrite=args.overwrite_output_dir,
+                           num_envs=args.num_envs)  # fmt: skip
     except FileExistsError as error:
         parser.error(str(error))
     print(format_summary(summary))
@@ -632,6 +634,13 @@ def main(argv: list[str] | None = None) -> int:
         help="draft each action from the episode's previous actions (verified inside the prefill)",
     )
     ev.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads")
+    ev.add_argument(
+        "--num-envs",
+        type=POSITIVE,
+        default=1,
+        help="episodes run in lockstep, one batched policy call per step for all of them (same results, less wall "
+        "time)",
+    )
 
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)

@@ -74,6 +74,57 @@ def rollout(
             return result
 
 
+def rollout_batch(
+    policy: VLAPolicy,
+    envs: list[MetaWorldEnv],
+    seeds: list[int],
+    generate_kwargs: dict | None = None,
+    frames: list | None = None,
+) -> list[EpisodeResult]:
+    """Runs one episode per environment in lockstep (``envs[b].reset(seeds[b])``): each step, one batched
+    ``predict_action`` for every environment still running; an environment leaves the batch when its episode ends.
+    Per episode the same as [`rollout`] (each row keeps its own action memory for ``action_prior``); a row's
+    ``latencies_ms`` are the batched calls' wall times (what each environment waited). ``frames`` gets the first
+    environment's images."""
+    if len(envs) != len(seeds) or not envs:
+        raise ValueError(f"rollout_batch needs one seed per environment, got {len(envs)} envs and {len(seeds)} seeds")
+    if len({id(env) for env in envs}) != len(envs):
+        raise ValueError("rollout_batch needs distinct environment objects, one per episode")
+    generate_kwargs = dict(generate_kwargs or {})
+    observations = [env.reset(seed) for env, seed in zip(envs, seeds)]
+    results = [EpisodeResult(env.task, seed, False, 0) for env, seed in zip(envs, seeds)]
+    memories: list[list[list[int]]] = [[] for _ in envs]
+    running = list(range(len(envs)))
+    while running:
+        if frames is not None and 0 in running:
+            frames.append(observations[0]["image"])
+        start = time.perf_counter()
+        actions, output = policy.predict_action(
+            np.stack([observations[b]["image"] for b in running]),
+            [observations[b]["instruction"] for b in running],
+            np.stack([observations[b]["state"] for b in running]),
+            return_output=True,
+            previous_action_ids=[memories[b] for b in running],
+            **generate_kwargs,
+        )
+        latency_ms = 1000 * (time.perf_counter() - start)
+        stats: SpeculationStats | None = getattr(output, "speculation", None)
+        row_stats = (stats.rows or [stats]) if stats is not None else [None] * len(running)
+        still_running = []
+        for b, action, row in zip(running, actions, row_stats):
+            results[b].latencies_ms.append(latency_ms)
+            if row is not None:
+                results[b].accept_lengths.extend(row.accept_lengths)
+            observations[b], _, done, info = envs[b].step(action)
+            results[b].length += 1
+            if done:
+                results[b].success = info["success"]
+            else:
+                still_running.append(b)
+        running = still_running
+    return results
+
+
 def record_observations(
     policy: VLAPolicy, tasks: str | list[str], seeds: list[int], max_steps: int, env_config: EnvConfig | None = None
 ) -> list[list[dict]]:
@@ -160,8 +211,13 @@ def evaluate(
     video_path: str | Path | None = None,
     progress: bool = True,
     overwrite: bool = False,
+    num_envs: int = 1,
 ) -> dict:
     """Evaluates ``policy`` on ``episodes_per_task`` seeded episodes of each task; resumable.
+
+    ``num_envs`` > 1 runs that many episodes in lockstep ([`rollout_batch`]: one batched policy call per step for
+    all of them); the episodes and their results are the same (greedy decoding gives each row what it gives alone),
+    only the wall time changes. It is not part of the folder's record: a folder may be resumed with another value.
 
     Writes ``output_dir/run.json`` (what produced the folder), ``output_dir/episodes.jsonl`` (one line per
     episode) and ``output_dir/summary.json``; returns the summary. ``video_path`` (``.gif`` or ``.mp4``) saves the
@@ -170,6 +226,8 @@ def evaluate(
     """
     if episodes_per_task < 1:
         raise ValueError(f"episodes_per_task must be >= 1, got {episodes_per_task}")
+    if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+        raise ValueError(f"num_envs must be an int >= 1 (episodes run in lockstep), got {num_envs!r}")
     tasks = resolve_tasks(tasks)
     if video_path is not None:
         check_video_path(video_path)
@@ -187,22 +245,27 @@ def evaluate(
         total=len(tasks) * episodes_per_task, initial=len(done), desc="eval", unit="episode", disable=not progress
     )
     frames: list | None = [] if video_path is not None else None  # the first episode this call runs
-    for task in tasks:
-        seeds = [seed_start + i for i in range(episodes_per_task) if (task, seed_start + i) not in done]
-        if not seeds:
-            continue
-        with MetaWorldEnv(task, env_config) as env:
-            for seed in seeds:
-                result = rollout(policy, env, seed, generate_kwargs, frames)
-                results.append(result)
-                with log_path.open("a") as log:
+    pending = [(t, seed_start + i) for t in tasks for i in range(episodes_per_task) if (t, seed_start + i) not in done]
+    with _EnvPool(env_config) as pool:
+        for chunk_start in range(0, len(pending), num_envs):
+            chunk = pending[chunk_start : chunk_start + num_envs]
+            envs = pool.acquire([task for task, _ in chunk])
+            seeds = [seed for _, seed in chunk]
+            if num_envs == 1:
+                chunk_results = [rollout(policy, envs[0], seeds[0], generate_kwargs, frames)]
+            else:
+                chunk_results = rollout_batch(policy, envs, seeds, generate_kwargs, frames)
+            with log_path.open("a") as log:
+                for result in chunk_results:
                     log.write(json.dumps(asdict(result)) + "\n")
-                if frames is not None:  # after the episode is logged: a failing writer never costs an episode
-                    _save_video(frames, video_path)
-                    logger.info("saved %s (%s seed %d)", video_path, task, seed)
-                    frames = None
-                bar.update(1)
-                bar.set_postfix(task=task, success=f"{np.mean([r.success for r in results]):.0%}")
+            results.extend(chunk_results)
+            if frames is not None:  # after the episode is logged: a failing writer never costs an episode
+                _save_video(frames, video_path)
+                logger.info("saved %s (%s seed %d)", video_path, *chunk[0])
+                frames = None
+            bar.update(len(chunk))
+            bar.set_postfix(task=chunk[-1][0], success=f"{np.mean([r.success for r in results]):.0%}")
+            pool.close_except({task for task, _ in pending[chunk_start + num_envs :]})
     bar.close()
     if frames is not None:
         logger.warning("no video written: every requested episode was already in %s (nothing ran)", log_path)
@@ -210,6 +273,38 @@ def evaluate(
     summary = summarize([r for r in results if (r.task, r.seed) in wanted])
     write_json_atomic(output_dir / "summary.json", summary)
     return summary
+
+
+class _EnvPool:
+    """Environments by task, created on first use and reused (building a Meta-World env costs more than a reset)."""
+
+    def __init__(self, env_config: EnvConfig):
+        self.env_config = env_config
+        self.envs: dict[str, list[MetaWorldEnv]] = {}
+
+    def acquire(self, tasks: list[str]) -> list[MetaWorldEnv]:
+        """One distinct environment per entry of ``tasks``."""
+        out, used = [], {}
+        for task in tasks:
+            index = used.get(task, 0)
+            available = self.envs.setdefault(task, [])
+            if index == len(available):
+                available.append(MetaWorldEnv(task, self.env_config))
+            out.append(available[index])
+            used[task] = index + 1
+        return out
+
+    def close_except(self, tasks: set[str]) -> None:
+        """Closes the environments of every task not in ``tasks`` (no episode left needs them)."""
+        for task in [t for t in self.envs if t not in tasks]:
+            for env in self.envs.pop(task):
+                env.close()
+
+    def __enter__(self) -> _EnvPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close_except(set())
 
 
 VIDEO_SUFFIXES = (".gif", ".mp4")

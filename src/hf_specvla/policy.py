@@ -36,7 +36,7 @@ from transformers import (
 from .action_tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
 from .envs.metaworld import CAMERAS, EnvConfig
 from .run_folder import fingerprint
-from .speculative import ActionPriorDrafter, Drafter, DraftHead, enable_speculation
+from .speculative import ActionPriorDrafter, CandidateDrafter, Drafter, DraftHead, PerRowDrafter, enable_speculation
 from .speculative.drafters import with_action_prior
 from .speculative.generation import SPECULATION_KWARGS
 from .speculative.loop import as_drafter
@@ -284,57 +284,112 @@ class VLAPolicy:
     def predict_action(
         self,
         image,
-        instruction: str,
+        instruction,
         state=None,
         return_output: bool = False,
         action_prior: bool = False,
+        previous_action_ids: list[list[list[int]]] | None = None,
         **generate_kwargs,
     ):
-        """The action for one observation.
+        """The action for one observation, or the actions for a batch of observations (one ``generate`` call).
 
         Args:
-            image: uint8 ``[S, S, 3]`` RGB.
-            instruction: the task in words.
-            state: the proprio state ``[state_dim]`` (required when ``config.use_state``).
+            image: uint8 ``[S, S, 3]`` RGB, or ``[B, S, S, 3]`` for a batch (e.g. B environments in lockstep).
+            instruction: the task in words (for a batch: one per row, or one for all rows).
+            state: the proprio state ``[state_dim]`` (``[B, state_dim]`` for a batch; required when
+                ``config.use_state``).
             return_output: also return ``generate``'s output (with ``return_dict_in_generate=True``: sequences,
-                and ``.speculation`` when speculative decoding ran).
+                and ``.speculation`` when speculative decoding ran; per row in ``.speculation.rows`` for a batch).
             action_prior: draft this action from the episode's previous actions ([`ActionPriorDrafter`]), verified
                 inside the prefill; combined with ``assistant_model`` when one is given (the head continues where
                 the prior's drafts stop being accepted). No effect on the first step of an episode.
+            previous_action_ids: for a batch, each row's episode memory (its previous actions as token ids, oldest
+                first): read by ``action_prior`` and updated in place with the new actions. A single observation
+                uses the policy's own ``previous_action_ids`` (cleared by ``reset``).
             generate_kwargs: anything ``generate`` accepts, e.g. ``assistant_model=draft_head, bin_tolerance=2``.
 
         Returns:
-            the un-normalised action, float64 ``[action_dim]`` (and the generate output if ``return_output``).
+            the un-normalised action, float64 ``[action_dim]`` (``[B, action_dim]`` for a batch), and the generate
+            output if ``return_output``.
+
+        Raises:
+            ValueError: a batch whose images, instructions, states or memories disagree in number.
         """
-        input_ids = torch.tensor([self.prompt_ids(instruction, state)], device=self.model.device)
-        kwargs = dict(max_new_tokens=self.config.action_dim, min_new_tokens=self.config.action_dim, do_sample=False)
+        batched = np.asarray(image).ndim == 4
+        if not batched:
+            if previous_action_ids is not None:
+                raise ValueError("previous_action_ids is for a batch of images; one observation uses the policy's own")
+            histories = [list(self.previous_action_ids)]  # a new list: callers may hold the old one
+            images, instructions, states = np.asarray(image)[None], [instruction], [state]
+        else:
+            images = np.asarray(image)
+            count = len(images)
+            instructions = [instruction] * count if isinstance(instruction, str) else list(instruction)
+            self._rows("instruction", instructions, count)
+            states = [None] * count if state is None else self._rows("state", list(np.asarray(state)), count)
+            histories = [[] for _ in images] if previous_action_ids is None else previous_action_ids
+            self._rows("previous_action_ids", histories, count)
+        actions, output = self._act(images, instructions, states, histories, action_prior, return_output,
+                                    generate_kwargs)  # fmt: skip
+        if not batched:
+            self.previous_action_ids = histories[0]
+            actions = actions[0]
+        return (actions, output) if return_output else actions
+
+    @staticmethod
+    def _rows(name: str, values: list, batch_size: int) -> list:
+        if len(values) != batch_size:
+            raise ValueError(f"a batch of {batch_size} images needs {batch_size} {name} rows, got {len(values)}")
+        return values
+
+    def _act(self, images, instructions, states, histories, action_prior, return_output, generate_kwargs):
+        """One ``generate`` over the batch (prompts left-padded); updates ``histories`` in place."""
+        prompts = [self.prompt_ids(i, s) for i, s in zip(instructions, states)]
+        width = max(len(p) for p in prompts)
+        pad_id = self.tokenizer.pad_token_id
+        input_ids = torch.tensor([[pad_id] * (width - len(p)) + p for p in prompts], device=self.model.device)
+        inputs = {"input_ids": input_ids, "pixel_values": self.preprocess_images(images)}
+        if any(len(p) < width for p in prompts):
+            mask = [[0] * (width - len(p)) + [1] * len(p) for p in prompts]
+            inputs["attention_mask"] = torch.tensor(mask, device=self.model.device)
+        kwargs = dict(max_new_tokens=self.config.action_dim, min_new_tokens=self.config.action_dim, do_sample=False,
+                      pad_token_id=pad_id)  # fmt: skip
         if return_output:
             kwargs["return_dict_in_generate"] = True
         kwargs.update(generate_kwargs)
-        drafter = self._drafter(kwargs.pop("assistant_model", None), action_prior, kwargs.pop("num_draft_tokens", None))
+        drafter = self._drafter(kwargs.pop("assistant_model", None), action_prior, kwargs.pop("num_draft_tokens", None),
+                                histories)  # fmt: skip
         if drafter is not None:
             kwargs["assistant_model"] = drafter
             kwargs.setdefault("action_layout", self.action_layout)
-        elif action_prior:  # the episode's first step: nothing to draft from, plain greedy decoding
+        elif action_prior:  # the episodes' first step: nothing to draft from, plain greedy decoding
             for name in SPECULATION_KWARGS:
                 kwargs.pop(name, None)
-        output = self.model.generate(input_ids=input_ids, pixel_values=self.preprocess_images(image), **kwargs)
+        output = self.model.generate(**inputs, **kwargs)
         sequences = output.sequences if hasattr(output, "sequences") else output
-        action_ids = sequences[0, -self.config.action_dim :]
-        if bool(self.action_tokenizer.is_action_token(action_ids).all()):  # an untrained model may emit text ids
-            self.previous_action_ids = [*self.previous_action_ids, action_ids.tolist()][-self.HISTORY_LENGTH :]
-        else:
-            self.previous_action_ids = []
+        action_ids = sequences[:, -self.config.action_dim :]  # [B, A]
+        for history, ids in zip(histories, action_ids):
+            if bool(self.action_tokenizer.is_action_token(ids).all()):  # an untrained model may emit text ids
+                history[:] = [*history, ids.tolist()][-self.HISTORY_LENGTH :]
+            else:
+                history.clear()
         normalized = self.action_tokenizer.decode(action_ids)
-        action = self.action_normalizer.unnormalize(normalized)
-        return (action, output) if return_output else action
+        return self.action_normalizer.unnormalize(normalized), output
 
-    def _drafter(self, assistant: DraftHead | Drafter | None, action_prior: bool, num_draft_tokens) -> Drafter | None:
-        """The drafter for this step: the assistant's, the action prior's, or both composed (prior first)."""
+    def _drafter(
+        self, assistant: DraftHead | Drafter | None, action_prior: bool, num_draft_tokens, histories
+    ) -> Drafter | None:
+        """The drafter for this step: the assistant's, the action prior's, or both composed (prior first); one
+        per row (a [`PerRowDrafter`]) when the rows' memories differ."""
         if num_draft_tokens is not None and assistant is None:
             raise ValueError("num_draft_tokens needs assistant_model=<DraftHead>")
         drafter = as_drafter(assistant, num_draft_tokens)
-        return with_action_prior(drafter, self.previous_action_ids, self.action_layout) if action_prior else drafter
+        if not action_prior or not any(histories):
+            return drafter
+        if len(histories) == 1:
+            return with_action_prior(drafter, histories[0], self.action_layout)
+        nothing = CandidateDrafter([], name=ActionPriorDrafter.name)  # a row at its episode's first step
+        return PerRowDrafter([with_action_prior(drafter, h, self.action_layout) or nothing for h in histories])
 
     def weights_fingerprint(self) -> str:
         """Content fingerprint of the model's weights (computed once; a policy's weights do not change at

@@ -6,7 +6,16 @@ Imports point down: this package uses transformers, torch and ``hf_specvla.actio
 from .acceptance import AcceptanceRule, AcceptedPath, ExactMatch, RelaxedBinMatch, accept_tree, make_acceptance_rule
 from .config import SpeculationConfig
 from .configuration_draft_head import DraftHeadConfig
-from .drafter import CandidateDrafter, Commit, ComposedDrafter, DraftContext, Drafter, DraftRound, DraftSession
+from .drafter import (
+    CandidateDrafter,
+    Commit,
+    ComposedDrafter,
+    DraftContext,
+    Drafter,
+    DraftRound,
+    DraftSession,
+    PerRowDrafter,
+)
 from .drafters import ActionPriorDrafter, DraftHeadDrafter, DraftTreeConfig
 from .generation import SpeculativeGenerationMixin, disable_speculation, enable_speculation
 from .loop import speculative_generate
@@ -22,6 +31,7 @@ __all__ = [
     "CandidateDrafter",
     "Commit",
     "ComposedDrafter",
+    "PerRowDrafter",
     "DraftContext",
     "DraftHead",
     "DraftHeadConfig",

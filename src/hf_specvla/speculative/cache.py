@@ -34,8 +34,27 @@ def truncate_cache(cache: Cache, length: int) -> None:
 
 
 def select_cache_positions(cache: Cache, positions: torch.Tensor) -> None:
-    """Keeps only ``positions`` (``[P]`` int64, ascending) of every layer, in place (e.g. a tree's accepted path)."""
+    """Keeps only ``positions`` of every layer, in place (e.g. a tree's accepted path).
+
+    Args:
+        positions: ``[K]`` int64 ascending (the same entries for every row), or ``[B, K]`` (row b keeps
+            ``positions[b]``: a batch whose rows accepted different paths).
+    """
     for layer in _dynamic_layers(cache):
         if getattr(layer, "is_initialized", True) and layer.keys is not None and layer.keys.numel():
-            layer.keys = layer.keys.index_select(-2, positions)
-            layer.values = layer.values.index_select(-2, positions)
+            if positions.ndim == 1:
+                layer.keys = layer.keys.index_select(-2, positions)
+                layer.values = layer.values.index_select(-2, positions)
+            else:
+                heads, dim = layer.keys.shape[1], layer.keys.shape[-1]
+                index = positions[:, None, :, None].expand(-1, heads, -1, dim)  # [B, H_kv, K, D]
+                layer.keys = layer.keys.gather(2, index)
+                layer.values = layer.values.gather(2, index)
+
+
+def select_cache_rows(cache: Cache, rows: torch.Tensor) -> None:
+    """Keeps only batch ``rows`` (``[B']`` int64) of every layer, in place (e.g. the rows still generating)."""
+    for layer in _dynamic_layers(cache):
+        if getattr(layer, "is_initialized", True) and layer.keys is not None and layer.keys.numel():
+            layer.keys = layer.keys.index_select(0, rows)
+            layer.values = layer.values.index_select(0, rows)

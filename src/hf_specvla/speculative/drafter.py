@@ -1,7 +1,8 @@
 """The drafter seam: anything that proposes draft trees to the decode loop.
 
-The loop never looks inside a drafter. Per call it asks ``drafter.start(context)`` for a [`DraftSession`] (all
-per-call state lives there, nothing is stuck onto models), then each round
+The loop never looks inside a drafter. Per call and batch row it asks ``drafter.start(context)`` for a
+[`DraftSession`] (all per-call state lives there, nothing is stuck onto models; a session sees one row, so every
+tensor it is handed has batch size 1), then each round
 
     tree = session.propose(draft_round)      # before the target's forward; at the prefill too (drafts known up front)
     ... the target verifies the tree in one forward, the loop keeps the accepted path ...
@@ -37,13 +38,15 @@ class DraftContext:
         model: the target.
         action_layout: the action layout used for acceptance, or None (no relaxed acceptance possible).
         eos_token_ids: the call's EOS ids.
-        prompt_padding: ``[B, S]`` 2D attention mask of the prompt (0 = padding), or None when there is none.
+        prompt_padding: ``[1, S]`` 2D attention mask of the row's prompt (0 = padding), or None when there is none.
+        row: the batch row the session drafts for (0 .. B-1).
     """
 
     model: PreTrainedModel
     action_layout: ActionLayout | None
     eos_token_ids: list[int]
     prompt_padding: torch.Tensor | None
+    row: int = 0
 
 
 @dataclass
@@ -51,11 +54,11 @@ class DraftRound:
     """What a drafter sees when it proposes.
 
     Attributes:
-        sequence: ``[B, L]`` prompt + emitted tokens (its last token is the root of the tree to propose).
-        num_generated: tokens emitted in this call so far.
+        sequence: ``[1, L]`` the row's prompt + emitted tokens (its last token is the root of the tree to propose).
+        num_generated: tokens emitted in this row so far.
         max_depth: the deepest path the loop will verify (so that path + bonus token fit ``max_length``).
         at_prefill: True before the target's first forward (no hidden states exist yet).
-        root_position: ``[B, 1]`` position id of the root; a node at depth d is fed at ``root_position + 1 + d``.
+        root_position: ``[1, 1]`` position id of the root; a node at depth d is fed at ``root_position + 1 + d``.
     """
 
     sequence: torch.Tensor
@@ -73,11 +76,12 @@ class Commit:
     (the whole prompt at the prefill, else the previous bonus token) and the accepted path.
 
     Attributes:
-        next_token_ids: ``[B, K]`` the token that follows each kept input (the last one is the new bonus token).
-        positions: ``[B, K]`` position ids of the kept inputs.
-        target_hidden: ``[B, K, H]`` the target's last hidden state at each kept input, or None when no drafter
+        next_token_ids: ``[1, K]`` the token that follows each kept input (the last one is the new bonus token).
+        positions: ``[1, K]`` position ids of the kept inputs.
+        target_hidden: ``[1, K, H]`` the target's last hidden state at each kept input, or None when no drafter
             asked for hidden states (``Drafter.needs_hidden_states``).
-        cache_length: the target cache's length after the commit.
+        cache_length: the entries the row has kept so far (its prompt, padding included, and its emitted tokens
+            but the last): the length a drafter's own cache of the row has once it has seen this commit.
     """
 
     next_token_ids: torch.Tensor
@@ -106,11 +110,13 @@ class Drafter:
         name: how statistics name the drafter's accepted tokens.
         needs_hidden_states: whether [`Commit`] must carry the target's hidden states (draft heads do).
         action_layout: the action layout the drafter knows of (a draft head's config), or None.
+        batch_size: the batch size the drafter is made for ([`PerRowDrafter`]), or None for any.
     """
 
     name: str = "drafter"
     needs_hidden_states: bool = False
     action_layout: ActionLayout | None = None
+    batch_size: int | None = None
 
     def start(self, context: DraftContext) -> DraftSession:
         raise NotImplementedError
@@ -201,6 +207,42 @@ class ComposedDrafter(Drafter):
         self.name = "+".join(d.name for d in flat)
         self.needs_hidden_states = any(d.needs_hidden_states for d in flat)
         self.action_layout = next((d.action_layout for d in flat if d.action_layout is not None), None)
+        self.batch_size = _common_batch_size(flat)
 
     def start(self, context: DraftContext) -> DraftSession:
         return _ComposedSession([d.start(context) for d in self.drafters])
+
+
+class PerRowDrafter(Drafter):
+    """A different drafter for each batch row (e.g. each robot's own previous actions): row b drafts with
+    ``drafters[b]``. A drafter used for every row (a draft head) needs no wrapping.
+
+    Example:
+        ```python
+        drafter = PerRowDrafter([ActionPriorDrafter(history, layout) for history in histories_per_robot])
+        model.generate(input_ids, attention_mask=mask, assistant_model=drafter, max_new_tokens=7)
+        ```
+    """
+
+    def __init__(self, drafters: Sequence[Drafter]):
+        drafters = list(drafters)
+        if not drafters:
+            raise ValueError("PerRowDrafter needs one drafter per batch row, got none")
+        for row, drafter in enumerate(drafters):
+            if not isinstance(drafter, Drafter) or isinstance(drafter, PerRowDrafter):
+                raise TypeError(f"PerRowDrafter takes one Drafter per row, got {type(drafter).__name__} at row {row}")
+        self.drafters = drafters
+        self.batch_size = len(drafters)
+        self.name = "+".join(dict.fromkeys(d.name for d in drafters))
+        self.needs_hidden_states = any(d.needs_hidden_states for d in drafters)
+        self.action_layout = next((d.action_layout for d in drafters if d.action_layout is not None), None)
+
+    def start(self, context: DraftContext) -> DraftSession:
+        return self.drafters[context.row].start(context)
+
+
+def _common_batch_size(drafters: Sequence[Drafter]) -> int | None:
+    sizes = {d.batch_size for d in drafters if d.batch_size is not None}
+    if len(sizes) > 1:
+        raise ValueError(f"these drafters are made for different batch sizes {sorted(sizes)}; use one per row count")
+    return sizes.pop() if sizes else None

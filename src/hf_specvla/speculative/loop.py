@@ -24,38 +24,68 @@ import logging
 import time
 from collections.abc import Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from transformers import GenerationConfig, LogitsProcessorList, PreTrainedModel, StoppingCriteriaList
 from transformers.cache_utils import Cache
+from transformers.generation.logits_process import PrefixConstrainedLogitsProcessor
 
 from ..action_tokenizer import ActionLayout
 from .acceptance import AcceptanceRule, AcceptedPath, accept_tree, make_acceptance_rule
-from .cache import select_cache_positions, truncate_cache
+from .cache import select_cache_positions, select_cache_rows, truncate_cache
 from .config import SpeculationConfig
-from .drafter import CandidateDrafter, Commit, ComposedDrafter, DraftContext, Drafter, DraftRound
+from .drafter import (
+    CandidateDrafter,
+    Commit,
+    ComposedDrafter,
+    DraftContext,
+    Drafter,
+    DraftRound,
+    DraftSession,
+    PerRowDrafter,
+)
 from .drafters.draft_head import DraftHeadDrafter
 from .modeling_draft_head import DraftHead
 from .outputs import SpeculativeDecoderOnlyOutput
 from .stats import SpeculationStats
-from .tree import DraftTree
-from .verify import prefill_inputs, target_greedy_ids, verify_tree
+from .tree import TreeBatch
+from .verify import prefill_inputs, target_greedy_ids, verify_trees
 
 logger = logging.getLogger(__name__)
 
 
 # ----------------------------------------------------------------------------- state
 @dataclass
-class DecodeState:
-    """Everything one speculative decode carries between rounds (one explicit object, nothing on the models)."""
+class RowState:
+    """One batch row's decode: its tokens, its drafter session, its statistics."""
 
-    sequence: torch.Tensor  # [1, L] prompt + emitted tokens
-    pending_ids: torch.Tensor  # [1, P] tokens not yet in the target cache (their last one is the tree's root)
-    pending_positions: torch.Tensor  # [1, P] their position ids
+    index: int  # the row's index in the caller's batch
+    sequence: torch.Tensor  # [1, L] the row's prompt (padding included) + its emitted tokens
+    session: DraftSession
+    stats: SpeculationStats
+    num_generated: int = 0  # tokens emitted in this row
+    num_action_tokens: int = 0  # action tokens emitted in this row (for action dimensions)
+    committed_length: int = 0  # entries the row has kept (its prompt and emitted tokens but the last)
+    finished: bool = False
+    scores: list = field(default_factory=list)  # [V] processed logits per emitted token (output_scores)
+    logits: list = field(default_factory=list)  # [V] raw logits per emitted token (output_logits)
+
+
+@dataclass
+class DecodeState:
+    """Everything one speculative decode carries between rounds (one explicit object, nothing on the models).
+
+    The tensors hold the rows still generating, in ``rows`` order (finished rows are dropped from them and from
+    the cache). The target cache is rectangular: a row that accepted fewer tokens than another in a round keeps
+    *invalid* entries there, masked by ``key_valid`` like the prompt's left padding.
+    """
+
+    rows: list[RowState]
+    pending_ids: torch.Tensor  # [B, P] tokens not yet in the target cache (their last one is each tree's root)
+    pending_positions: torch.Tensor  # [B, P] their position ids
+    key_valid: torch.Tensor | None  # [B, C + P] False at invalid cached / pending keys; None = all valid
     target_cache: Cache
-    num_generated: int  # tokens emitted in this call
-    num_action_tokens: int  # action tokens emitted in this call (for action dimensions)
 
 
 class _Stopwatch:
@@ -101,8 +131,8 @@ def as_drafter(assistant, num_draft_tokens: int | None) -> Drafter | None:
     )
 
 
-def draft_id_candidates(draft_ids, batch_size: int, vocab_size: int) -> list[list[int]]:
-    """Validates ``generate(draft_ids=...)``: a LongTensor ``[B, k]`` or ``[B, C, k]`` -> C candidate lists (B = 1).
+def draft_id_candidates(draft_ids, batch_size: int, vocab_size: int) -> list[list[list[int]]]:
+    """Validates ``generate(draft_ids=...)``: a LongTensor ``[B, k]`` or ``[B, C, k]`` -> per row, C candidate lists.
 
     Raises:
         TypeError / ValueError naming the shape, dtype or id that is wrong and what is valid.
@@ -125,11 +155,10 @@ def draft_id_candidates(draft_ids, batch_size: int, vocab_size: int) -> list[lis
             f"draft_ids must be token ids in 0..{vocab_size - 1}, got values "
             f"{int(draft_ids.min())}..{int(draft_ids.max())}"
         )
-    candidates = draft_ids[0].reshape(-1, draft_ids.shape[-1])
-    return candidates.tolist()
+    return draft_ids.reshape(batch_size, -1, draft_ids.shape[-1]).tolist()
 
 
-def _validate_call(model, input_ids, generation_config: GenerationConfig) -> None:
+def _validate_call(model, generation_config: GenerationConfig, logits_processor, batch_size: int, drafter) -> None:
     if generation_config.do_sample:
         raise ValueError(
             "speculative decoding is greedy only (do_sample=False); got do_sample=True. Drop do_sample / "
@@ -140,12 +169,6 @@ def _validate_call(model, input_ids, generation_config: GenerationConfig) -> Non
             f"speculative decoding needs num_beams=1 and num_return_sequences=1, got "
             f"num_beams={generation_config.num_beams}, num_return_sequences={generation_config.num_return_sequences}"
         )
-    batch_size = input_ids.shape[0]
-    if batch_size != 1:
-        raise ValueError(
-            f"speculative decoding supports batch size 1 in this version, got {batch_size} sequences; call "
-            f"generate once per sequence, or without assistant_model / draft_ids for batched greedy decoding"
-        )
     if generation_config.output_attentions or generation_config.output_hidden_states:
         raise ValueError(
             "output_attentions / output_hidden_states are not returned by speculative decoding; set them to False "
@@ -153,13 +176,25 @@ def _validate_call(model, input_ids, generation_config: GenerationConfig) -> Non
         )
     if model.config.is_encoder_decoder:
         raise ValueError(f"speculative decoding needs a decoder-only target, got {type(model).__name__}")
+    if batch_size > 1 and any(isinstance(p, PrefixConstrainedLogitsProcessor) for p in logits_processor):
+        raise ValueError(
+            f"prefix_allowed_tokens_fn reads the batch index, which batched speculative decoding does not pass; got "
+            f"{batch_size} sequences: generate one sequence per call with prefix_allowed_tokens_fn"
+        )
+    if drafter.batch_size is not None and drafter.batch_size != batch_size:
+        raise ValueError(
+            f"the assistant holds one drafter per row for {drafter.batch_size} rows (PerRowDrafter), but input_ids "
+            f"has {batch_size} rows"
+        )
 
 
-def _check_draft_ids_are_actions(candidates: list[list[int]], rule: AcceptanceRule, layout: ActionLayout | None):
+def _check_draft_ids_are_actions(
+    candidates: list[list[list[int]]], rule: AcceptanceRule, layout: ActionLayout | None
+) -> None:
     if rule.is_lossless or layout is None:
         return
     tokenizer = layout.tokenizer
-    bad = sorted({t for c in candidates for t in c if not tokenizer.is_action_token(t)})
+    bad = sorted({t for row in candidates for c in row for t in c if not tokenizer.is_action_token(t)})
     if bad:
         raise ValueError(
             f"draft_ids holds non-action token ids {bad[:8]} but relaxed acceptance (bin_tolerance > 0) compares "
@@ -168,42 +203,119 @@ def _check_draft_ids_are_actions(candidates: list[list[int]], rule: AcceptanceRu
         )
 
 
-# ----------------------------------------------------------------------------- steps
-def commit_path(
-    state: DecodeState,
-    tree: DraftTree,
-    path: AcceptedPath,
-    past_length: int,
-    hidden: torch.Tensor | None,
-) -> Commit:
-    """Keeps the pending tokens and the accepted path in the target cache (gathered) and says so to drafters.
+def _prompt_positions(model_inputs: dict, input_ids: torch.Tensor, prompt_padding: torch.Tensor | None):
+    """``[B, S]`` the prompt's position ids: the model's prepared ones, else as generate derives them."""
+    positions = model_inputs.get("position_ids")
+    if positions is not None:
+        return positions.expand(input_ids.shape[0], -1)
+    if prompt_padding is None:
+        return torch.arange(input_ids.shape[1], device=input_ids.device)[None].expand(input_ids.shape[0], -1)
+    return (prompt_padding.long().cumsum(-1) - 1).masked_fill(prompt_padding == 0, 0)
 
+
+# ----------------------------------------------------------------------------- steps
+def commit_paths(
+    state: DecodeState,
+    trees: TreeBatch,
+    paths: list[AcceptedPath],
+    hidden: torch.Tensor | None,
+) -> list[Commit]:
+    """Keeps, for every row, its pending tokens and its accepted path in the target cache; says so to drafters.
+
+    A row whose path is shorter than the longest one keeps invalid entries up to that length (``key_valid``), so
+    that the cache stays rectangular; when every row's path is leftmost (always for chains) and of one length,
+    the cache is simply truncated. Updates ``state`` (pending tokens, positions, key validity).
+
+    Args:
+        hidden: ``[B, P + N, H]`` the target's hidden states of the verification, or None.
     Returns:
-        the [`Commit`]: kept inputs = pending tokens + path nodes; the token after each; their hidden states.
+        one [`Commit`] per row: kept inputs = pending tokens + path nodes; the token after each; hidden states.
     """
-    num_pending = state.pending_ids.shape[1]
-    base = past_length + num_pending
-    path_nodes = torch.tensor(path.nodes, dtype=torch.long, device=state.sequence.device)
-    if path.nodes == list(range(len(path.nodes))):  # a leftmost path (always for a chain): a prefix, truncate
-        truncate_cache(state.target_cache, base + len(path.nodes))
+    batch_size, num_pending = state.pending_ids.shape
+    base = state.target_cache.get_seq_length() - trees.num_nodes  # cache entries before the tree's
+    device = state.pending_ids.device
+    longest = max(len(p.nodes) for p in paths)
+    path_valid = torch.tensor(
+        [[i < len(p.nodes) for i in range(longest)] for p in paths], dtype=torch.bool, device=device
+    )  # [B, A]
+    node_index = torch.tensor([p.nodes + [0] * (longest - len(p.nodes)) for p in paths], device=device).long()
+    if all(p.nodes == list(range(longest)) for p in paths):  # leftmost paths of one length: a prefix, truncate
+        truncate_cache(state.target_cache, base + longest)
     else:
-        keep = torch.cat([torch.arange(base, device=path_nodes.device), base + path_nodes])
+        keep = torch.cat([torch.arange(base, device=device).expand(batch_size, -1), base + node_index], dim=1)
         select_cache_positions(state.target_cache, keep)
-    path_tokens = tree.token_ids[path_nodes][None]  # [1, A]
-    bonus = path_tokens.new_full((1, 1), path.bonus_id)
-    root_position = state.pending_positions[:, -1:]
-    kept_hidden = None
-    if hidden is not None:
-        kept_hidden = torch.cat([hidden[:, :num_pending], hidden[:, num_pending + path_nodes]], dim=1)
-    return Commit(
-        next_token_ids=torch.cat([state.pending_ids[:, 1:], path_tokens, bonus], dim=1),
-        positions=torch.cat(
-            [state.pending_positions, root_position + 1 + torch.arange(len(path.nodes), device=bonus.device)[None]],
-            dim=1,
-        ),
-        target_hidden=kept_hidden,
-        cache_length=base + len(path.nodes),
-    )
+    valid_before = state.key_valid
+    if valid_before is None:
+        valid_before = torch.ones(batch_size, base, dtype=torch.bool, device=device)
+    key_valid = torch.cat([valid_before, path_valid], dim=1)  # [B, base + A]
+    commits = []
+    for b, (row, path) in enumerate(zip(state.rows, paths)):
+        accepted = len(path.nodes)
+        nodes = node_index[b, :accepted]
+        path_tokens = trees.token_ids[b, nodes][None]  # [1, A_b]
+        bonus = path_tokens.new_full((1, 1), path.bonus_id)
+        path_positions = state.pending_positions[b : b + 1, -1:] + 1 + torch.arange(accepted, device=device)[None]
+        kept_hidden = None
+        if hidden is not None:
+            kept_hidden = torch.cat([hidden[b : b + 1, :num_pending], hidden[b : b + 1, num_pending + nodes]], dim=1)
+        row.committed_length += num_pending + accepted
+        commits.append(
+            Commit(
+                next_token_ids=torch.cat([state.pending_ids[b : b + 1, 1:], path_tokens, bonus], dim=1),
+                positions=torch.cat([state.pending_positions[b : b + 1], path_positions], dim=1),
+                target_hidden=kept_hidden,
+                cache_length=row.committed_length,
+            )
+        )
+    state.pending_ids = torch.cat([c.next_token_ids[:, -1:] for c in commits])  # [B, 1] the bonus tokens
+    state.pending_positions = torch.cat([c.positions[:, -1:] + 1 for c in commits])
+    state.key_valid = None if bool(key_valid.all()) else torch.cat([key_valid, key_valid.new_ones(batch_size, 1)], 1)
+    return commits
+
+
+def drop_finished_rows(state: DecodeState) -> None:
+    """Removes finished rows from the batch tensors and the target cache, and cache columns no row needs."""
+    active = [b for b, row in enumerate(state.rows) if not row.finished]
+    if len(active) == len(state.rows):
+        return
+    state.rows = [state.rows[b] for b in active]
+    if not active:
+        return
+    index = torch.tensor(active, device=state.pending_ids.device)
+    select_cache_rows(state.target_cache, index)
+    state.pending_ids, state.pending_positions = state.pending_ids[index], state.pending_positions[index]
+    if state.key_valid is not None:
+        key_valid = state.key_valid[index]
+        needed = key_valid[:, :-1].any(dim=0)  # cached columns some remaining row attends to
+        if not bool(needed.all()):
+            select_cache_positions(state.target_cache, needed.nonzero()[:, 0])
+            key_valid = torch.cat([key_valid[:, :-1][:, needed], key_valid[:, -1:]], dim=1)
+        state.key_valid = None if bool(key_valid.all()) else key_valid
+
+
+def _padded_rows(rows: list[RowState], pad_token_id: int | None) -> torch.Tensor:
+    """The rows' sequences ``[B, L_max]``, right-padded with ``pad_token_id`` as batched greedy decoding pads."""
+    length = max(row.sequence.shape[1] for row in rows)
+    if any(row.sequence.shape[1] < length for row in rows) and pad_token_id is None:
+        raise ValueError(
+            "rows stopped at different lengths and there is no pad_token_id to right-pad them with: set "
+            "generation_config.pad_token_id (or eos_token_id)"
+        )
+    out = rows[0].sequence.new_full((len(rows), length), pad_token_id if pad_token_id is not None else 0)
+    for b, row in enumerate(rows):
+        out[b, : row.sequence.shape[1]] = row.sequence[0]
+    return out
+
+
+def _per_step(rows: list[RowState], attribute: str) -> tuple[torch.Tensor, ...]:
+    """Per-row lists of ``[V]`` tensors -> one ``[B, V]`` tensor per generated step (zeros after a row's end)."""
+    steps = max(len(getattr(row, attribute)) for row in rows)
+    template = next(getattr(row, attribute)[0] for row in rows if getattr(row, attribute))
+    out = []
+    for step in range(steps):
+        values = [getattr(row, attribute) for row in rows]
+        out.append(torch.stack([v[step] if step < len(v) else torch.zeros_like(template) for v in values]))
+    return tuple(out)
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -223,137 +335,164 @@ def speculative_generate(
     profile_speculation: bool = SpeculationConfig.profile_speculation,
     **model_kwargs,
 ) -> SpeculativeDecoderOnlyOutput | torch.LongTensor:
-    """Greedy speculative decoding; a ``custom_generate`` callable for ``model.generate``.
+    """Greedy speculative decoding of a batch; a ``custom_generate`` callable for ``model.generate``.
 
-    ``generate`` has already prepared ``input_ids`` ``[1, S]``, the logits processors, stopping criteria and
-    ``model_kwargs`` (cache, position ids, encoded images). Extra keyword arguments of ``generate`` named like
-    the parameters below arrive here (see [`SpeculationConfig`] for the settings).
+    ``generate`` has already prepared ``input_ids`` ``[B, S]`` (left-padded when rows differ in length, with the
+    2D ``attention_mask`` in ``model_kwargs``), the logits processors, stopping criteria and ``model_kwargs``
+    (cache, position ids, encoded images). Extra keyword arguments of ``generate`` named like the parameters
+    below arrive here (see [`SpeculationConfig`] for the settings).
+
+    Each row drafts with its own drafter session, accepts its own number of tokens per target forward and stops on
+    its own (EOS, ``max_length``, stopping criteria); finished rows leave the batch. With ``bin_tolerance=0`` every
+    row's tokens are plain (batched) greedy decoding's.
 
     Args:
-        drafter: a [`Drafter`] or a [`DraftHead`] (``draft_head=`` is the same, kept for older callers).
-        draft_ids: ``[1, k]`` or ``[1, C, k]`` drafts of the first generated tokens, known up front: verified
-            inside the prefill forward, with or without a drafter.
+        drafter: a [`Drafter`] (the same for every row, or a [`PerRowDrafter`]) or a [`DraftHead`]
+            (``draft_head=`` is the same, kept for older callers).
+        draft_ids: ``[B, k]`` or ``[B, C, k]`` drafts of the first generated tokens of each row, known up front:
+            verified inside the prefill forward, with or without a drafter.
     Returns:
-        ``[1, S + new]`` token ids, or with ``return_dict_in_generate=True`` a [`SpeculativeDecoderOnlyOutput`]
-        whose ``.speculation`` is a [`SpeculationStats`].
+        ``[B, S + new]`` token ids (rows that stopped early right-padded with ``pad_token_id``), or with
+        ``return_dict_in_generate=True`` a [`SpeculativeDecoderOnlyOutput`] whose ``.speculation`` is a
+        [`SpeculationStats`] (summed over rows; ``.rows`` per row when B > 1).
     """
     if drafter is not None and draft_head is not None:
         raise ValueError("pass drafter= or draft_head=, not both")
     settings = SpeculationConfig(bin_tolerance, num_draft_tokens, action_layout, profile_speculation)
     drafter = as_drafter(drafter if drafter is not None else draft_head, settings.num_draft_tokens)
-    _validate_call(model, input_ids, generation_config)
+    batch_size = input_ids.shape[0]
     candidates = None
     if draft_ids is not None:
         vocab_size = model.get_output_embeddings().weight.shape[0]
-        candidates = draft_id_candidates(draft_ids, input_ids.shape[0], vocab_size)
-        known = CandidateDrafter(candidates)
+        candidates = draft_id_candidates(draft_ids, batch_size, vocab_size)
+        known = CandidateDrafter(candidates[0]) if batch_size == 1 else PerRowDrafter(
+            [CandidateDrafter(row) for row in candidates]
+        )  # fmt: skip
         drafter = known if drafter is None else ComposedDrafter([known, drafter])
     if drafter is None:
         raise ValueError(
             "speculative_generate needs something to draft with: drafter= (or generate(assistant_model=...)) "
             "and/or draft_ids="
         )
+    _validate_call(model, generation_config, logits_processor, batch_size, drafter)
     layout = settings.action_layout or drafter.action_layout
     rule = make_acceptance_rule(settings.bin_tolerance, layout)
     if candidates is not None:
         _check_draft_ids_are_actions(candidates, rule, layout)
     eos_ids = generation_config.eos_token_id
     eos_ids = [] if eos_ids is None else ([eos_ids] if isinstance(eos_ids, int) else list(eos_ids))
-    prompt_padding = model_kwargs.get("attention_mask")  # [1, S] or None (no padding)
-    session = drafter.start(DraftContext(model, layout, eos_ids, prompt_padding))
+    pad_token_id = generation_config.pad_token_id if generation_config.pad_token_id is not None else (
+        eos_ids[0] if eos_ids else None
+    )  # fmt: skip
+    prompt_padding = model_kwargs.get("attention_mask")  # [B, S] or None (no padding)
+    if prompt_padding is not None and bool(prompt_padding.all()):
+        prompt_padding = None
+    rows = []
+    for b in range(batch_size):
+        row_padding = None if prompt_padding is None else prompt_padding[b : b + 1]
+        context = DraftContext(model, layout, eos_ids, row_padding, row=b)
+        rows.append(RowState(b, input_ids[b : b + 1], drafter.start(context), SpeculationStats()))
+    all_rows = list(rows)
 
     stats = SpeculationStats()
     stopwatch = _Stopwatch(stats, input_ids.device, settings.profile_speculation)
     return_dict = generation_config.return_dict_in_generate
-    scores_out = [] if return_dict and generation_config.output_scores else None
-    logits_out = [] if return_dict and generation_config.output_logits else None
+    keep_scores = return_dict and generation_config.output_scores
+    keep_logits = return_dict and generation_config.output_logits
     total_start = time.perf_counter()
 
     model_inputs = prefill_inputs(model, input_ids, model_kwargs)
-    prompt_positions = model_inputs.get("position_ids")
-    if prompt_positions is None:
-        prompt_positions = torch.arange(input_ids.shape[1], device=input_ids.device)[None]
     state = DecodeState(
-        sequence=input_ids,
+        rows=rows,
         pending_ids=input_ids,
-        pending_positions=prompt_positions,
+        pending_positions=_prompt_positions(model_inputs, input_ids, prompt_padding),
+        key_valid=None if prompt_padding is None else prompt_padding.bool(),
         target_cache=model_inputs["past_key_values"],
-        num_generated=0,
-        num_action_tokens=0,
     )
     max_length = generation_config.max_length
-    finished = False
-    while not finished:
-        at_prefill = state.num_generated == 0
-        # 1. Propose a tree below the root; no path may draft past max_length (the bonus takes the last slot).
-        draft_round = DraftRound(
-            sequence=state.sequence,
-            num_generated=state.num_generated,
-            max_depth=max(0, max_length - state.sequence.shape[1] - 1),
-            at_prefill=at_prefill,
-            root_position=state.pending_positions[:, -1:],
-        )
+    at_prefill = True
+    while state.rows:
+        # 1. Each row proposes a tree below its root; no path may draft past max_length (the bonus takes the last
+        #    slot).
+        trees = []
         with stopwatch.section("draft_seconds"):
-            tree = session.propose(draft_round).truncate_depth(draft_round.max_depth)
+            for b, row in enumerate(state.rows):
+                draft_round = DraftRound(
+                    sequence=row.sequence,
+                    num_generated=row.num_generated,
+                    max_depth=max(0, max_length - row.sequence.shape[1] - 1),
+                    at_prefill=at_prefill,
+                    root_position=state.pending_positions[b : b + 1, -1:],
+                )
+                trees.append(row.session.propose(draft_round).truncate_depth(draft_round.max_depth))
+        trees = TreeBatch(trees)
 
-        # 2. Verify every node in one target forward (the prefill's forward when at_prefill).
-        past_length = state.target_cache.get_seq_length()
+        # 2. Verify every row's tree in one target forward (the prefill's forward at the first round).
         with stopwatch.section("target_seconds"):
-            output = verify_tree(
+            output = verify_trees(
                 model,
                 model_inputs if at_prefill else {"past_key_values": state.target_cache},
                 state.pending_ids,
                 state.pending_positions,
-                tree,
-                past_length,
-                prompt_padding,
+                trees,
+                state.key_valid,
                 output_hidden=drafter.needs_hidden_states,
             )
-        target_ids, target_scores = target_greedy_ids(logits_processor, state.sequence, tree, output.logits)
+        stats.num_batch_forwards += 1
+        at_prefill = False
 
-        # 3. Accept the longest passing path; the bonus token is the target's greedy choice after it.
-        path = accept_tree(tree, target_ids, rule, layout, state.num_action_tokens)
-        stats.record_verification(tree.max_depth, tree.num_nodes, [tree.sources[n] for n in path.nodes])
-        emitted = [int(tree.token_ids[n]) for n in path.nodes] + [path.bonus_id]
-        rows = [tree.parents[n].item() + 1 for n in path.nodes] + [path.nodes[-1] + 1 if path.nodes else 0]
-        distances = path.distances + [0]
+        # 3. Per row: accept the longest passing path; the bonus token is the target's greedy choice after it.
+        paths = []
+        for b, (row, tree) in enumerate(zip(state.rows, trees.trees)):
+            row_logits = output.logits[b : b + 1, : 1 + tree.num_nodes]
+            target_ids, target_scores = target_greedy_ids(logits_processor, row.sequence, tree, row_logits)
+            path = accept_tree(tree, target_ids, rule, layout, row.num_action_tokens)
+            paths.append(path)
+            row.stats.record_verification(tree.max_depth, tree.num_nodes, [tree.sources[n] for n in path.nodes])
+            emitted = [int(tree.token_ids[n]) for n in path.nodes] + [path.bonus_id]
+            logit_rows = [tree.parents[n].item() + 1 for n in path.nodes] + [path.nodes[-1] + 1 if path.nodes else 0]
 
-        # 4. Emit token by token so that EOS / max_length / custom criteria stop exactly where greedy would.
-        num_emitted = 0
-        for token, row, distance in zip(emitted, rows, distances):
-            state.sequence = torch.cat([state.sequence, state.sequence.new_full((1, 1), token)], dim=1)
-            num_emitted += 1
-            if layout is not None and layout.tokenizer.is_action_token(token):
-                state.num_action_tokens += 1
-                stats.action_bin_distances.append(distance)
-            if scores_out is not None:
-                scores_out.append(target_scores[row][None])
-            if logits_out is not None:
-                logits_out.append(output.logits[:, row])
-            if bool(stopping_criteria(state.sequence, None).any()):
-                finished = True
-                break
-        state.num_generated += num_emitted
-        stats.accept_lengths.append(num_emitted)
+            # 4. Emit token by token so that EOS / max_length / custom criteria stop exactly where greedy would.
+            num_emitted = 0
+            for token, logit_row, distance in zip(emitted, logit_rows, path.distances + [0]):
+                row.sequence = torch.cat([row.sequence, row.sequence.new_full((1, 1), token)], dim=1)
+                num_emitted += 1
+                if layout is not None and layout.tokenizer.is_action_token(token):
+                    row.num_action_tokens += 1
+                    row.stats.action_bin_distances.append(distance)
+                if keep_scores:
+                    row.scores.append(target_scores[logit_row])
+                if keep_logits:
+                    row.logits.append(row_logits[0, logit_row])
+                if bool(stopping_criteria(row.sequence, None).any()):
+                    row.finished = True
+                    break
+            row.num_generated += num_emitted
+            row.stats.accept_lengths.append(num_emitted)
 
-        # 5. Commit: keep the pending tokens and the path in the cache; tell the drafters.
-        commit = commit_path(state, tree, path, past_length, output.hidden)
-        state.pending_ids = commit.next_token_ids[:, -1:]
-        state.pending_positions = commit.positions[:, -1:] + 1
-        if finished:
-            break
+        # 5. Commit: keep each row's pending tokens and path in the cache; tell the drafters; drop finished rows.
+        commits = commit_paths(state, trees, paths, output.hidden)
         with stopwatch.section("draft_seconds"):
-            session.observe(commit)
+            for row, commit in zip(state.rows, commits):
+                if not row.finished:
+                    row.session.observe(commit)
+        drop_finished_rows(state)
 
-    stats.num_draft_forwards = session.num_forwards
+    for row in all_rows:
+        row.stats.num_draft_forwards = row.session.num_forwards
+        stats.rows.append(row.stats)
+    stats.absorb_rows()
     stats.total_seconds = time.perf_counter() - total_start
     logger.debug("speculation: %s", stats)
+    sequences = all_rows[0].sequence if batch_size == 1 else _padded_rows(all_rows, pad_token_id)
     if not return_dict:
-        return state.sequence
+        return sequences
+    if batch_size == 1:
+        stats.rows = []
     return SpeculativeDecoderOnlyOutput(
-        sequences=state.sequence,
-        scores=None if scores_out is None else tuple(scores_out),
-        logits=None if logits_out is None else tuple(logits_out),
-        past_key_values=state.target_cache,
+        sequences=sequences,
+        scores=_per_step(all_rows, "scores") if keep_scores else None,
+        logits=_per_step(all_rows, "logits") if keep_logits else None,
+        past_key_values=state.target_cache if batch_size == 1 else None,
         speculation=stats,
     )

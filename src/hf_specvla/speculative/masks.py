@@ -71,12 +71,16 @@ def tree_verification_allowed(
     """Bool mask ``[B, P + N, past_len + P + N]`` of one target forward over ``P`` pending tokens then a draft tree.
 
     Pending token i sees the cache and pending tokens 0..i (causal); tree node j sees the cache, every pending token
-    and its own ancestors and itself (``ancestor_or_self`` ``[N, N]``), never its siblings.
+    and its own ancestors and itself (``ancestor_or_self``), never its siblings.
 
     Args:
-        key_padding: optional ``[B, past_len + P]`` bool, False where a cached or pending key is padding.
+        ancestor_or_self: ``[N, N]`` (one tree for every row) or ``[B, N, N]`` (one per row, see [`TreeBatch`]).
+        key_padding: optional ``[B, past_len + P]`` bool, False where a cached or pending key is invalid (prompt
+            padding, or an entry a batch row did not keep).
     """
-    num_nodes = ancestor_or_self.shape[0]
+    if ancestor_or_self.ndim == 2:
+        ancestor_or_self = ancestor_or_self[None]
+    num_trees, num_nodes = ancestor_or_self.shape[0], ancestor_or_self.shape[-1]
     device = ancestor_or_self.device
     pending_rows = torch.cat(
         [
@@ -84,12 +88,13 @@ def tree_verification_allowed(
             torch.zeros(num_pending, num_nodes, dtype=torch.bool, device=device),
         ],
         dim=1,
-    )
+    ).expand(num_trees, -1, -1)
     tree_rows = torch.cat(
-        [torch.ones(num_nodes, num_pending, dtype=torch.bool, device=device), ancestor_or_self.bool()], dim=1
+        [torch.ones(num_trees, num_nodes, num_pending, dtype=torch.bool, device=device), ancestor_or_self.bool()], 2
     )
-    block = torch.cat([pending_rows, tree_rows], dim=0)  # [P + N, P + N]
-    allowed = block_allowed(block, past_len)  # [1, P + N, past + P + N]
+    block = torch.cat([pending_rows, tree_rows], dim=1)  # [B, P + N, P + N]
+    past = torch.ones(num_trees, num_pending + num_nodes, past_len, dtype=torch.bool, device=device)
+    allowed = torch.cat([past, block], dim=2)  # [B, P + N, past + P + N]
     if key_padding is None:
         return allowed
     keys = torch.cat(

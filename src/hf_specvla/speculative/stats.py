@@ -23,6 +23,10 @@ class SpeculationStats:
             position (0 under exact acceptance, at most the tolerance under relaxed acceptance).
         target_seconds / draft_seconds / total_seconds: wall time in target forwards, in drafters, and in the
             whole decode (the rest is bookkeeping). Device-synchronised only with ``profile_speculation=True``.
+        num_batch_forwards: the target forwards actually run. For a batch of B rows the counts above are summed
+            over rows (a batch forward counts once for every row that took part in it: each row's tokens per
+            forward is what the batch achieves per forward for that row); at B = 1 it equals ``num_target_forwards``.
+        rows: one [`SpeculationStats`] per batch row (B > 1 only; their times are 0: a batch forward is shared).
     """
 
     accept_lengths: list[int] = field(default_factory=list)
@@ -35,6 +39,8 @@ class SpeculationStats:
     target_seconds: float = 0.0
     draft_seconds: float = 0.0
     total_seconds: float = 0.0
+    num_batch_forwards: int = 0
+    rows: list[SpeculationStats] = field(default_factory=list)
 
     @property
     def num_target_forwards(self) -> int:
@@ -69,8 +75,19 @@ class SpeculationStats:
             self.accepted_per_position[depth] += int(depth < len(accepted_sources))
         self.accepted_by_drafter.update(accepted_sources)
 
+    def absorb_rows(self) -> None:
+        """Adds every row's counts (``rows``) into this object's (the loop's batch total)."""
+        for row in self.rows:
+            self.accept_lengths += row.accept_lengths
+            self.tree_sizes += row.tree_sizes
+            self.num_draft_forwards += row.num_draft_forwards
+            self.drafted_per_position = _add_padded(self.drafted_per_position, row.drafted_per_position)
+            self.accepted_per_position = _add_padded(self.accepted_per_position, row.accepted_per_position)
+            self.accepted_by_drafter += row.accepted_by_drafter
+            self.action_bin_distances += row.action_bin_distances
+
     def merge(self, other: SpeculationStats) -> SpeculationStats:
-        """Sum of two runs' statistics (e.g. over a benchmark)."""
+        """Sum of two runs' statistics (e.g. over a benchmark); ``rows`` are concatenated."""
         return SpeculationStats(
             accept_lengths=self.accept_lengths + other.accept_lengths,
             tree_sizes=self.tree_sizes + other.tree_sizes,
@@ -82,6 +99,8 @@ class SpeculationStats:
             target_seconds=self.target_seconds + other.target_seconds,
             draft_seconds=self.draft_seconds + other.draft_seconds,
             total_seconds=self.total_seconds + other.total_seconds,
+            num_batch_forwards=self.num_batch_forwards + other.num_batch_forwards,
+            rows=self.rows + other.rows,
         )
 
 

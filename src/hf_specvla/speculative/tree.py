@@ -186,3 +186,48 @@ class DraftTree:
 
     def __repr__(self) -> str:
         return f"DraftTree(nodes={self.num_nodes}, depth={self.max_depth}, paths={self.token_paths()})"
+
+
+@dataclass
+class TreeBatch:
+    """One draft tree per batch row, padded to a common node count for one batched target forward.
+
+    Row b's real nodes are ``0 .. trees[b].num_nodes - 1``; the others are *filler*: token 0, depth 0, attending
+    to themselves only and attended by nothing, their outputs never read and their cache entries never kept.
+
+    Attributes:
+        trees: the rows' trees.
+        token_ids: ``[B, N]`` int64 (N = the largest tree's node count).
+        depths: ``[B, N]`` int64.
+        ancestor_or_self: ``[B, N, N]`` bool, each row's tree mask (filler: the diagonal only).
+    """
+
+    trees: list[DraftTree]
+    token_ids: torch.Tensor = field(init=False)
+    depths: torch.Tensor = field(init=False)
+    ancestor_or_self: torch.Tensor = field(init=False)
+
+    def __post_init__(self):
+        if not self.trees:
+            raise ValueError("TreeBatch needs at least one tree")
+        device = self.trees[0].token_ids.device
+        n, b = max(t.num_nodes for t in self.trees), len(self.trees)
+        self.token_ids = torch.zeros(b, n, dtype=torch.long, device=device)
+        self.depths = torch.zeros(b, n, dtype=torch.long, device=device)
+        self.ancestor_or_self = torch.eye(n, dtype=torch.bool, device=device).repeat(b, 1, 1)
+        for row, tree in enumerate(self.trees):
+            k = tree.num_nodes
+            self.token_ids[row, :k] = tree.token_ids
+            self.depths[row, :k] = tree.depths
+            self.ancestor_or_self[row, :k, :k] = tree.ancestor_or_self
+
+    @property
+    def num_nodes(self) -> int:
+        """N, the padded node count."""
+        return self.token_ids.shape[1]
+
+    @property
+    def is_causal(self) -> bool:
+        """True when every row's tree is a chain (filler after it is harmless under a causal mask, as nothing real
+        attends to it): the causal mask then is every row's tree mask."""
+        return all(tree.is_chain for tree in self.trees)

@@ -2,8 +2,8 @@
 
 One function serves both: the prefill's pending tokens are the whole prompt (images included: the model's own
 input preparation runs once and the image features are computed once), a later round's pending token is the
-last emitted one. Tree nodes get depth-based position ids and a 4D tree mask; without a tree the model builds
-its own causal mask (the cheapest path, identical to a plain decoding step).
+last emitted one. Tree nodes get depth-based position ids and a 4D tree mask; for chains (or no drafts) the model
+builds its own causal mask (the cheapest path, identical to a plain decoding step). Each batch row has its own tree.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import torch
 from transformers import LogitsProcessorList, PreTrainedModel
 from transformers.generation.logits_process import PrefixConstrainedLogitsProcessor
 
-from .masks import sequence_key_padding, to_additive_mask, tree_verification_allowed
-from .tree import DraftTree
+from .masks import to_additive_mask, tree_verification_allowed
+from .tree import DraftTree, TreeBatch
 
 
 class TargetOutput(NamedTuple):
@@ -36,43 +36,44 @@ def prefill_inputs(model: PreTrainedModel, input_ids: torch.Tensor, model_kwargs
     return model.prepare_inputs_for_generation(input_ids, is_first_iteration=True, **model_kwargs)
 
 
-def verify_tree(
+def verify_trees(
     model: PreTrainedModel,
     model_inputs: dict,
     pending_ids: torch.Tensor,
     pending_positions: torch.Tensor,
-    tree: DraftTree,
-    past_length: int,
-    prompt_padding: torch.Tensor | None,
+    trees: TreeBatch,
+    key_valid: torch.Tensor | None,
     output_hidden: bool,
 ) -> TargetOutput:
-    """One target forward over ``[pending tokens ; tree nodes]`` on top of a cache of ``past_length`` entries.
+    """One target forward over ``[pending tokens ; each row's tree nodes]`` on top of the target cache.
 
     Args:
         model_inputs: the other forward inputs (the cache, and at the prefill the model's prepared inputs).
         pending_ids / pending_positions: ``[B, P]`` tokens not yet in the cache and their position ids.
-        tree: the draft tree below the last pending token (node at depth d gets position ``last + 1 + d``).
-        prompt_padding: ``[B, S]`` the prompt's 2D attention mask, or None when unpadded.
+        trees: each row's draft tree below its last pending token (a node at depth d gets position
+            ``last + 1 + d``), padded to N nodes.
+        key_valid: ``[B, C + P]`` bool, False at every cached or pending key a row must not attend to (its prompt
+            padding, entries of paths another row accepted); None when every key is valid.
+    Returns:
+        [`TargetOutput`] with logits ``[B, 1 + N, V]`` and hidden states ``[B, P + N, H]``.
     """
-    num_pending, num_nodes = pending_ids.shape[1], tree.num_nodes
+    num_pending, num_nodes = pending_ids.shape[1], trees.num_nodes
     inputs = dict(model_inputs)
-    inputs["input_ids"] = torch.cat([pending_ids, tree.token_ids[None]], dim=1) if num_nodes else pending_ids
-    root_position = pending_positions[:, -1:]
-    if num_nodes:
-        inputs["position_ids"] = torch.cat([pending_positions, root_position + 1 + tree.depths[None]], dim=1)
-        if tree.is_chain and prompt_padding is None:
-            # A chain's tree mask is the causal mask: the model runs its own causal path (the kernels a plain
-            # forward uses; in bf16 an explicit mask selects other kernels, whose rounding can flip a near-tied
-            # argmax away from plain greedy decoding's).
+    inputs["input_ids"] = torch.cat([pending_ids, trees.token_ids], dim=1)
+    inputs["position_ids"] = torch.cat([pending_positions, pending_positions[:, -1:] + 1 + trees.depths], dim=1)
+    if trees.is_causal:
+        # Chains (or no drafts): the causal mask is every tree mask, so the model builds its own mask (the kernels a
+        # plain decoding step uses; in bf16 an explicit 4D mask selects other kernels, whose rounding can flip a
+        # near-tied argmax away from plain greedy decoding's). Invalid keys go in a 2D mask, as generate passes.
+        if key_valid is None:
             inputs["attention_mask"] = None
         else:
-            padding = sequence_key_padding(prompt_padding, past_length + num_pending)
-            allowed = tree_verification_allowed(past_length, num_pending, tree.ancestor_or_self, padding)
-            inputs["attention_mask"] = to_additive_mask(allowed, model.dtype)
+            new_keys = key_valid.new_ones(key_valid.shape[0], num_nodes)
+            inputs["attention_mask"] = torch.cat([key_valid, new_keys], dim=1).long()
     else:
-        inputs["position_ids"] = pending_positions
-        padding = sequence_key_padding(prompt_padding, past_length + num_pending)
-        inputs["attention_mask"] = None if padding is None else padding.long()
+        past_length = model_inputs["past_key_values"].get_seq_length()
+        allowed = tree_verification_allowed(past_length, num_pending, trees.ancestor_or_self, key_valid)
+        inputs["attention_mask"] = to_additive_mask(allowed, model.dtype)
     inputs["logits_to_keep"] = num_nodes + 1
     inputs["use_cache"] = True
     outputs = model(**inputs, output_hidden_states=output_hidden, return_dict=True)
