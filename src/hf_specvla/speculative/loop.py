@@ -223,8 +223,8 @@ def commit_paths(
     """Keeps, for every row, its pending tokens and its accepted path in the target cache; says so to drafters.
 
     A row whose path is shorter than the longest one keeps invalid entries up to that length (``key_valid``), so
-    that the cache stays rectangular; when every row's path is leftmost (always for chains) and of one length,
-    the cache is simply truncated. Updates ``state`` (pending tokens, positions, key validity).
+    that the cache stays rectangular; when every row's path is leftmost (always for chains) the cache is simply
+    truncated (a shorter row's rejected entries stay, as invalid keys), else each row's path is gathered. Updates ``state`` (pending tokens, positions, key validity).
 
     Args:
         hidden: ``[B, P + N, H]`` the target's hidden states of the verification, or None.
@@ -239,8 +239,8 @@ def commit_paths(
         [[i < len(p.nodes) for i in range(longest)] for p in paths], dtype=torch.bool, device=device
     )  # [B, A]
     node_index = torch.tensor([p.nodes + [0] * (longest - len(p.nodes)) for p in paths], device=device).long()
-    if all(p.nodes == list(range(longest)) for p in paths):  # leftmost paths of one length: a prefix, truncate
-        truncate_cache(state.target_cache, base + longest)
+    if all(p.nodes == list(range(len(p.nodes))) for p in paths):  # leftmost paths (chains): a prefix, truncate
+        truncate_cache(state.target_cache, base + longest)  # a shorter row's extra entries become invalid keys
     else:
         keep = torch.cat([torch.arange(base, device=device).expand(batch_size, -1), base + node_index], dim=1)
         select_cache_positions(state.target_cache, keep)

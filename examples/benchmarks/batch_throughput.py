@@ -1,0 +1,157 @@
+"""Actions per second of batched greedy vs batched speculative decoding, batch sizes 1, 4, 8, 16 (interleaved, in
+one process): the table "Batched decoding" in docs/benchmarks.md.
+
+B episodes are replayed in lockstep: each step, one call decodes the next action of all B episodes. On the
+shipped Meta-World policy the episodes are recorded greedy rollouts (MT10, 2 seeds per task); on the toy target
+they are the toy's moving-dot episodes. Every method keeps its own per-row action memory (the prior's drafts).
+Methods run in a freshly shuffled order at every step, so machine-load drift hits them alike.
+
+    python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla --draft-head policies/mt10_vla_draft
+    python examples/benchmarks/batch_throughput.py --toy runs/toy --steps 16
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import random
+import statistics
+import time
+
+import numpy as np
+import torch
+
+from hf_specvla import ActionLayout, CandidateDrafter, DraftHead, PerRowDrafter
+from hf_specvla.speculative.drafters import with_action_prior
+from hf_specvla.speculative.generation import SPECULATION_KWARGS
+from hf_specvla.speculative.loop import as_drafter
+
+
+def methods(draft_head, bin_tolerance: int) -> dict[str, dict]:
+    """name -> (generate kwargs, whether the action prior drafts)."""
+    return {
+        "greedy": {},
+        "prior": {"action_prior": True},
+        f"prior:r={bin_tolerance}": {"action_prior": True, "bin_tolerance": bin_tolerance},
+        "head": {"assistant_model": draft_head},
+        f"head:r={bin_tolerance}": {"assistant_model": draft_head, "bin_tolerance": bin_tolerance},
+    }
+
+
+def policy_target(args):
+    from hf_specvla.evaluation import record_observations
+    from hf_specvla.policy import VLAPolicy
+
+    policy = VLAPolicy.from_pretrained(args.policy)
+    draft_head = DraftHead.from_pretrained(args.draft_head).eval()
+    episodes = record_observations(policy, "MT10", [100_000, 100_001], max_steps=args.steps)
+
+    def act(rows, memories, settings):
+        observations = [episodes[e][t] for e, t in rows]
+        kwargs = dict(settings)
+        _, output = policy.predict_action(
+            np.stack([o["image"] for o in observations]), [o["instruction"] for o in observations],
+            np.stack([o["state"] for o in observations]), return_output=True, previous_action_ids=memories, **kwargs,
+        )  # fmt: skip
+        return output
+
+    return act, episodes, draft_head, policy.config.action_dim
+
+
+def toy_target(args):
+    from hf_specvla.benchmark import toy_episodes
+    from hf_specvla.toy import ACTION_DIM, build_toy_pipeline, toy_inputs
+
+    pipeline = build_toy_pipeline(args.toy, progress=False)
+    episodes = [e[: args.steps] for e in toy_episodes(16)]
+    layout = ActionLayout(pipeline.action_tokenizer, ACTION_DIM)
+
+    def act(rows, memories, settings):
+        kwargs = dict(settings)
+        prior = kwargs.pop("action_prior", False)
+        head = as_drafter(kwargs.pop("assistant_model", None), None)
+        if prior and any(memories):
+            empty = CandidateDrafter([], name="prior")
+            kwargs["assistant_model"] = PerRowDrafter([with_action_prior(head, m, layout) or empty for m in memories])
+        elif head is not None:
+            kwargs["assistant_model"] = head
+        if "assistant_model" not in kwargs:
+            kwargs = {k: v for k, v in kwargs.items() if k not in SPECULATION_KWARGS}
+        else:
+            kwargs["action_layout"] = layout
+        output = pipeline.target.generate(
+            **toy_inputs([episodes[e][t] for e, t in rows], pipeline.tokenizer), max_new_tokens=ACTION_DIM,
+            min_new_tokens=ACTION_DIM, do_sample=False, return_dict_in_generate=True, **kwargs,
+        )  # fmt: skip
+        for memory, ids in zip(memories, output.sequences[:, -ACTION_DIM:].tolist()):
+            memory[:] = [*memory, ids][-2:]
+        return output
+
+    return act, episodes, pipeline.draft_head, ACTION_DIM
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--policy", help="a policy folder (with --draft-head)")
+    parser.add_argument("--draft-head", help="the policy's draft head folder")
+    parser.add_argument("--toy", help="a toy pipeline folder (built there if missing)")
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 4, 8, 16])
+    parser.add_argument("--steps", type=int, default=24, help="steps replayed per episode")
+    parser.add_argument("--bin-tolerance", type=int, default=4, help="the relaxed r")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--json", help="write the results here")
+    args = parser.parse_args()
+    if (args.policy is None) == (args.toy is None) or (args.policy and not args.draft_head):
+        parser.error("give --policy with --draft-head, or --toy")
+    torch.set_num_threads(args.threads)
+    random.seed(0)
+    act, episodes, draft_head, action_dim = policy_target(args) if args.policy else toy_target(args)
+    table = []
+    for batch_size in args.batch_sizes:
+        chosen = [e for e in range(len(episodes)) if len(episodes[e]) >= args.steps][:batch_size]
+        if len(chosen) < batch_size:
+            raise SystemExit(f"only {len(chosen)} episodes have {args.steps} steps; lower --steps or the batch size")
+        settings = methods(draft_head, args.bin_tolerance)
+        memories = {name: [[] for _ in chosen] for name in settings}
+        seconds = {name: [] for name in settings}
+        row_forwards = {name: 0 for name in settings}
+        batch_forwards = {name: 0 for name in settings}
+        for step in range(args.steps):
+            order = list(settings)
+            random.shuffle(order)
+            for name in order:
+                start = time.perf_counter()
+                output = act([(e, step) for e in chosen], memories[name], settings[name])
+                seconds[name].append(time.perf_counter() - start)
+                stats = getattr(output, "speculation", None)
+                row_forwards[name] += stats.num_target_forwards if stats else action_dim * batch_size
+                batch_forwards[name] += stats.num_batch_forwards if stats else action_dim
+        greedy_median = statistics.median(seconds["greedy"])
+        for name in settings:
+            median = statistics.median(seconds[name])
+            table.append({
+                "batch_size": batch_size, "method": name, "median_ms_per_call": 1000 * median,
+                "actions_per_second": batch_size / median, "vs_greedy": greedy_median / median,
+                "target_forwards_per_action": row_forwards[name] / (batch_size * args.steps),
+                "batch_forwards_per_step": batch_forwards[name] / args.steps,
+            })  # fmt: skip
+            row = table[-1]
+            print(f"B={batch_size:2d} {name:10s} {row['median_ms_per_call']:7.1f} ms/call "
+                  f"{row['actions_per_second']:7.1f} actions/s {row['vs_greedy']:.2f}x "
+                  f"{row['target_forwards_per_action']:.2f} fwd/action {row['batch_forwards_per_step']:.2f} "
+                  f"batch fwd/step", flush=True)  # fmt: skip
+    print(
+        "\n| B | method | ms per call (median) | actions/s | vs batched greedy | target fwd/action | batch fwd/step |"
+    )
+    print("|---:|---|---:|---:|---:|---:|---:|")
+    for row in table:
+        print(f"| {row['batch_size']} | {row['method']} | {row['median_ms_per_call']:.1f} | "
+              f"{row['actions_per_second']:.0f} | {row['vs_greedy']:.2f}x | {row['target_forwards_per_action']:.2f} | "
+              f"{row['batch_forwards_per_step']:.2f} |")  # fmt: skip
+    if args.json:
+        with open(args.json, "w") as file:
+            json.dump({"args": vars(args), "rows": table}, file, indent=2)
+
+
+if __name__ == "__main__":
+    main()
