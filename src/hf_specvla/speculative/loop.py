@@ -2,18 +2,20 @@
 
 Reads as a ladder (gpt-fast style), the same steps every round, the prefill included:
 
-    propose (drafter) -> verify_tree (one target forward) -> target_greedy_ids -> accept_tree -> emit -> commit
-    -> observe (drafter) -> repeat until a stopping criterion
+    propose (drafter) -> verify_trees (one target forward) -> target_greedy_ids -> accept_tree -> emit -> commit
+    -> observe (drafter) -> repeat until every row has stopped
 
-Invariants kept between rounds (B = 1 in this version):
+Invariants kept between rounds, per batch row (each row has its own drafter session, tree, accepted path):
 
-* ``sequence`` holds the prompt and every emitted token. ``pending`` tokens are not in the target cache yet:
+* a row's ``sequence`` holds its prompt and every token it emitted. ``pending`` tokens are not in the target cache yet:
   the whole prompt before the prefill, afterwards exactly the last emitted token (the previous bonus token).
 * The tree proposed in a round hangs below the last pending token (the root). Drafts known before the target has
   run (``draft_ids``, the action prior) are proposed in round 0 and so verified *inside the prefill*: when all of
   them pass, the action costs exactly one target forward.
-* After a round the target cache holds the pending tokens and the accepted path only: the path's entries are
-  gathered (not truncated), since an accepted node need not be leftmost in the tree.
+* After a round the target cache holds, for each row, the pending tokens and the accepted path as valid entries
+  (an accepted node need not be leftmost in the tree: then the path is gathered). The cache is one rectangle for
+  the batch: entries a row did not keep are invalid keys, masked like prompt padding (``DecodeState.key_valid``).
+  Finished rows leave the batch.
 
 Entry point: [`speculative_generate`], a ``custom_generate`` callable for ``model.generate``.
 """
