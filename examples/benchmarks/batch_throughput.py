@@ -7,7 +7,7 @@ they are the toy's moving-dot episodes. Every method keeps its own per-row actio
 Methods run in a freshly shuffled order at every step, so machine-load drift hits them alike.
 
     python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla --draft-head policies/mt10_vla_draft
-    python examples/benchmarks/batch_throughput.py --toy runs/toy --steps 16
+    python examples/benchmarks/batch_throughput.py --toy runs/batch/toy_pipeline --steps 8
 """
 
 from __future__ import annotations
