@@ -226,7 +226,8 @@ def commit_paths(
 
     A row whose path is shorter than the longest one keeps invalid entries up to that length (``key_valid``), so
     that the cache stays rectangular; when every row's path is leftmost (always for chains) the cache is simply
-    truncated (a shorter row's rejected entries stay, as invalid keys), else each row's path is gathered. Updates ``state`` (pending tokens, positions, key validity).
+    truncated (a shorter row's rejected entries stay, as invalid keys), else each row's path is gathered.
+    Updates ``state`` (pending tokens, positions, key validity).
 
     Args:
         hidden: ``[B, P + N, H]`` the target's hidden states of the verification, or None.
