@@ -21,8 +21,8 @@ import time
 import numpy as np
 import torch
 
-from hf_specvla import ActionLayout, CandidateDrafter, DraftHead, PerRowDrafter
-from hf_specvla.speculative.drafters import with_action_prior
+from hf_specvla import ActionLayout, DraftHead
+from hf_specvla.speculative.drafters import with_action_priors
 from hf_specvla.speculative.generation import SPECULATION_KWARGS
 from hf_specvla.speculative.loop import as_drafter
 
@@ -70,15 +70,11 @@ def toy_target(args):
         kwargs = dict(settings)
         prior = kwargs.pop("action_prior", False)
         head = as_drafter(kwargs.pop("assistant_model", None), None)
-        if prior and any(memories):
-            empty = CandidateDrafter([], name="prior")
-            kwargs["assistant_model"] = PerRowDrafter([with_action_prior(head, m, layout) or empty for m in memories])
-        elif head is not None:
-            kwargs["assistant_model"] = head
-        if "assistant_model" not in kwargs:
+        drafter = with_action_priors(head, memories, layout) if prior else head
+        if drafter is None:  # nothing to draft from: plain greedy
             kwargs = {k: v for k, v in kwargs.items() if k not in SPECULATION_KWARGS}
         else:
-            kwargs["action_layout"] = layout
+            kwargs.update(assistant_model=drafter, action_layout=layout)
         output = pipeline.target.generate(
             **toy_inputs([episodes[e][t] for e, t in rows], pipeline.tokenizer), max_new_tokens=ACTION_DIM,
             min_new_tokens=ACTION_DIM, do_sample=False, return_dict_in_generate=True, **kwargs,

@@ -50,28 +50,9 @@ def rollout(
     generate_kwargs: dict | None = None,
     frames: list | None = None,
 ) -> EpisodeResult:
-    """Runs one episode from ``env.reset(seed)`` until success or the step limit. Appends images to ``frames``
-    when given (for a video)."""
-    generate_kwargs = dict(generate_kwargs or {})
-    obs = env.reset(seed)
-    policy.reset()
-    result = EpisodeResult(env.task, seed, False, 0)
-    while True:
-        if frames is not None:
-            frames.append(obs["image"])
-        start = time.perf_counter()
-        action, output = policy.predict_action(
-            obs["image"], obs["instruction"], obs["state"], return_output=True, **generate_kwargs
-        )
-        result.latencies_ms.append(1000 * (time.perf_counter() - start))
-        stats: SpeculationStats | None = getattr(output, "speculation", None)
-        if stats is not None:
-            result.accept_lengths.extend(stats.accept_lengths)
-        obs, _, done, info = env.step(action)
-        result.length += 1
-        if done:
-            result.success = info["success"]
-            return result
+    """Runs one episode from ``env.reset(seed)`` until success or the step limit ([`rollout_batch`] of one
+    environment). Appends images to ``frames`` when given (for a video)."""
+    return rollout_batch(policy, [env], [seed], generate_kwargs, frames)[0]
 
 
 def rollout_batch(
@@ -251,10 +232,7 @@ def evaluate(
             chunk = pending[chunk_start : chunk_start + num_envs]
             envs = pool.acquire([task for task, _ in chunk])
             seeds = [seed for _, seed in chunk]
-            if num_envs == 1:
-                chunk_results = [rollout(policy, envs[0], seeds[0], generate_kwargs, frames)]
-            else:
-                chunk_results = rollout_batch(policy, envs, seeds, generate_kwargs, frames)
+            chunk_results = rollout_batch(policy, envs, seeds, generate_kwargs, frames)
             with log_path.open("a") as log:
                 for result in chunk_results:
                     log.write(json.dumps(asdict(result)) + "\n")

@@ -36,8 +36,8 @@ from transformers import (
 from .action_tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
 from .envs.metaworld import CAMERAS, EnvConfig
 from .run_folder import fingerprint
-from .speculative import ActionPriorDrafter, CandidateDrafter, Drafter, DraftHead, PerRowDrafter, enable_speculation
-from .speculative.drafters import with_action_prior
+from .speculative import ActionPriorDrafter, Drafter, DraftHead, enable_speculation
+from .speculative.drafters import with_action_priors
 from .speculative.generation import SPECULATION_KWARGS
 from .speculative.loop import as_drafter
 from .tokenization import build_vla_tokenizer
@@ -384,12 +384,7 @@ class VLAPolicy:
         if num_draft_tokens is not None and assistant is None:
             raise ValueError("num_draft_tokens needs assistant_model=<DraftHead>")
         drafter = as_drafter(assistant, num_draft_tokens)
-        if not action_prior or not any(histories):
-            return drafter
-        if len(histories) == 1:
-            return with_action_prior(drafter, histories[0], self.action_layout)
-        nothing = CandidateDrafter([], name=ActionPriorDrafter.name)  # a row at its episode's first step
-        return PerRowDrafter([with_action_prior(drafter, h, self.action_layout) or nothing for h in histories])
+        return with_action_priors(drafter, histories, self.action_layout) if action_prior else drafter
 
     def weights_fingerprint(self) -> str:
         """Content fingerprint of the model's weights (computed once; a policy's weights do not change at

@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from ...action_tokenizer import ActionLayout
-from ..drafter import DraftContext, Drafter, DraftSession, PathSession
+from ..drafter import CandidateDrafter, DraftContext, Drafter, DraftSession, PathSession, PerRowDrafter
 
 
 class ActionPriorDrafter(Drafter):
@@ -109,3 +109,17 @@ def with_action_prior(
         return drafter
     prior = ActionPriorDrafter(previous_actions, action_layout)
     return prior if drafter is None else ComposedDrafter([prior, drafter])
+
+
+def with_action_priors(
+    drafter: Drafter | None, histories: Sequence[Sequence[Sequence[int]]], action_layout: ActionLayout
+) -> Drafter | None:
+    """[`with_action_prior`] for a batch: ``histories[b]`` is row b's previous actions. One row: that row's drafter;
+    several: a [`PerRowDrafter`] (a row with no previous action drafts with ``drafter`` alone, or nothing); no
+    previous action in any row: ``drafter`` unchanged."""
+    if not any(histories):
+        return drafter
+    if len(histories) == 1:
+        return with_action_prior(drafter, histories[0], action_layout)
+    nothing = CandidateDrafter([], name=ActionPriorDrafter.name)  # a row at its episode's first step
+    return PerRowDrafter([with_action_prior(drafter, h, action_layout) or nothing for h in histories])
