@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from ..action_tokenizer import ActionLayout
-from .tree import DraftTree
+from .tree import DraftTree, TreeBatch
 
 
 class AcceptanceRule:
@@ -174,39 +174,68 @@ def accept_tree(
     action_layout: ActionLayout | None,
     num_prior_action_tokens: int = 0,
 ) -> AcceptedPath:
-    """The longest root-to-leaf path of ``tree`` whose every drafted token passes ``rule``.
+    """The longest root-to-leaf path of ``tree`` whose every drafted token passes ``rule`` ([`accept_trees`] for
+    one tree).
 
     Args:
         tree: the verified draft tree (N nodes).
         target_ids: ``[1 + N]`` the target's greedy token after the root (index 0) and after each node (1 + i),
             each given that node's own path as prefix (the tree mask guarantees it).
         num_prior_action_tokens: action tokens generated in this call before the root (for action dimensions).
-    Returns:
-        the [`AcceptedPath`]; ties between equally long passing paths go to the smallest total bin distance, then
-        to the lowest node index.
     """
-    if tree.num_nodes == 0:
-        return AcceptedPath([], int(target_ids[0]), [])
-    tokens = tree.token_ids
-    parent_targets = target_ids[tree.parents + 1]  # [N] greedy token at each node's place
-    strict_ancestors = tree.ancestor_or_self & ~torch.eye(tree.num_nodes, dtype=torch.bool, device=tokens.device)
+    return accept_trees(TreeBatch([tree]), target_ids[None], rule, action_layout, [num_prior_action_tokens])[0]
+
+
+def accept_trees(
+    trees: TreeBatch,
+    target_ids: torch.Tensor,
+    rule: AcceptanceRule,
+    action_layout: ActionLayout | None,
+    num_prior_action_tokens: Sequence[int],
+) -> list[AcceptedPath]:
+    """Per row, the longest root-to-leaf path of its tree whose every drafted token passes ``rule`` (all rows at
+    once).
+
+    Args:
+        trees: the verified trees, padded to N nodes.
+        target_ids: ``[B, 1 + N]`` each row's greedy token after its root (column 0) and after each node (1 + i),
+            each given that node's own path as prefix (the tree mask guarantees it).
+        num_prior_action_tokens: per row, action tokens generated in this call before the root (for action
+            dimensions).
+    Returns:
+        one [`AcceptedPath`] per row; ties between equally long passing paths go to the smallest total bin
+        distance, then to the lowest node index.
+    """
+    tokens, ancestor_or_self = trees.token_ids, trees.ancestor_or_self  # [B, N], [B, N, N]
+    batch_size, num_nodes = tokens.shape
+    if num_nodes == 0:
+        return [AcceptedPath([], bonus, []) for bonus in target_ids[:, 0].tolist()]
+    parent_targets = target_ids.gather(1, trees.parents + 1)  # [B, N] greedy token at each node's place
     if action_layout is not None:
-        is_action = action_layout.tokenizer.is_action_token(tokens)
+        tokenizer = action_layout.tokenizer
+        is_action = tokenizer.is_action_token(tokens)
+        strict_ancestors = ancestor_or_self & ~torch.eye(num_nodes, dtype=torch.bool, device=tokens.device)
         # (integer products as masked sums: CUDA has no integer matmul)
-        before = num_prior_action_tokens + (strict_ancestors.long() * is_action.long()[None, :]).sum(-1)
+        before = torch.tensor(num_prior_action_tokens, device=tokens.device)[:, None] + (
+            strict_ancestors.long() * is_action.long()[:, None, :]
+        ).sum(-1)  # [B, N]
         action_dims = before % action_layout.action_dim
-        both_actions = is_action & action_layout.tokenizer.is_action_token(parent_targets)
-        distances = torch.where(both_actions, action_layout.tokenizer.bin_distance(tokens, parent_targets), 0)
+        both_actions = is_action & tokenizer.is_action_token(parent_targets)
+        distances = torch.where(both_actions, tokenizer.bin_distance(tokens, parent_targets), 0)
     else:
         action_dims = torch.zeros_like(tokens)
         distances = torch.zeros_like(tokens)
-    passes = rule(tokens[None], parent_targets[None], action_dims[None])[0]  # [N] the node alone
-    path_passes = ~(tree.ancestor_or_self & ~passes[None]).any(dim=-1)  # [N] the node and all its ancestors
-    if not bool(path_passes.any()):
-        return AcceptedPath([], int(target_ids[0]), [])
-    total_distance = (tree.ancestor_or_self.long() * distances[None, :]).sum(-1)  # [N] summed along the path
-    depths, totals = tree.depths.tolist(), total_distance.tolist()
-    candidates = [i for i, ok in enumerate(path_passes.tolist()) if ok]
-    best = min(candidates, key=lambda i: (-depths[i], totals[i], i))  # deepest, then closest, then first
-    nodes = tree.path_to(best)
-    return AcceptedPath(nodes, int(target_ids[best + 1]), distances[nodes].tolist())
+    passes = rule(tokens, parent_targets, action_dims) & trees.is_real  # [B, N] the node alone
+    path_passes = ~(ancestor_or_self & ~passes[:, None, :]).any(dim=-1)  # [B, N] the node and all its ancestors
+    total_distance = (ancestor_or_self.long() * distances[:, None, :]).sum(-1)  # [B, N] summed along the path
+    # deepest, then closest, then first: argmax returns the first of equal maxima
+    rank = (trees.depths + 1) * (int(total_distance.max()) + 1) - total_distance  # >= 1 for every node
+    best = torch.where(path_passes, rank, 0).argmax(dim=-1)  # [B]
+    accepted = path_passes.any(dim=-1)  # [B]
+    bonus_ids = torch.where(accepted, target_ids.gather(1, best[:, None] + 1)[:, 0], target_ids[:, 0])
+    on_path = ancestor_or_self[torch.arange(batch_size, device=tokens.device), best] & accepted[:, None]  # [B, N]
+    paths = []
+    for row_on_path, row_distances, bonus in zip(on_path.tolist(), distances.tolist(), bonus_ids.tolist()):
+        nodes = [i for i, kept in enumerate(row_on_path) if kept]  # index order is depth order
+        paths.append(AcceptedPath(nodes, bonus, [row_distances[i] for i in nodes]))
+    return paths

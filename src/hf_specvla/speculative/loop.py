@@ -2,7 +2,7 @@
 
 Reads as a ladder (gpt-fast style), the same steps every round, the prefill included:
 
-    propose (drafter) -> verify_trees (one target forward) -> target_greedy_ids -> accept_tree -> emit -> commit
+    propose (drafter) -> verify_trees (one target forward) -> target_greedy_ids -> accept_trees -> emit -> commit
     -> observe (drafter) -> repeat until every row has stopped
 
 Invariants kept between rounds, per batch row (each row has its own drafter session, tree, accepted path):
@@ -34,7 +34,7 @@ from transformers.cache_utils import Cache
 from transformers.generation.logits_process import PrefixConstrainedLogitsProcessor
 
 from ..action_tokenizer import ActionLayout
-from .acceptance import AcceptanceRule, AcceptedPath, accept_tree, make_acceptance_rule
+from .acceptance import AcceptanceRule, AcceptedPath, accept_trees, make_acceptance_rule
 from .cache import select_cache_positions, select_cache_rows, truncate_cache
 from .config import SpeculationConfig
 from .drafter import (
@@ -296,6 +296,41 @@ def drop_finished_rows(state: DecodeState) -> None:
         state.key_valid = None if bool(key_valid.all()) else key_valid
 
 
+def emit_tokens(rows: list[RowState], emitted: list[list[int]], stopping_criteria: StoppingCriteriaList) -> list[int]:
+    """Appends each row's ``emitted`` tokens up to where the stopping criteria first fire, as greedy decoding (which
+    asks them after every token) would stop, and marks those rows finished.
+
+    The criteria see exactly the prefixes greedy decoding shows them; prefixes of one length (across rows) are
+    asked in one call.
+
+    Returns:
+        per row, how many of its tokens were kept.
+    """
+    device = rows[0].sequence.device
+    lengths = [row.sequence.shape[1] for row in rows]
+    extended = [torch.cat([row.sequence[0], torch.tensor(tokens, device=device)]) for row, tokens in zip(rows, emitted)]
+    by_length: dict[int, list[int]] = {}  # prefix length -> rows that reach it
+    for b, tokens in enumerate(emitted):
+        for count in range(1, len(tokens) + 1):
+            by_length.setdefault(lengths[b] + count, []).append(b)
+    stop_length: list[int | None] = [None] * len(rows)  # the shortest prefix the criteria stop at
+    for length in sorted(by_length):
+        group = [b for b in by_length[length] if stop_length[b] is None]
+        if group:
+            done = stopping_criteria(torch.stack([extended[b][:length] for b in group]), None)
+            for b, stop in zip(group, done.tolist()):
+                if stop:
+                    stop_length[b] = length
+    num_kept = []
+    for b, row in enumerate(rows):
+        end = lengths[b] + len(emitted[b]) if stop_length[b] is None else stop_length[b]
+        row.finished = stop_length[b] is not None
+        row.sequence = extended[b][None, :end]
+        row.num_generated += end - lengths[b]
+        num_kept.append(end - lengths[b])
+    return num_kept
+
+
 def _padded_rows(rows: list[RowState], pad_token_id: int | None) -> torch.Tensor:
     """The rows' sequences ``[B, L_max]``, right-padded with ``pad_token_id`` as batched greedy decoding pads."""
     length = max(row.sequence.shape[1] for row in rows)
@@ -445,33 +480,29 @@ def speculative_generate(
         at_prefill = False
 
         # 3. Per row: accept the longest passing path; the bonus token is the target's greedy choice after it.
-        paths = []
-        for b, (row, tree) in enumerate(zip(state.rows, trees.trees)):
-            row_logits = output.logits[b : b + 1, : 1 + tree.num_nodes]
-            target_ids, target_scores = target_greedy_ids(logits_processor, row.sequence, tree, row_logits)
-            path = accept_tree(tree, target_ids, rule, layout, row.num_action_tokens)
-            paths.append(path)
-            row.stats.record_verification(tree.max_depth, tree.num_nodes, [tree.sources[n] for n in path.nodes])
-            emitted = [int(tree.token_ids[n]) for n in path.nodes] + [path.bonus_id]
-            logit_rows = [tree.parents[n].item() + 1 for n in path.nodes] + [path.nodes[-1] + 1 if path.nodes else 0]
+        target_ids, target_scores = target_greedy_ids(
+            logits_processor, [row.sequence for row in state.rows], trees, output.logits
+        )  # fmt: skip
+        paths = accept_trees(trees, target_ids, rule, layout, [row.num_action_tokens for row in state.rows])
 
-            # 4. Emit token by token so that EOS / max_length / custom criteria stop exactly where greedy would.
-            num_emitted = 0
-            for token, logit_row, distance in zip(emitted, logit_rows, path.distances + [0]):
-                row.sequence = torch.cat([row.sequence, row.sequence.new_full((1, 1), token)], dim=1)
-                num_emitted += 1
+        # 4. Emit; stop each row exactly where greedy would (EOS / max_length / custom criteria).
+        emitted = []
+        for row, tree, path in zip(state.rows, trees.trees, paths):
+            row.stats.record_verification(tree.max_depth, tree.num_nodes, [tree.sources[n] for n in path.nodes])
+            emitted.append(tree.token_ids[path.nodes].tolist() + [path.bonus_id])
+        num_kept = emit_tokens(state.rows, emitted, stopping_criteria)
+        for b, (row, tree, path, count) in enumerate(zip(state.rows, trees.trees, paths, num_kept)):
+            parents = tree.parents.tolist()
+            logit_rows = [parents[n] + 1 for n in path.nodes] + [path.nodes[-1] + 1 if path.nodes else 0]
+            for token, logit_row, distance in zip(emitted[b][:count], logit_rows, path.distances + [0]):
                 if layout is not None and layout.tokenizer.is_action_token(token):
                     row.num_action_tokens += 1
                     row.stats.action_bin_distances.append(distance)
                 if keep_scores:
-                    row.scores.append(target_scores[logit_row])
+                    row.scores.append(target_scores[b, logit_row])
                 if keep_logits:
-                    row.logits.append(row_logits[0, logit_row])
-                if bool(stopping_criteria(row.sequence, None).any()):
-                    row.finished = True
-                    break
-            row.num_generated += num_emitted
-            row.stats.accept_lengths.append(num_emitted)
+                    row.logits.append(output.logits[b, logit_row])
+            row.stats.accept_lengths.append(count)
 
         # 5. Commit: keep each row's pending tokens and path in the cache; tell the drafters; drop finished rows.
         commits = commit_paths(state, trees, paths, output.hidden)

@@ -198,14 +198,18 @@ class TreeBatch:
     Attributes:
         trees: the rows' trees.
         token_ids: ``[B, N]`` int64 (N = the largest tree's node count).
+        parents: ``[B, N]`` int64 (filler: -1, a child of the root).
         depths: ``[B, N]`` int64.
         ancestor_or_self: ``[B, N, N]`` bool, each row's tree mask (filler: the diagonal only).
+        is_real: ``[B, N]`` bool, False at filler nodes.
     """
 
     trees: list[DraftTree]
     token_ids: torch.Tensor = field(init=False)
+    parents: torch.Tensor = field(init=False)
     depths: torch.Tensor = field(init=False)
     ancestor_or_self: torch.Tensor = field(init=False)
+    is_real: torch.Tensor = field(init=False)
 
     def __post_init__(self):
         if not self.trees:
@@ -213,18 +217,35 @@ class TreeBatch:
         device = self.trees[0].token_ids.device
         n, b = max(t.num_nodes for t in self.trees), len(self.trees)
         self.token_ids = torch.zeros(b, n, dtype=torch.long, device=device)
+        self.parents = torch.full((b, n), -1, dtype=torch.long, device=device)
         self.depths = torch.zeros(b, n, dtype=torch.long, device=device)
         self.ancestor_or_self = torch.eye(n, dtype=torch.bool, device=device).repeat(b, 1, 1)
         for row, tree in enumerate(self.trees):
             k = tree.num_nodes
             self.token_ids[row, :k] = tree.token_ids
+            self.parents[row, :k] = tree.parents
             self.depths[row, :k] = tree.depths
             self.ancestor_or_self[row, :k, :k] = tree.ancestor_or_self
+        num_real = torch.tensor([t.num_nodes for t in self.trees], device=device)
+        self.is_real = torch.arange(n, device=device)[None] < num_real[:, None]
 
     @property
     def num_nodes(self) -> int:
         """N, the padded node count."""
         return self.token_ids.shape[1]
+
+    @property
+    def max_depth(self) -> int:
+        """The deepest row's path length (0 when no row has a node)."""
+        return max(tree.max_depth for tree in self.trees)
+
+    @cached_property
+    def path_token_ids(self) -> torch.Tensor:
+        """``[B, N, D]`` (D = ``max_depth``) the tokens on the path to each node, root's child first, 0 beyond the
+        node's depth: node i's path is ``path_token_ids[b, i, : depths[b, i] + 1]``."""
+        depth_slot = self.depths[:, :, None] == torch.arange(self.max_depth, device=self.depths.device)  # [B, N, D]
+        on_path = self.ancestor_or_self[:, :, :, None] & depth_slot[:, None, :, :]  # [B, N(node), N(ancestor), D]
+        return (on_path.long() * self.token_ids[:, None, :, None]).sum(dim=2)
 
     @property
     def is_causal(self) -> bool:

@@ -8,14 +8,16 @@ builds its own causal mask (the cheapest path, identical to a plain decoding ste
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
+from torch.nn.utils.rnn import pad_sequence
 from transformers import LogitsProcessorList, PreTrainedModel
 from transformers.generation.logits_process import PrefixConstrainedLogitsProcessor
 
 from .masks import to_additive_mask, tree_verification_allowed
-from .tree import DraftTree, TreeBatch
+from .tree import TreeBatch
 
 
 class TargetOutput(NamedTuple):
@@ -90,32 +92,44 @@ def apply_processors(logits_processor: LogitsProcessorList, input_ids: torch.Ten
 
 
 def target_greedy_ids(
-    logits_processor: LogitsProcessorList, sequence: torch.Tensor, tree: DraftTree, logits: torch.Tensor
+    logits_processor: LogitsProcessorList, sequences: Sequence[torch.Tensor], trees: TreeBatch, logits: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The target's greedy token after the root and after each node, with the logits processors applied.
+    """Every row's greedy token after its root and after each of its nodes, with the logits processors applied.
 
-    The processors at node i see ``sequence`` + the tokens on node i's path: exactly what plain greedy decoding
-    would pass them had that path been generated. Nodes of one depth have prefixes of one length, so they are
-    processed as one batch (one call per depth), except under processors that read the batch index
-    (``prefix_allowed_tokens_fn``), which see each node alone as batch row 0.
+    The processors at row b's node i see row b's sequence + the tokens on node i's path: exactly what plain greedy
+    decoding would pass them had that path been generated. Every (row, node) whose prefix has the same length is
+    processed in one call (the prefill: one call per depth for the whole batch), except under processors that read
+    the batch index (``prefix_allowed_tokens_fn``, batch size 1 only), which see each node alone as batch row 0.
 
     Args:
-        sequence: ``[1, L]`` emitted so far (ending with the root); logits: ``[1, 1 + N, V]``.
+        sequences: per row, ``[1, L_b]`` the tokens emitted so far (ending with the root).
+        trees: the verified trees, padded to N nodes.
+        logits: ``[B, 1 + N, V]`` the verification's logits (column 0: after the root; 1 + i: after node i).
     Returns:
-        (target_ids ``[1 + N]``, scores ``[1 + N, V]``)
+        (target_ids ``[B, 1 + N]``, scores ``[B, 1 + N, V]``); filler nodes keep their raw logits (never read).
     """
     if len(logits_processor) == 0:
-        return logits[0].argmax(dim=-1), logits[0]
+        return logits.argmax(dim=-1), logits
+    batch_size, device = logits.shape[0], logits.device
+    lengths = torch.tensor([s.shape[1] for s in sequences], device=device)[:, None]  # [B, 1]
+    prefix_lengths = torch.cat([lengths, lengths + 1 + trees.depths], dim=1)  # [B, 1 + N]
+    scored = torch.cat([trees.is_real.new_ones(batch_size, 1), trees.is_real], dim=1)  # [B, 1 + N]
+    sequence_table = pad_sequence([s[0] for s in sequences], batch_first=True)  # [B, L_max]
+    path_tokens = trees.path_token_ids  # [B, N, D]
+    path_tokens = torch.cat([path_tokens.new_zeros(batch_size, 1, path_tokens.shape[2]), path_tokens], dim=1)
     by_row = any(isinstance(p, PrefixConstrainedLogitsProcessor) for p in logits_processor)
-    scores = torch.empty_like(logits[0])  # [1 + N, V]
-    scores[:1] = apply_processors(logits_processor, sequence, logits[:, 0])
-    for depth in range(tree.max_depth):
-        nodes = (tree.depths == depth).nonzero()[:, 0]  # [n] nodes at this depth
-        # their paths: ancestors (and self) in index order, which is depth order (parents first)
-        path_nodes = tree.ancestor_or_self[nodes].nonzero()[:, 1].view(len(nodes), depth + 1)
-        input_ids = torch.cat([sequence.expand(len(nodes), -1), tree.token_ids[path_nodes]], dim=1)  # [n, L + d + 1]
-        groups = [[i] for i in range(len(nodes))] if by_row else [list(range(len(nodes)))]
+    scores = logits.clone()
+    for length in prefix_lengths[scored].unique().tolist():
+        rows, columns = ((prefix_lengths == length) & scored).nonzero(as_tuple=True)  # [n] each
+        # each (row, column)'s prefix: the row's sequence, then the node's path tokens
+        offsets = torch.arange(length, device=device)[None]  # [1, length]
+        row_lengths = lengths[rows]  # [n, 1]
+        source = torch.cat([sequence_table[rows], path_tokens[rows, columns]], dim=1)  # [n, L_max + D]
+        index = torch.where(offsets < row_lengths, offsets, sequence_table.shape[1] + offsets - row_lengths)
+        input_ids = source.gather(1, index)  # [n, length]
+        groups = [[i] for i in range(len(rows))] if by_row else [slice(None)]
         for group in groups:
-            rows = nodes[group] + 1
-            scores[rows] = apply_processors(logits_processor, input_ids[group], logits[0, rows])
+            scores[rows[group], columns[group]] = apply_processors(
+                logits_processor, input_ids[group], logits[rows[group], columns[group]]
+            )
     return scores.argmax(dim=-1), scores
