@@ -18,8 +18,7 @@ from transformers import (
 from transformers.generation.stopping_criteria import EosTokenCriteria, MaxLengthCriteria
 
 from hf_specvla import ActionLayout, DraftTree, ExactMatch, RelaxedBinMatch
-from hf_specvla.speculative import SpeculationStats
-from hf_specvla.speculative.acceptance import accept_trees
+from hf_specvla.speculative import SpeculationStats, accept_trees
 from hf_specvla.speculative.drafter import PathSession
 from hf_specvla.speculative.loop import RowState, emit_tokens
 from hf_specvla.speculative.tree import TreeBatch

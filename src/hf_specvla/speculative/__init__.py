@@ -3,7 +3,15 @@
 Imports point down: this package uses transformers, torch and ``hf_specvla.action_tokenizer`` only.
 """
 
-from .acceptance import AcceptanceRule, AcceptedPath, ExactMatch, RelaxedBinMatch, accept_tree, make_acceptance_rule
+from .acceptance import (
+    AcceptanceRule,
+    AcceptedPath,
+    ExactMatch,
+    RelaxedBinMatch,
+    accept_tree,
+    accept_trees,
+    make_acceptance_rule,
+)
 from .config import SpeculationConfig
 from .configuration_draft_head import DraftHeadConfig
 from .drafter import (
@@ -48,6 +56,7 @@ __all__ = [
     "SpeculativeDecoderOnlyOutput",
     "SpeculativeGenerationMixin",
     "accept_tree",
+    "accept_trees",
     "disable_speculation",
     "enable_speculation",
     "make_acceptance_rule",
