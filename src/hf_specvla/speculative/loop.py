@@ -306,9 +306,8 @@ def emit_tokens(rows: list[RowState], emitted: list[list[int]], stopping_criteri
     Returns:
         per row, how many of its tokens were kept.
     """
-    device = rows[0].sequence.device
     lengths = [row.sequence.shape[1] for row in rows]
-    extended = [torch.cat([row.sequence[0], torch.tensor(tokens, device=device)]) for row, tokens in zip(rows, emitted)]
+    extended = [torch.cat([row.sequence[0], row.sequence.new_tensor(tokens)]) for row, tokens in zip(rows, emitted)]
     by_length: dict[int, list[int]] = {}  # prefix length -> rows that reach it
     for b, tokens in enumerate(emitted):
         for count in range(1, len(tokens) + 1):
