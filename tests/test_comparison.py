@@ -50,9 +50,9 @@ from hf_specvla.cli import main  # noqa: E402
 from hf_specvla.comparison import PLOTS  # noqa: E402
 from tests.test_policy_draft import build_policy  # noqa: E402
 
-COLUMNS = {"episodes", "success_rate", "task_success_rates", "vs_greedy", "mean_episode_length", "median_ms_per_action",
-           "speedup", "target_forwards_per_action", "tokens_per_target_forward", "accept_length_counts",
-           "mean_bin_deviation", "max_bin_deviation", "identical_to_greedy"}  # fmt: skip
+COLUMNS = {"episodes", "success_rate", "task_success_rates", "vs_greedy", "mean_episode_length", "median_ms_per_call",
+           "speedup", "target_forwards_per_action", "target_forwards_per_call", "tokens_per_target_forward",
+           "accept_length_counts", "mean_bin_deviation", "max_bin_deviation", "identical_to_greedy"}  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -86,6 +86,7 @@ def test_compare_pairs_seeds_keeps_r0_identical_and_resumes(policy_dir, tmp_path
         assert COLUMNS <= set(row), name
     assert summary["methods"]["prior"]["identical_to_greedy"] == 2
     assert summary["methods"]["greedy"]["target_forwards_per_action"] == 4.0
+    assert summary["methods"]["greedy"]["target_forwards_per_call"] == 4.0
     for plot in PLOTS:
         assert (out / plot).read_bytes()[:4] == b"\x89PNG"
     assert (out / "compare.md").read_text().startswith("| method |")

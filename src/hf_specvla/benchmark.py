@@ -268,7 +268,7 @@ def policy_actor(policy):
             observation["image"], observation["instruction"], observation["state"], return_output=True,
             action_prior=action_prior, **generate_kwargs,
         )  # fmt: skip
-        return output.sequences[0, -policy.config.action_dim :].tolist(), output
+        return output.sequences[0, -policy.config.action_tokens :].tolist(), output
 
     return act
 

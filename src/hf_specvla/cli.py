@@ -230,7 +230,7 @@ def _bench_episodes(args, parser) -> int:
             draft_head = _load_draft_head_for(policy, args.draft_head, parser)
         seeds = [args.seed_start + i for i in range(args.episodes)]
         episodes = record_observations(policy, args.tasks, seeds, args.steps)
-        act, action_dim, head_name = policy_actor(policy), policy.config.action_dim, args.draft_head
+        act, action_dim, head_name = policy_actor(policy), policy.config.action_tokens, args.draft_head
         if not args.draft_head:
             torch.manual_seed(args.seed)
             draft_head = DraftHead.from_target(policy.model, policy.action_tokenizer, policy.config.action_dim).eval()
@@ -297,21 +297,35 @@ def _train_vla(args, parser) -> int:
     )  # fmt: skip
     stats = dataset_stats(args.data)
     scene_stats = stats.scene_normalizer() if args.scene_targets else None  # before the slow load: fails fast
-    demos = load_demonstrations(args.data, args.tasks)
+    action_stats, state_stats = stats.action, stats.state
     info = dataset_info(args.data)
-    policy_config = VLAPolicyConfig(
-        image_size=info["image_size"],
-        camera=info["camera"],
-        patch_size=args.patch_size,
-        use_state=not args.no_state,
-        vision_hidden_size=args.vision_hidden_size,
-        vision_layers=args.vision_layers,
-        scene_state_dim=SCENE_STATE_DIM if args.scene_targets else 0,
-    )
+    try:
+        policy_config = VLAPolicyConfig(
+            image_size=info["image_size"], camera=info["camera"], patch_size=args.patch_size,
+            use_state=not args.no_state, vision_hidden_size=args.vision_hidden_size, vision_layers=args.vision_layers,
+            text_hidden_size=args.text_hidden_size, text_layers=args.text_layers, chunk_length=args.chunk_length,
+            scene_state_dim=SCENE_STATE_DIM if args.scene_targets else 0,
+        )  # fmt: skip
+    except ValueError as error:
+        parser.error(str(error))
+    source = None
+    if args.init_from is not None:
+        try:
+            source = VLAPolicy.from_pretrained(args.init_from)
+        except FileNotFoundError as error:
+            parser.error(f"--init-from: {error}")
+        if source.config.text_layers > policy_config.text_layers:
+            parser.error(f"--init-from {args.init_from} has {source.config.text_layers} decoder layers: "
+                         f"--text-layers must be at least that, got {args.text_layers}")  # fmt: skip
+        # the source's tokens mean its bins: keep its normalisation
+        action_stats, state_stats = source.action_normalizer, source.state_normalizer
+        if args.scene_targets and source.scene_normalizer is not None:
+            scene_stats = source.scene_normalizer
+    demos = load_demonstrations(args.data, args.tasks)
     policy = VLAPolicy.build(
-        list(TASK_INSTRUCTIONS.values()), stats.action, stats.state, policy_config, args.seed, scene_stats
+        list(TASK_INSTRUCTIONS.values()), action_stats, state_stats, policy_config, args.seed, scene_stats
     )
-    metrics = train_vla(policy, demos, config)
+    metrics = train_vla(policy, demos, config, init_from=source)
     print(f"policy saved to {args.output_dir}: {metrics}")
     return 0
 
@@ -544,6 +558,15 @@ def main(argv: list[str] | None = None) -> int:
                        help="width of the vision encoder")  # fmt: skip
     train.add_argument("--vision-layers", type=int, default=VLAPolicyConfig.vision_layers,
                        help="transformer layers of the vision encoder")  # fmt: skip
+    train.add_argument("--text-layers", type=POSITIVE, default=VLAPolicyConfig.text_layers,
+                       help="decoder layers (its depth sets the cost of a decode step)")  # fmt: skip
+    train.add_argument("--text-hidden-size", type=POSITIVE, default=VLAPolicyConfig.text_hidden_size,
+                       help="decoder width")  # fmt: skip
+    train.add_argument("--chunk-length", type=POSITIVE, default=VLAPolicyConfig.chunk_length,
+                       help="actions predicted per call (an action chunk of H x action_dim tokens)")  # fmt: skip
+    train.add_argument("--init-from", default=None,
+                       help="start from this trained policy (same widths; its decoder layers spread over a deeper "
+                            "one, new layers start as the identity; its normalisation statistics are kept)")  # fmt: skip
     train.add_argument("--no-state", action="store_true", help="do not give the proprio state to the model")
     train.add_argument("--scene-targets", action="store_true",
                        help="also learn to predict the object and goal positions (the data's scene_state column) "

@@ -12,8 +12,9 @@ actions), ``prior+head``, ``prior+tree``: e.g. ``greedy``, ``head:k=3``, ``tree:
 ``prior+tree:r=4``. Greedy is always run: it is the baseline every figure is paired with.
 
 **Per method** (see [`summarize_comparison`]): success rate; the paired difference to greedy with a 95% bootstrap
-interval over seeds and the discordant counts; mean episode length; median ms per action and the speed-up vs
-greedy (median over seeds of the ratio of the two episodes' median ms per action); target forwards per action;
+interval over seeds and the discordant counts; mean episode length; median ms per policy call (one action, or one
+chunk of actions for a chunked policy) and the speed-up vs greedy (median over seeds of the ratio of the two
+episodes' median ms per call); target forwards per call and per action (env step);
 tokens per target forward; for relaxed methods the bin deviation from greedy's action *on the same observation*
 (greedy decoded off the clock at every step); for lossless methods how many episodes were identical to greedy's.
 
@@ -196,7 +197,7 @@ def _greedy_action_ids(policy: VLAPolicy, obs: dict) -> list[int]:
         _, output = policy.predict_action(obs["image"], obs["instruction"], obs["state"], return_output=True)
     finally:
         policy.previous_action_ids = memory
-    return output.sequences[0, -policy.config.action_dim :].tolist()
+    return output.sequences[0, -policy.config.action_tokens :].tolist()
 
 
 def run_method_episode(
@@ -204,11 +205,11 @@ def run_method_episode(
 ) -> dict:
     """One episode of ``method`` from ``env.reset(seed)``: the record a comparison log holds."""
     kwargs = method.generate_kwargs(draft_head)
-    action_dim = policy.config.action_dim
+    action_dim = policy.config.action_tokens  # tokens per call (a chunk's, for a chunked policy)
     obs = env.reset(seed)
     policy.reset()
     latencies, accept_counts, digest = [], Counter(), hashlib.sha256()
-    target_forwards = new_tokens = 0
+    target_forwards = new_tokens = length = 0
     distances: list[int] = []
     while True:
         start = time.perf_counter()
@@ -228,12 +229,16 @@ def run_method_episode(
             reference = _greedy_action_ids(policy, obs)
             distances.extend(abs(a - b) for a, b in zip(action_ids, reference))
         digest.update(np.asarray(action_ids, np.int64).tobytes())
-        obs, _, done, info = env.step(action)
+        for step_action in policy.action_steps(action):
+            obs, _, done, info = env.step(step_action)
+            length += 1
+            if done:
+                break
         if done:
             break
     return {
         "task": env.task, "seed": seed, "method": method.name, "success": bool(info["success"]),
-        "length": len(latencies), "latencies_ms": latencies, "target_forwards": target_forwards,
+        "length": length, "latencies_ms": latencies, "target_forwards": target_forwards,
         "new_tokens": new_tokens, "accept_length_counts": {str(k): v for k, v in sorted(accept_counts.items())},
         "bin_distance_sum": sum(distances), "bin_distance_count": len(distances),
         "bin_distance_max": max(distances, default=0), "actions_digest": digest.hexdigest()[:16],
@@ -489,9 +494,10 @@ def summarize_comparison(records: list[dict], methods: list[str]) -> dict:
                 t: statistics.mean(r["success"] for (task, _), r in episodes.items() if task == t) for t in tasks
             },
             "mean_episode_length": statistics.mean(r["length"] for r in episodes.values()),
-            "median_ms_per_action": statistics.median(latencies),
+            "median_ms_per_call": statistics.median(latencies),  # one call decides one action, or one chunk
             "speedup": statistics.median(ratios) if ratios else None,
-            "target_forwards_per_action": forwards / actions,
+            "target_forwards_per_action": forwards / actions,  # per env step
+            "target_forwards_per_call": forwards / len(latencies),
             "tokens_per_target_forward": sum(r["new_tokens"] for r in episodes.values()) / forwards,
             "accept_length_counts": {str(k): v for k, v in sorted(accept_counts.items())},
             "mean_bin_deviation": (
@@ -512,7 +518,7 @@ def format_comparison(summary: dict) -> str:
     """The markdown table of a comparison summary."""
     lines = [
         "| method | episodes | success | vs greedy (95% CI) | greedy-only / method-only | mean length "
-        "| median ms/action | speed-up | target fwd/action | tokens/target fwd | bin dev. mean / max "
+        "| median ms/call | speed-up | target fwd/call | tokens/target fwd | bin dev. mean / max "
         "| identical to greedy |",
         "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---|---:|",
     ]
@@ -528,8 +534,8 @@ def format_comparison(summary: dict) -> str:
         identical = f"{row['identical_to_greedy']}/{paired['pairs'] if paired else 0}"
         lines.append(
             f"| {name} | {row['episodes']} | {row['success_rate']:.1%} | {versus} | {discordant} "
-            f"| {row['mean_episode_length']:.0f} | {row['median_ms_per_action']:.2f} | {speedup} "
-            f"| {row['target_forwards_per_action']:.2f} | {row['tokens_per_target_forward']:.2f} | {deviation} "
+            f"| {row['mean_episode_length']:.0f} | {row['median_ms_per_call']:.2f} | {speedup} "
+            f"| {row['target_forwards_per_call']:.2f} | {row['tokens_per_target_forward']:.2f} | {deviation} "
             f"| {identical} |"
         )
     return "\n".join(lines)

@@ -142,7 +142,7 @@ def record_episode(
         rows["action"].append(action.tolist())
         executed = action
         if policy is not None and rng.random() >= expert_mix:
-            executed = policy.predict_action(obs["image"], obs["instruction"], obs["state"])
+            executed = policy.action_steps(policy.predict_action(obs["image"], obs["instruction"], obs["state"]))[0]
         if action_noise > 0:
             noise = rng.normal(0.0, action_noise, size=action.shape)
             executed = np.clip(executed + noise, -1.0, 1.0).astype(np.float32)

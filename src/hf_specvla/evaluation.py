@@ -32,8 +32,9 @@ EVAL_SEED_START = 100_000
 
 @dataclass
 class EpisodeResult:
-    """One rollout. ``latencies_ms``: per-action ``predict_action`` wall time; ``accept_lengths``: tokens per
-    target forward over the episode (speculative decoding only)."""
+    """One rollout. ``length``: env steps; ``latencies_ms``: wall time of each ``predict_action`` call (one per
+    action, or per chunk of actions for a chunked policy); ``accept_lengths``: tokens per target forward over the
+    episode (speculative decoding only)."""
 
     task: str
     seed: int
@@ -65,8 +66,9 @@ def rollout_batch(
     """Runs one episode per environment in lockstep (``envs[b].reset(seeds[b])``): each step, one batched
     ``predict_action`` for every environment still running; an environment leaves the batch when its episode ends.
     Per episode the same as [`rollout`] (each row keeps its own action memory for ``action_prior``); a row's
-    ``latencies_ms`` are the batched calls' wall times (what each environment waited). ``frames`` gets the first
-    environment's images."""
+    ``latencies_ms`` are the batched calls' wall times (what each environment waited). A chunked policy's chunk is
+    executed whole (``VLAPolicy.action_steps``) before the next call; the rows stay in lockstep, since every row
+    executes the same number of steps per call. ``frames`` gets the first environment's images."""
     if len(envs) != len(seeds) or not envs:
         raise ValueError(f"rollout_batch needs one seed per environment, got {len(envs)} envs and {len(seeds)} seeds")
     if len({id(env) for env in envs}) != len(envs):
@@ -77,8 +79,6 @@ def rollout_batch(
     memories: list[list[list[int]]] = [[] for _ in envs]
     running = list(range(len(envs)))
     while running:
-        if frames is not None and 0 in running:
-            frames.append(observations[0]["image"])
         start = time.perf_counter()
         actions, output = policy.predict_action(
             np.stack([observations[b]["image"] for b in running]),
@@ -96,11 +96,15 @@ def rollout_batch(
             results[b].latencies_ms.append(latency_ms)
             if row is not None:
                 results[b].accept_lengths.extend(row.accept_lengths)
-            observations[b], _, done, info = envs[b].step(action)
-            results[b].length += 1
-            if done:
-                results[b].success = info["success"]
-            else:
+            for step_action in policy.action_steps(action):
+                if frames is not None and b == 0:
+                    frames.append(observations[0]["image"])
+                observations[b], _, done, info = envs[b].step(step_action)
+                results[b].length += 1
+                if done:
+                    results[b].success = info["success"]
+                    break
+            if not done:
                 still_running.append(b)
         running = still_running
     return results
@@ -109,8 +113,9 @@ def rollout_batch(
 def record_observations(
     policy: VLAPolicy, tasks: str | list[str], seeds: list[int], max_steps: int, env_config: EnvConfig | None = None
 ) -> list[list[dict]]:
-    """Greedy rollouts of ``policy``, one per task and seed, cut at ``max_steps``: the observations it saw
-    (``image``, ``instruction``, ``state``), one list per episode. What the episode benchmark replays."""
+    """Greedy rollouts of ``policy``, one per task and seed, cut at ``max_steps`` calls: the observations it
+    decided on (``image``, ``instruction``, ``state``; a chunked policy decides once per chunk), one list per
+    episode. What the episode benchmark replays and draft heads train on."""
     env_config = env_config or EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)
     policy.check_env_config(env_config)
     episodes = []
@@ -119,11 +124,14 @@ def record_observations(
             for seed in seeds:
                 obs, observations = env.reset(seed), []
                 policy.reset()
-                for _ in range(max_steps):
+                done = False
+                while not done and len(observations) < max_steps:
                     observations.append({k: obs[k] for k in ("image", "instruction", "state")})
-                    obs, _, done, _ = env.step(policy.predict_action(obs["image"], obs["instruction"], obs["state"]))
-                    if done:
-                        break
+                    actions = policy.predict_action(obs["image"], obs["instruction"], obs["state"])
+                    for action in policy.action_steps(actions):
+                        obs, _, done, _ = env.step(action)
+                        if done:
+                            break
                 episodes.append(observations)
     return episodes
 
@@ -152,7 +160,7 @@ def summarize(results: list[EpisodeResult]) -> dict:
 def format_summary(summary: dict) -> str:
     """Markdown table of [`summarize`]'s result."""
     lines = [
-        "| task | episodes | success | mean length | median ms/action | accept length |",
+        "| task | episodes | success | mean length | median ms/call | accept length |",
         "|---|---:|---:|---:|---:|---:|",
     ]
     rows = [*summary["tasks"].items(), ("**mean over tasks**", summary["overall"])]

@@ -54,6 +54,9 @@ class VLAPolicyConfig:
         camera: the camera the policy was trained on (``EnvConfig.camera``); evaluation renders from it.
         patch_size: ViT patch size; the image becomes ``(image_size / patch_size) ** 2`` tokens.
         action_dim / state_dim: action tokens per action, proprio numbers per observation.
+        chunk_length: actions predicted per call (an action chunk, H): the model generates
+            ``chunk_length * action_dim`` tokens, the next H actions in order; ``predict_action`` returns them as
+            ``[H, action_dim]`` when H > 1.
         use_state: put the discretised proprio state in the prompt.
         vision_hidden_size, vision_layers, text_hidden_size, text_layers, text_heads: model sizes.
         scene_state_dim: 0, or the number of scene-state values (object and goal xyz: 6) that training asks the
@@ -74,6 +77,7 @@ class VLAPolicyConfig:
     text_layers: int = 3
     text_heads: int = 6
     scene_state_dim: int = 0
+    chunk_length: int = 1
     action_stats: dict = field(default_factory=dict)
     state_stats: dict = field(default_factory=dict)
     scene_stats: dict = field(default_factory=dict)
@@ -88,6 +92,14 @@ class VLAPolicyConfig:
                 "vision_hidden_size must be a positive multiple of 4 (the encoder's attention heads) and "
                 f"vision_layers >= 1, got {self.vision_hidden_size} and {self.vision_layers}"
             )
+        for name in ("text_hidden_size", "text_layers", "text_heads", "chunk_length"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"VLAPolicyConfig.{name} must be an int >= 1, got {value!r}")
+        if self.text_hidden_size % self.text_heads:
+            raise ValueError(
+                f"text_hidden_size {self.text_hidden_size} must be a multiple of text_heads {self.text_heads}"
+            )
         if self.action_dim < 1 or self.state_dim < 0 or self.scene_state_dim < 0:
             raise ValueError(
                 f"action_dim must be >= 1, state_dim and scene_state_dim >= 0, got {self.action_dim}, "
@@ -97,6 +109,11 @@ class VLAPolicyConfig:
     @property
     def num_image_tokens(self) -> int:
         return (self.image_size // self.patch_size) ** 2
+
+    @property
+    def action_tokens(self) -> int:
+        """Tokens one call generates: ``chunk_length * action_dim``."""
+        return self.chunk_length * self.action_dim
 
 
 class VLAPolicy:
@@ -232,9 +249,14 @@ class VLAPolicy:
         self, images, states, actions, instructions: list[str], scene_states=None
     ) -> dict[str, torch.Tensor]:
         """Teacher-forcing inputs for behaviour cloning: ``input_ids`` ``[B, L]`` (right-padded), ``attention_mask``,
-        ``pixel_values``, ``labels`` (-100 except on the target tokens: the ``action_dim`` action tokens, then,
-        when ``config.scene_state_dim``, the discretised ``scene_states`` ``[B, scene_state_dim]``)."""
-        target_ids = self.action_token_ids(np.asarray(actions))  # [B, A]
+        ``pixel_values``, ``labels`` (-100 except on the target tokens: the ``chunk_length * action_dim`` action
+        tokens, then, when ``config.scene_state_dim``, the discretised ``scene_states`` ``[B, scene_state_dim]``).
+
+        ``actions``: ``[B, action_dim]`` for a policy without chunks, ``[B, chunk_length, action_dim]`` (the frame's
+        action and the next ones) for any policy.
+        """
+        target_ids = self.action_token_ids(self._check_action_chunks(np.asarray(actions)))  # [B, H, A]
+        target_ids = target_ids.reshape(len(target_ids), -1)  # [B, H * A]
         if self.config.scene_state_dim:
             if scene_states is None:
                 raise ValueError(
@@ -262,6 +284,19 @@ class VLAPolicy:
             "pixel_values": self.preprocess_images(images),
             "labels": labels.to(self.model.device),
         }
+
+    def _check_action_chunks(self, actions: np.ndarray) -> np.ndarray:
+        """``actions`` as ``[B, chunk_length, action_dim]``; a clear error for another layout."""
+        chunk, dim = self.config.chunk_length, self.config.action_dim
+        if actions.ndim == 2 and chunk == 1:
+            actions = actions[:, None]
+        if actions.ndim != 3 or actions.shape[1:] != (chunk, dim):
+            expected = f"[B, {chunk}, {dim}]" + (f" or [B, {dim}]" if chunk == 1 else "")
+            raise ValueError(
+                f"this policy predicts chunks of chunk_length={chunk} actions of action_dim={dim}: training actions "
+                f"must have shape {expected}, got {list(actions.shape)}"
+            )
+        return actions
 
     # ----------------------------------------------------------------------------- acting
     def check_env_config(self, env_config) -> None:
@@ -336,6 +371,12 @@ class VLAPolicy:
             actions = actions[0]
         return (actions, output) if return_output else actions
 
+    def action_steps(self, actions: np.ndarray) -> list[np.ndarray]:
+        """One observation's ``predict_action`` output as the env steps to run, in order: ``[action]`` for a policy
+        without chunks, the chunk's H actions for a chunked one (a chunk is executed whole before the next call)."""
+        actions = np.asarray(actions)
+        return list(actions) if self.config.chunk_length > 1 else [actions]
+
     @staticmethod
     def _rows(name: str, values: list, batch_size: int) -> list:
         if len(values) != batch_size:
@@ -352,8 +393,8 @@ class VLAPolicy:
         if any(len(p) < width for p in prompts):
             mask = [[0] * (width - len(p)) + [1] * len(p) for p in prompts]
             inputs["attention_mask"] = torch.tensor(mask, device=self.model.device)
-        kwargs = dict(max_new_tokens=self.config.action_dim, min_new_tokens=self.config.action_dim, do_sample=False,
-                      pad_token_id=pad_id)  # fmt: skip
+        tokens = self.config.action_tokens
+        kwargs = dict(max_new_tokens=tokens, min_new_tokens=tokens, do_sample=False, pad_token_id=pad_id)
         if return_output:
             kwargs["return_dict_in_generate"] = True
         kwargs.update(generate_kwargs)
@@ -367,14 +408,15 @@ class VLAPolicy:
                 kwargs.pop(name, None)
         output = self.model.generate(**inputs, **kwargs)
         sequences = output.sequences if hasattr(output, "sequences") else output
-        action_ids = sequences[:, -self.config.action_dim :]  # [B, A]
+        chunk, dim = self.config.chunk_length, self.config.action_dim
+        action_ids = sequences[:, -chunk * dim :].reshape(-1, chunk, dim)  # [B, H, A]
         for history, ids in zip(histories, action_ids):
             if bool(self.action_tokenizer.is_action_token(ids).all()):  # an untrained model may emit text ids
-                history[:] = [*history, ids.tolist()][-self.HISTORY_LENGTH :]
+                history[:] = [*history, *ids.tolist()][-self.HISTORY_LENGTH :]
             else:
                 history.clear()
-        normalized = self.action_tokenizer.decode(action_ids)
-        return self.action_normalizer.unnormalize(normalized), output
+        actions = self.action_normalizer.unnormalize(self.action_tokenizer.decode(action_ids))  # [B, H, A]
+        return (actions[:, 0] if chunk == 1 else actions), output
 
     def _drafter(
         self, assistant: DraftHead | Drafter | None, action_prior: bool, num_draft_tokens, histories
@@ -384,7 +426,9 @@ class VLAPolicy:
         if num_draft_tokens is not None and assistant is None:
             raise ValueError("num_draft_tokens needs assistant_model=<DraftHead>")
         drafter = as_drafter(assistant, num_draft_tokens)
-        return with_action_priors(drafter, histories, self.action_layout) if action_prior else drafter
+        if not action_prior:
+            return drafter
+        return with_action_priors(drafter, histories, self.action_layout, self.config.chunk_length)
 
     def weights_fingerprint(self) -> str:
         """Content fingerprint of the model's weights (computed once; a policy's weights do not change at

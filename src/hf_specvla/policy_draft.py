@@ -194,18 +194,19 @@ def train_policy_draft_head(
     validation_frames = _spread(validation_frames, data_config.validation_frames)
     logger.info("%d training frames, %d held-out frames", len(train_frames), len(validation_frames))
     dataset = build_distillation_dataset(
-        policy.model, policy_prompts(policy, train_frames, data_config.prompt_batch_size), policy.config.action_dim,
+        policy.model, policy_prompts(policy, train_frames, data_config.prompt_batch_size), policy.config.action_tokens,
         policy.action_tokenizer, progress=progress,
     )  # fmt: skip
     validation_prompts = policy_prompts(policy, validation_frames, batch_size=1)
 
     def validate(draft_head: DraftHead) -> dict:
-        return speculative_acceptance(policy.model, draft_head, validation_prompts, policy.config.action_dim,
+        return speculative_acceptance(policy.model, draft_head, validation_prompts, policy.config.action_tokens,
                                       action_layout=policy.action_layout)  # fmt: skip
 
     head = train_draft_head(head, policy.model, dataset, training_config, progress=progress, validate=validate,
                             inputs=recipe, target_fingerprint=policy.weights_fingerprint())  # fmt: skip
-    write_model_card(output_dir, head, training_config, data_config, demonstrations, len(dataset), command)
+    write_model_card(output_dir, head, training_config, data_config, demonstrations, len(dataset), command,
+                     policy.config.action_tokens)  # fmt: skip
     return head
 
 
@@ -218,6 +219,7 @@ def write_model_card(
     demonstrations: list[str],
     num_examples: int,
     command: str | None,
+    tokens_per_call: int | None = None,
 ) -> None:
     """``README.md`` with YAML metadata, as hub models have: target, data, command, measured acceptance."""
     validations = read_jsonl(output_dir / VALIDATION_LOG)
@@ -274,7 +276,7 @@ length {config.num_draft_tokens}.
 The speculative engine itself (draft-head chain, `bin_tolerance=0`) on {final.get("sequences", 0)} held-out frames (the
 last {data_config.validation_episodes} rollout(s) of each task), after {final.get("step", 0)} steps: tokens per target
 forward **{final.get("tokens_per_target_forward", float("nan")):.2f}**, target forwards per action
-**{final.get("target_forwards_per_sequence", float("nan")):.2f}** (greedy: {config.action_dim}).
+**{final.get("target_forwards_per_sequence", float("nan")):.2f}** (greedy: {tokens_per_call or config.action_dim}).
 
 | drafted position | accepted |
 |---:|---:|

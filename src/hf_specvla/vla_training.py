@@ -75,12 +75,31 @@ class VLATrainingConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
 
-class FrameDataset(Dataset):
-    """Frames of some episodes of a [`Demonstrations`]: ``(image, state, action, instruction, scene_state)``
-    (``scene_state`` None when the demonstrations have none)."""
+def action_chunk_indices(episode_index: np.ndarray, chunk_length: int) -> np.ndarray:
+    """For every frame, the frames whose actions form its chunk: ``[N, chunk_length]`` int64.
 
-    def __init__(self, demos: Demonstrations, indices: np.ndarray):
+    Row j is ``j, j+1, ..., j+H-1`` (the frame's action and the next ones of the same episode); past the
+    episode's last frame the last frame repeats (the last action is held: an expert episode ends at success,
+    where holding still is the right continuation). Frames of an episode must be stored consecutively, in step
+    order (as [`load_demonstrations`] returns them).
+    """
+    count = len(episode_index)
+    indices = np.arange(count)[:, None] + np.arange(chunk_length)[None, :]  # [N, H]
+    # the last frame of each frame's episode: episodes are contiguous runs of equal episode ids
+    is_last = np.append(episode_index[1:] != episode_index[:-1], True)
+    last_of_run = np.flatnonzero(is_last)
+    episode_last = last_of_run[np.searchsorted(last_of_run, np.arange(count))]  # [N]
+    return np.minimum(indices, episode_last[:, None])
+
+
+class FrameDataset(Dataset):
+    """Frames of some episodes of a [`Demonstrations`]: ``(image, state, action_chunk, instruction, scene_state)``
+    with ``action_chunk`` ``[chunk_length, action_dim]`` (see [`action_chunk_indices`]) and ``scene_state`` None
+    when the demonstrations have none."""
+
+    def __init__(self, demos: Demonstrations, indices: np.ndarray, chunk_length: int = 1):
         self.demos, self.indices = demos, indices
+        self.chunks = action_chunk_indices(demos.episode_index, chunk_length)
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -89,7 +108,8 @@ class FrameDataset(Dataset):
         j = int(self.indices[i])
         demos = self.demos
         scene_state = None if demos.scene_states is None else demos.scene_states[j]
-        return demos.images[j], demos.states[j], demos.actions[j], TASK_INSTRUCTIONS[demos.tasks[j]], scene_state
+        actions = demos.actions[self.chunks[j]]  # [H, A]
+        return demos.images[j], demos.states[j], actions, TASK_INSTRUCTIONS[demos.tasks[j]], scene_state
 
 
 def split_episodes(demos: Demonstrations, val_episodes: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -128,7 +148,7 @@ def target_losses(logits: torch.Tensor, labels: torch.Tensor, action_dim: int) -
 
     Args:
         logits: ``[B, L, V]``; labels: ``[B, L]``, -100 except on the target tokens (``training_batch``).
-        action_dim: the first ``action_dim`` targets of each row are the action tokens.
+        action_dim: the first ``action_dim`` targets of each row are the action tokens (a chunk's: all of them).
 
     Returns:
         ``action_loss`` (mean over action tokens), ``action_correct`` (how many argmax predictions equal the
@@ -152,7 +172,7 @@ def target_losses(logits: torch.Tensor, labels: torch.Tensor, action_dim: int) -
 def _forward(policy: VLAPolicy, images, states, actions, instructions, scene_states) -> dict[str, torch.Tensor]:
     batch = policy.training_batch(images, states, actions, instructions, scene_states)
     labels = batch.pop("labels")
-    return target_losses(policy.model(**batch).logits, labels, policy.config.action_dim)
+    return target_losses(policy.model(**batch).logits, labels, policy.config.action_tokens)
 
 
 @torch.no_grad()
@@ -177,6 +197,59 @@ def validate(policy: VLAPolicy, loader: DataLoader) -> dict[str, float]:
     return metrics
 
 
+def decoder_layer_map(source_layers: int, target_layers: int) -> dict[int, int]:
+    """Where each of a trained decoder's ``source_layers`` layers goes in a deeper one: spread evenly, in order,
+    the first at 0 (``{source: target}``)."""
+    if target_layers < source_layers:
+        raise ValueError(
+            f"a policy can only be grown: the source decoder has {source_layers} layers, the new one {target_layers}"
+        )
+    return {i: (i * target_layers) // source_layers for i in range(source_layers)}
+
+
+@torch.no_grad()
+def grow_from(policy: VLAPolicy, source: VLAPolicy) -> dict[int, int]:
+    """Initialises ``policy`` from a trained ``source`` policy with a shallower decoder of the same width.
+
+    Every weight whose name and shape match is copied (vision tower, projector, embeddings, lm_head, final norm);
+    the source's decoder layers go to the places [`decoder_layer_map`] gives, and every *new* layer starts as
+    the identity: its attention output and MLP down projections are zero, so its residual branches add nothing
+    and the grown model computes exactly the source's function (until training moves them). Returns the layer map.
+
+    Raises:
+        ValueError: the two policies differ in anything but decoder depth (widths, vocabulary, image layout).
+    """
+    keys = ("image_size", "patch_size", "action_dim", "state_dim", "use_state", "vision_hidden_size",
+            "vision_layers", "text_hidden_size", "text_heads")  # fmt: skip
+    for key in keys:
+        if getattr(policy.config, key) != getattr(source.config, key):
+            raise ValueError(
+                f"--init-from: the source policy has {key}={getattr(source.config, key)!r}, the new one "
+                f"{getattr(policy.config, key)!r}; only the decoder's depth (and chunk_length) may differ"
+            )
+    if len(policy.tokenizer) != len(source.tokenizer) or policy.tokenizer.get_vocab() != source.tokenizer.get_vocab():
+        raise ValueError("--init-from: the source policy's vocabulary differs from this one's")
+    layer_map = decoder_layer_map(source.config.text_layers, policy.config.text_layers)
+    prefix = "model.language_model.layers."
+    source_state = source.model.state_dict()
+    renamed = {}
+    for name, tensor in source_state.items():
+        if name.startswith(prefix):
+            index, rest = name[len(prefix) :].split(".", 1)
+            name = f"{prefix}{layer_map[int(index)]}.{rest}"
+        renamed[name] = tensor
+    target_state = policy.model.state_dict()
+    for name, tensor in target_state.items():
+        if name in renamed:
+            if renamed[name].shape != tensor.shape:
+                raise ValueError(f"--init-from: {name} has shape {tuple(renamed[name].shape)} in the source, "
+                                 f"{tuple(tensor.shape)} here")  # fmt: skip
+            tensor.copy_(renamed[name])
+        elif name.startswith(prefix) and name.endswith(("self_attn.o_proj.weight", "mlp.down_proj.weight")):
+            tensor.zero_()  # a new layer: its residual branches start silent
+    return layer_map
+
+
 def _check_resumed_policy_config(output_dir: Path, policy_config) -> None:
     """A resumed run must build the same model as its checkpoint; names the option that differs."""
     checkpoint = latest_checkpoint(output_dir)
@@ -194,8 +267,18 @@ def _check_resumed_policy_config(output_dir: Path, policy_config) -> None:
             )
 
 
-def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfig, progress: bool = True) -> dict:
-    """Behaviour-clones ``policy`` on ``demos``; saves it to ``config.output_dir``; returns the last metrics."""
+def train_vla(
+    policy: VLAPolicy,
+    demos: Demonstrations,
+    config: VLATrainingConfig,
+    progress: bool = True,
+    init_from: VLAPolicy | None = None,
+) -> dict:
+    """Behaviour-clones ``policy`` on ``demos``; saves it to ``config.output_dir``; returns the last metrics.
+
+    ``init_from``: a trained policy with a shallower decoder to start from ([`grow_from`]); its weights'
+    fingerprint is part of the run's record.
+    """
     output_dir = Path(config.output_dir)
     if demos.actions.shape[1] != policy.config.action_dim:
         raise ValueError(
@@ -222,13 +305,18 @@ def train_vla(policy: VLAPolicy, demos: Demonstrations, config: VLATrainingConfi
                       if not f.name.endswith("_stats")}  # fmt: skip
     inputs = {"policy_config": model_settings,
               "data": fingerprint_arrays(demos.actions, demos.states, demos.episode_index)}  # fmt: skip
+    if init_from is not None:
+        inputs["init_from"] = init_from.weights_fingerprint()
+        layer_map = grow_from(policy, init_from)  # in memory only: refusals come before the folder is touched
+        logger.info("initialised from %s (decoder layers %s)", init_from.name_or_path, layer_map)
     record = training_record("train-vla", config, inputs)
     prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir)
     accelerator = Accelerator(dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True))
     set_seed(config.seed)
-    train_loader = DataLoader(FrameDataset(demos, train_idx), batch_size=config.batch_size, shuffle=True,
+    chunk = policy.config.chunk_length
+    train_loader = DataLoader(FrameDataset(demos, train_idx, chunk), batch_size=config.batch_size, shuffle=True,
                               collate_fn=_collate, drop_last=True)  # fmt: skip
-    val_loader = DataLoader(FrameDataset(demos, val_idx), batch_size=config.batch_size, collate_fn=_collate)
+    val_loader = DataLoader(FrameDataset(demos, val_idx, chunk), batch_size=config.batch_size, collate_fn=_collate)
     model = policy.model
     model.train()
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)

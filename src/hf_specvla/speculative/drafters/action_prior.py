@@ -9,6 +9,10 @@ between consecutive actions is 0 bins). The prior proposes, as one tree, in this
 4. per-dimension alternatives: the previous action with one dimension replaced by a neighbouring bin
    (``+-1 .. +-neighbour_bins``), by the constant-velocity value or by the older action's value.
 
+For a policy that predicts a chunk of H actions per call (``chunk_length=H``), each candidate is continued to H
+actions the way it began: a held action is held (``[last] * H``), constant velocity keeps its velocity
+(``last + v, last + 2v, ...``), an alternative is held.
+
 Paths are added in that order until the tree holds ``max_nodes`` nodes (shared prefixes cost nothing). After a
 partial acceptance the remaining dimensions of the same candidates are proposed again (see
 [`CandidateDrafter`]): verifying a few more tokens in a forward that runs anyway is almost free.
@@ -32,6 +36,7 @@ class ActionPriorDrafter(Drafter):
             acceptance when no other drafter knows it).
         neighbour_bins: per-dimension alternatives reach this many bins either side of the previous action.
         max_nodes: the tree's node budget.
+        chunk_length: actions the target generates per call (H); every candidate drafts H actions.
     """
 
     name = "prior"
@@ -44,10 +49,12 @@ class ActionPriorDrafter(Drafter):
         action_layout: ActionLayout,
         neighbour_bins: int = 1,
         max_nodes: int = 16,
+        chunk_length: int = 1,
     ):
         if not isinstance(action_layout, ActionLayout):
             raise TypeError(f"action_layout must be an ActionLayout, got {type(action_layout).__name__}")
-        for name, value, low in (("neighbour_bins", neighbour_bins, 0), ("max_nodes", max_nodes, 1)):
+        checks = (("neighbour_bins", neighbour_bins, 0), ("max_nodes", max_nodes, 1), ("chunk_length", chunk_length, 1))
+        for name, value, low in checks:
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"ActionPriorDrafter {name} must be an int >= {low}, got {value!r}")
         history = [[int(t) for t in action] for action in previous_actions]
@@ -62,20 +69,25 @@ class ActionPriorDrafter(Drafter):
         self.action_layout = action_layout
         self.neighbour_bins = neighbour_bins
         self.max_nodes = max_nodes
+        self.chunk_length = chunk_length
 
     def candidate_paths(self) -> list[list[int]]:
-        """The candidate action-token sequences, most likely first (before the node budget is applied)."""
+        """The candidate action-token sequences (``chunk_length * action_dim`` tokens each), most likely first
+        (before the node budget is applied)."""
         if not self.previous_actions:
             return []
         tokenizer = self.action_layout.tokenizer
         low, high = tokenizer.action_token_begin, tokenizer.vocab_size - 1
+        chunk = self.chunk_length
         last = self.previous_actions[-1]
         older = self.previous_actions[-2] if len(self.previous_actions) > 1 else None
-        paths = [last]
+        paths = [last * chunk]
         velocity = None
         if older is not None:
-            velocity = [min(max(2 * a - b, low), high) for a, b in zip(last, older)]  # ids are bins, reversed
-            paths += [velocity, older]
+            steps = [[min(max(a + (n + 1) * (a - b), low), high) for a, b in zip(last, older)]
+                     for n in range(chunk)]  # fmt: skip  # ids are bins (reversed): the velocity is in bins
+            velocity = steps[0]
+            paths += [[t for action in steps for t in action], older * chunk]
         for dim, value in enumerate(last):
             alternatives = []
             for step in range(1, self.neighbour_bins + 1):
@@ -84,7 +96,7 @@ class ActionPriorDrafter(Drafter):
                 alternatives += [velocity[dim], older[dim]]
             for alternative in alternatives:
                 if low <= alternative <= high and alternative != value:
-                    paths.append(last[:dim] + [alternative] + last[dim + 1 :])
+                    paths.append((last[:dim] + [alternative] + last[dim + 1 :]) * chunk)
         return paths
 
     def start(self, context: DraftContext) -> DraftSession:
@@ -93,26 +105,32 @@ class ActionPriorDrafter(Drafter):
     def __repr__(self) -> str:
         return (
             f"ActionPriorDrafter(previous_actions={len(self.previous_actions)}, "
-            f"neighbour_bins={self.neighbour_bins}, max_nodes={self.max_nodes})"
+            f"neighbour_bins={self.neighbour_bins}, max_nodes={self.max_nodes}, chunk_length={self.chunk_length})"
         )
 
 
 def with_action_prior(
-    drafter: Drafter | None, previous_actions: Sequence[Sequence[int]], action_layout: ActionLayout
+    drafter: Drafter | None,
+    previous_actions: Sequence[Sequence[int]],
+    action_layout: ActionLayout,
+    chunk_length: int = 1,
 ) -> Drafter | None:
     """``drafter`` preceded by an [`ActionPriorDrafter`] over ``previous_actions`` (the prior's candidates are
     verified inside the prefill, ``drafter`` continues where they stop being accepted); ``drafter`` unchanged
-    when there is no previous action yet."""
+    when there is no previous action yet. ``chunk_length``: actions per call (see [`ActionPriorDrafter`])."""
     from ..drafter import ComposedDrafter
 
     if not previous_actions:
         return drafter
-    prior = ActionPriorDrafter(previous_actions, action_layout)
+    prior = ActionPriorDrafter(previous_actions, action_layout, chunk_length=chunk_length)
     return prior if drafter is None else ComposedDrafter([prior, drafter])
 
 
 def with_action_priors(
-    drafter: Drafter | None, histories: Sequence[Sequence[Sequence[int]]], action_layout: ActionLayout
+    drafter: Drafter | None,
+    histories: Sequence[Sequence[Sequence[int]]],
+    action_layout: ActionLayout,
+    chunk_length: int = 1,
 ) -> Drafter | None:
     """[`with_action_prior`] for a batch: ``histories[b]`` is row b's previous actions. One row: that row's drafter;
     several: a [`PerRowDrafter`] (a row with no previous action drafts with ``drafter`` alone, or nothing); no
@@ -120,6 +138,6 @@ def with_action_priors(
     if not any(histories):
         return drafter
     if len(histories) == 1:
-        return with_action_prior(drafter, histories[0], action_layout)
+        return with_action_prior(drafter, histories[0], action_layout, chunk_length)
     nothing = CandidateDrafter([], name=ActionPriorDrafter.name)  # a row at its episode's first step
-    return PerRowDrafter([with_action_prior(drafter, h, action_layout) or nothing for h in histories])
+    return PerRowDrafter([with_action_prior(drafter, h, action_layout, chunk_length) or nothing for h in histories])

@@ -182,9 +182,12 @@ class _DraftHeadSession(DraftSession):
         for level in range(1, depth):
             # 1. feed the frontier (nodes at depth level-1) with their parents' features, one forward.
             num = len(frontier)
-            allowed = block_allowed(self._tree_block(frontier, parents, fed_index, device), self.cache_length,
-                                    sequence_key_padding(self.prompt_padding, self.cache_length))  # fmt: skip
-            mask = to_additive_mask(allowed, frontier_features.dtype)
+            if top_k == 1 and self.prompt_padding is None:  # a chain: every fed entry is an ancestor, all visible
+                mask = frontier_features.new_zeros(1, 1, 1, self.cache_length + len(fed_index) + 1)
+            else:
+                allowed = block_allowed(self._tree_block(frontier, parents, fed_index, device), self.cache_length,
+                                        sequence_key_padding(self.prompt_padding, self.cache_length))  # fmt: skip
+                mask = to_additive_mask(allowed, frontier_features.dtype)
             tokens = torch.tensor([token_ids[n] for n in frontier], device=device)[None]  # [1, F]
             # EAGLE's pair (token x[p+1], feature ~h[p]) sits at p: a depth-d node pairs with its parent, at root + d
             positions = (root_position + level - 1).expand(1, num)
