@@ -230,3 +230,29 @@ def test_prefix_constrained_decoding_is_refused_for_a_batch(tiny_llama, random_d
             **batch, max_new_tokens=3, pad_token_id=PAD, assistant_model=random_draft,
             prefix_allowed_tokens_fn=lambda batch_id, ids: list(range(320)),
         )  # fmt: skip
+
+
+@pytest.mark.parametrize("drafting", ["head", "draft_ids", "custom_generate"])
+def test_a_right_padded_batch_is_refused_before_any_forward(tiny_llama, random_draft, drafting):
+    """Right padding would make a row continue after its padding (other tokens than the row alone: transformers
+    only warns). Refused, naming the rows, before the target runs."""
+    from hf_specvla import speculative_generate
+
+    left = left_padded(text_prompts(3, seed=5))
+    right = {k: torch.stack([torch.cat([row[row_mask.bool()], row[~row_mask.bool()]]) for row, row_mask
+                             in zip(v, left["attention_mask"])]) for k, v in left.items()}  # fmt: skip
+    assert not torch.equal(right["attention_mask"], left["attention_mask"])
+    kwargs = {"head": dict(assistant_model=random_draft), "draft_ids": dict(draft_ids=torch.full((3, 2), 100)),
+              "custom_generate": dict(custom_generate=speculative_generate, drafter=random_draft)}[drafting]
+    forwards = []
+    hook = tiny_llama.register_forward_pre_hook(lambda *args: forwards.append(1))
+    try:
+        with pytest.raises(ValueError, match=r"padding after the tokens of row\(s\) \[1, 2\]: the batch is right-padded"
+                                             r".*padding_side = 'left'"):  # fmt: skip
+            tiny_llama.generate(**right, max_new_tokens=4, do_sample=False, pad_token_id=PAD, **kwargs)
+    finally:
+        hook.remove()
+    assert forwards == []
+    # the same batch left-padded speculates as usual
+    out = tiny_llama.generate(**left, max_new_tokens=4, do_sample=False, pad_token_id=PAD, **kwargs)
+    assert out.shape == (3, left["input_ids"].shape[1] + 4)

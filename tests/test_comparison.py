@@ -146,16 +146,16 @@ def test_compare_refuses_a_draft_head_of_another_policy(policy_dir, tmp_path, ca
 def test_compare_refuses_a_folder_another_live_run_is_writing(policy_dir, tmp_path, capsys):
     import os
 
-    from hf_specvla.comparison import folder_lock
+    from hf_specvla.run_folder import lock_folder
 
     out = tmp_path / "locked"
     args = ["compare", "--policy", policy_dir, "--tasks", "reach", "--episodes", "1", "--max-episode-steps", "2",
             "--methods", "prior", "--output-dir", str(out)]  # fmt: skip
     assert main(args) == 0
-    assert not (out / ".lock").exists()  # released after the run
-    with folder_lock(out):  # a live holder (this process)
+    assert (out / ".lock").read_text() == ""  # released after the run: no holder named
+    with lock_folder(out):  # a live holder (this process, through another open file)
         with pytest.raises(SystemExit) as exit_info:
             main(args)
     assert exit_info.value.code == 2 and f"pid {os.getpid()}" in capsys.readouterr().err
-    (out / ".lock").write_text("999999999")  # a holder that is gone: a stale lock is taken over
+    (out / ".lock").write_text("999999999")  # a holder that is gone (an older hf_specvla's bare pid): taken over
     assert main(args) == 0

@@ -98,3 +98,18 @@ def test_a_hf_specvla_assistant_on_a_target_without_speculation_says_how_to_enab
     for assistant in (random_draft, DraftHeadDrafter(random_draft)):
         with pytest.raises(AttributeError, match="enable_speculation"):
             plain.generate(input_ids=torch.tensor([[1, 5, 6]]), max_new_tokens=2, assistant_model=assistant)
+
+
+def test_a_truncated_weights_file_and_a_missing_folder_are_named(tmp_path, random_draft, monkeypatch):
+    folder = tmp_path / "head"
+    random_draft.save_pretrained(folder)
+    (folder / "model.safetensors").write_bytes(b"")  # an interrupted save
+    with pytest.raises(OSError, match=r"could not read the draft head's weights '.*model.safetensors' \(0 bytes\).*"
+                                      r"damaged or truncated"):  # fmt: skip
+        DraftHead.from_pretrained(folder)
+    # a path that reads as a hub id (no local folder 'runs' here): the error says that no such folder exists
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    with pytest.raises(OSError, match=r"no local folder 'runs/no-such-head' exists, so it was taken for a hub repo id, "
+                                      r"and the hub could not provide it"):  # fmt: skip
+        DraftHead.from_pretrained("runs/no-such-head")

@@ -337,6 +337,57 @@ def test_bad_images_are_refused():
         image_processor(np.zeros((32, 32, 3), dtype=np.float32))
 
 
+def test_image_modes_are_converted_exactly_or_refused_by_name():
+    """8-bit modes become RGB as the official processor's ``convert("RGB")`` does; float and 16-bit images, which
+    PIL would turn black or saturate, are refused naming the mode; an empty image list is a clear error."""
+    image_processor = OpenVLAImageProcessor.from_dict(PREPROCESSOR_FIELDS)
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (40, 40, 3), dtype=np.uint8)
+    expected = image_processor(Image.fromarray(rgb))
+    torch.testing.assert_close(image_processor(rgb), expected)
+    torch.testing.assert_close(image_processor(Image.fromarray(rgb).convert("RGBA")), expected)  # alpha dropped
+    grey = Image.fromarray(rgb[..., 0])  # mode L
+    torch.testing.assert_close(image_processor(grey), image_processor(np.repeat(rgb[..., :1], 3, axis=2)))
+    palette = Image.fromarray(rgb).convert("P")
+    torch.testing.assert_close(image_processor(palette), image_processor(palette.convert("RGB")))
+    for mode, data in (("F", rgb[..., 0].astype(np.float32) / 255), ("I;16", rgb[..., 0].astype(np.uint16) * 257)):
+        with pytest.raises(ValueError, match=f"a PIL image of mode '{mode}' cannot be converted to 8-bit RGB"):
+            image = Image.fromarray(data)
+            assert image.mode == mode
+            image_processor(image)
+    with pytest.raises(ValueError, match=r"got dtype float64 \(a float image in \[0, 1\]: \(image \* 255\)"):
+        image_processor(rgb / 255.0)
+    for empty in ([], None):
+        with pytest.raises(ValueError, match="pass one image .* per prompt"):
+            image_processor(empty)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (dict(image_sizes="28"), r"image_sizes must be a list of ints \(pixels\) or null, got '28' \(str\)"),
+        (dict(timm_model_ids=TINY_DINO), r"timm_model_ids must be a list of timm model ids .*got 'test-tiny"),
+        (dict(image_token_id="32063"), r"image_token_id must be an int \(a token id\) or null, got '32063' \(str\)"),
+        (dict(use_fused_vision_backbone="no"), r"use_fused_vision_backbone must be true or false or null, got 'no'"),
+        (dict(n_action_bins=True), r"n_action_bins must be an int, got True \(bool\)"),
+        (dict(norm_stats=["bridge"]), r"norm_stats must be a dict of per-dataset statistics or null"),
+    ],
+)
+def test_config_field_types_are_checked_naming_the_field(overrides, message):
+    with pytest.raises(TypeError, match=message):
+        tiny_config(**overrides)
+
+
+def test_a_truncated_weights_file_is_named(tiny_openvla, tmp_path):
+    folder = tmp_path / "ckpt"
+    tiny_openvla.save_pretrained(folder)
+    weights = folder / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[:1000])  # an interrupted download
+    with pytest.raises(OSError, match=r"could not read the OpenVLA checkpoint's weights '.*model.safetensors' "
+                                      r"\(1,000 bytes\).*damaged or truncated.*download or save it again"):  # fmt: skip
+        OpenVLAForActionPrediction.from_pretrained(folder)
+
+
 def test_bad_pixel_values_and_prompts_are_refused(tiny_openvla):
     with pytest.raises(ValueError, match=r"\[B, 6, H, W\].*\(1, 3, 28, 28\)"):
         tiny_openvla(input_ids=prompt_ids(), pixel_values=torch.zeros(1, 3, 28, 28))
@@ -434,7 +485,7 @@ def test_draft_head_training_on_openvla_frames(tiny_openvla, tmp_path):
     assert (tmp_path / "head" / "checkpoint-6").is_dir()
     torch.manual_seed(5)
     other = OpenVLAForActionPrediction(tiny_config()).eval()
-    with pytest.raises(FileExistsError, match="holds another run: .*target="):
+    with pytest.raises(FileExistsError, match="holds another run: target: "):
         train_openvla_draft_head(
             other, processor, frames[:4], frames[4:], more, unnorm_key="tiny_dataset", progress=False
         )

@@ -230,6 +230,14 @@ def test_a_batch_with_per_row_action_priors_is_lossless_and_keeps_each_rows_memo
         assert forwards[0] == forwards[2] == forwards[3] == 1 and forwards[1] > 1  # right memories: one forward
 
 
+def test_a_truncated_weights_file_is_named(policy, tmp_path):
+    policy.save_pretrained(tmp_path / "policy")
+    weights = tmp_path / "policy" / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[:100])
+    with pytest.raises(OSError, match=r"could not read the policy's weights '.*model.safetensors' \(100 bytes\)"):
+        VLAPolicy.from_pretrained(tmp_path / "policy")
+
+
 def test_bad_batches(policy):
     images, instructions, states = batch_of_observations(3)
     with pytest.raises(ValueError, match="a batch of 3 images needs 3 instruction rows, got 2"):

@@ -2,6 +2,7 @@
 made for one policy is refused by another."""
 
 import json
+import shutil
 
 import pytest
 import torch
@@ -70,10 +71,17 @@ def test_train_draft_writes_a_loadable_head_that_resumes_and_knows_its_policy(po
     assert [v["step"] for v in validations] == [2, 4, 6]
     after = DraftHead.from_pretrained(out).state_dict()
     assert any(not torch.equal(before[k], after[k]) for k in before)
-    # resuming with another policy is refused, naming what differs
+    # the same policy copied to another folder is the same input (identity by weights, not paths)
+    copy = tmp_path / "copied_policy"
+    shutil.copytree(policy_dir, copy)
+    assert main([*train_args(str(copy), out, 8), "--resume"]) == 0
+    run = json.loads((out / "run.json").read_text())
+    assert run["paths"]["target"] == policy_dir and "target_name_or_path" not in run["settings"]["draft_head_config"]
+    # resuming with another policy is refused, naming what differs, the weights first
     with pytest.raises(SystemExit) as exit_info:
-        main([*train_args(other_dir, out, 8), "--resume"])
-    assert exit_info.value.code == 2 and "target=" in capsys.readouterr().err
+        main([*train_args(other_dir, out, 10), "--resume"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "holds another run: target: '" in err and "' here vs '" in err
 
     # a head distilled from one policy is refused by another with the same shapes
     other = VLAPolicy.from_pretrained(other_dir)
@@ -102,6 +110,21 @@ def test_train_draft_bad_input_is_a_usage_error(policy_dirs, tmp_path, capsys, f
         main(args)
     assert exit_info.value.code == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_train_draft_names_a_folder_that_holds_no_run_and_a_resume_of_nothing(policy_dirs, tmp_path, capsys):
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("not a training run")
+    for extra in ([], ["--resume"]):
+        with pytest.raises(SystemExit) as exit_info:
+            main([*train_args(policy_dirs[0], foreign, 2), *extra])
+        assert exit_info.value.code == 2 and "holds no training run" in capsys.readouterr().err
+    assert sorted(p.name for p in foreign.iterdir()) == ["notes.txt"]
+    with pytest.raises(SystemExit) as exit_info:
+        main([*train_args(policy_dirs[0], tmp_path / "missing", 2), "--resume"])
+    assert exit_info.value.code == 2 and "does not exist, so there is no run to resume" in capsys.readouterr().err
+    assert not (tmp_path / "missing").exists()
 
 
 def test_draft_data_config_validates():

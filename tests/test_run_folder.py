@@ -3,11 +3,25 @@ a torn last log line is redone."""
 
 import json
 import logging
+import os
+import signal
+import subprocess
+import sys
+import textwrap
 
 import pytest
 import torch
 
-from hf_specvla.run_folder import RUN_FILE, RunRecord, fingerprint, open_run_folder, read_jsonl
+from hf_specvla.run_folder import (
+    LOCK_FILE,
+    RUN_FILE,
+    FolderInUseError,
+    RunRecord,
+    claim_run_folder,
+    fingerprint,
+    open_run_folder,
+    read_jsonl,
+)
 
 
 def test_new_same_other_and_unrecorded_folders(tmp_path):
@@ -17,7 +31,7 @@ def test_new_same_other_and_unrecorded_folders(tmp_path):
     assert json.loads((folder / RUN_FILE).read_text())["settings"] == {"policy": "abc", "seed_start": 1}
     (folder / "episodes.jsonl").write_text("{}\n")
     assert open_run_folder(folder, RunRecord("eval", {"policy": "abc", "seed_start": 1})) is True  # continues
-    with pytest.raises(FileExistsError, match="policy='abc' there, 'xyz' now.*--overwrite-output-dir"):
+    with pytest.raises(FileExistsError, match="policy: 'xyz' here vs 'abc' there.*--overwrite-output-dir"):
         open_run_folder(folder, RunRecord("eval", {"policy": "xyz", "seed_start": 1}))
     with pytest.raises(FileExistsError, match="written by `hf-specvla eval`, this is `hf-specvla compare`"):
         open_run_folder(folder, RunRecord("compare", {"policy": "abc", "seed_start": 1}))
@@ -34,9 +48,69 @@ def test_overwrite_moves_the_previous_run_aside_whole(tmp_path):
     open_run_folder(folder, RunRecord("eval", {"policy": "abc"}))
     (folder / "episodes.jsonl").write_text('{"old": 1}\n')
     assert open_run_folder(folder, RunRecord("eval", {"policy": "xyz"}), overwrite=True) is False
-    assert sorted(p.name for p in folder.iterdir()) == [RUN_FILE]  # nothing of the old run is mixed in
+    assert sorted(p.name for p in folder.iterdir()) == [LOCK_FILE, RUN_FILE]  # nothing of the old run is mixed in
     (aside,) = tmp_path.glob("run.replaced-*")
     assert (aside / "episodes.jsonl").read_text() == '{"old": 1}\n'  # and nothing was lost
+
+
+HOLDER = textwrap.dedent("""
+    import sys, time
+    from hf_specvla.run_folder import RunRecord, claim_run_folder
+    run = claim_run_folder(sys.argv[1], RunRecord("eval", {"policy": "abc"}))
+    (run.bound / "episodes.jsonl").write_text("{}\\n")
+    print("held", flush=True)
+    sys.stdin.readline()  # holds the folder until told
+    (run.bound / "late.txt").write_text("written after the rename")
+    print("wrote", flush=True)
+    sys.stdin.readline()
+""")
+
+
+def hold_in_another_process(folder):
+    process = subprocess.Popen([sys.executable, "-c", HOLDER, str(folder)], stdin=subprocess.PIPE,
+                               stdout=subprocess.PIPE, text=True)  # fmt: skip
+    assert process.stdout.readline().strip() == "held"
+    return process
+
+
+def test_a_folder_held_by_a_live_process_is_refused_even_to_overwrite(tmp_path, caplog):
+    folder = tmp_path / "run"
+    holder = hold_in_another_process(folder)
+    try:
+        for overwrite in (False, True):
+            expected = rf"in use by another run \(pid {holder.pid}, `.*-c .*run`, started 20\d\d-.*\).*live run"
+            with pytest.raises(FolderInUseError, match=expected):
+                claim_run_folder(folder, RunRecord("eval", {"policy": "xyz"}), overwrite=overwrite)
+        assert not list(tmp_path.glob("run.replaced-*"))  # nothing was moved aside
+        assert (folder / "episodes.jsonl").exists()
+    finally:
+        holder.kill()  # kill -9: the OS releases its lock; the lock file still names it
+        holder.wait()
+    with caplog.at_level(logging.WARNING), claim_run_folder(folder, RunRecord("eval", {"policy": "abc"})) as run:
+        assert run.continued
+    assert f"taking over the lock of a run that is no longer running (pid {holder.pid}" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING), claim_run_folder(folder, RunRecord("eval", {"policy": "abc"})):
+        pass
+    assert "taking over" not in caplog.text  # a clean release leaves no holder behind
+
+
+def test_a_live_run_is_never_redirected_into_a_new_folder_of_its_name(tmp_path):
+    """The holder's folder is renamed and a new run starts under the old name: the holder's later writes land in
+    the folder it claimed (now renamed), never in the new run's."""
+    folder = tmp_path / "run"
+    holder = hold_in_another_process(folder)
+    try:
+        os.replace(folder, tmp_path / "renamed")  # e.g. a user's mv while the run is live
+        with claim_run_folder(folder, RunRecord("eval", {"policy": "xyz"})) as new_run:
+            holder.stdin.write("\n")
+            holder.stdin.flush()
+            assert holder.stdout.readline().strip() == "wrote"
+            assert (tmp_path / "renamed" / "late.txt").read_text() == "written after the rename"
+            assert sorted(p.name for p in new_run.bound.iterdir()) == [LOCK_FILE, RUN_FILE]
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
 
 
 def test_a_torn_last_line_is_dropped_and_redone(tmp_path, caplog):

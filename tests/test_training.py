@@ -172,7 +172,7 @@ def test_overwrite_moves_the_old_run_aside_and_resume_needs_a_checkpoint(tmp_pat
     straight = train(tmp_path / "straight", max_steps=3)
     for (name, a), b in zip(resumed.state_dict().items(), straight.state_dict().values()):
         torch.testing.assert_close(a, b, msg=name, rtol=1e-4, atol=1e-5)
-    with pytest.raises(FileExistsError, match="learning_rate=0.001 there, 0.003 now"):
+    with pytest.raises(FileExistsError, match="learning_rate: 0.003 here vs 0.001 there"):
         train(folder, max_steps=4, resume=True, learning_rate=3e-3)  # resuming is only for the same run
 
     finished = tmp_path / "finished"

@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 from accelerate import Accelerator
 
-from .run_folder import RunRecord, check_run_folder, open_run_folder
+from .run_folder import RUN_FILE, RunFolder, RunRecord, check_run_folder, claim_run_folder, is_empty_folder
 
 CHECKPOINT_PATTERN = re.compile(r"^checkpoint-(\d+)$")
 TRAINER_STATE = "trainer_state.pt"
@@ -48,41 +48,69 @@ RUN_INDEPENDENT_SETTINGS = frozenset(
 )  # fmt: skip
 
 
-def training_record(command: str, config, inputs: dict) -> RunRecord:
-    """The [`RunRecord`] of a training run: ``config``'s run-shaping fields and ``inputs`` (fingerprints)."""
+def training_record(command: str, config, inputs: dict, paths: dict | None = None) -> RunRecord:
+    """The [`RunRecord`] of a training run: ``config``'s run-shaping fields and ``inputs`` (fingerprints); ``paths``
+    where the inputs were read from (recorded, never compared)."""
     settings = {k: v for k, v in asdict(config).items() if k not in RUN_INDEPENDENT_SETTINGS}
-    return RunRecord(command, {**settings, **inputs})
+    return RunRecord(command, {**settings, **inputs}, paths=paths or {})
 
 
-def check_output_dir(output_dir: Path, record: RunRecord, resume: bool, overwrite: bool) -> None:
-    """The refusals of [`prepare_output_dir`], without writing anything (call it before a long preparation).
+def check_output_dir(output_dir: Path, record: RunRecord | None, resume: bool, overwrite: bool) -> None:
+    """The refusals of [`prepare_output_dir`], without writing anything (call it before a long preparation;
+    ``record=None``: all but the comparison with the folder's record, e.g. before the data is known).
 
     Raises:
-        FileExistsError: a non-empty folder without ``resume`` / ``overwrite``; ``resume`` with no checkpoint to
-            resume from; or a folder that holds another run (naming the differing setting).
+        FileNotFoundError: ``resume`` into a folder that does not exist or is empty (nothing to resume).
+        FileExistsError: a non-empty folder that holds no run record (another tool's files); a non-empty folder
+            without ``resume`` / ``overwrite``; ``resume`` with no checkpoint to resume from; or a folder that holds
+            another run (naming the differing setting).
     """
     output_dir = Path(output_dir)
-    if overwrite or not output_dir.exists() or not any(output_dir.iterdir()):
+    if overwrite:
         return
+    if is_empty_folder(output_dir):
+        if resume:
+            state = "is empty" if output_dir.exists() else "does not exist"
+            raise FileNotFoundError(
+                f"--resume: {str(output_dir)!r} {state}, so there is no run to resume; drop --resume to start a new "
+                f"run there, or give the folder of the run to continue"
+            )
+        return
+    if not (output_dir / RUN_FILE).is_file():
+        raise FileExistsError(
+            f"{str(output_dir)!r} holds no training run (it is not empty and has no {RUN_FILE}: another tool's files, "
+            f"or a folder written before run records existed); choose another folder, or pass --overwrite-output-dir "
+            f"to move it aside and train from scratch"
+        )
+    if record is not None:
+        check_run_folder(output_dir, record)  # another run's folder: named first, whatever the flags
     if not resume:
         raise FileExistsError(
-            f"output_dir {str(output_dir)!r} is not empty; pass resume=True (--resume) to continue its training, "
-            f"overwrite_output_dir=True (--overwrite-output-dir) to move it aside and train from scratch, or choose "
-            f"another folder"
+            f"output_dir {str(output_dir)!r} already holds this run; pass resume=True (--resume) to continue its "
+            f"training, overwrite_output_dir=True (--overwrite-output-dir) to move it aside and train from scratch, "
+            f"or choose another folder"
         )
     if latest_checkpoint(output_dir) is None:
         raise FileExistsError(
-            f"--resume: {str(output_dir)!r} has no checkpoint-* to resume from (a finished run keeps only its final "
-            f"weights); pass --overwrite-output-dir to move it aside and train from scratch, or choose another folder"
+            f"--resume: {str(output_dir)!r} has no checkpoint-* to resume from (the run stopped before its first "
+            f"checkpoint); pass --overwrite-output-dir to move it aside and train from scratch, or choose another folder"
         )
-    check_run_folder(output_dir, record)
 
 
-def prepare_output_dir(output_dir: Path, record: RunRecord, resume: bool, overwrite: bool) -> None:
-    """Applies the folder rule before anything is written: the refusals of [`check_output_dir`], then a new
-    folder gets ``record`` as its ``run.json`` (an overwritten one is moved aside first)."""
-    check_output_dir(output_dir, record, resume, overwrite)
-    open_run_folder(output_dir, record, overwrite=overwrite)
+def prepare_output_dir(output_dir: Path, record: RunRecord, resume: bool, overwrite: bool) -> RunFolder:
+    """Claims the folder for a training run: its lock first, then the refusals of [`check_output_dir`], then a new
+    folder gets ``record`` as its ``run.json`` (an overwritten one is moved aside first). Hold the returned
+    [`RunFolder`] for the whole run and write through ``run.bound``."""
+    output_dir = Path(output_dir)
+    check_output_dir(output_dir, record, resume, overwrite)  # the refusals, before the folder is touched
+    run = claim_run_folder(output_dir, record, overwrite=overwrite)
+    try:
+        if run.continued:  # again under the lock: the folder may have changed since the first look
+            check_output_dir(output_dir, record, resume, overwrite=False)
+    except BaseException:
+        run.release()
+        raise
+    return run
 
 
 def resume_step(accelerator: Accelerator, output_dir: Path) -> int:

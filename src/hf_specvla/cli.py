@@ -142,20 +142,12 @@ def _add_training_run_arguments(parser: argparse.ArgumentParser, seed: int) -> N
 def _check_training_folder(output_dir: Path, resume: bool, overwrite: bool, parser) -> None:
     """The common folder mistakes as usage errors before any data is loaded (the full check of the folder's
     run.json runs once the data's fingerprint is known)."""
-    from .checkpointing import latest_checkpoint
+    from .checkpointing import check_output_dir
 
-    if overwrite or not output_dir.exists() or not any(output_dir.iterdir()):
-        return
-    if not resume:
-        parser.error(
-            f"--output-dir {str(output_dir)!r} is not empty: pass --resume to continue its training, "
-            "--overwrite-output-dir to move it aside and train from scratch, or choose another folder"
-        )
-    if latest_checkpoint(output_dir) is None:
-        parser.error(
-            f"--resume: {str(output_dir)!r} has no checkpoint-* to resume from (a finished run keeps only its final "
-            "weights); pass --overwrite-output-dir to move it aside and train from scratch, or choose another folder"
-        )
+    try:
+        check_output_dir(output_dir, None, resume, overwrite)
+    except (FileExistsError, FileNotFoundError) as error:
+        parser.error(str(error))
 
 
 def _check_draft_head_flag(draft_head: str | None, parser) -> None:
@@ -381,6 +373,11 @@ def _compare(args, parser) -> int:
     needs_head = [m.name for m in config.decoding_methods() if m.uses_draft_head]
     if needs_head and not args.draft_head:
         parser.error(f"methods {needs_head} draft with a draft head: pass --draft-head <folder>")
+    if args.draft_head and not needs_head:
+        logging.getLogger(__name__).warning("--draft-head %s is not used: none of the methods %s drafts with a head "
+                                            "(head, tree, prior+head, prior+tree); it is ignored", args.draft_head,
+                                            config.methods)  # fmt: skip
+        args.draft_head = None
     _check_draft_head_flag(args.draft_head, parser)
     try:
         policy = VLAPolicy.from_pretrained(args.policy)
@@ -432,6 +429,10 @@ def _eval(args, parser) -> int:
         generate_kwargs["action_prior"] = True
     if args.bin_tolerance is not None:
         tolerance = args.bin_tolerance
+        widest = policy.action_tokenizer.n_bins - 1
+        if max(tolerance) > widest:
+            parser.error(f"--bin-tolerance {' '.join(map(str, tolerance))}: the policy's {widest + 1} bins are at most "
+                         f"{widest} apart (r={widest} already accepts any action token); use 0..{widest}")  # fmt: skip
         generate_kwargs["bin_tolerance"] = tolerance[0] if len(tolerance) == 1 else tolerance
     env_config = EnvConfig(policy.config.image_size, policy.config.camera, args.max_episode_steps)
     try:
@@ -441,6 +442,9 @@ def _eval(args, parser) -> int:
     except FileExistsError as error:
         parser.error(str(error))
     print(format_summary(summary))
+    calls = "one batched call decides the actions" if args.num_envs > 1 else "one call decides the action"
+    chunk = f" of the next {policy.config.chunk_length} steps" if policy.config.chunk_length > 1 else ""
+    print(f"ms/call: the median wall time of a policy call ({calls}{chunk} of {args.num_envs} environment(s))")
     print(json.dumps(summary["overall"]))
     return 0
 
@@ -565,8 +569,8 @@ def main(argv: list[str] | None = None) -> int:
     train.add_argument("--chunk-length", type=POSITIVE, default=VLAPolicyConfig.chunk_length,
                        help="actions predicted per call (an action chunk of H x action_dim tokens)")  # fmt: skip
     train.add_argument("--init-from", default=None,
-                       help="start from this trained policy (same widths; its decoder layers spread over a deeper "
-                            "one, new layers start as the identity; its normalisation statistics are kept)")  # fmt: skip
+                       help="start from this trained policy (same widths; its decoder layers spread over a "
+                            "deeper one, new layers start as the identity; its statistics are kept)")  # fmt: skip
     train.add_argument("--no-state", action="store_true", help="do not give the proprio state to the model")
     train.add_argument("--scene-targets", action="store_true",
                        help="also learn to predict the object and goal positions (the data's scene_state column) "

@@ -25,7 +25,6 @@ continue a folder), ``summary.json``, ``compare.md`` and PNG plots.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
@@ -47,7 +46,7 @@ from .envs.metaworld import EnvConfig, MetaWorldEnv, resolve_tasks
 from .evaluation import EVAL_SEED_START
 from .policy import VLAPolicy
 from .progress import progress_bar
-from .run_folder import RunRecord, fingerprint, open_run_folder, read_jsonl, write_json_atomic
+from .run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
 from .speculative import DraftHead, DraftHeadDrafter, DraftTreeConfig
 
 logger = logging.getLogger(__name__)
@@ -84,6 +83,9 @@ class DecodingMethod:
         values: dict[str, int] = {}
         for option in filter(None, options.split(",")):
             key, _, value = option.partition("=")
+            if key in METHOD_KEYS and value.strip().lstrip("-").isdigit() and int(value) < 0:
+                raise ValueError(f"decoding method {text!r}: {key} must be an integer >= 0 ({METHOD_KEYS[key]}), "
+                                 f"got {int(value)}")  # fmt: skip
             if key not in METHOD_KEYS or not value.strip().isdigit():
                 raise ValueError(
                     f"decoding method {text!r}: bad option {option!r}; options are "
@@ -338,6 +340,13 @@ def run_comparison(
         policy.check_draft_head(draft_head)
     if config.workers > 1 and policy_dir is None:
         raise ValueError("workers > 1 load the policy in each process: pass policy_dir (and draft_head_dir)")
+    widest = policy.action_tokenizer.n_bins - 1
+    too_wide = [m.name for m in methods if m.bin_tolerance > widest]
+    if too_wide:
+        raise ValueError(
+            f"methods {too_wide}: r is wider than the action range (the policy's {widest + 1} bins are at most "
+            f"{widest} apart; r={widest} already accepts any action token); use r in 0..{widest}"
+        )
     output_dir = Path(output_dir)
     env_config = EnvConfig(policy.config.image_size, policy.config.camera, config.max_episode_steps)
     settings = {
@@ -346,8 +355,8 @@ def run_comparison(
         "env": asdict(env_config), "seed_start": config.seed_start, "methods": sorted(config.methods),
         "order_seed": config.order_seed,
     }  # fmt: skip
-    open_run_folder(output_dir, RunRecord("compare", settings), overwrite)
-    with folder_lock(output_dir):
+    with claim_run_folder(output_dir, RunRecord("compare", settings), overwrite) as run:
+        output_dir = run.bound  # writes stay in the claimed folder, renamed or not
         done = {(r["task"], r["seed"], r["method"]) for r in read_episode_logs(output_dir)}
         pairs = config.pairs()
         total = len(pairs) * len(methods)
@@ -362,7 +371,14 @@ def run_comparison(
         bar.close()
         records = read_episode_logs(output_dir)
         wanted = {(t, s) for t, s in pairs}
+        in_folder = len(records)
         records = [r for r in records if (r["task"], r["seed"]) in wanted and r["method"] in config.methods]
+        if len(records) < in_folder:
+            logger.warning(
+                "summary.json and compare.md cover the %d episodes this run asked for (%d tasks x %d seeds x %d "
+                "methods); the folder holds %d, and a run with more --episodes summarises them all",
+                len(records), len(config.tasks), config.episodes_per_task, len(methods), in_folder,
+            )  # fmt: skip
         summary = summarize_comparison(records, config.methods)
         summary["settings"] = {**settings, "tasks": config.tasks, "episodes_per_task": config.episodes_per_task,
                                "workers": config.workers, "threads": config.threads}  # fmt: skip
@@ -401,31 +417,6 @@ def _run_in_workers(config: CompareConfig, pairs: list, done: set, output_dir: P
             written = min(bar.total, bar_start + _count_log_lines(output_dir) - lines_at_start)
             if written > bar.n:
                 bar.update(written - bar.n)
-
-
-@contextlib.contextmanager
-def folder_lock(folder: Path):
-    """Holds ``folder/.lock`` (this process's pid) while a comparison writes there.
-
-    Raises:
-        FileExistsError: another live process holds it (two runs appending to one folder would mix their logs).
-    """
-    lock = folder / ".lock"
-    if lock.exists():
-        try:
-            holder = int(lock.read_text().strip() or 0)
-            os.kill(holder, 0)
-        except (ValueError, ProcessLookupError):
-            holder = None  # a stale lock: its process is gone
-        except PermissionError:
-            pass  # alive, another user's
-        if holder:
-            raise FileExistsError(f"another comparison (pid {holder}) is writing to {str(folder)!r}; wait for it")
-    lock.write_text(str(os.getpid()))
-    try:
-        yield
-    finally:
-        lock.unlink(missing_ok=True)
 
 
 # ----------------------------------------------------------------------------- statistics

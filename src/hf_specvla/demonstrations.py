@@ -24,6 +24,7 @@ nothing lost).
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import logging
@@ -45,7 +46,7 @@ from .envs.metaworld import (
     resolve_tasks,
 )
 from .progress import progress_bar
-from .run_folder import fingerprint, write_json_atomic
+from .run_folder import fingerprint, lock_folder, write_json_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -174,7 +175,8 @@ _INFO_DEFAULTS = {
 }
 
 
-def _check_info(root: Path, env_config: EnvConfig, action_noise: float, driver: dict) -> None:
+def _check_info(root: Path, env_config: EnvConfig, action_noise: float, driver: dict, write: bool = True) -> None:
+    """Refuses a folder holding a dataset collected with other settings; ``write``: record ours in a new one."""
     info_path = root / "meta" / "info.json"
     info = {
         "format": FORMAT_NAME,
@@ -215,8 +217,9 @@ def _check_info(root: Path, env_config: EnvConfig, action_noise: float, driver: 
                     f"{info[key]!r}; collect into another folder or use the same settings"
                 )
         return
-    info_path.parent.mkdir(parents=True, exist_ok=True)
-    info_path.write_text(json.dumps(info, indent=2))
+    if write:
+        info_path.parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(info_path, info)
 
 
 def collected_seeds(root: Path, task: str) -> list[int]:
@@ -274,8 +277,20 @@ def collect_demonstrations(
         policy.check_env_config(env_config)
         driver = {"policy": policy.name_or_path or "in-memory", "expert_mix": float(expert_mix),
                   "policy_weights": fingerprint(policy.model)}  # fmt: skip
+    _check_info(root, env_config, float(action_noise), driver, write=False)  # refusals first: nothing written yet
+    with lock_folder(root) as held:
+        _check_info(held.bound, env_config, float(action_noise), driver)  # under the lock: writes meta/info.json
+        return _collect_into(held.bound, tasks, episodes_per_task, env_config, seed_start, max_seed_tries, progress,
+                             action_noise, policy, expert_mix)  # fmt: skip
+
+
+def _collect_into(
+    root: Path, tasks: list[str], episodes_per_task: int, env_config: EnvConfig, seed_start: int,
+    max_seed_tries: int, progress: bool, action_noise: float, policy, expert_mix: float,
+) -> CollectSummary:  # fmt: skip
+    """[`collect_demonstrations`]'s work, in a folder this process holds."""
+    if policy is not None:
         max_seed_tries = 1  # every seed gives an episode
-    _check_info(root, env_config, float(action_noise), driver)
     written = failures = driven_successes = 0
     total = len(tasks) * episodes_per_task
     done = {task: collected_seeds(root, task) for task in tasks}
@@ -345,6 +360,18 @@ def _as_roots(roots: str | Path | list[str | Path] | tuple[str | Path, ...]) -> 
                 f"{root} is not a demonstrations folder (no meta/info.json); run hf-specvla collect"
             )
     return roots
+
+
+def dataset_fingerprint(root: str | Path) -> str:
+    """Content identity of a dataset folder (16 hex digits): its recorded settings and the name and size of every
+    episode file, never its path (a copied dataset is the same dataset)."""
+    root = _as_roots(root)[0]
+    info = json.loads((root / "meta" / "info.json").read_text())
+    info.pop("policy", None)  # a path; the driving policy is identified by policy_weights
+    digest = hashlib.sha256(json.dumps(info, sort_keys=True).encode())
+    for file in _episode_files(root):
+        digest.update(f"{file.relative_to(root).as_posix()}:{file.stat().st_size}\n".encode())
+    return digest.hexdigest()[:16]
 
 
 def dataset_info(roots: str | Path | list[str | Path]) -> dict:

@@ -22,7 +22,7 @@ import numpy as np
 from .envs.metaworld import EnvConfig, MetaWorldEnv, resolve_tasks
 from .policy import VLAPolicy
 from .progress import progress_bar
-from .run_folder import RunRecord, fingerprint, open_run_folder, read_jsonl, write_json_atomic
+from .run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
 from .speculative import DraftHead, DraftHeadDrafter, SpeculationStats
 
 logger = logging.getLogger(__name__)
@@ -226,39 +226,40 @@ def evaluate(
     generate_kwargs = dict(generate_kwargs or {})
     settings = {"policy": fingerprint(policy.model), "env": asdict(env_config), "seed_start": seed_start,
                 "decoding": describe_decoding(generate_kwargs)}  # fmt: skip
-    open_run_folder(output_dir, RunRecord("eval", settings), overwrite)
-    log_path = output_dir / "episodes.jsonl"
-    results = [EpisodeResult(**record) for record in read_jsonl(log_path)]
-    done = {(r.task, r.seed) for r in results}
-    bar = progress_bar(
-        total=len(tasks) * episodes_per_task, initial=len(done), desc="eval", unit="episode", disable=not progress
-    )
-    frames: list | None = [] if video_path is not None else None  # the first episode this call runs
-    pending = [(t, seed_start + i) for t in tasks for i in range(episodes_per_task) if (t, seed_start + i) not in done]
-    with _EnvPool(env_config) as pool:
-        for chunk_start in range(0, len(pending), num_envs):
-            chunk = pending[chunk_start : chunk_start + num_envs]
-            envs = pool.acquire([task for task, _ in chunk])
-            seeds = [seed for _, seed in chunk]
-            chunk_results = rollout_batch(policy, envs, seeds, generate_kwargs, frames)
-            with log_path.open("a") as log:
-                for result in chunk_results:
-                    log.write(json.dumps(asdict(result)) + "\n")
-            results.extend(chunk_results)
-            if frames is not None:  # after the episode is logged: a failing writer never costs an episode
-                _save_video(frames, video_path)
-                logger.info("saved %s (%s seed %d)", video_path, *chunk[0])
-                frames = None
-            bar.update(len(chunk))
-            bar.set_postfix(task=chunk[-1][0], success=f"{np.mean([r.success for r in results]):.0%}")
-            pool.close_except({task for task, _ in pending[chunk_start + num_envs :]})
-    bar.close()
-    if frames is not None:
-        logger.warning("no video written: every requested episode was already in %s (nothing ran)", log_path)
-    wanted = {(t, seed_start + i) for t in tasks for i in range(episodes_per_task)}
-    summary = summarize([r for r in results if (r.task, r.seed) in wanted])
-    write_json_atomic(output_dir / "summary.json", summary)
-    return summary
+    with claim_run_folder(output_dir, RunRecord("eval", settings), overwrite) as run:
+        folder = run.bound  # writes stay in the claimed folder, renamed or not
+        log_path = folder / "episodes.jsonl"
+        results = [EpisodeResult(**record) for record in read_jsonl(log_path)]
+        done = {(r.task, r.seed) for r in results}
+        bar = progress_bar(
+            total=len(tasks) * episodes_per_task, initial=len(done), desc="eval", unit="episode", disable=not progress
+        )
+        frames: list | None = [] if video_path is not None else None  # the first episode this call runs
+        wanted = [(t, seed_start + i) for t in tasks for i in range(episodes_per_task)]
+        pending = [key for key in wanted if key not in done]
+        with _EnvPool(env_config) as pool:
+            for chunk_start in range(0, len(pending), num_envs):
+                chunk = pending[chunk_start : chunk_start + num_envs]
+                envs = pool.acquire([task for task, _ in chunk])
+                seeds = [seed for _, seed in chunk]
+                chunk_results = rollout_batch(policy, envs, seeds, generate_kwargs, frames)
+                with log_path.open("a") as log:
+                    for result in chunk_results:
+                        log.write(json.dumps(asdict(result)) + "\n")
+                results.extend(chunk_results)
+                if frames is not None:  # after the episode is logged: a failing writer never costs an episode
+                    _save_video(frames, video_path)
+                    logger.info("saved %s (%s seed %d)", video_path, *chunk[0])
+                    frames = None
+                bar.update(len(chunk))
+                bar.set_postfix(task=chunk[-1][0], success=f"{np.mean([r.success for r in results]):.0%}")
+                pool.close_except({task for task, _ in pending[chunk_start + num_envs :]})
+        bar.close()
+        if frames is not None:
+            logger.warning("no video written: every requested episode was already in %s (nothing ran)", output_dir)
+        summary = summarize([r for r in results if (r.task, r.seed) in set(wanted)])
+        write_json_atomic(folder / "summary.json", summary)
+        return summary
 
 
 class _EnvPool:

@@ -36,7 +36,7 @@ from transformers import (
 from .action_tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
 from .envs.metaworld import CAMERAS, EnvConfig
 from .run_folder import fingerprint
-from .speculative import ActionPriorDrafter, Drafter, DraftHead, enable_speculation
+from .speculative import ActionPriorDrafter, Drafter, DraftHead, enable_speculation, named_weight_errors
 from .speculative.drafters import with_action_priors
 from .speculative.generation import SPECULATION_KWARGS
 from .speculative.loop import as_drafter
@@ -466,7 +466,8 @@ class VLAPolicy:
                 f"(or hf-specvla train-vla)"
             )
         config = VLAPolicyConfig(**json.loads((folder / POLICY_CONFIG_NAME).read_text()))
-        model = LlavaForConditionalGeneration.from_pretrained(folder, **model_kwargs)
+        with named_weight_errors(folder, "policy"):
+            model = LlavaForConditionalGeneration.from_pretrained(folder, **model_kwargs)
         tokenizer = PreTrainedTokenizerFast.from_pretrained(folder)
         policy = cls(model.eval(), tokenizer, config)
         policy.name_or_path = str(folder)

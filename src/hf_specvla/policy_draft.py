@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from .checkpointing import check_output_dir
-from .demonstrations import dataset_info, load_demonstrations
+from .demonstrations import dataset_fingerprint, dataset_info, load_demonstrations
 from .envs.metaworld import TASK_INSTRUCTIONS, EnvConfig, resolve_tasks
 from .evaluation import record_observations
 from .policy import VLAPolicy
@@ -182,9 +182,11 @@ def train_policy_draft_head(
         policy.model, policy.action_tokenizer, action_dim=policy.config.action_dim, num_draft_tokens=num_draft_tokens,
         target_name_or_path=policy.name_or_path, target_fingerprint=policy.weights_fingerprint(),
     )  # fmt: skip
-    recipe = {"data": {**asdict(data_config), "demonstrations": demonstrations,
+    recipe = {"data": {**asdict(data_config),
+                       "demonstration_fingerprints": [dataset_fingerprint(root) for root in demonstrations],
                        "demonstration_info": [dataset_info(root) for root in demonstrations]}}  # fmt: skip
-    record = draft_training_record(head, policy.weights_fingerprint(), training_config, recipe)
+    paths = {"demonstrations": demonstrations}
+    record = draft_training_record(head, policy.weights_fingerprint(), training_config, recipe, paths)
     check_output_dir(output_dir, record, training_config.resume, training_config.overwrite_output_dir)
 
     logger.info("on-policy rollouts: %d per task on %d tasks", data_config.rollout_episodes, len(data_config.tasks))
@@ -204,7 +206,7 @@ def train_policy_draft_head(
                                       action_layout=policy.action_layout)  # fmt: skip
 
     head = train_draft_head(head, policy.model, dataset, training_config, progress=progress, validate=validate,
-                            inputs=recipe, target_fingerprint=policy.weights_fingerprint())  # fmt: skip
+                            inputs=recipe, target_fingerprint=policy.weights_fingerprint(), paths=paths)  # fmt: skip
     write_model_card(output_dir, head, training_config, data_config, demonstrations, len(dataset), command,
                      policy.config.action_tokens)  # fmt: skip
     return head

@@ -14,16 +14,27 @@ not by path) and the code version. [`open_run_folder`]:
 
 Append-only logs are read with [`read_jsonl`], which drops a torn last line (a crash mid-write) with a warning so
 that its record is redone; summaries are written with [`write_json_atomic`].
+
+**A run holds its folder** ([`claim_run_folder`], used by every command that writes one): it takes the folder's
+lock (``.lock``, an OS file lock released even by a killed process; it names the holder's pid, command and start
+time) *before* it checks, moves aside or writes anything, and holds it for the whole run. A second run on a locked
+folder is refused naming the holder, ``--overwrite-output-dir`` included; a lock whose process is gone is taken
+over with a warning. The run then writes through ``RunFolder.bound``, a path bound to the directory it claimed
+(``/proc/<pid>/fd/<n>`` on Linux), so that renaming the folder, or moving it aside, never redirects a live run's
+writes into another folder of the same name.
 """
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import logging
 import os
+import shlex
+import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
@@ -31,6 +42,7 @@ import torch
 logger = logging.getLogger(__name__)
 
 RUN_FILE = "run.json"
+LOCK_FILE = ".lock"
 
 
 def fingerprint(module: torch.nn.Module) -> str:
@@ -61,27 +73,67 @@ def code_version() -> str:
     return __version__
 
 
+#: settings named first when a folder holds another run: what the results are *of* (weights, data) before how
+#: they were made
+IMPORTANT_SETTINGS = ("target", "policy", "init_from", "draft_head", "data", "demonstrations", "methods", "env",
+                      "seed_start", "decoding", "policy_config", "draft_head_config")  # fmt: skip
+
+
+#: dotted settings that hold paths in records written before ``RunRecord.paths`` existed: never compared
+LEGACY_PATH_SETTINGS = frozenset({"draft_head_config.target_name_or_path", "data.demonstrations"})
+#: settings added to records later: a folder recorded before they existed continues without them
+ADDED_SETTINGS = frozenset({"data.demonstration_fingerprints"})
+
+
+def _flatten(settings: dict, prefix: str = "") -> dict:
+    """Nested settings as dotted keys (``draft_head_config.hidden_size``), so that a difference names its leaf."""
+    flat = {}
+    for key, value in settings.items():
+        if isinstance(value, dict) and value:
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def _shorten(value, width: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= width else f"{text[: width - 3]}..."
+
+
+def _importance(key: str) -> tuple[int, str]:
+    top = key.split(".", 1)[0]
+    return (IMPORTANT_SETTINGS.index(top) if top in IMPORTANT_SETTINGS else len(IMPORTANT_SETTINGS), key)
+
+
 @dataclass
 class RunRecord:
-    """What produced a folder: ``command`` and ``settings`` must match to continue; ``code_version`` is logged."""
+    """What produced a folder: ``command`` and ``settings`` must match to continue; ``code_version`` is logged;
+    ``paths`` (where the inputs were read from) are recorded for people and never compared: inputs are identified by
+    content fingerprints in ``settings``, so a moved or copied model is the same model."""
 
     command: str
     settings: dict
     code_version: str = ""
+    paths: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.code_version = self.code_version or code_version()
         self.settings = json.loads(json.dumps(self.settings))  # JSON-normal form (tuples -> lists), as saved
+        self.paths = json.loads(json.dumps(self.paths))
 
     def differences(self, other: RunRecord) -> list[str]:
-        """Human-readable differences of ``other`` (this run) from ``self`` (the folder's record)."""
+        """The differences of ``other`` (this run) from ``self`` (the folder's record), most important first, each as
+        ``name: <this run's value> here vs <the folder's> there`` (values shortened)."""
         if self.command != other.command:
             return [f"it was written by `hf-specvla {self.command}`, this is `hf-specvla {other.command}`"]
-        keys = sorted(set(self.settings) | set(other.settings))
+        saved, now = _flatten(self.settings), _flatten(other.settings)
+        keys = sorted((set(saved) | set(now)) - LEGACY_PATH_SETTINGS, key=_importance)
+        missing = "(not set)"
         return [
-            f"{key}={self.settings.get(key)!r} there, {other.settings.get(key)!r} now"
+            f"{key}: {_shorten(now.get(key, missing))} here vs {_shorten(saved.get(key, missing))} there"
             for key in keys
-            if self.settings.get(key) != other.settings.get(key)
+            if saved.get(key, missing) != now.get(key, missing) and not (key in ADDED_SETTINGS and key not in saved)
         ]
 
 
@@ -94,7 +146,7 @@ def check_run_folder(folder: str | Path, record: RunRecord) -> bool:
     """
     folder = Path(folder)
     run_file = folder / RUN_FILE
-    if not folder.exists() or not any(folder.iterdir()):
+    if is_empty_folder(folder):
         return False
     ways_out = "choose another output folder, or pass --overwrite-output-dir to move this one aside and start over"
     if not run_file.is_file():
@@ -105,33 +157,171 @@ def check_run_folder(folder: str | Path, record: RunRecord) -> bool:
     saved = RunRecord(**json.loads(run_file.read_text()))
     differences = saved.differences(record)
     if differences:
-        raise FileExistsError(f"{str(folder)!r} holds another run: {'; '.join(differences)}; {ways_out}")
+        shown = differences[:4] + ([f"and {len(differences) - 4} more"] if len(differences) > 4 else [])
+        raise FileExistsError(f"{str(folder)!r} holds another run: {'; '.join(shown)}; {ways_out}")
     if saved.code_version != record.code_version:
         logger.warning("%s was written by hf_specvla %s; continuing with %s", folder, saved.code_version,
                        record.code_version)  # fmt: skip
     return True
 
 
-def open_run_folder(folder: str | Path, record: RunRecord, overwrite: bool = False) -> bool:
-    """Applies the module's rule to ``folder`` for a run described by ``record``.
+def is_empty_folder(folder: str | Path) -> bool:
+    """True for a missing folder, or one that holds nothing but its lock file."""
+    folder = Path(folder)
+    return not folder.exists() or all(entry.name == LOCK_FILE for entry in folder.iterdir())
 
-    Returns:
-        True when an existing run is continued, False when a new run starts (``run.json`` is then written).
+
+class FolderInUseError(FileExistsError):
+    """Another live run holds the folder's lock."""
+
+
+def _describe_holder(text: str) -> str:
+    try:
+        holder = json.loads(text)
+    except json.JSONDecodeError:  # an older hf_specvla wrote the bare pid
+        return f"pid {text.strip()}" if text.strip() else "an unknown process"
+    return f"pid {holder.get('pid')}, `{holder.get('command')}`, started {holder.get('started')}"
+
+
+class FolderLock:
+    """The OS lock on ``<folder>/.lock`` (``fcntl.flock``: released when its process ends, however it ends).
+
+    Args:
+        dir_fd: an open descriptor of the folder (the lock follows the folder if it is renamed).
+        folder: the folder's name, for messages.
     Raises:
+        FolderInUseError: a live process holds it (named: pid, command, start time).
+    """
+
+    def __init__(self, dir_fd: int, folder: Path):
+        self.folder = folder
+        self.fd = os.open(LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644, dir_fd=dir_fd)
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _describe_holder(os.pread(self.fd, 4096, 0).decode(errors="replace"))
+            os.close(self.fd)
+            raise FolderInUseError(
+                f"{str(folder)!r} is in use by another run ({holder}); wait for it to end, or choose another folder "
+                f"(--overwrite-output-dir does not take a folder from a live run)"
+            ) from None
+        previous = os.pread(self.fd, 4096, 0).decode(errors="replace")
+        if previous.strip():  # a holder that never released: its process died
+            logger.warning("%s: taking over the lock of a run that is no longer running (%s)", folder,
+                           _describe_holder(previous))  # fmt: skip
+        holder = {"pid": os.getpid(), "command": shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+                  "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}  # fmt: skip
+        os.ftruncate(self.fd, 0)
+        os.pwrite(self.fd, json.dumps(holder).encode(), 0)
+
+    def release(self) -> None:
+        """Empties the lock file (a clean end leaves no holder behind) and releases the lock."""
+        if self.fd < 0:
+            return
+        os.ftruncate(self.fd, 0)
+        fcntl.flock(self.fd, fcntl.LOCK_UN)
+        os.close(self.fd)
+        self.fd = -1
+
+
+def _bound_path(dir_fd: int, folder: Path) -> Path:
+    """A path that reaches the directory behind ``dir_fd`` even after it is renamed (Linux ``/proc``; elsewhere the
+    folder's name)."""
+    bound = Path(f"/proc/{os.getpid()}/fd/{dir_fd}")
+    return bound if bound.is_dir() else folder
+
+
+class RunFolder:
+    """A run folder claimed by this process (see the module docstring); a context manager that releases it.
+
+    Attributes:
+        path: the folder's name as given (for messages).
+        bound: the path to write through: it stays on the claimed directory if the folder is renamed or moved aside.
+        continued: True when an existing run of the same settings is continued.
+    """
+
+    def __init__(self, path: Path, dir_fd: int, lock: FolderLock, continued: bool):
+        self.path, self.dir_fd, self.lock, self.continued = path, dir_fd, lock, continued
+        self.bound = _bound_path(dir_fd, path)
+
+    def release(self) -> None:
+        self.lock.release()
+        if self.dir_fd >= 0:
+            os.close(self.dir_fd)
+            self.dir_fd = -1
+
+    def __enter__(self) -> RunFolder:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _lock_folder(folder: Path) -> tuple[int, FolderLock]:
+    folder.mkdir(parents=True, exist_ok=True)
+    dir_fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        return dir_fd, FolderLock(dir_fd, folder)
+    except BaseException:
+        os.close(dir_fd)
+        raise
+
+
+def lock_folder(folder: str | Path) -> RunFolder:
+    """Locks ``folder`` (created if missing) for a writer whose folder has a record of its own kind (a dataset's
+    ``meta/info.json``); hold it for the whole run and write through ``.bound``.
+
+    Raises:
+        FolderInUseError: another live run holds the folder.
+    """
+    folder = Path(folder)
+    dir_fd, lock = _lock_folder(folder)
+    return RunFolder(folder, dir_fd, lock, continued=not is_empty_folder(folder))
+
+
+def claim_run_folder(folder: str | Path, record: RunRecord, overwrite: bool = False) -> RunFolder:
+    """Locks ``folder``, then applies the module's rule for a run described by ``record``; hold the returned
+    [`RunFolder`] for the whole run (``with claim_run_folder(...) as run:``) and write through ``run.bound``.
+
+    Raises:
+        FolderInUseError: another live run holds the folder (``overwrite`` or not).
         FileExistsError: the folder holds another run's (or an unrecorded) results; the message names the
             differing setting and the two ways out.
     """
     folder = Path(folder)
-    empty = not folder.exists() or not any(folder.iterdir())
-    if overwrite and not empty:
-        aside = folder.with_name(f"{folder.name}.replaced-{time.strftime('%Y%m%dT%H%M%S', time.gmtime())}")
-        os.replace(folder, aside)
-        logger.warning("moved the previous contents of %s aside to %s (--overwrite-output-dir)", folder, aside)
-    if check_run_folder(folder, record):
-        return True
-    folder.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(folder / RUN_FILE, asdict(record))
-    return False
+    dir_fd, lock = _lock_folder(folder)
+    try:
+        if overwrite and not is_empty_folder(folder):
+            aside = folder.with_name(f"{folder.name}.replaced-{time.strftime('%Y%m%dT%H%M%S', time.gmtime())}")
+            os.replace(folder, aside)  # the old folder's lock moves with it, still held: nobody starts in it now
+            logger.warning("moved the previous contents of %s aside to %s (--overwrite-output-dir)", folder, aside)
+            old_fd, old_lock = dir_fd, lock
+            try:
+                dir_fd, lock = _lock_folder(folder)
+            finally:
+                old_lock.release()
+                os.close(old_fd)
+        run = RunFolder(folder, dir_fd, lock, continued=False)
+        if check_run_folder(folder, record):
+            run.continued = True
+        else:
+            write_json_atomic(run.bound / RUN_FILE, asdict(record))
+        return run
+    except BaseException:
+        lock.release()
+        os.close(dir_fd)
+        raise
+
+
+def open_run_folder(folder: str | Path, record: RunRecord, overwrite: bool = False) -> bool:
+    """[`claim_run_folder`] for a caller that writes nothing more, or that holds no lock while it writes (kept for
+    compatibility; commands use `claim_run_folder`).
+
+    Returns:
+        True when an existing run is continued, False when a new run starts (``run.json`` is then written).
+    """
+    with claim_run_folder(folder, record, overwrite) as run:
+        return run.continued
 
 
 def write_json_atomic(path: str | Path, data) -> None:

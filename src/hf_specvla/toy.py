@@ -227,15 +227,25 @@ def build_toy_pipeline(
     from dataclasses import asdict
     from pathlib import Path
 
-    from .run_folder import RunRecord, open_run_folder
-    from .speculative import DraftHead, enable_speculation
-    from .training import DraftTrainingConfig, build_distillation_dataset, train_draft_head
+    from .run_folder import RunRecord, claim_run_folder
 
     size = size or ToyTargetSize()
     root = Path(output_dir)
     settings = dict(size=asdict(size), target_steps=target_steps, draft_steps=draft_steps,
                     draft_learning_rate=draft_learning_rate, seed=seed)  # fmt: skip
-    open_run_folder(root, RunRecord("demo", settings), overwrite)
+    with claim_run_folder(root, RunRecord("demo", settings), overwrite) as run:
+        target, tokenizer, action_tokenizer, draft_head = _build_or_load(
+            run.bound, size, target_steps, draft_steps, draft_learning_rate, seed, progress
+        )
+    return ToyPipeline(str(root), target, tokenizer, action_tokenizer, draft_head.eval())
+
+
+def _build_or_load(root, size: ToyTargetSize, target_steps: int, draft_steps: int, draft_learning_rate: float,
+                   seed: int, progress: bool):  # fmt: skip
+    """[`build_toy_pipeline`]'s work in a folder this process holds: (target, tokenizer, action tokenizer, head)."""
+    from .speculative import DraftHead, enable_speculation
+    from .training import DraftTrainingConfig, build_distillation_dataset, train_draft_head
+
     target_dir, draft_dir = root / "target", root / "draft_head"
     if (target_dir / "config.json").exists():
         target, tokenizer, action_tokenizer = _load_toy_target(target_dir)
@@ -259,7 +269,7 @@ def build_toy_pipeline(
             lr_schedule="cosine", warmup_steps=50, save_every=0, seed=seed,
         )  # fmt: skip
         draft_head = train_draft_head(draft_head, target, dataset, config, progress=progress)
-    return ToyPipeline(str(root), target, tokenizer, action_tokenizer, draft_head.eval())
+    return target, tokenizer, action_tokenizer, draft_head
 
 
 def load_toy_pipeline(output_dir: str) -> ToyPipeline:

@@ -254,6 +254,7 @@ def train_draft_head(
     validate: Callable[[DraftHead], dict] | None = None,
     inputs: dict | None = None,
     target_fingerprint: str | None = None,
+    paths: dict | None = None,
 ) -> DraftHead:
     """Trains ``draft_head`` against the frozen ``target`` on a [`DistillationDataset`].
 
@@ -272,98 +273,105 @@ def train_draft_head(
             (e.g. a policy's rollouts on given seeds) passes the recipe, and can check the folder with
             [`draft_training_record`] and ``checkpointing.check_output_dir`` before building the data.
         target_fingerprint: ``run_folder.fingerprint(target)`` when the caller already has it (hashed otherwise).
+        paths: where the inputs were read from, recorded in ``run.json`` for people (never compared).
     """
     output_dir = Path(config.output_dir)
     if inputs is None:
         inputs = {"data": fingerprint_arrays(*[example["input_ids"] for example in dataset.examples])}
-    record = draft_training_record(draft_head, target_fingerprint or fingerprint(target), config, inputs)
-    prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir)
-    accelerator = accelerator or Accelerator(
-        mixed_precision=config.mixed_precision,
-        dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
-    )
-    set_seed(config.seed)
-    handles = draft_head.target_handles(target)
-    for module in handles:
-        module.requires_grad_(False)
-    draft_head.train()
+    record = draft_training_record(draft_head, target_fingerprint or fingerprint(target), config, inputs, paths)
+    with prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir) as run:
+        output_dir = run.bound  # writes stay in the claimed folder, renamed or not
+        accelerator = accelerator or Accelerator(
+            mixed_precision=config.mixed_precision,
+            dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
+        )
+        set_seed(config.seed)
+        handles = draft_head.target_handles(target)
+        for module in handles:
+            module.requires_grad_(False)
+        draft_head.train()
 
-    optimizer = torch.optim.AdamW(
-        draft_head.parameters(), lr=config.learning_rate, betas=config.betas, weight_decay=config.weight_decay
-    )
-    scheduler = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda step: learning_rate_factor(step, config.warmup_steps, config.max_steps, config.lr_schedule)
-    )
-    loader = DataLoader(
-        dataset, batch_size=config.batch_size, shuffle=True, collate_fn=collate_distillation, drop_last=False
-    )
-    draft_head, optimizer, loader, scheduler = accelerator.prepare(draft_head, optimizer, loader, scheduler)
-    steps_per_epoch = len(loader)
+        optimizer = torch.optim.AdamW(
+            draft_head.parameters(), lr=config.learning_rate, betas=config.betas, weight_decay=config.weight_decay
+        )
+        schedule = config.lr_schedule
+        scheduler = torch.optim.lr_scheduler.LambdaLR(
+            optimizer, lambda step: learning_rate_factor(step, config.warmup_steps, config.max_steps, schedule)
+        )
+        loader = DataLoader(
+            dataset, batch_size=config.batch_size, shuffle=True, collate_fn=collate_distillation, drop_last=False
+        )
+        draft_head, optimizer, loader, scheduler = accelerator.prepare(draft_head, optimizer, loader, scheduler)
+        steps_per_epoch = len(loader)
 
-    step = resume_step(accelerator, output_dir) if config.resume else 0
-    if step:
-        logger.info("resuming draft training from step %d", step)
-    if step >= config.max_steps:
-        logger.info("nothing to do: checkpoint step %d >= max_steps %d", step, config.max_steps)
+        step = resume_step(accelerator, output_dir) if config.resume else 0
+        if step:
+            logger.info("resuming draft training from step %d", step)
+        if step >= config.max_steps:
+            logger.info("nothing to do: checkpoint step %d >= max_steps %d", step, config.max_steps)
 
-    generator = torch.Generator()
-    bar = progress_bar(
-        total=config.max_steps,
-        initial=step,
-        desc="train draft head",
-        disable=not progress or not accelerator.is_main_process,
-    )
-    metrics: dict[str, float] = {}
-    while step < config.max_steps:
-        epoch, offset = divmod(step, steps_per_epoch)
-        loader.set_epoch(epoch)
-        epoch_loader = accelerator.skip_first_batches(loader, offset) if offset else loader
-        for batch in epoch_loader:
-            # Noise seeded per step (and process), so a resumed run draws what an uninterrupted one would.
-            generator.manual_seed(hash((config.seed, step, accelerator.process_index)) % 2**63)
-            with accelerator.accumulate(draft_head):
-                losses = distillation_loss(draft_head, handles, batch, config, generator)
-                accelerator.backward(losses["loss"])
-                if accelerator.sync_gradients:
-                    accelerator.clip_grad_norm_(draft_head.parameters(), config.max_grad_norm)
-                optimizer.step()
-                scheduler.step()
-                optimizer.zero_grad()
-            step += 1
-            metrics = {k: v.item() for k, v in losses.items()}
-            bar.update(1)
-            bar.set_postfix(loss=f"{metrics['loss']:.4f}", acc=f"{metrics['token_accuracy']:.3f}")
-            if validate and config.eval_every and step % config.eval_every == 0 and step < config.max_steps:
-                _run_validation(validate, accelerator.unwrap_model(draft_head), step, output_dir, accelerator)
-            if config.save_every and (step % config.save_every == 0 or step == config.max_steps):
-                save_checkpoint(
-                    accelerator, output_dir, step,
-                    lambda folder: accelerator.unwrap_model(draft_head).save_pretrained(folder / "draft_head"),
-                    config.keep_checkpoints,
-                )  # fmt: skip
-            if step >= config.max_steps:
-                break
-    bar.close()
+        generator = torch.Generator()
+        bar = progress_bar(
+            total=config.max_steps,
+            initial=step,
+            desc="train draft head",
+            disable=not progress or not accelerator.is_main_process,
+        )
+        metrics: dict[str, float] = {}
+        while step < config.max_steps:
+            epoch, offset = divmod(step, steps_per_epoch)
+            loader.set_epoch(epoch)
+            epoch_loader = accelerator.skip_first_batches(loader, offset) if offset else loader
+            for batch in epoch_loader:
+                # Noise seeded per step (and process), so a resumed run draws what an uninterrupted one would.
+                generator.manual_seed(hash((config.seed, step, accelerator.process_index)) % 2**63)
+                with accelerator.accumulate(draft_head):
+                    losses = distillation_loss(draft_head, handles, batch, config, generator)
+                    accelerator.backward(losses["loss"])
+                    if accelerator.sync_gradients:
+                        accelerator.clip_grad_norm_(draft_head.parameters(), config.max_grad_norm)
+                    optimizer.step()
+                    scheduler.step()
+                    optimizer.zero_grad()
+                step += 1
+                metrics = {k: v.item() for k, v in losses.items()}
+                bar.update(1)
+                bar.set_postfix(loss=f"{metrics['loss']:.4f}", acc=f"{metrics['token_accuracy']:.3f}")
+                if validate and config.eval_every and step % config.eval_every == 0 and step < config.max_steps:
+                    _run_validation(validate, accelerator.unwrap_model(draft_head), step, output_dir, accelerator)
+                if config.save_every and (step % config.save_every == 0 or step == config.max_steps):
+                    save_checkpoint(
+                        accelerator, output_dir, step,
+                        lambda folder: accelerator.unwrap_model(draft_head).save_pretrained(folder / "draft_head"),
+                        config.keep_checkpoints,
+                    )  # fmt: skip
+                if step >= config.max_steps:
+                    break
+        bar.close()
 
-    model = accelerator.unwrap_model(draft_head)
-    if validate:
-        metrics.update(_run_validation(validate, model, step, output_dir, accelerator))
-    model.eval()
-    if accelerator.is_main_process:
-        output_dir.mkdir(parents=True, exist_ok=True)
-        model.save_pretrained(output_dir)
-        torch.save({"step": step, "metrics": metrics, "config": asdict(config)}, output_dir / "training_state.pt")
-    accelerator.wait_for_everyone()
-    logger.info("draft head trained for %d steps: %s", step, metrics)
-    return model
+        model = accelerator.unwrap_model(draft_head)
+        if validate:
+            metrics.update(_run_validation(validate, model, step, output_dir, accelerator))
+        model.eval()
+        if accelerator.is_main_process:
+            output_dir.mkdir(parents=True, exist_ok=True)
+            model.save_pretrained(output_dir)
+            torch.save({"step": step, "metrics": metrics, "config": asdict(config)}, output_dir / "training_state.pt")
+        accelerator.wait_for_everyone()
+        logger.info("draft head trained for %d steps: %s", step, metrics)
+        return model
 
 
-def draft_training_record(draft_head: DraftHead, target_fingerprint: str, config: DraftTrainingConfig, inputs: dict):
+def draft_training_record(
+    draft_head: DraftHead, target_fingerprint: str, config: DraftTrainingConfig, inputs: dict, paths: dict | None = None
+):
     """The ``run.json`` record of a draft-head training: its settings, the target's weights (``fingerprint``) and
-    the head's identity, and ``inputs`` (what the data is)."""
+    the head's identity, and ``inputs`` (what the data is). The target's path is recorded under ``paths`` (a copy of
+    the same target elsewhere continues the run)."""
     head_config = {k: v for k, v in draft_head.config.to_dict().items() if k != "transformers_version"}
+    target_path = head_config.pop("target_name_or_path", None)
     identity = {"target": target_fingerprint, "draft_head_config": head_config}
-    return training_record("train-draft", config, {**identity, **inputs})
+    return training_record("train-draft", config, {**identity, **inputs}, {"target": target_path, **(paths or {})})
 
 
 def _run_validation(validate, model: DraftHead, step: int, output_dir: Path, accelerator: Accelerator) -> dict:

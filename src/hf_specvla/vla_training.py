@@ -310,71 +310,72 @@ def train_vla(
         layer_map = grow_from(policy, init_from)  # in memory only: refusals come before the folder is touched
         logger.info("initialised from %s (decoder layers %s)", init_from.name_or_path, layer_map)
     record = training_record("train-vla", config, inputs)
-    prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir)
-    accelerator = Accelerator(dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True))
-    set_seed(config.seed)
-    chunk = policy.config.chunk_length
-    train_loader = DataLoader(FrameDataset(demos, train_idx, chunk), batch_size=config.batch_size, shuffle=True,
-                              collate_fn=_collate, drop_last=True)  # fmt: skip
-    val_loader = DataLoader(FrameDataset(demos, val_idx, chunk), batch_size=config.batch_size, collate_fn=_collate)
-    model = policy.model
-    model.train()
-    optimizer = torch.optim.AdamW(model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
+    with prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir) as run:
+        output_dir = run.bound  # writes stay in the claimed folder, renamed or not
+        accelerator = Accelerator(dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True))
+        set_seed(config.seed)
+        chunk = policy.config.chunk_length
+        train_loader = DataLoader(FrameDataset(demos, train_idx, chunk), batch_size=config.batch_size, shuffle=True,
+                                  collate_fn=_collate, drop_last=True)  # fmt: skip
+        val_loader = DataLoader(FrameDataset(demos, val_idx, chunk), batch_size=config.batch_size, collate_fn=_collate)
+        model = policy.model
+        model.train()
+        optimizer = torch.optim.AdamW(model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
 
-    scheduler = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda step: learning_rate_factor(step, config.warmup_steps, config.max_steps, "cosine")
-    )
-    model, optimizer, train_loader, scheduler = accelerator.prepare(model, optimizer, train_loader, scheduler)
-    policy.model = model
-    step = resume_step(accelerator, output_dir) if config.resume else 0
-    if step:
-        logger.info("resuming VLA training from step %d", step)
-    history_path = output_dir / "training_log.jsonl"
-    metrics: dict[str, float] = {}
-    bar = progress_bar(total=config.max_steps, initial=step, desc="train-vla", disable=not progress)
-    while step < config.max_steps:
-        epoch, offset = divmod(step, len(train_loader))
-        train_loader.set_epoch(epoch)
-        loader = accelerator.skip_first_batches(train_loader, offset) if offset else train_loader
-        for images, states, actions, instructions, scene_states in loader:
-            rng = np.random.default_rng((config.seed, step))  # per step: a resumed run augments identically
-            images = random_shift(images, config.augment_shift, rng)
-            losses = _forward(policy, images, states, actions, instructions, scene_states)
-            loss = losses["action_loss"]
-            if "scene_loss" in losses:
-                loss = loss + config.scene_loss_weight * losses["scene_loss"]
-            accelerator.backward(loss)
-            accelerator.clip_grad_norm_(model.parameters(), 1.0)
-            optimizer.step()
-            scheduler.step()
-            optimizer.zero_grad()
-            step += 1
-            bar.update(1)
-            metrics["loss"] = losses["action_loss"].item()
-            if "scene_loss" in losses:
-                metrics["scene_loss"] = losses["scene_loss"].item()
-            bar.set_postfix(loss=f"{metrics['loss']:.3f}")
-            if step % config.eval_every == 0 or step == config.max_steps:
-                if len(val_idx):
-                    metrics.update(validate(policy, val_loader))
-                logger.info("step %d: %s", step, metrics)
-            if accelerator.is_main_process and (step % config.log_every == 0 or step == config.max_steps):
-                output_dir.mkdir(parents=True, exist_ok=True)
-                with history_path.open("a") as log:
-                    log.write(json.dumps({"step": step, "lr": scheduler.get_last_lr()[0], **metrics}) + "\n")
-            if config.save_every and step % config.save_every == 0 and step < config.max_steps:
-                save_checkpoint(accelerator, output_dir, step, lambda f: _save(policy, accelerator, f / "policy"),
-                                config.keep_checkpoints)  # fmt: skip
-            if step >= config.max_steps:
-                break
-    bar.close()
-    if accelerator.is_main_process:
-        _save(policy, accelerator, output_dir)
-        (output_dir / "training_config.json").write_text(
-            json.dumps({**asdict(config), "final_metrics": metrics}, indent=2)
+        scheduler = torch.optim.lr_scheduler.LambdaLR(
+            optimizer, lambda step: learning_rate_factor(step, config.warmup_steps, config.max_steps, "cosine")
         )
-    policy.model = accelerator.unwrap_model(model).eval()
-    return metrics
+        model, optimizer, train_loader, scheduler = accelerator.prepare(model, optimizer, train_loader, scheduler)
+        policy.model = model
+        step = resume_step(accelerator, output_dir) if config.resume else 0
+        if step:
+            logger.info("resuming VLA training from step %d", step)
+        history_path = output_dir / "training_log.jsonl"
+        metrics: dict[str, float] = {}
+        bar = progress_bar(total=config.max_steps, initial=step, desc="train-vla", disable=not progress)
+        while step < config.max_steps:
+            epoch, offset = divmod(step, len(train_loader))
+            train_loader.set_epoch(epoch)
+            loader = accelerator.skip_first_batches(train_loader, offset) if offset else train_loader
+            for images, states, actions, instructions, scene_states in loader:
+                rng = np.random.default_rng((config.seed, step))  # per step: a resumed run augments identically
+                images = random_shift(images, config.augment_shift, rng)
+                losses = _forward(policy, images, states, actions, instructions, scene_states)
+                loss = losses["action_loss"]
+                if "scene_loss" in losses:
+                    loss = loss + config.scene_loss_weight * losses["scene_loss"]
+                accelerator.backward(loss)
+                accelerator.clip_grad_norm_(model.parameters(), 1.0)
+                optimizer.step()
+                scheduler.step()
+                optimizer.zero_grad()
+                step += 1
+                bar.update(1)
+                metrics["loss"] = losses["action_loss"].item()
+                if "scene_loss" in losses:
+                    metrics["scene_loss"] = losses["scene_loss"].item()
+                bar.set_postfix(loss=f"{metrics['loss']:.3f}")
+                if step % config.eval_every == 0 or step == config.max_steps:
+                    if len(val_idx):
+                        metrics.update(validate(policy, val_loader))
+                    logger.info("step %d: %s", step, metrics)
+                if accelerator.is_main_process and (step % config.log_every == 0 or step == config.max_steps):
+                    output_dir.mkdir(parents=True, exist_ok=True)
+                    with history_path.open("a") as log:
+                        log.write(json.dumps({"step": step, "lr": scheduler.get_last_lr()[0], **metrics}) + "\n")
+                if config.save_every and step % config.save_every == 0 and step < config.max_steps:
+                    save_checkpoint(accelerator, output_dir, step, lambda f: _save(policy, accelerator, f / "policy"),
+                                    config.keep_checkpoints)  # fmt: skip
+                if step >= config.max_steps:
+                    break
+        bar.close()
+        if accelerator.is_main_process:
+            _save(policy, accelerator, output_dir)
+            (output_dir / "training_config.json").write_text(
+                json.dumps({**asdict(config), "final_metrics": metrics}, indent=2)
+            )
+        policy.model = accelerator.unwrap_model(model).eval()
+        return metrics
 
 
 def _save(policy: VLAPolicy, accelerator: Accelerator, folder: Path) -> None:

@@ -53,6 +53,31 @@ LLAMA_DEFAULTS_OF_OFFICIAL_CONFIG: dict[str, Any] = {
 }
 
 
+def _check_type(name: str, value, expected: type | tuple[type, ...], description: str, optional: bool = False) -> None:
+    """Raises TypeError naming the field, the value and the expected type (bools are not ints here)."""
+    if value is None and optional:
+        return
+    is_bool = isinstance(value, bool)
+    wants_bool = expected is bool or (isinstance(expected, tuple) and bool in expected)
+    if not isinstance(value, expected) or (is_bool and not wants_bool):
+        raise TypeError(
+            f"OpenVLAConfig.{name} must be {description}{' or null' if optional else ''}, got {value!r} "
+            f"({type(value).__name__}); fix it in config.json"
+        )
+
+
+def _check_list(name: str, value, item_type: type, description: str) -> None:
+    if value is None:
+        return
+    if not isinstance(value, (list, tuple)) or not all(
+        isinstance(item, item_type) and not isinstance(item, bool) for item in value
+    ):
+        raise TypeError(
+            f"OpenVLAConfig.{name} must be a list of {description} or null, got {value!r} ({type(value).__name__}); "
+            f"fix it in config.json"
+        )
+
+
 class OpenVLAConfig(PretrainedConfig):
     r"""Configuration of an [`OpenVLAForActionPrediction`], field for field the official one.
 
@@ -97,6 +122,24 @@ class OpenVLAConfig(PretrainedConfig):
         image_token_id: int | None = None,
         **kwargs,
     ):
+        for name, value, expected, description, optional in (
+            ("norm_stats", norm_stats, dict, "a dict of per-dataset statistics", True),
+            ("n_action_bins", n_action_bins, int, "an int", False),
+            ("vision_backbone_id", vision_backbone_id, str, "a string", False),
+            ("llm_backbone_id", llm_backbone_id, str, "a string", False),
+            ("arch_specifier", arch_specifier, str, "a string", False),
+            ("use_fused_vision_backbone", use_fused_vision_backbone, bool, "true or false", True),
+            ("image_resize_strategy", image_resize_strategy, str, "a string", False),
+            ("text_config", text_config, (dict, LlamaConfig), "a dict (the Llama config)", True),
+            ("llm_max_length", llm_max_length, int, "an int", False),
+            ("pad_token_id", pad_token_id, int, "an int", True),
+            ("pad_to_multiple_of", pad_to_multiple_of, int, "an int", False),
+            ("output_projector_states", output_projector_states, bool, "true or false", False),
+            ("image_token_id", image_token_id, int, "an int (a token id)", True),
+        ):  # fmt: skip
+            _check_type(name, value, expected, description, optional)
+        _check_list("timm_model_ids", timm_model_ids, str, "timm model ids (strings)")
+        _check_list("image_sizes", image_sizes, int, "ints (pixels)")
         if vision_backbone_id not in VISION_BACKBONES and timm_model_ids is None:
             raise ValueError(
                 f"vision_backbone_id={vision_backbone_id!r} is not supported by the OpenVLA port; supported: "

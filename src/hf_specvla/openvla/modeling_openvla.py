@@ -34,7 +34,7 @@ from transformers import initialization as init
 from transformers.modeling_outputs import ModelOutput
 
 from ..action_tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
-from ..speculative import Drafter, DraftHead, SpeculativeGenerationMixin
+from ..speculative import Drafter, DraftHead, SpeculativeGenerationMixin, named_weight_errors
 from ..speculative.modeling_draft_head import is_local_path
 from .configuration_openvla import OpenVLAConfig
 from .vision import AttentionPoolLatent, LayerScale, OpenVLAProjector, OpenVLAVisionBackbone, VisionTransformer
@@ -164,9 +164,10 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         """
         check_checkpoint_folder(pretrained_model_name_or_path)
         output_loading_info = kwargs.pop("output_loading_info", False)
-        model, loading_info = super().from_pretrained(
-            pretrained_model_name_or_path, *model_args, output_loading_info=True, **kwargs
-        )
+        with named_weight_errors(pretrained_model_name_or_path, "OpenVLA checkpoint"):
+            model, loading_info = super().from_pretrained(
+                pretrained_model_name_or_path, *model_args, output_loading_info=True, **kwargs
+            )
         problems = []
         for kind in ("missing_keys", "unexpected_keys", "mismatched_keys"):
             keys = sorted(str(key) for key in loading_info.get(kind) or [])

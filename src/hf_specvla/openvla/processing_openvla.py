@@ -51,20 +51,33 @@ class TowerTransform:
         return (tensor - mean) / std
 
 
+#: PIL modes converted to RGB exactly as the official processor does (``image.convert("RGB")``): 8-bit colour, with or
+#: without alpha (dropped), 8-bit grey (repeated), and palettes (looked up)
+PIL_MODES = ("RGB", "RGBA", "L", "P")
+
+
 def _as_pil(image) -> Image.Image:
-    """A PIL image or an ``[H, W, 3]`` uint8 array -> RGB PIL image.
+    """A PIL image of an 8-bit mode (``PIL_MODES``) or an ``[H, W, 3]`` uint8 array -> RGB PIL image.
 
     Raises:
-        TypeError / ValueError: naming what was given and what is valid.
+        TypeError / ValueError: naming what was given (type, PIL mode, dtype, shape) and what is valid. Images whose
+            conversion to 8-bit RGB would lose or invent information (float ``F``, 16/32-bit ``I;16`` / ``I``, float
+            arrays) are refused rather than silently turned black or saturated.
     """
     if isinstance(image, Image.Image):
+        if image.mode not in PIL_MODES:
+            raise ValueError(
+                f"a PIL image of mode {image.mode!r} cannot be converted to 8-bit RGB faithfully; pass one of the "
+                f"modes {PIL_MODES} (e.g. scale a 16-bit or float image to 0..255 and convert it to 'L' or 'RGB' first)"
+            )
         return image.convert("RGB")
     if isinstance(image, torch.Tensor):
         image = image.detach().cpu().numpy()
     if not isinstance(image, np.ndarray):
         raise TypeError(f"image must be a PIL.Image or an [H, W, 3] uint8 array, got {type(image).__name__}")
     if image.dtype != np.uint8:
-        raise ValueError(f"an image array must be uint8 (0..255), got dtype {image.dtype}")
+        hint = " (a float image in [0, 1]: (image * 255).round().astype(np.uint8))" if image.dtype.kind == "f" else ""
+        raise ValueError(f"an image array must be uint8 (0..255), got dtype {image.dtype}{hint}")
     if image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"an image array must have shape [H, W, 3] (RGB), got {image.shape}")
     return Image.fromarray(image, mode="RGB")
@@ -111,8 +124,16 @@ class OpenVLAImageProcessor:
         return cls(transforms)
 
     def __call__(self, images) -> torch.Tensor:
-        """One image or a list -> ``[B, 3 * towers, H, W]`` float32."""
+        """One image or a list -> ``[B, 3 * towers, H, W]`` float32.
+
+        Raises:
+            ValueError: no image (None or an empty list), or an image of a kind [`_as_pil`] refuses.
+        """
+        if images is None:
+            raise ValueError("images is None: pass one image (PIL.Image or [H, W, 3] uint8 array) per prompt")
         images = images if isinstance(images, (list, tuple)) else [images]
+        if not images:
+            raise ValueError("images is an empty list: pass one image (PIL.Image or [H, W, 3] uint8 array) per prompt")
         return torch.stack([torch.cat([t(_as_pil(image)) for t in self.transforms]) for image in images])
 
 

@@ -31,6 +31,7 @@ from .modeling_draft_head import DraftHead
 from .outputs import SpeculativeDecoderOnlyOutput
 from .stats import SpeculationStats
 from .tree import DraftTree
+from .weights import named_weight_errors
 
 __all__ = [
     "AcceptanceRule",
@@ -60,5 +61,6 @@ __all__ = [
     "disable_speculation",
     "enable_speculation",
     "make_acceptance_rule",
+    "named_weight_errors",
     "speculative_generate",
 ]

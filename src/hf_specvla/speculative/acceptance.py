@@ -146,6 +146,12 @@ def make_acceptance_rule(bin_tolerance: int | Sequence[int], action_layout: Acti
             "or use a DraftHead (its config records the layout)"
         )
     tolerance = validate_bin_tolerance(bin_tolerance, action_layout.action_dim)
+    widest = action_layout.tokenizer.n_bins - 1
+    if max(tolerance) > widest:
+        raise ValueError(
+            f"bin_tolerance={bin_tolerance!r} is wider than the action range: with {widest + 1} bins two tokens are at "
+            f"most {widest} bins apart (r={widest} already accepts any action token); use 0..{widest}"
+        )
     if all(t == 0 for t in tolerance):
         return ExactMatch()
     return RelaxedBinMatch(action_layout, tolerance)

@@ -357,6 +357,28 @@ def _per_step(rows: list[RowState], attribute: str) -> tuple[torch.Tensor, ...]:
 
 # ----------------------------------------------------------------------------- the loop
 @torch.no_grad()
+def check_left_padded(attention_mask: torch.Tensor | None) -> None:
+    """Refuses a 2D ``attention_mask`` ``[B, S]`` with padding anywhere but at the start of a row: each row's new
+    tokens are appended after its last column, so a right-padded row would continue after its padding and decode
+    other tokens than the row alone (transformers only warns; we promise exact batches).
+
+    Raises:
+        ValueError: naming the rows and what to do.
+    """
+    if attention_mask is None or attention_mask.ndim != 2:
+        return
+    real = attention_mask.bool()
+    # left padding: once a row's tokens start, every later column is a token
+    started = real.long().cummax(dim=1).values.bool()
+    bad_rows = (started & ~real).any(dim=1).nonzero().flatten().tolist()
+    if bad_rows:
+        raise ValueError(
+            f"attention_mask has padding after the tokens of row(s) {bad_rows[:8]}: the batch is right-padded (or "
+            f"padded inside a row), and a row's new tokens would follow its padding. Pad on the left "
+            f"(tokenizer.padding_side = 'left', as transformers' generate expects for decoder-only models)"
+        )
+
+
 def speculative_generate(
     model: PreTrainedModel,
     input_ids: torch.LongTensor,
@@ -422,6 +444,7 @@ def speculative_generate(
         eos_ids[0] if eos_ids else None
     )  # fmt: skip
     prompt_padding = model_kwargs.get("attention_mask")  # [B, S] or None (no padding)
+    check_left_padded(prompt_padding)
     if prompt_padding is not None and bool(prompt_padding.all()):
         prompt_padding = None
     rows = []

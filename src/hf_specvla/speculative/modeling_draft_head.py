@@ -27,6 +27,7 @@ from ..action_tokenizer import DEFAULT_N_BINS, ActionTokenizer
 from .config import NOT_ENABLED_HINT
 from .configuration_draft_head import DraftHeadConfig
 from .masks import causal_mask
+from .weights import named_weight_errors
 
 
 def is_local_path(name_or_path: str | os.PathLike) -> bool:
@@ -145,7 +146,17 @@ class DraftHead(PreTrainedModel):
             FileNotFoundError / ValueError naming the path and what it holds instead.
         """
         check_draft_head_folder(pretrained_model_name_or_path)
-        return super().from_pretrained(pretrained_model_name_or_path, *model_args, **kwargs)
+        with named_weight_errors(pretrained_model_name_or_path, "draft head"):
+            try:
+                return super().from_pretrained(pretrained_model_name_or_path, *model_args, **kwargs)
+            except OSError as error:
+                if is_local_path(pretrained_model_name_or_path):
+                    raise
+                raise OSError(
+                    f"no local folder {str(pretrained_model_name_or_path)!r} exists, so it was taken for a hub repo "
+                    f"id, and the hub could not provide it ({error}). For a local draft head, check the path (a path "
+                    f"written as ./{pretrained_model_name_or_path} is never sent to the hub)"
+                ) from error
 
     @classmethod
     def from_target(
