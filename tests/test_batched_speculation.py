@@ -242,8 +242,11 @@ def test_a_right_padded_batch_is_refused_before_any_forward(tiny_llama, random_d
     right = {k: torch.stack([torch.cat([row[row_mask.bool()], row[~row_mask.bool()]]) for row, row_mask
                              in zip(v, left["attention_mask"])]) for k, v in left.items()}  # fmt: skip
     assert not torch.equal(right["attention_mask"], left["attention_mask"])
-    kwargs = {"head": dict(assistant_model=random_draft), "draft_ids": dict(draft_ids=torch.full((3, 2), 100)),
-              "custom_generate": dict(custom_generate=speculative_generate, drafter=random_draft)}[drafting]
+    kwargs = {
+        "head": dict(assistant_model=random_draft),
+        "draft_ids": dict(draft_ids=torch.full((3, 2), 100)),
+        "custom_generate": dict(custom_generate=speculative_generate, drafter=random_draft),
+    }[drafting]
     forwards = []
     hook = tiny_llama.register_forward_pre_hook(lambda *args: forwards.append(1))
     try:

@@ -93,7 +93,8 @@ def check_output_dir(output_dir: Path, record: RunRecord | None, resume: bool, o
     if latest_checkpoint(output_dir) is None:
         raise FileExistsError(
             f"--resume: {str(output_dir)!r} has no checkpoint-* to resume from (the run stopped before its first "
-            f"checkpoint); pass --overwrite-output-dir to move it aside and train from scratch, or choose another folder"
+            f"checkpoint); pass --overwrite-output-dir to move it aside and train from scratch, or choose another "
+            f"folder"
         )
 
 
