@@ -103,6 +103,6 @@ def test_demo_refuses_a_folder_holding_another_pipeline(toy_pipeline, capsys):
 
     with pytest.raises(SystemExit) as exit_info:
         main(["demo", "--size", "medium", "--output-dir", toy_pipeline.output_dir])
-    assert exit_info.value.code == 2 and "size=" in capsys.readouterr().err
+    assert exit_info.value.code == 2 and "holds another run: size.hidden_size: " in capsys.readouterr().err
     again = build_toy_pipeline(toy_pipeline.output_dir, progress=False)  # same settings: loaded, not retrained
     assert torch.equal(again.draft_head.fuse.weight, toy_pipeline.draft_head.fuse.weight)

@@ -38,7 +38,7 @@ def test_method_names():
         DecodingMethod.parse("eagle")
     for bad, message in [("prior:k=3", "needs the head chain"), ("greedy:r=2", "takes no r or k"),
                          ("prior:x=1", "bad option 'x=1'"), ("head:k=0", "k must be >= 1"),
-                         ("prior:r=-1", "bad option")]:  # fmt: skip
+                         ("prior:r=-1", "r must be an integer >= 0"), ("prior:r=x", "bad option 'r=x'")]:  # fmt: skip
         with pytest.raises(ValueError, match=message):
             DecodingMethod.parse(bad)
 
@@ -98,7 +98,7 @@ def test_compare_pairs_seeds_keeps_r0_identical_and_resumes(policy_dir, tmp_path
     # other methods in the same folder: refused, naming the setting
     with pytest.raises(SystemExit) as exit_info:
         main([*args[:-4], "prior:r=2", "--output-dir", str(out)])
-    assert exit_info.value.code == 2 and "methods=" in capsys.readouterr().err
+    assert exit_info.value.code == 2 and "holds another run: methods: [" in capsys.readouterr().err
 
 
 def test_compare_splits_seeds_between_workers(policy_dir, tmp_path):

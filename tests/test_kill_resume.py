@@ -67,7 +67,8 @@ def test_eval_killed_mid_run_then_rerun_equals_an_uninterrupted_run(tmp_path, po
     run([*argv, "--output-dir", str(killed)])  # the documented rerun: the same command
     run([*argv, "--output-dir", str(straight)])
     assert episodes(killed) == episodes(straight)
-    assert sorted(p.name for p in killed.iterdir()) == ["episodes.jsonl", "run.json", "summary.json"]
+    assert sorted(p.name for p in killed.iterdir()) == [".lock", "episodes.jsonl", "run.json", "summary.json"]
+    assert (killed / ".lock").read_text() == ""  # the rerun released it; the killed run's holder is gone
 
 
 def test_train_vla_killed_after_a_checkpoint_then_resumed_equals_an_uninterrupted_run(tmp_path):

@@ -86,8 +86,8 @@ def check_output_dir(output_dir: Path, record: RunRecord | None, resume: bool, o
         check_run_folder(output_dir, record)  # another run's folder: named first, whatever the flags
     if not resume:
         raise FileExistsError(
-            f"output_dir {str(output_dir)!r} already holds this run; pass resume=True (--resume) to continue its "
-            f"training, overwrite_output_dir=True (--overwrite-output-dir) to move it aside and train from scratch, "
+            f"output_dir {str(output_dir)!r} already holds this run; pass --resume (resume=True) to continue its "
+            f"training, --overwrite-output-dir (overwrite_output_dir=True) to move it aside and train from scratch, "
             f"or choose another folder"
         )
     if latest_checkpoint(output_dir) is None:

@@ -89,8 +89,8 @@ def _flatten(settings: dict, prefix: str = "") -> dict:
     """Nested settings as dotted keys (``draft_head_config.hidden_size``), so that a difference names its leaf."""
     flat = {}
     for key, value in settings.items():
-        if isinstance(value, dict) and value:
-            flat.update(_flatten(value, f"{prefix}{key}."))
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}."))  # an empty dict adds nothing: {} and absent agree
         else:
             flat[f"{prefix}{key}"] = value
     return flat
@@ -178,7 +178,9 @@ class FolderInUseError(FileExistsError):
 def _describe_holder(text: str) -> str:
     try:
         holder = json.loads(text)
-    except json.JSONDecodeError:  # an older hf_specvla wrote the bare pid
+    except json.JSONDecodeError:
+        holder = None
+    if not isinstance(holder, dict):  # an older hf_specvla wrote the bare pid
         return f"pid {text.strip()}" if text.strip() else "an unknown process"
     return f"pid {holder.get('pid')}, `{holder.get('command')}`, started {holder.get('started')}"
 
