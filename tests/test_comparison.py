@@ -95,6 +95,11 @@ def test_compare_pairs_seeds_keeps_r0_identical_and_resumes(policy_dir, tmp_path
     assert len((out / "episodes.worker-0.jsonl").read_text().splitlines()) == 6
     assert main([*args[:6], "3", *args[7:]]) == 0
     assert len((out / "episodes.worker-0.jsonl").read_text().splitlines()) == 9
+    # fewer seeds than the folder holds: the summary covers the asked-for subset, and says so
+    capsys.readouterr()
+    assert main(args) == 0
+    assert "summary.json and compare.md cover the 6 episodes this run asked for" in capsys.readouterr().err
+    assert json.loads((out / "summary.json").read_text())["methods"]["prior"]["episodes"] == 2
     # other methods in the same folder: refused, naming the setting
     with pytest.raises(SystemExit) as exit_info:
         main([*args[:-4], "prior:r=2", "--output-dir", str(out)])
@@ -119,6 +124,8 @@ def test_compare_splits_seeds_between_workers(policy_dir, tmp_path):
         (["--workers", "0"], "--workers: must be >= 1, got 0"),
         (["--methods", "tree:r=4"], "draft with a draft head: pass --draft-head"),
         (["--tasks", "bogus"], "bogus"),
+        (["--methods", "prior:r=999"], "methods ['prior:r=999']: r is wider than the action range"),
+        (["--methods", "prior:r=-1"], "r must be an integer >= 0"),
     ],
 )
 def test_compare_bad_input_is_a_usage_error(policy_dir, tmp_path, capsys, flags, message):
@@ -159,3 +166,18 @@ def test_compare_refuses_a_folder_another_live_run_is_writing(policy_dir, tmp_pa
     assert exit_info.value.code == 2 and f"pid {os.getpid()}" in capsys.readouterr().err
     (out / ".lock").write_text("999999999")  # a holder that is gone (an older hf_specvla's bare pid): taken over
     assert main(args) == 0
+
+
+def test_an_unused_draft_head_is_ignored_with_a_warning(policy_dir, tmp_path, capsys):
+    from hf_specvla import DraftHead
+    from hf_specvla.policy import VLAPolicy
+
+    policy = VLAPolicy.from_pretrained(policy_dir)
+    head = DraftHead.from_target(policy.model, policy.action_tokenizer, action_dim=4,
+                                 target_fingerprint=policy.weights_fingerprint())  # fmt: skip
+    head.save_pretrained(tmp_path / "head")
+    out = tmp_path / "no_head_methods"
+    assert main(["compare", "--policy", policy_dir, "--draft-head", str(tmp_path / "head"), "--tasks", "reach",
+                 "--episodes", "1", "--max-episode-steps", "2", "--methods", "prior", "--output-dir", str(out)]) == 0
+    assert "is not used: none of the methods ['greedy', 'prior'] drafts with a head" in capsys.readouterr().err
+    assert json.loads((out / "run.json").read_text())["settings"]["draft_head"] is None

@@ -42,6 +42,7 @@ def test_collect_train_eval(tmp_path, capsys):
     assert main(eval_args) == 0
     out = capsys.readouterr().out
     assert "| reach-v3 | 2 |" in out
+    assert "| median ms/call |" in out and "ms/call: the median wall time of a policy call (one call decides" in out
     summary = json.loads((results / "summary.json").read_text())
     assert summary["tasks"]["reach-v3"]["mean_episode_length"] <= 5
     assert (results / "first.gif").exists()
@@ -54,6 +55,11 @@ def test_collect_train_eval(tmp_path, capsys):
     greedy_lengths = [json.loads(x)["length"] for x in (results / "episodes.jsonl").read_text().splitlines()]
     prior_log = (tmp_path / "prior" / "episodes.jsonl").read_text().splitlines()
     assert [json.loads(x)["length"] for x in prior_log] == greedy_lengths
+    # r beyond the 256 bins: a usage error before anything is written
+    with pytest.raises(SystemExit) as exit_info:
+        main([*prior_args[:-3], "--output-dir", str(tmp_path / "wide"), "--action-prior", "--bin-tolerance", "999"])
+    assert exit_info.value.code == 2 and "bins are at most 255 apart" in capsys.readouterr().err
+    assert not (tmp_path / "wide").exists()
     # the episode benchmark on the policy's own recorded rollouts
     bench = ["bench-episodes", "--policy", str(policy), "--tasks", "reach", "--steps", "3", "--bin-tolerances", "0"]
     assert main([*bench, "--chain-length", "2", "--tree-depth", "2", "--tree-total-tokens", "4"]) == 0

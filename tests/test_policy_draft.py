@@ -57,6 +57,8 @@ def test_train_draft_writes_a_loadable_head_that_resumes_and_knows_its_policy(po
     assert "hf-specvla train-draft --policy" in card and "| drafted position | accepted |" in card
     validations = [json.loads(line) for line in (out / "validation.jsonl").read_text().splitlines()]
     assert [v["step"] for v in validations] == [2, 4]
+    # what docs/folders.md says a finished run keeps: its final weights and its last two checkpoints
+    assert sorted(p.name for p in out.glob("checkpoint-*")) == ["checkpoint-2", "checkpoint-4"]
     assert validations[-1]["sequences"] == 3 and 0 <= validations[-1]["acceptance_per_position"][0] <= 1
     assert 1 <= validations[-1]["tokens_per_target_forward"] <= 4
 
