@@ -177,7 +177,8 @@ def test_an_unused_draft_head_is_ignored_with_a_warning(policy_dir, tmp_path, ca
                                  target_fingerprint=policy.weights_fingerprint())  # fmt: skip
     head.save_pretrained(tmp_path / "head")
     out = tmp_path / "no_head_methods"
-    assert main(["compare", "--policy", policy_dir, "--draft-head", str(tmp_path / "head"), "--tasks", "reach",
-                 "--episodes", "1", "--max-episode-steps", "2", "--methods", "prior", "--output-dir", str(out)]) == 0
+    args = ["compare", "--policy", policy_dir, "--draft-head", str(tmp_path / "head"), "--tasks", "reach",
+            "--episodes", "1", "--max-episode-steps", "2", "--methods", "prior", "--output-dir", str(out)]  # fmt: skip
+    assert main(args) == 0
     assert "is not used: none of the methods ['greedy', 'prior'] drafts with a head" in capsys.readouterr().err
     assert json.loads((out / "run.json").read_text())["settings"]["draft_head"] is None

@@ -160,7 +160,9 @@ def test_eval_refuses_another_run_and_redoes_a_torn_episode(tmp_path, tiny_polic
     first = evaluate(tiny_policy, "reach", 2, out, env, progress=False)
     lines = (out / "episodes.jsonl").read_text().splitlines()
     assert len(lines) == 2
-    with pytest.raises(FileExistsError, match=r"holds another run: decoding.action_prior: True here vs '\(not set\)' there; choose"):
+    with pytest.raises(
+        FileExistsError, match=r"holds another run: decoding.action_prior: True here vs '\(not set\)' there; choose"
+    ):
         evaluate(tiny_policy, "reach", 2, out, env, generate_kwargs={"action_prior": True}, progress=False)
     with pytest.raises(FileExistsError, match="max_episode_steps"):
         evaluate(tiny_policy, "reach", 2, out, EnvConfig(32, env.camera, max_episode_steps=3), progress=False)
