@@ -42,7 +42,8 @@ def main() -> None:
         parser.error(f"{args.data} was rendered from another camera than the policy's {policy.config.camera!r}")
 
     def act(image, instruction, state):
-        return policy.predict_action(image, instruction, state if policy.config.use_state else None)[:3]
+        actions = policy.predict_action(image, instruction, state if policy.config.use_state else None)
+        return policy.action_steps(actions)[0][:3]  # a chunked policy: the chunk's first action
 
     print("| task | image swapped | state swapped | experts differ |\n|---|---:|---:|---:|")
     for task in resolve_tasks(args.tasks):

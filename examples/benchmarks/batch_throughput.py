@@ -62,7 +62,7 @@ def policy_target(args):
         )  # fmt: skip
         return output
 
-    return act, episodes, draft_head, policy.config.action_dim
+    return act, episodes, draft_head, policy.config.action_tokens  # tokens per call (a chunk's, when chunked)
 
 
 def toy_target(args):

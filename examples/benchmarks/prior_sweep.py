@@ -21,12 +21,14 @@ episodes = record_observations(policy, "MT10", [500_000, 500_001], max_steps=60)
 def act(observation, history, prior_settings, **generate_kwargs):
     policy.previous_action_ids = []
     if prior_settings and history:
-        generate_kwargs["assistant_model"] = ActionPriorDrafter(history, policy.action_layout, **prior_settings)
+        generate_kwargs["assistant_model"] = ActionPriorDrafter(
+            history, policy.action_layout, chunk_length=policy.config.chunk_length, **prior_settings
+        )
     elif not history:  # an episode's first step: nothing to draft from
         generate_kwargs.pop("bin_tolerance", None)
     _, output = policy.predict_action(observation["image"], observation["instruction"], observation["state"],
                                       return_output=True, **generate_kwargs)  # fmt: skip
-    return output.sequences[0, -policy.config.action_dim :].tolist(), output
+    return output.sequences[0, -policy.config.action_tokens :].tolist(), output
 
 
 methods = [EpisodeMethod("greedy")]
@@ -35,4 +37,4 @@ for r in (0, 4):
         settings = dict(max_nodes=nodes, neighbour_bins=neighbours)
         name = f"prior max_nodes={nodes} neighbours={neighbours} r={r}"
         methods.append(EpisodeMethod(name, dict(bin_tolerance=r), settings))
-print(format_episode_report(run_episode_benchmark(act, episodes, methods, policy.config.action_dim)))
+print(format_episode_report(run_episode_benchmark(act, episodes, methods, policy.config.action_tokens)))

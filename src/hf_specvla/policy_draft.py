@@ -58,7 +58,8 @@ class DraftDataConfig:
         tasks: Meta-World tasks (names or a suite, e.g. "MT10").
         rollout_episodes: greedy on-policy episodes per task (seeds ``rollout_seed_start``, +1, ...); the last
             ``validation_episodes`` of each task are held out for validation.
-        rollout_max_steps: steps kept per rollout (an episode is cut there).
+        rollout_max_steps: policy calls kept per rollout (an episode is cut there; a chunked policy takes H env
+            steps per call).
         rollout_seed_start: first rollout seed.
         validation_episodes: held-out rollouts per task (>= 1).
         validation_frames: at most this many held-out frames are validated (evenly spread; the engine runs once
