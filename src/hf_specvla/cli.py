@@ -600,8 +600,8 @@ def main(argv: list[str] | None = None) -> int:
                        help="held-out rollouts per task")  # fmt: skip
     draft.add_argument("--validation-frames", type=POSITIVE, default=DraftDataConfig.validation_frames,
                        help="held-out frames the engine validates on (evenly spread)")  # fmt: skip
-    draft.add_argument("--num-draft-tokens", type=POSITIVE, default=POLICY_DRAFT_DEFAULTS["num_draft_tokens"],
-                       help="the head's default chain length k")  # fmt: skip
+    draft.add_argument("--num-draft-tokens", type=POSITIVE, default=None,
+                       help="the head's default chain length k (default: tokens per call - 1)")  # fmt: skip
     draft.add_argument("--max-steps", type=POSITIVE, default=POLICY_DRAFT_DEFAULTS["max_steps"], help="optimizer steps")
     draft.add_argument("--batch-size", type=POSITIVE, default=POLICY_DRAFT_DEFAULTS["batch_size"],
                        help="sequences per step")  # fmt: skip

@@ -44,9 +44,10 @@ DRAFT_SEED_START = 400_000
 MODEL_CARD = "README.md"
 
 #: ``train-draft``'s training settings for a policy-sized target (a few-million-parameter policy on a CPU): a
-#: larger learning rate than [`DraftTrainingConfig`]'s (the paper's, for a 7B target) and a chain of 3 for 4-token
-#: actions (the prefill makes the first token, so 3 drafted tokens complete an action).
-POLICY_DRAFT_DEFAULTS = dict(num_draft_tokens=3, max_steps=3000, batch_size=32, learning_rate=3e-3,
+#: larger learning rate than [`DraftTrainingConfig`]'s (the paper's, for a 7B target). The chain length is not
+#: here: it defaults to the policy's tokens per call minus one (the prefill makes the first token, so 3 drafted
+#: tokens complete a 4-token action and 7 a chunk of two).
+POLICY_DRAFT_DEFAULTS = dict(max_steps=3000, batch_size=32, learning_rate=3e-3,
                              lr_schedule="cosine", warmup_steps=50, eval_every=500, save_every=500)  # fmt: skip
 
 
@@ -161,7 +162,7 @@ def train_policy_draft_head(
     training_config: DraftTrainingConfig,
     data_config: DraftDataConfig | None = None,
     demonstrations: list[str | Path] | tuple = (),
-    num_draft_tokens: int = POLICY_DRAFT_DEFAULTS["num_draft_tokens"],
+    num_draft_tokens: int | None = None,
     progress: bool = True,
     command: str | None = None,
 ) -> DraftHead:
@@ -175,6 +176,8 @@ def train_policy_draft_head(
     data_config = data_config or DraftDataConfig()
     demonstrations = [str(Path(root)) for root in demonstrations]
     output_dir = Path(training_config.output_dir)
+    if num_draft_tokens is None:
+        num_draft_tokens = policy.config.action_tokens - 1
     if num_draft_tokens < 1:
         raise ValueError(f"num_draft_tokens must be >= 1, got {num_draft_tokens}")
     env_config = EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)

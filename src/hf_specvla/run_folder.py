@@ -82,7 +82,7 @@ IMPORTANT_SETTINGS = ("target", "policy", "init_from", "draft_head", "data", "de
 #: dotted settings that hold paths in records written before ``RunRecord.paths`` existed: never compared
 LEGACY_PATH_SETTINGS = frozenset({"draft_head_config.target_name_or_path", "data.demonstrations"})
 #: settings added to records later: a folder recorded before they existed continues without them
-ADDED_SETTINGS = frozenset({"data.demonstration_fingerprints"})
+ADDED_SETTINGS = frozenset({"data.demonstration_fingerprints", "draft_head_config.final_logit_softcapping"})
 
 
 def _flatten(settings: dict, prefix: str = "") -> dict:

@@ -36,7 +36,7 @@ from .run_folder import fingerprint, fingerprint_arrays
 from .speculative import SpeculationStats, speculative_generate
 from .speculative.drafters.draft_head import embed_tokens
 from .speculative.masks import causal_mask
-from .speculative.modeling_draft_head import DraftHead, TargetHandles
+from .speculative.modeling_draft_head import DraftHead, TargetHandles, softcap_logits
 
 logger = logging.getLogger(__name__)
 
@@ -232,11 +232,12 @@ def distillation_loss(
     n = loss_mask.sum().clamp(min=1)
     feature_loss = torch.nn.functional.smooth_l1_loss(features, target_features, reduction="none").mean(-1)
     feature_loss = (feature_loss * loss_mask).sum() / n
+    cap = draft_head.config.final_logit_softcapping  # the target caps its logits (Gemma-2): so does the loss
     selected_features = features[loss_mask]  # [N, H]
     with torch.no_grad():
-        target_logits = handles.lm_head(target_features[loss_mask]).float()
+        target_logits = softcap_logits(handles.lm_head(target_features[loss_mask]).float(), cap)
         target_probs = target_logits.softmax(-1)
-    draft_logits = handles.lm_head(selected_features).float()
+    draft_logits = softcap_logits(handles.lm_head(selected_features).float(), cap)
     token_loss = -(target_probs * draft_logits.log_softmax(-1)).sum(-1).mean() if len(draft_logits) else n * 0.0
     accuracy = (draft_logits.argmax(-1) == target_logits.argmax(-1)).float().mean() if len(draft_logits) else n * 0.0
     loss = config.feature_loss_weight * feature_loss + config.token_loss_weight * token_loss

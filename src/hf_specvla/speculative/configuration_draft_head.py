@@ -26,6 +26,9 @@ class DraftHeadConfig(PretrainedConfig):
         num_draft_tokens: default number of tokens drafted per target verification (chain length k).
         draft_action_tokens_only: score only action tokens (and EOS) when drafting. This makes each draft step's
             lm_head product n_action_bins+1 wide instead of vocab_size, and the head can then only draft actions.
+        final_logit_softcapping: the target's cap on its output logits (Gemma-2: ``logits = cap * tanh(logits /
+            cap)``), applied to the head's logits too, so that drafting and training see the target's distribution;
+            None (most models): no cap.
         target_model_type, target_name_or_path: what the head was built for (informational + compatibility check).
         target_fingerprint: content fingerprint of the target weights the head was distilled from (set by
             ``hf-specvla train-draft``); a head whose fingerprint differs from a target's was trained for another
@@ -54,6 +57,7 @@ class DraftHeadConfig(PretrainedConfig):
         action_dim: int = 7,
         num_draft_tokens: int = 6,
         draft_action_tokens_only: bool = True,
+        final_logit_softcapping: float | None = None,
         target_model_type: str | None = None,
         target_name_or_path: str | None = None,
         target_fingerprint: str | None = None,
@@ -77,6 +81,7 @@ class DraftHeadConfig(PretrainedConfig):
         self.action_dim = action_dim
         self.num_draft_tokens = num_draft_tokens
         self.draft_action_tokens_only = draft_action_tokens_only
+        self.final_logit_softcapping = final_logit_softcapping
         self.target_model_type = target_model_type
         self.target_name_or_path = target_name_or_path
         self.target_fingerprint = target_fingerprint
@@ -92,6 +97,9 @@ class DraftHeadConfig(PretrainedConfig):
             raise ValueError(f"DraftHeadConfig.num_draft_tokens must be an int >= 1, got {self.num_draft_tokens!r}")
         if self.num_draft_tokens < 1:
             raise ValueError(f"DraftHeadConfig.num_draft_tokens must be an int >= 1, got {self.num_draft_tokens!r}")
+        cap = self.final_logit_softcapping
+        if cap is not None and (isinstance(cap, bool) or not isinstance(cap, (int, float)) or cap <= 0):
+            raise ValueError(f"DraftHeadConfig.final_logit_softcapping must be a number > 0 or None, got {cap!r}")
         if self.action_vocab_size > self.vocab_size:
             raise ValueError(
                 f"action_vocab_size={self.action_vocab_size} exceeds vocab_size={self.vocab_size}: the action tokens "

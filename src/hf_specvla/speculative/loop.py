@@ -35,7 +35,14 @@ from transformers.generation.logits_process import PrefixConstrainedLogitsProces
 
 from ..action_tokenizer import ActionLayout
 from .acceptance import AcceptanceRule, AcceptedPath, accept_trees, make_acceptance_rule
-from .cache import select_cache_positions, select_cache_rows, truncate_cache
+from .cache import (
+    check_rollback_cache,
+    open_sliding_windows,
+    select_cache_positions,
+    select_cache_rows,
+    sliding_window,
+    truncate_cache,
+)
 from .config import SpeculationConfig
 from .drafter import (
     CandidateDrafter,
@@ -85,7 +92,8 @@ class DecodeState:
 
     rows: list[RowState]
     pending_ids: torch.Tensor  # [B, P] tokens not yet in the target cache (their last one is each tree's root)
-    pending_positions: torch.Tensor  # [B, P] their position ids
+    pending_positions: torch.Tensor  # [B, P] their (text) position ids
+    position_offsets: torch.Tensor | None  # [K, B, 1] multi-component positions' offsets (Qwen2-VL), else None
     key_valid: torch.Tensor | None  # [B, C + P] False at invalid cached / pending keys; None = all valid
     target_cache: Cache
 
@@ -206,13 +214,22 @@ def _check_draft_ids_are_actions(
 
 
 def _prompt_positions(model_inputs: dict, input_ids: torch.Tensor, prompt_padding: torch.Tensor | None):
-    """``[B, S]`` the prompt's position ids: the model's prepared ones, else as generate derives them."""
+    """The prompt's position ids ``[B, S]`` (the model's prepared ones, else as generate derives them) and, for
+    models with multi-component positions (Qwen2-VL's ``[4, B, S]``: text positions, then temporal / height / width
+    rotary positions), each component's offset from the text positions after the prompt, ``[K, B, 1]`` (else None).
+
+    After the prompt every component advances with the text position (a generated token is text), so a token at
+    text position p gets ``p + offset`` in each component: what the model's own generate would give it.
+    """
     positions = model_inputs.get("position_ids")
+    if positions is not None and positions.ndim == 3:
+        text_positions = positions[0].expand(input_ids.shape[0], -1)
+        return text_positions, positions[:, :, -1:] - positions[:1, :, -1:]
     if positions is not None:
-        return positions.expand(input_ids.shape[0], -1)
+        return positions.expand(input_ids.shape[0], -1), None
     if prompt_padding is None:
-        return torch.arange(input_ids.shape[1], device=input_ids.device)[None].expand(input_ids.shape[0], -1)
-    return (prompt_padding.long().cumsum(-1) - 1).masked_fill(prompt_padding == 0, 0)
+        return torch.arange(input_ids.shape[1], device=input_ids.device)[None].expand(input_ids.shape[0], -1), None
+    return (prompt_padding.long().cumsum(-1) - 1).masked_fill(prompt_padding == 0, 0), None
 
 
 # ----------------------------------------------------------------------------- steps
@@ -287,6 +304,8 @@ def drop_finished_rows(state: DecodeState) -> None:
     index = torch.tensor(active, device=state.pending_ids.device)
     select_cache_rows(state.target_cache, index)
     state.pending_ids, state.pending_positions = state.pending_ids[index], state.pending_positions[index]
+    if state.position_offsets is not None:
+        state.position_offsets = state.position_offsets[:, index]
     if state.key_valid is not None:
         key_valid = state.key_valid[index]
         needed = key_valid[:, :-1].any(dim=0)  # cached columns some remaining row attends to
@@ -461,78 +480,92 @@ def speculative_generate(
     keep_logits = return_dict and generation_config.output_logits
     total_start = time.perf_counter()
 
+    if model_kwargs.get("past_key_values") is not None:
+        check_rollback_cache(model_kwargs["past_key_values"], generation_config.max_length)
     model_inputs = prefill_inputs(model, input_ids, model_kwargs)
+    check_rollback_cache(model_inputs["past_key_values"], generation_config.max_length)
+    prompt_positions, position_offsets = _prompt_positions(model_inputs, input_ids, prompt_padding)
     state = DecodeState(
         rows=rows,
         pending_ids=input_ids,
-        pending_positions=_prompt_positions(model_inputs, input_ids, prompt_padding),
+        pending_positions=prompt_positions,
+        position_offsets=position_offsets,
         key_valid=None if prompt_padding is None else prompt_padding.bool(),
         target_cache=model_inputs["past_key_values"],
     )
     max_length = generation_config.max_length
     at_prefill = True
-    while state.rows:
-        # 1. Each row proposes a tree below its root; no path may draft past max_length (the bonus takes the last
-        #    slot).
-        trees = []
-        with stopwatch.section("draft_seconds"):
-            for b, row in enumerate(state.rows):
-                draft_round = DraftRound(
-                    sequence=row.sequence,
-                    num_generated=row.num_generated,
-                    max_depth=max(0, max_length - row.sequence.shape[1] - 1),
-                    at_prefill=at_prefill,
-                    root_position=state.pending_positions[b : b + 1, -1:],
+    window = sliding_window(state.target_cache)
+    # A prefix-LM prompt (PaliGemma's token_type_ids: the prompt attends to itself both ways at the prefill) needs the
+    # model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies one chain.
+    prefix_attention = model_inputs.get("token_type_ids") is not None
+    with open_sliding_windows(state.target_cache):  # exact: the generation fits the window (checked)
+        while state.rows:
+            # 1. Each row proposes a tree below its root; no path may draft past max_length (the bonus takes the last
+            #    slot).
+            trees = []
+            with stopwatch.section("draft_seconds"):
+                for b, row in enumerate(state.rows):
+                    draft_round = DraftRound(
+                        sequence=row.sequence,
+                        num_generated=row.num_generated,
+                        max_depth=max(0, max_length - row.sequence.shape[1] - 1),
+                        at_prefill=at_prefill,
+                        root_position=state.pending_positions[b : b + 1, -1:],
+                    )
+                    trees.append(row.session.propose(draft_round).truncate_depth(draft_round.max_depth))
+            if at_prefill and prefix_attention:
+                trees = [tree.first_path() for tree in trees]
+            trees = TreeBatch(trees)
+
+            # 2. Verify every row's tree in one target forward (the prefill's forward at the first round).
+            with stopwatch.section("target_seconds"):
+                output = verify_trees(
+                    model,
+                    model_inputs if at_prefill else {"past_key_values": state.target_cache},
+                    state.pending_ids,
+                    state.pending_positions,
+                    trees,
+                    state.key_valid,
+                    output_hidden=drafter.needs_hidden_states,
+                    sliding_window=window,
+                    position_offsets=state.position_offsets,
                 )
-                trees.append(row.session.propose(draft_round).truncate_depth(draft_round.max_depth))
-        trees = TreeBatch(trees)
+            stats.num_batch_forwards += 1
+            at_prefill = False
 
-        # 2. Verify every row's tree in one target forward (the prefill's forward at the first round).
-        with stopwatch.section("target_seconds"):
-            output = verify_trees(
-                model,
-                model_inputs if at_prefill else {"past_key_values": state.target_cache},
-                state.pending_ids,
-                state.pending_positions,
-                trees,
-                state.key_valid,
-                output_hidden=drafter.needs_hidden_states,
-            )
-        stats.num_batch_forwards += 1
-        at_prefill = False
+            # 3. Per row: accept the longest passing path; the bonus token is the target's greedy choice after it.
+            target_ids, target_scores = target_greedy_ids(
+                logits_processor, [row.sequence for row in state.rows], trees, output.logits
+            )  # fmt: skip
+            paths = accept_trees(trees, target_ids, rule, layout, [row.num_action_tokens for row in state.rows])
 
-        # 3. Per row: accept the longest passing path; the bonus token is the target's greedy choice after it.
-        target_ids, target_scores = target_greedy_ids(
-            logits_processor, [row.sequence for row in state.rows], trees, output.logits
-        )  # fmt: skip
-        paths = accept_trees(trees, target_ids, rule, layout, [row.num_action_tokens for row in state.rows])
+            # 4. Emit; stop each row exactly where greedy would (EOS / max_length / custom criteria).
+            emitted = []
+            for row, tree, path in zip(state.rows, trees.trees, paths):
+                row.stats.record_verification(tree.max_depth, tree.num_nodes, [tree.sources[n] for n in path.nodes])
+                emitted.append(tree.token_ids[path.nodes].tolist() + [path.bonus_id])
+            num_kept = emit_tokens(state.rows, emitted, stopping_criteria)
+            for b, (row, tree, path, count) in enumerate(zip(state.rows, trees.trees, paths, num_kept)):
+                parents = tree.parents.tolist()
+                logit_rows = [parents[n] + 1 for n in path.nodes] + [path.nodes[-1] + 1 if path.nodes else 0]
+                for token, logit_row, distance in zip(emitted[b][:count], logit_rows, path.distances + [0]):
+                    if layout is not None and layout.tokenizer.is_action_token(token):
+                        row.num_action_tokens += 1
+                        row.stats.action_bin_distances.append(distance)
+                    if keep_scores:
+                        row.scores.append(target_scores[b, logit_row])
+                    if keep_logits:
+                        row.logits.append(output.logits[b, logit_row])
+                row.stats.accept_lengths.append(count)
 
-        # 4. Emit; stop each row exactly where greedy would (EOS / max_length / custom criteria).
-        emitted = []
-        for row, tree, path in zip(state.rows, trees.trees, paths):
-            row.stats.record_verification(tree.max_depth, tree.num_nodes, [tree.sources[n] for n in path.nodes])
-            emitted.append(tree.token_ids[path.nodes].tolist() + [path.bonus_id])
-        num_kept = emit_tokens(state.rows, emitted, stopping_criteria)
-        for b, (row, tree, path, count) in enumerate(zip(state.rows, trees.trees, paths, num_kept)):
-            parents = tree.parents.tolist()
-            logit_rows = [parents[n] + 1 for n in path.nodes] + [path.nodes[-1] + 1 if path.nodes else 0]
-            for token, logit_row, distance in zip(emitted[b][:count], logit_rows, path.distances + [0]):
-                if layout is not None and layout.tokenizer.is_action_token(token):
-                    row.num_action_tokens += 1
-                    row.stats.action_bin_distances.append(distance)
-                if keep_scores:
-                    row.scores.append(target_scores[b, logit_row])
-                if keep_logits:
-                    row.logits.append(output.logits[b, logit_row])
-            row.stats.accept_lengths.append(count)
-
-        # 5. Commit: keep each row's pending tokens and path in the cache; tell the drafters; drop finished rows.
-        commits = commit_paths(state, trees, paths, output.hidden)
-        with stopwatch.section("draft_seconds"):
-            for row, commit in zip(state.rows, commits):
-                if not row.finished:
-                    row.session.observe(commit)
-        drop_finished_rows(state)
+            # 5. Commit: keep each row's pending tokens and path in the cache; tell the drafters; drop finished rows.
+            commits = commit_paths(state, trees, paths, output.hidden)
+            with stopwatch.section("draft_seconds"):
+                for row, commit in zip(state.rows, commits):
+                    if not row.finished:
+                        row.session.observe(commit)
+            drop_finished_rows(state)
 
     for row in all_rows:
         row.stats.num_draft_forwards = row.session.num_forwards

@@ -78,6 +78,11 @@ class TargetHandles(NamedTuple):
     lm_head: nn.Linear
 
 
+def softcap_logits(logits: torch.Tensor, cap: float | None) -> torch.Tensor:
+    """``cap * tanh(logits / cap)`` (Gemma-2's final logit soft-capping), or ``logits`` when ``cap`` is None."""
+    return logits if cap is None else torch.tanh(logits / cap) * cap
+
+
 class DraftScorer:
     """Turns draft features into draft token ids with the target's lm_head.
 
@@ -85,8 +90,9 @@ class DraftScorer:
     once here, so each draft step multiplies by ``[n_bins + n_eos, H]`` instead of ``[vocab_size, H]``.
     """
 
-    def __init__(self, lm_head: nn.Linear, candidate_ids: torch.Tensor | None):
+    def __init__(self, lm_head: nn.Linear, candidate_ids: torch.Tensor | None, softcap: float | None = None):
         self.candidate_ids = candidate_ids  # [C] or None for the full vocabulary
+        self.softcap = softcap
         weight = lm_head.weight
         bias = getattr(lm_head, "bias", None)
         if candidate_ids is not None:
@@ -95,13 +101,24 @@ class DraftScorer:
         self.weight, self.bias = weight, bias
 
     def logits(self, features: torch.Tensor) -> torch.Tensor:
-        """features ``[..., H]`` -> logits ``[..., C]`` over the scored tokens."""
-        return nn.functional.linear(features, self.weight, self.bias)
+        """features ``[..., H]`` -> logits ``[..., C]`` over the scored tokens (capped as the target caps them)."""
+        return softcap_logits(nn.functional.linear(features, self.weight, self.bias), self.softcap)
 
     def token_ids(self, features: torch.Tensor) -> torch.Tensor:
         """features ``[..., H]`` -> greedy draft token ids ``[...]`` (vocabulary ids)."""
         best = self.logits(features).argmax(dim=-1)
         return best if self.candidate_ids is None else self.candidate_ids[best]
+
+
+def _full_attention_rope(rope_parameters: dict | None) -> dict | None:
+    """The target's rotary settings for the head's one (full-attention, 1-D position) layer: models that mix layer
+    types (Gemma-3) key them by layer type; multimodal rotary sections (Qwen2-VL's ``mrope_section``) are dropped, the
+    head's positions being the text positions."""
+    if rope_parameters and "full_attention" in rope_parameters:
+        rope_parameters = rope_parameters["full_attention"]
+    if rope_parameters is None:
+        return None
+    return {key: value for key, value in rope_parameters.items() if key != "mrope_section"}
 
 
 class DraftHead(PreTrainedModel):
@@ -193,12 +210,13 @@ class DraftHead(PreTrainedModel):
             hidden_act=getattr(text_config, "hidden_act", "silu"),
             rms_norm_eps=getattr(text_config, "rms_norm_eps", 1e-6),
             max_position_embeddings=getattr(text_config, "max_position_embeddings", 4096),
-            rope_parameters=getattr(text_config, "rope_parameters", None),
+            rope_parameters=_full_attention_rope(getattr(text_config, "rope_parameters", None)),
             vocab_size=lm_head.weight.shape[0],
             action_vocab_size=action_tokenizer.vocab_size,
             n_action_bins=action_tokenizer.n_bins,
             action_dim=action_dim,
             eos_token_id=getattr(text_config, "eos_token_id", None),
+            final_logit_softcapping=getattr(text_config, "final_logit_softcapping", None),
             target_model_type=target.config.model_type,
             target_name_or_path=getattr(target.config, "_name_or_path", None) or None,
         )
@@ -258,11 +276,11 @@ class DraftHead(PreTrainedModel):
     def scorer(self, lm_head: nn.Linear, eos_token_ids: list[int] | None = None) -> DraftScorer:
         """A [`DraftScorer`] over the tokens this head drafts (all, or actions + EOS)."""
         if not self.config.draft_action_tokens_only:
-            return DraftScorer(lm_head, None)
+            return DraftScorer(lm_head, None, self.config.final_logit_softcapping)
         action_ids = list(self.config.action_tokenizer().action_token_ids)
         extra = [i for i in (eos_token_ids or []) if i not in action_ids]
         candidate_ids = torch.tensor(extra + action_ids, device=lm_head.weight.device)
-        return DraftScorer(lm_head, candidate_ids)
+        return DraftScorer(lm_head, candidate_ids, self.config.final_logit_softcapping)
 
     # ------------------------------------------------------------------ forward
     def forward(

@@ -152,6 +152,14 @@ class DraftTree:
             [self.sources[i] for i in nodes],
         )
 
+    def first_path(self) -> DraftTree:
+        """The chain of the tree's first root-to-leaf path (the tree itself when it is a chain)."""
+        if self.is_chain:
+            return self
+        keep = torch.zeros(self.num_nodes, dtype=torch.bool, device=self.token_ids.device)
+        keep[self.paths()[0]] = True
+        return self.select(keep)
+
     def truncate_depth(self, max_depth: int) -> DraftTree:
         """Drops every node at depth >= ``max_depth`` (so that no path drafts past a length limit)."""
         if self.num_nodes == 0 or self.max_depth <= max_depth:

@@ -46,6 +46,8 @@ def verify_trees(
     trees: TreeBatch,
     key_valid: torch.Tensor | None,
     output_hidden: bool,
+    sliding_window: int | None = None,
+    position_offsets: torch.Tensor | None = None,
 ) -> TargetOutput:
     """One target forward over ``[pending tokens ; each row's tree nodes]`` on top of the target cache.
 
@@ -56,14 +58,31 @@ def verify_trees(
             ``last + 1 + d``), padded to N nodes.
         key_valid: ``[B, C + P]`` bool, False at every cached or pending key a row must not attend to (its prompt
             padding, entries of paths another row accepted); None when every key is valid.
+        sliding_window: the target's smallest sliding window (None: full attention only). A mask the model builds
+            hides keys more than a window away *in cache columns*, which in a batch's rectangle (or with drafts
+            appended) are not the row's positions; past it the mask is built here (full attention: the cache's
+            sliding layers are held open, see ``cache.open_sliding_windows``).
+        position_offsets: ``[K, B, 1]`` for models with K-component position ids (Qwen2-VL: text, temporal,
+            height, width): each component of a generated token is its text position + the offset; the prefill's
+            pending tokens keep the model's prepared ``[K, B, P]`` positions (images have their own).
     Returns:
         [`TargetOutput`] with logits ``[B, 1 + N, V]`` and hidden states ``[B, P + N, H]``.
     """
     num_pending, num_nodes = pending_ids.shape[1], trees.num_nodes
     inputs = dict(model_inputs)
     inputs["input_ids"] = torch.cat([pending_ids, trees.token_ids], dim=1)
-    inputs["position_ids"] = torch.cat([pending_positions, pending_positions[:, -1:] + 1 + trees.depths], dim=1)
-    if trees.is_causal:
+    node_positions = pending_positions[:, -1:] + 1 + trees.depths  # [B, N]
+    if position_offsets is None:
+        inputs["position_ids"] = torch.cat([pending_positions, node_positions], dim=1)
+    else:
+        prepared = model_inputs.get("position_ids")
+        pending = (
+            prepared if prepared is not None and prepared.ndim == 3 else pending_positions[None] + position_offsets
+        )
+        inputs["position_ids"] = torch.cat([pending, node_positions[None] + position_offsets], dim=-1)  # [K, B, P + N]
+    past_length = model_inputs["past_key_values"].get_seq_length()
+    within_window = sliding_window is None or past_length + num_pending + num_nodes <= sliding_window
+    if trees.is_causal and within_window:
         # Chains (or no drafts): the causal mask is every tree mask, so the model builds its own mask (the kernels a
         # plain decoding step uses; in bf16 an explicit 4D mask selects other kernels, whose rounding can flip a
         # near-tied argmax away from plain greedy decoding's). Invalid keys go in a 2D mask, as generate passes.
@@ -73,7 +92,6 @@ def verify_trees(
             new_keys = key_valid.new_ones(key_valid.shape[0], num_nodes)
             inputs["attention_mask"] = torch.cat([key_valid, new_keys], dim=1).long()
     else:
-        past_length = model_inputs["past_key_values"].get_seq_length()
         allowed = tree_verification_allowed(past_length, num_pending, trees.ancestor_or_self, key_valid)
         inputs["attention_mask"] = to_additive_mask(allowed, model.dtype)
     inputs["logits_to_keep"] = num_nodes + 1
