@@ -41,7 +41,8 @@ IMAGE = 5
 PAD = 0
 NEW_TOKENS = 7
 TEXT = dict(vocab_size=VOCAB, hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4,
-            num_key_value_heads=2, max_position_embeddings=256, bos_token_id=1, eos_token_id=2, pad_token_id=PAD)  # fmt: skip
+            num_key_value_heads=2, max_position_embeddings=256, bos_token_id=1, eos_token_id=2,
+            pad_token_id=PAD)  # fmt: skip
 VISION = dict(hidden_size=32, intermediate_size=64, num_hidden_layers=1, num_attention_heads=2, image_size=16,
               patch_size=8)  # fmt: skip
 #: a window longer than prompt + new tokens (so the generation fits) but shorter than prompt + a draft tree
@@ -94,8 +95,9 @@ def _text(name: str) -> Backbone:
 def _llava() -> Backbone:
     torch.manual_seed(0)
     vision = CLIPVisionConfig(**VISION, projection_dim=32)
-    config = LlavaConfig(vision_config=vision, text_config=LlamaConfig(**TEXT), image_token_id=IMAGE, image_seq_length=4,
-                         vision_feature_select_strategy="default", vision_feature_layer=-1)  # fmt: skip
+    config = LlavaConfig(vision_config=vision, text_config=LlamaConfig(**TEXT), image_token_id=IMAGE,
+                         image_seq_length=4, vision_feature_select_strategy="default",
+                         vision_feature_layer=-1)  # fmt: skip
     images = lambda ids, g: {"pixel_values": torch.randn(ids.shape[0], 3, 16, 16, generator=g)}  # noqa: E731
     return Backbone(LlavaForConditionalGeneration(config), [IMAGE] * 4, images)
 
@@ -110,7 +112,7 @@ def _paligemma(text_config) -> Backbone:
         return {"pixel_values": torch.randn(input_ids.shape[0], 3, 16, 16, generator=generator),
                 "token_type_ids": torch.zeros_like(input_ids)}  # fmt: skip
 
-    # eager attention: sdpa drops the prefix's two-way attention (transformers 5.23), eager keeps it, so the test sees it
+    # eager attention: sdpa drops the prefix's two-way attention (transformers 5.23), eager keeps it: the test sees it
     model = PaliGemmaForConditionalGeneration._from_config(config, attn_implementation="eager")
     return Backbone(model, [IMAGE] * 4, images, image_after_bos=False)
 

@@ -29,3 +29,26 @@ def test_policy_cost_script_refuses_a_bad_decoder_shape():
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert result.returncode == 2 and "a decoder is LAYERSxWIDTH, e.g. 12x192, got '12by192'" in result.stderr
+
+
+def test_toy_head_per_backbone_script_trains_a_head_on_a_non_llama_family(tmp_path):
+    output = tmp_path / "heads"
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "examples/backbones/toy_head_per_backbone.py"), "--tiny", "--families", "gemma2",
+         "--output-dir", str(output), "--threads", "1"],
+        capture_output=True, text=True, timeout=600, check=True,
+    )  # fmt: skip
+    assert "| family | target accuracy |" in result.stdout
+    (row,) = json.loads((output / "results.json").read_text())["rows"]
+    assert row["family"] == "gemma2" and row["equal_to_greedy"] is True  # r=0 decodes as greedy on Gemma-2
+    assert (output / "gemma2" / "config.json").exists()  # the trained head was saved
+
+
+def test_toy_head_per_backbone_script_refuses_an_unknown_family(tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "examples/backbones/toy_head_per_backbone.py"), "--families", "lama",
+         "--output-dir", str(tmp_path / "x")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 2 and "unknown model_type(s) ['lama']" in result.stderr
+    assert not (tmp_path / "x").exists()  # refused before any folder was written

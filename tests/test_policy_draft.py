@@ -135,12 +135,18 @@ def test_draft_data_config_validates():
     assert DraftDataConfig(tasks="MT10").tasks[0].endswith("-v3")
 
 
-def test_the_shipped_draft_head_loads_and_fits_the_shipped_policy():
+@pytest.mark.parametrize("policy_name", ["mt10_vla", "mt10_vla2"])
+def test_the_shipped_draft_heads_load_and_fit_their_shipped_policies(policy_name):
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1] / "policies"
-    head = DraftHead.from_pretrained(root / "mt10_vla_draft")
-    assert isinstance(AutoModel.from_pretrained(root / "mt10_vla_draft"), DraftHead)
-    VLAPolicy.from_pretrained(root / "mt10_vla").check_draft_head(head)  # distilled from exactly these weights
-    card = (root / "mt10_vla_draft" / "README.md").read_text()
+    head = DraftHead.from_pretrained(root / f"{policy_name}_draft")
+    assert isinstance(AutoModel.from_pretrained(root / f"{policy_name}_draft"), DraftHead)
+    policy = VLAPolicy.from_pretrained(root / policy_name)
+    policy.check_draft_head(head)  # distilled from exactly these weights
+    assert head.config.num_draft_tokens == policy.config.action_tokens - 1  # a chain completes one call's tokens
+    card = (root / f"{policy_name}_draft" / "README.md").read_text()
     assert card.startswith("---\nlibrary_name: hf_specvla") and "## Measured acceptance" in card
+    imports = [line for line in card.splitlines() if line.startswith("from hf_specvla")]
+    assert imports
+    exec("\n".join(imports), {})  # the card's example imports what it names

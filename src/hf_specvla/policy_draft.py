@@ -258,7 +258,8 @@ the vision-language-action policy `{config.target_name_or_path}` (weights finger
 a head is refused by a policy with other weights). It borrows the policy's embedding and lm_head at run time.
 
 ```python
-from hf_specvla import DraftHead, VLAPolicy
+from hf_specvla import DraftHead
+from hf_specvla.policy import VLAPolicy
 
 policy = VLAPolicy.from_pretrained("{config.target_name_or_path}")
 draft_head = DraftHead.from_pretrained("{output_dir}")

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from transformers import CLIPVisionConfig, LlamaConfig, LlavaConfig, LlavaForConditionalGeneration
+from transformers import AutoConfig, CLIPVisionConfig, LlavaConfig, LlavaForConditionalGeneration
 
 from .action_tokenizer import ActionTokenizer
 from .progress import progress_bar
@@ -99,8 +99,12 @@ class ToyTargetSize:
     intermediate_size: int = 256
 
 
-def build_toy_target(size: ToyTargetSize | None = None, seed: int = 0):
+def build_toy_target(size: ToyTargetSize | None = None, seed: int = 0, text_model_type: str = "llama"):
     """An untrained toy Llava target and its tokenizer.
+
+    Args:
+        text_model_type: the language model's family (a transformers ``model_type``: ``"llama"``, ``"qwen2"``,
+            ``"gemma2"``...); Llava takes any of them behind its vision tower.
 
     Returns:
         (model, tokenizer, action_tokenizer)
@@ -112,13 +116,15 @@ def build_toy_target(size: ToyTargetSize | None = None, seed: int = 0):
         hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4,
         image_size=IMAGE_SIZE, patch_size=PATCH_SIZE, projection_dim=64,
     )  # fmt: skip
-    text = LlamaConfig(
+    text = AutoConfig.for_model(
+        text_model_type,
         vocab_size=vocab_size,
         hidden_size=size.hidden_size,
         intermediate_size=size.intermediate_size,
         num_hidden_layers=size.num_hidden_layers,
         num_attention_heads=size.num_attention_heads,
         num_key_value_heads=size.num_key_value_heads,
+        head_dim=size.hidden_size // size.num_attention_heads,
         max_position_embeddings=256,
         bos_token_id=tokenizer.bos_token_id,
         eos_token_id=tokenizer.eos_token_id,
