@@ -45,6 +45,15 @@ def test_bench_episodes_on_the_toy(toy_pipeline, capsys):
         assert row in out
     # prior r=0 is lossless: its actions never move from greedy's
     assert "| prior r=0 |" in out and out.split("| prior r=0 |")[1].split("\n")[0].endswith("0.00 / 0 |")
+    # where the time goes: the parts add up to the call; greedy drafts nothing and decodes after its prefill
+    split = out.split("Where the time goes")[1]
+    assert "| method | vision | prefill | later forwards | drafting | rest | total |" in split
+    for line in [row for row in split.splitlines() if row.startswith("| ") and "method" not in row]:
+        *parts, total = [float(cell) for cell in line.strip("|").split("|")[1:]]
+        assert sum(parts) == pytest.approx(total, abs=0.2), line  # rounding of 6 cells to 0.1 ms
+        assert min(parts[:4]) >= 0, line
+    greedy_parts = [float(cell) for cell in split.split("| greedy |")[1].split("\n")[0].strip(" |").split("|")]
+    assert greedy_parts[3] == 0 and greedy_parts[2] > 0 and greedy_parts[0] > 0
 
 
 @pytest.mark.parametrize(

@@ -140,10 +140,66 @@ class EpisodeMethodResult:
     target_seconds: float = 0.0
     draft_seconds: float = 0.0
     total_seconds: float = 0.0
+    split_seconds: dict[str, float] = field(default_factory=dict)  # where the time goes, summed over calls
 
     @property
     def median_latency(self) -> float:
         return statistics.median(self.latencies)
+
+
+#: where a policy call's time goes (see [`ForwardClock`]): the image encoder, the target's first forward (the
+#: prefill, drafts verified inside it included), its later forwards (verifications, or greedy's decoding steps),
+#: drafting (the drafter's own work: head forwards, tree building), and the rest (preprocessing, generate's
+#: preparation, the loop's own steps: acceptance, cache surgery, logits processors, stopping criteria)
+TIME_SPLIT = ("vision", "prefill", "later forwards", "drafting", "rest")
+
+
+class ForwardClock:
+    """Wall time spent inside a VLM's image encoder and language model during one call, from forward hooks.
+
+    Args:
+        model: a Llava-style model (``model.model.vision_tower`` / ``.language_model``, or the same on ``model``).
+    """
+
+    def __init__(self, model):
+        inner = getattr(model, "model", model)
+        self.vision_tower = getattr(inner, "vision_tower", None)
+        self.language_model = getattr(inner, "language_model", None)
+        if self.language_model is None:
+            raise ValueError(f"{type(model).__name__} has no language_model to time")
+        self.reset()
+        self._starts: dict[str, float] = {}
+        for name, module in (("vision", self.vision_tower), ("language", self.language_model)):
+            if module is not None:
+                module.register_forward_pre_hook(self._enter(name))
+                module.register_forward_hook(self._leave(name))
+
+    def reset(self) -> None:
+        self.vision_seconds, self.language_seconds = 0.0, []  # one entry per language-model forward
+
+    def _enter(self, name: str):
+        def hook(module, args):
+            self._starts[name] = time.perf_counter()
+
+        return hook
+
+    def _leave(self, name: str):
+        def hook(module, args, output):
+            elapsed = time.perf_counter() - self._starts.pop(name)
+            if name == "vision":
+                self.vision_seconds += elapsed
+            else:
+                self.language_seconds.append(elapsed)
+
+        return hook
+
+    def split(self, call_seconds: float, draft_seconds: float) -> dict[str, float]:
+        """One call's seconds per [`TIME_SPLIT`] part (``rest`` = the call's wall time minus the others)."""
+        prefill = self.language_seconds[0] if self.language_seconds else 0.0
+        later = sum(self.language_seconds[1:])
+        parts = {"vision": self.vision_seconds, "prefill": prefill, "later forwards": later, "drafting": draft_seconds}
+        parts["rest"] = call_seconds - sum(parts.values())
+        return parts
 
 
 def run_episode_benchmark(
@@ -155,6 +211,7 @@ def run_episode_benchmark(
     warmup: int = 3,
     seed: int = 0,
     progress: bool = True,
+    clock: ForwardClock | None = None,
 ) -> list[EpisodeMethodResult]:
     """Replays observation sequences with every method, interleaved; the first method is the baseline.
 
@@ -163,6 +220,7 @@ def run_episode_benchmark(
             ``previous_action_ids`` is this method's own episode memory (its earlier actions in this episode,
             oldest first), so each method drafts from the actions it produced itself.
         episodes: lists of observations (whatever ``act`` reads).
+        clock: a [`ForwardClock`] on the target: each result's ``split_seconds`` then says where the time went.
     At every step the methods run in a fresh random order on the same observation, so machine-load drift hits
     them alike; bin distances compare each action token with the baseline's at the same step.
     """
@@ -184,6 +242,8 @@ def run_episode_benchmark(
                     rng.shuffle(order)
                     actions = {}
                     for method in order:
+                        if clock is not None:
+                            clock.reset()
                         start = time.perf_counter()
                         ids, output = act(observation, histories[method.name], method.action_prior,
                                           **method.generate_kwargs)  # fmt: skip
@@ -198,6 +258,9 @@ def run_episode_benchmark(
                             result.target_seconds += spec.target_seconds
                             result.draft_seconds += spec.draft_seconds
                             result.total_seconds += spec.total_seconds
+                        if clock is not None:
+                            for part, seconds in clock.split(elapsed, spec.draft_seconds if spec else 0.0).items():
+                                result.split_seconds[part] = result.split_seconds.get(part, 0.0) + seconds
                         histories[method.name] = [*histories[method.name], ids][-ActionPriorDrafter.history_length :]
                         actions[method.name] = ids
                     reference = actions[methods[0].name]
@@ -229,6 +292,14 @@ def format_episode_report(results: list[EpisodeMethodResult]) -> str:
             f"{one_forward:.0%} | {tokens:.2f} | {statistics.mean(r.draft_forwards):.2f} | {split} | "
             f"{statistics.mean(r.bin_distances):.2f} / {max(r.bin_distances)} |"
         )
+    if all(r.split_seconds for r in results):
+        lines += ["", "Where the time goes (mean ms per call; rest = preprocessing, generate's preparation and the "
+                  "loop's own steps):", "", "| method | " + " | ".join(TIME_SPLIT) + " | total |",
+                  "|---|" + "---:|" * (len(TIME_SPLIT) + 1)]  # fmt: skip
+        for r in results:
+            calls = len(r.latencies)
+            cells = [f"{1000 * r.split_seconds[part] / calls:.1f}" for part in TIME_SPLIT]
+            lines.append(f"| {r.name} | " + " | ".join(cells) + f" | {1000 * sum(r.latencies) / calls:.1f} |")
     return "\n".join(lines)
 
 

@@ -235,8 +235,12 @@ def _bench_episodes(args, parser) -> int:
         draft_head = DraftHead.from_pretrained(args.draft_head).eval() if args.draft_head else pipeline.draft_head
         act, action_dim, episodes = toy_actor(pipeline), ACTION_DIM, toy_episodes(args.episodes)
         head_name = args.draft_head or f"{pipeline.output_dir}/draft_head"
-    methods = episode_methods(draft_head, args.bin_tolerances, tree, args.chain_length)
-    results = run_episode_benchmark(act, episodes, methods, action_dim, repeats=args.repeats, seed=args.seed)
+    methods = episode_methods(draft_head, args.bin_tolerances, tree, args.chain_length or action_dim - 1)
+    from .benchmark import ForwardClock
+
+    target = policy.model if args.policy is not None else pipeline.target
+    results = run_episode_benchmark(act, episodes, methods, action_dim, repeats=args.repeats, seed=args.seed,
+                                    clock=ForwardClock(target))  # fmt: skip
     steps = sum(len(e) for e in episodes)
     print(
         f"\n{len(episodes)} episodes, {steps} steps x {args.repeats} repeats, {action_dim} action tokens per action, "
@@ -511,7 +515,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     episodes.add_argument("--draft-head", default=None,
                           help="a DraftHead folder (default: an untrained head, seeded; toy: its own)")  # fmt: skip
-    episodes.add_argument("--chain-length", type=POSITIVE, default=3, help="draft-head chain length k")
+    episodes.add_argument("--chain-length", type=POSITIVE, default=None,
+                          help="draft-head chain length k (default: tokens per call - 1)")  # fmt: skip
     episodes.add_argument(
         "--tree-top-k", type=POSITIVE, default=None, help="EAGLE-2 tree top_k (default: DraftTreeConfig's)"
     )
