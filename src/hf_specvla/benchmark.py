@@ -347,9 +347,7 @@ def policy_actor(policy):
 def toy_actor(pipeline):
     """``act`` for [`run_episode_benchmark`] over the toy target; observations are [`DotScene`]s."""
     from .action_tokenizer import ActionLayout
-    from .speculative.drafters import with_action_prior
-    from .speculative.generation import SPECULATION_KWARGS
-    from .speculative.loop import as_drafter
+    from .speculative import SPECULATION_KWARGS, as_drafter, with_action_prior
     from .toy import ACTION_DIM, toy_inputs
 
     layout = ActionLayout(pipeline.action_tokenizer, ACTION_DIM)

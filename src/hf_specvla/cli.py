@@ -152,7 +152,7 @@ def _check_training_folder(output_dir: Path, resume: bool, overwrite: bool, pars
 
 def _check_draft_head_flag(draft_head: str | None, parser) -> None:
     """``--draft-head`` must be a saved draft head (or a hub id): a usage error before anything is loaded."""
-    from .speculative.modeling_draft_head import check_draft_head_folder
+    from .speculative import check_draft_head_folder
 
     if draft_head is None:
         return

@@ -36,10 +36,16 @@ from transformers import (
 from .action_tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
 from .envs.metaworld import CAMERAS, EnvConfig
 from .run_folder import fingerprint
-from .speculative import ActionPriorDrafter, Drafter, DraftHead, enable_speculation, named_weight_errors
-from .speculative.drafters import with_action_priors
-from .speculative.generation import SPECULATION_KWARGS
-from .speculative.loop import as_drafter
+from .speculative import (
+    SPECULATION_KWARGS,
+    ActionPriorDrafter,
+    Drafter,
+    DraftHead,
+    as_drafter,
+    enable_speculation,
+    named_weight_errors,
+    with_action_priors,
+)
 from .tokenization import build_vla_tokenizer
 
 POLICY_CONFIG_NAME = "policy_config.json"

@@ -33,10 +33,15 @@ from transformers import PreTrainedModel
 from .checkpointing import latest_checkpoint, prepare_output_dir, resume_step, save_checkpoint, training_record
 from .progress import progress_bar
 from .run_folder import fingerprint, fingerprint_arrays
-from .speculative import SpeculationStats, speculative_generate
-from .speculative.drafters.draft_head import embed_tokens
-from .speculative.masks import causal_mask
-from .speculative.modeling_draft_head import DraftHead, TargetHandles, softcap_logits
+from .speculative import (
+    DraftHead,
+    SpeculationStats,
+    TargetHandles,
+    causal_mask,
+    embed_tokens,
+    softcap_logits,
+    speculative_generate,
+)
 
 logger = logging.getLogger(__name__)
 

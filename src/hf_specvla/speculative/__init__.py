@@ -24,16 +24,28 @@ from .drafter import (
     DraftSession,
     PerRowDrafter,
 )
-from .drafters import ActionPriorDrafter, DraftHeadDrafter, DraftTreeConfig
-from .generation import SpeculativeGenerationMixin, disable_speculation, enable_speculation
-from .loop import speculative_generate
-from .modeling_draft_head import DraftHead
+from .drafters import ActionPriorDrafter, DraftHeadDrafter, DraftTreeConfig, with_action_prior, with_action_priors
+from .drafters.draft_head import embed_tokens
+from .generation import SPECULATION_KWARGS, SpeculativeGenerationMixin, disable_speculation, enable_speculation
+from .loop import as_drafter, speculative_generate
+from .masks import causal_mask
+from .modeling_draft_head import DraftHead, TargetHandles, check_draft_head_folder, is_local_path, softcap_logits
 from .outputs import SpeculativeDecoderOnlyOutput
 from .stats import SpeculationStats
 from .tree import DraftTree
 from .weights import named_weight_errors
 
 __all__ = [
+    "SPECULATION_KWARGS",
+    "TargetHandles",
+    "as_drafter",
+    "causal_mask",
+    "check_draft_head_folder",
+    "embed_tokens",
+    "is_local_path",
+    "softcap_logits",
+    "with_action_prior",
+    "with_action_priors",
     "AcceptanceRule",
     "AcceptedPath",
     "ActionPriorDrafter",
