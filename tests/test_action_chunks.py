@@ -170,3 +170,19 @@ def test_a_grown_policy_computes_its_sources_function():
     wider = VLAPolicy.build(INSTRUCTIONS, ACTIONS, STATES, VLAPolicyConfig(**{**SMALL, "text_hidden_size": 128}))
     with pytest.raises(ValueError, match="text_hidden_size=64.*128"):
         grow_from(wider, source)
+
+
+def test_the_episode_benchmark_replays_a_chunked_policy_with_the_prior(chunked):
+    """bench-episodes remembers whole calls; the prior reads them back as actions: r=0 never moves from greedy, and
+    after the first call the prior drafts (fewer forwards than greedy's 8 per call on a repeated observation)."""
+    from hf_specvla.benchmark import EpisodeMethod, ForwardClock, policy_actor, run_episode_benchmark
+
+    image, state = observation()
+    episode = [{"image": image, "instruction": "reach the goal", "state": state}] * 4
+    methods = [EpisodeMethod("greedy"), EpisodeMethod("prior r=0", dict(bin_tolerance=0), action_prior=True)]
+    results = run_episode_benchmark(policy_actor(chunked), [episode], methods, chunked.config.action_tokens,
+                                    warmup=1, progress=False, clock=ForwardClock(chunked.model))  # fmt: skip
+    greedy, prior = results
+    assert prior.bin_distances and max(prior.bin_distances) == 0
+    assert greedy.target_forwards == [8] * 4 and min(prior.target_forwards[1:]) < 8
+    assert set(prior.split_seconds) == {"vision", "prefill", "later forwards", "drafting", "rest"}

@@ -333,8 +333,12 @@ def policy_actor(policy):
     """``act`` for [`run_episode_benchmark`] over a [`VLAPolicy`]; observations are dicts with ``image``,
     ``instruction`` and ``state``."""
 
+    dim = policy.config.action_dim
+
     def act(observation, previous_action_ids, action_prior, **generate_kwargs):
-        policy.previous_action_ids = list(previous_action_ids)
+        # the benchmark remembers each call's tokens (a chunk: H actions), the policy one list per action
+        actions = [call[i : i + dim] for call in previous_action_ids for i in range(0, len(call), dim)]
+        policy.previous_action_ids = actions[-policy.HISTORY_LENGTH :]
         _, output = policy.predict_action(
             observation["image"], observation["instruction"], observation["state"], return_output=True,
             action_prior=action_prior, **generate_kwargs,
