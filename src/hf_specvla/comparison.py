@@ -188,7 +188,9 @@ class CompareConfig:
         return [DecodingMethod.parse(name) for name in self.methods]
 
     def pairs(self) -> list[tuple[str, int]]:
-        return [(task, self.seed_start + i) for task in self.tasks for i in range(self.episodes_per_task)]
+        """Every (task, seed), seed-major (each task's first seed, then each task's second, ...): a run stopped
+        part-way has covered every task alike, and workers that take every n-th pair share the load."""
+        return [(task, self.seed_start + i) for i in range(self.episodes_per_task) for task in self.tasks]
 
 
 # ----------------------------------------------------------------------------- episodes
@@ -260,20 +262,26 @@ def _run_shard(
     ``log_path``."""
     env_config = EnvConfig(policy.config.image_size, policy.config.camera, config.max_episode_steps)
     methods = config.decoding_methods()
-    by_task: dict[str, list[int]] = {}
-    for task, seed in pairs:
-        by_task.setdefault(task, []).append(seed)
-    for task, seeds in by_task.items():
-        with MetaWorldEnv(task, env_config) as env:
-            for seed in seeds:
-                todo = [m for m in methods if (task, seed, m.name) not in done]
-                random.Random(f"{config.order_seed}:{task}:{seed}").shuffle(todo)
-                for method in todo:
-                    record = run_method_episode(policy, env, seed, method, draft_head)
-                    with log_path.open("a") as log:
-                        log.write(json.dumps(record) + "\n")
-                    if bar is not None:
-                        bar.update(1)
+    env = None
+    try:
+        for task, seed in pairs:  # in order (seed-major): an env is made when the task changes
+            todo = [m for m in methods if (task, seed, m.name) not in done]
+            if not todo:
+                continue
+            if env is None or env.task != task:
+                if env is not None:
+                    env.close()
+                env = MetaWorldEnv(task, env_config)
+            random.Random(f"{config.order_seed}:{task}:{seed}").shuffle(todo)
+            for method in todo:
+                record = run_method_episode(policy, env, seed, method, draft_head)
+                with log_path.open("a") as log:
+                    log.write(json.dumps(record) + "\n")
+                if bar is not None:
+                    bar.update(1)
+    finally:
+        if env is not None:
+            env.close()
 
 
 def _exit_with_parent(poll_seconds: float = 1.0) -> None:
