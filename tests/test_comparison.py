@@ -182,3 +182,12 @@ def test_an_unused_draft_head_is_ignored_with_a_warning(policy_dir, tmp_path, ca
     assert main(args) == 0
     assert "is not used: none of the methods ['greedy', 'prior'] drafts with a head" in capsys.readouterr().err
     assert json.loads((out / "run.json").read_text())["settings"]["draft_head"] is None
+
+
+def test_seeds_run_seed_major_so_a_partial_run_covers_every_task():
+    from hf_specvla.comparison import CompareConfig
+
+    config = CompareConfig(tasks=["reach", "push", "door-open"], episodes_per_task=2, methods=["greedy"], workers=2)
+    pairs = config.pairs()
+    assert pairs[:3] == [("reach-v3", 100000), ("push-v3", 100000), ("door-open-v3", 100000)]
+    assert sorted(pairs) == sorted((t, 100000 + i) for t in ("reach-v3", "push-v3", "door-open-v3") for i in range(2))
