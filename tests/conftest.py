@@ -90,3 +90,15 @@ def llava_prompt(generator: torch.Generator, text_len: int = 4) -> dict[str, tor
     text = torch.randint(6, 64, (1, text_len), generator=generator)
     input_ids = torch.cat([torch.tensor([[1] + [IMAGE_TOKEN] * 4]), text], dim=1)
     return {"input_ids": input_ids, "pixel_values": torch.randn(1, 3, 16, 16, generator=generator)}
+
+
+#: what makes a test slow: a fixture that trains a model, or a module that kills and reruns whole commands
+SLOW_FIXTURES = {"toy_pipeline"}
+SLOW_MODULES = {"test_kill_resume.py"}
+
+
+def pytest_collection_modifyitems(config, items):
+    """Marks the slow tests ``slow`` (``pytest -m "not slow"`` for a quick pass; CI runs everything)."""
+    for item in items:
+        if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())) or item.path.name in SLOW_MODULES:
+            item.add_marker(pytest.mark.slow)

@@ -55,7 +55,7 @@ import torch
 
 from .comparison import DRAFTER_CHOICES, CompareConfig
 from .envs.metaworld import CAMERAS, EnvConfig
-from .evaluation import EVAL_SEED_START
+from .envs.seeds import BENCH_SEED_START, EVAL_SEED_START
 from .policy import VLAPolicyConfig
 from .policy_draft import POLICY_DRAFT_DEFAULTS, DraftDataConfig
 from .training import DraftTrainingConfig
@@ -509,7 +509,9 @@ def main(argv: list[str] | None = None) -> int:
     episodes.add_argument(
         "--steps", type=POSITIVE, default=40, help="with --policy: steps recorded per episode (at most)"
     )
-    episodes.add_argument("--seed-start", type=NON_NEGATIVE, default=300_000, help="with --policy: first rollout seed")
+    episodes.add_argument(
+        "--seed-start", type=NON_NEGATIVE, default=BENCH_SEED_START, help="with --policy: first rollout seed"
+    )
     episodes.add_argument(
         "--bin-tolerances", type=NON_NEGATIVE, nargs="+", default=[0, 1, 2, 4, 8], help="r for the prior"
     )

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from .envs.metaworld import EnvConfig, MetaWorldEnv, resolve_tasks
-from .evaluation import EVAL_SEED_START
+from .envs.seeds import EVAL_SEED_START
 from .policy import VLAPolicy
 from .progress import progress_bar
 from .run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic

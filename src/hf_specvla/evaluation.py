@@ -20,14 +20,13 @@ from pathlib import Path
 import numpy as np
 
 from .envs.metaworld import EnvConfig, MetaWorldEnv, resolve_tasks
+from .envs.seeds import EVAL_SEED_START
 from .policy import VLAPolicy
 from .progress import progress_bar
 from .run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
 from .speculative import DraftHead, DraftHeadDrafter, SpeculationStats
 
 logger = logging.getLogger(__name__)
-
-EVAL_SEED_START = 100_000
 
 
 @dataclass

@@ -25,6 +25,7 @@ import torch
 from .checkpointing import check_output_dir
 from .demonstrations import dataset_fingerprint, dataset_info, load_demonstrations
 from .envs.metaworld import TASK_INSTRUCTIONS, EnvConfig, resolve_tasks
+from .envs.seeds import DRAFT_SEED_START
 from .evaluation import record_observations
 from .policy import VLAPolicy
 from .run_folder import read_jsonl
@@ -40,7 +41,6 @@ from .training import (
 
 logger = logging.getLogger(__name__)
 
-DRAFT_SEED_START = 400_000
 MODEL_CARD = "README.md"
 
 #: ``train-draft``'s training settings for a policy-sized target (a few-million-parameter policy on a CPU): a
