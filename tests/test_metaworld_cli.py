@@ -55,6 +55,14 @@ def test_collect_train_eval(tmp_path, capsys):
     greedy_lengths = [json.loads(x)["length"] for x in (results / "episodes.jsonl").read_text().splitlines()]
     prior_log = (tmp_path / "prior" / "episodes.jsonl").read_text().splitlines()
     assert [json.loads(x)["length"] for x in prior_log] == greedy_lengths
+    # the same method named as compare names it
+    assert main([*eval_args[:9], "--output-dir", str(tmp_path / "prior_method"), "--method", "prior"]) == 0
+    method_log = (tmp_path / "prior_method" / "episodes.jsonl").read_text().splitlines()
+    assert [json.loads(x)["length"] for x in method_log] == greedy_lengths
+    with pytest.raises(SystemExit) as exit_info:
+        main([*eval_args[:9], "--output-dir", str(tmp_path / "wide_method"), "--method", "prior:r=999"])
+    assert exit_info.value.code == 2 and "bins are at most 255 apart" in capsys.readouterr().err
+    assert not (tmp_path / "wide_method").exists()
     # r beyond the 256 bins: a usage error before anything is written
     with pytest.raises(SystemExit) as exit_info:
         main([*prior_args[:-3], "--output-dir", str(tmp_path / "wide"), "--action-prior", "--bin-tolerance", "999"])
@@ -104,6 +112,9 @@ def test_collect_train_eval(tmp_path, capsys):
         (["--draft-tree"], "--draft-tree need --draft-head"),
         (["--draft-head", "d", "--draft-tree", "--num-draft-tokens", "2"], "give one of them"),
         (["--draft-head", "./runs/draft"], "--draft-head: draft head folder './runs/draft' does not exist"),
+        (["--method", "priorx"], "--method: unknown decoding method 'priorx'"),
+        (["--method", "prior", "--action-prior"], "--method prior already says how to decode; drop --action-prior"),
+        (["--method", "tree:r=4"], "--method tree:r=4 drafts with the draft head: give --draft-head"),
     ],
 )
 def test_eval_speculation_flag_misuse_is_a_usage_error(tmp_path, capsys, flags, message):

@@ -24,6 +24,8 @@ Examples:
         --output-dir runs/eval_reach_push
     hf-specvla eval --policy policies/mt10_vla --draft-head runs/draft --bin-tolerance 2 --output-dir runs/eval_spec
     hf-specvla eval --policy policies/mt10_vla --action-prior --bin-tolerance 2 --output-dir runs/eval_prior
+    hf-specvla eval --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft --method prior+tree:r=4 \
+        --tasks reach --episodes 2 --output-dir runs/eval_prior_tree
     hf-specvla eval --policy policies/mt10_vla --tasks MT10 --episodes 2 --num-envs 10 --output-dir runs/eval_batched
 
     # A draft head for a policy: self-distillation on its own rollouts (+ demonstrations), validated by the engine
@@ -398,6 +400,26 @@ def _compare(args, parser) -> int:
     return 0
 
 
+def _eval_method(args, parser):
+    """``eval --method``: the [`DecodingMethod`] it names (checked before anything loads), or None."""
+    if args.method is None:
+        return None
+    from .comparison import DecodingMethod
+
+    flags = [flag for flag, given in (("--action-prior", args.action_prior), ("--draft-tree", args.draft_tree),
+             ("--num-draft-tokens", args.num_draft_tokens is not None),
+             ("--bin-tolerance", args.bin_tolerance is not None)) if given]  # fmt: skip
+    if flags:
+        parser.error(f"--method {args.method} already says how to decode; drop {' / '.join(flags)}")
+    try:
+        method = DecodingMethod.parse(args.method)
+    except ValueError as error:
+        parser.error(f"--method: {error}")
+    if method.uses_draft_head and not args.draft_head:
+        parser.error(f"--method {method.name} drafts with the draft head: give --draft-head")
+    return method
+
+
 def _eval(args, parser) -> int:
     import json
 
@@ -405,6 +427,7 @@ def _eval(args, parser) -> int:
     from .policy import VLAPolicy
     from .speculative import DraftHeadDrafter, DraftTreeConfig
 
+    method = _eval_method(args, parser)
     if (args.bin_tolerance is not None) and not (args.draft_head or args.action_prior):
         parser.error("--bin-tolerance needs --draft-head and/or --action-prior (something to draft with)")
     if (args.num_draft_tokens is not None or args.draft_tree) and not args.draft_head:
@@ -421,7 +444,18 @@ def _eval(args, parser) -> int:
             parser.error(f"--video: {error}")
     policy = VLAPolicy.from_pretrained(args.policy)
     generate_kwargs = {}
-    if args.draft_head:
+    if method is not None:
+        widest = policy.action_tokenizer.n_bins - 1
+        if method.bin_tolerance > widest:
+            parser.error(f"--method {method.name}: the policy's {widest + 1} bins are at most {widest} apart; use "
+                         f"r=0..{widest}")  # fmt: skip
+        draft_head = _load_draft_head_for(policy, args.draft_head, parser) if method.uses_draft_head else None
+        if args.draft_head and not method.uses_draft_head:
+            logging.getLogger(__name__).warning("--method %s drafts without a head: --draft-head %s is not used",
+                                                method.name,
+                           args.draft_head)  # fmt: skip
+        generate_kwargs = method.generate_kwargs(draft_head)
+    elif args.draft_head:
         draft_head = _load_draft_head_for(policy, args.draft_head, parser)
         if args.draft_tree:
             generate_kwargs["assistant_model"] = DraftHeadDrafter(draft_head, tree=DraftTreeConfig())
@@ -662,6 +696,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     ev.add_argument("--num-draft-tokens", type=POSITIVE, default=None, help="chain length k (default: the head's)")
     ev.add_argument("--draft-tree", action="store_true", help="the draft head drafts an EAGLE-2 tree, not a chain")
+    ev.add_argument("--method", default=None,
+                    help="a decoding method as `compare` names it (e.g. prior+tree:r=4, head:k=3), instead of "
+                         "--action-prior / --draft-tree / --num-draft-tokens / --bin-tolerance")  # fmt: skip
     ev.add_argument(
         "--action-prior",
         action="store_true",
