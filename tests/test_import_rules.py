@@ -104,3 +104,23 @@ def test_relative_and_local_imports_are_resolved(tmp_path):
         (5, "hf_specvla.openvla.cli"),
     ]
     assert _imports(probe, "hf_specvla.probe")[0] == (1, "hf_specvla.speculative.loop")
+
+
+def test_only_the_cli_prints_or_raises_usage_errors():
+    """The library logs and raises; writing to the terminal and usage errors are the CLI's."""
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if _module_name(path) == "hf_specvla.cli":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if not isinstance(node, ast.Call):
+                continue
+            if isinstance(node.func, ast.Name) and node.func.id == "print":
+                found.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno} print(...)")
+            if (
+                isinstance(node.func, ast.Attribute)
+                and node.func.attr == "error"
+                and getattr(node.func.value, "id", None) == "parser"
+            ):
+                found.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno} parser.error(...)")
+    assert found == []
