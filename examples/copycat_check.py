@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
-from hf_specvla.demonstrations import collected_seeds, dataset_info, decode_png, episode_path
-from hf_specvla.envs.metaworld import resolve_tasks
-from hf_specvla.policy import VLAPolicy
+from hf_specvla.metaworld.demonstrations import collected_seeds, dataset_info, decode_png, episode_path
+from hf_specvla.metaworld.env import resolve_tasks
+from hf_specvla.policies import VLAPolicy
 
 
 def load_episode(path):

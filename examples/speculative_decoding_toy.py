@@ -8,7 +8,7 @@ and decoding action tokens back to continuous actions.
 
 import torch
 
-from hf_specvla.toy import ACTION_DIM, build_toy_pipeline, split_scenes, toy_inputs
+from hf_specvla.benchmarks.toy import ACTION_DIM, build_toy_pipeline, split_scenes, toy_inputs
 
 
 def main() -> None:

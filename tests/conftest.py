@@ -80,7 +80,7 @@ def random_llava_draft(tiny_llava, action_tokenizer):
 @pytest.fixture(scope="session")
 def toy_pipeline(tmp_path_factory):
     """The toy target + a self-distilled draft head, trained once per test session (~1 minute)."""
-    from hf_specvla.toy import build_toy_pipeline
+    from hf_specvla.benchmarks.toy import build_toy_pipeline
 
     return build_toy_pipeline(str(tmp_path_factory.mktemp("toy")), progress=False)
 

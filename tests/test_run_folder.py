@@ -138,7 +138,7 @@ pytest.importorskip("metaworld")
 @pytest.fixture(scope="module")
 def tiny_policy():
     from hf_specvla import ActionNormalizer
-    from hf_specvla.policy import VLAPolicy, VLAPolicyConfig
+    from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
 
     config = VLAPolicyConfig(image_size=32, patch_size=16, vision_hidden_size=32, vision_layers=1,
                              text_hidden_size=64, text_layers=2, text_heads=4)  # fmt: skip
@@ -151,9 +151,9 @@ def test_eval_refuses_another_run_and_redoes_a_torn_episode(tmp_path, tiny_polic
     """Regression (reliability issue, cases 3 and 9): evaluating into a folder that holds results of another
     policy, decoding setting or step limit used to "resume" and report the old numbers; a torn last line of
     episodes.jsonl used to stop resume with a raw JSONDecodeError."""
-    from hf_specvla.envs.metaworld import EnvConfig
-    from hf_specvla.evaluation import evaluate
-    from hf_specvla.policy import VLAPolicy
+    from hf_specvla.metaworld.env import EnvConfig
+    from hf_specvla.metaworld.evaluation import evaluate
+    from hf_specvla.policies import VLAPolicy
 
     env = EnvConfig(32, tiny_policy.config.camera, max_episode_steps=2)
     out = tmp_path / "eval"
@@ -188,9 +188,9 @@ def test_eval_refuses_another_run_and_redoes_a_torn_episode(tmp_path, tiny_polic
 def test_video_is_checked_up_front_and_never_costs_an_episode(tmp_path, tiny_policy, monkeypatch, caplog):
     """Regression (reliability issue, case 7): `--video x.mp4` failed after the first rollout (no mp4 writer), that
     episode was never logged, and every rerun failed the same way; `--video` on a resumed folder was dropped."""
-    import hf_specvla.evaluation as evaluation
+    import hf_specvla.metaworld.evaluation as evaluation
     from hf_specvla.cli import main
-    from hf_specvla.envs.metaworld import EnvConfig
+    from hf_specvla.metaworld.env import EnvConfig
 
     with pytest.raises(ValueError, match="extension must be one of"):
         evaluation.check_video_path("x.avi")

@@ -1,7 +1,7 @@
 """Trains the toy VLA target and its draft head on several language-model families, and measures the head.
 
 The toy target (a Llava vision tower in front of a small language model, 7 action tokens per action; see
-``hf_specvla.toy``) is built with each family's decoder (``llama``, ``qwen2``, ``gemma2``: Gemma-2 scales its
+``hf_specvla.benchmarks.toy``) is built with each family's decoder (``llama``, ``qwen2``, ``gemma2``: Gemma-2 scales its
 embeddings, caps its logits and alternates sliding-window layers), behaviour-cloned on the toy scenes, and a draft
 head is self-distilled from it exactly as ``hf-specvla demo`` does. Reported per family, on the held-out scenes:
 the target's action-token accuracy, and what the engine does with the head at r=0 (acceptance per drafted
@@ -23,17 +23,18 @@ from pathlib import Path
 import torch
 
 from hf_specvla import DraftHead, enable_speculation
-from hf_specvla.run_folder import RunRecord, claim_run_folder
-from hf_specvla.toy import (
+from hf_specvla.benchmarks.toy import (
     ACTION_DIM,
     ToyTargetSize,
     build_toy_target,
     split_scenes,
     toy_action_accuracy,
     toy_inputs,
+    toy_target_training_config,
     train_toy_target,
 )
-from hf_specvla.training import (
+from hf_specvla.run_folder import RunRecord, claim_run_folder
+from hf_specvla.training.draft_head import (
     DraftTrainingConfig,
     build_distillation_dataset,
     speculative_acceptance,
@@ -47,7 +48,8 @@ def measure_family(
     family: str, folder: Path, target_steps: int, draft_steps: int, seed: int, max_scenes: int | None = None
 ) -> dict:
     target, tokenizer, action_tokenizer = build_toy_target(ToyTargetSize(), seed, text_model_type=family)
-    train_toy_target(target, tokenizer, action_tokenizer, steps=target_steps, seed=seed, progress=False)
+    target_config = toy_target_training_config(folder / f"{family}-target", target_steps, seed)
+    train_toy_target(target, tokenizer, action_tokenizer, target_config, progress=False)
     target = enable_speculation(target.eval())
     train_scenes, held_out = (scenes[:max_scenes] for scenes in split_scenes())
     prompts = [toy_inputs(train_scenes[i : i + 64], tokenizer) for i in range(0, len(train_scenes), 64)]

@@ -46,8 +46,8 @@ def methods(draft_head, bin_tolerance: int) -> dict[str, dict]:
 
 
 def policy_target(args):
-    from hf_specvla.evaluation import record_observations
-    from hf_specvla.policy import VLAPolicy
+    from hf_specvla.metaworld.evaluation import record_observations
+    from hf_specvla.policies import VLAPolicy
 
     policy = VLAPolicy.from_pretrained(args.policy)
     draft_head = DraftHead.from_pretrained(args.draft_head).eval()
@@ -66,8 +66,8 @@ def policy_target(args):
 
 
 def toy_target(args):
-    from hf_specvla.benchmark import toy_episodes
-    from hf_specvla.toy import ACTION_DIM, build_toy_pipeline, toy_inputs
+    from hf_specvla.benchmarks.speed import toy_episodes
+    from hf_specvla.benchmarks.toy import ACTION_DIM, build_toy_pipeline, toy_inputs
 
     pipeline = build_toy_pipeline(args.toy, progress=False)
     episodes = [e[: args.steps] for e in toy_episodes(16)]

@@ -14,10 +14,16 @@ import argparse
 import torch
 
 from hf_specvla import DraftHead, DraftHeadDrafter, DraftTreeConfig
-from hf_specvla.benchmark import EpisodeMethod, ForwardClock, format_episode_report, policy_actor, run_episode_benchmark
-from hf_specvla.envs.seeds import BENCH_SEED_START
-from hf_specvla.evaluation import record_observations
-from hf_specvla.policy import VLAPolicy
+from hf_specvla.benchmarks.speed import (
+    EpisodeMethod,
+    ForwardClock,
+    format_episode_report,
+    policy_actor,
+    run_episode_benchmark,
+)
+from hf_specvla.metaworld.evaluation import record_observations
+from hf_specvla.metaworld.seeds import BENCH_SEED_START
+from hf_specvla.policies import VLAPolicy
 
 TREES = ((2, 4, 8), (3, 4, 12), (4, 6, 24))  # (top_k, depth, total_tokens)
 

@@ -33,8 +33,8 @@ import torch
 from transformers.cache_utils import DynamicCache
 
 from hf_specvla import ActionNormalizer, DraftHead, DraftHeadDrafter
-from hf_specvla.envs.metaworld import TASK_INSTRUCTIONS
-from hf_specvla.policy import VLAPolicy, VLAPolicyConfig
+from hf_specvla.metaworld.env import TASK_INSTRUCTIONS
+from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
 from hf_specvla.speculative.cache import truncate_cache
 from hf_specvla.speculative.drafter import Commit, DraftContext, DraftRound
 

@@ -8,9 +8,9 @@ import sys
 
 import torch
 
-from hf_specvla.benchmark import EpisodeMethod, format_episode_report, run_episode_benchmark
-from hf_specvla.evaluation import record_observations
-from hf_specvla.policy import VLAPolicy
+from hf_specvla.benchmarks.speed import EpisodeMethod, format_episode_report, run_episode_benchmark
+from hf_specvla.metaworld.evaluation import record_observations
+from hf_specvla.policies import VLAPolicy
 from hf_specvla.speculative import ActionPriorDrafter
 
 torch.set_num_threads(1)

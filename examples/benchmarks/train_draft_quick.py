@@ -12,9 +12,9 @@ import numpy as np
 import torch
 
 from hf_specvla import DraftHead
-from hf_specvla.evaluation import record_observations
-from hf_specvla.policy import VLAPolicy
-from hf_specvla.training import DraftTrainingConfig, build_distillation_dataset, train_draft_head
+from hf_specvla.metaworld.evaluation import record_observations
+from hf_specvla.policies import VLAPolicy
+from hf_specvla.training.draft_head import DraftTrainingConfig, build_distillation_dataset, train_draft_head
 
 logging.basicConfig(level=logging.INFO)
 torch.set_num_threads(1)

@@ -9,8 +9,14 @@ import sys
 import torch
 
 from hf_specvla import DraftHeadDrafter, DraftTreeConfig
-from hf_specvla.benchmark import EpisodeMethod, format_episode_report, run_episode_benchmark, toy_actor, toy_episodes
-from hf_specvla.toy import ACTION_DIM, load_toy_pipeline
+from hf_specvla.benchmarks.speed import (
+    EpisodeMethod,
+    format_episode_report,
+    run_episode_benchmark,
+    toy_actor,
+    toy_episodes,
+)
+from hf_specvla.benchmarks.toy import ACTION_DIM, load_toy_pipeline
 
 torch.set_num_threads(1)
 pipeline = load_toy_pipeline(sys.argv[1])

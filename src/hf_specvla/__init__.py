@@ -1,31 +1,11 @@
 """hf_specvla: speculative decoding with relaxed action acceptance for VLA models in transformers."""
 
-from .action_tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
-from .speculative import (
-    AcceptanceRule,
-    ActionPriorDrafter,
-    CandidateDrafter,
-    ComposedDrafter,
-    Drafter,
-    DraftHead,
-    DraftHeadConfig,
-    DraftHeadDrafter,
-    DraftTree,
-    DraftTreeConfig,
-    ExactMatch,
-    PerRowDrafter,
-    RelaxedBinMatch,
-    SpeculationConfig,
-    SpeculationStats,
-    SpeculativeDecoderOnlyOutput,
-    SpeculativeGenerationMixin,
-    disable_speculation,
-    enable_speculation,
-    make_acceptance_rule,
-    speculative_generate,
-)
+from . import _moved
+from ._lazy import lazy_exports
 
 __version__ = "0.1.0"
+
+_moved.install()  # old module paths (hf_specvla.policy, hf_specvla.toy, ...) keep importing
 
 __all__ = [
     "AcceptanceRule",
@@ -53,3 +33,12 @@ __all__ = [
     "make_acceptance_rule",
     "speculative_generate",
 ]
+
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        ".actions": ("ActionLayout", "ActionNormalizer", "ActionTokenizer"),
+        ".speculative": tuple(sorted(set(__all__) - {"ActionLayout", "ActionNormalizer", "ActionTokenizer"})),
+    },
+    globals(),
+)  # fmt: skip

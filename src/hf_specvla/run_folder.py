@@ -83,6 +83,11 @@ IMPORTANT_SETTINGS = ("target", "policy", "init_from", "draft_head", "data", "de
 LEGACY_PATH_SETTINGS = frozenset({"draft_head_config.target_name_or_path", "data.demonstrations"})
 #: settings added to records later: a folder recorded before they existed continues without them
 ADDED_SETTINGS = frozenset({"data.demonstration_fingerprints", "draft_head_config.final_logit_softcapping"})
+#: per command, settings added to records later whose value was fixed before: a record without one is read with that
+#: value (train-vla's optimisation, hard-coded until the one training loop made it a setting)
+IMPLIED_SETTINGS = {
+    "train-vla": {"betas": [0.9, 0.999], "max_grad_norm": 1.0, "lr_schedule": "cosine", "mixed_precision": "no"}
+}
 
 
 def _flatten(settings: dict, prefix: str = "") -> dict:
@@ -127,7 +132,8 @@ class RunRecord:
         ``name: <this run's value> here vs <the folder's> there`` (values shortened)."""
         if self.command != other.command:
             return [f"it was written by `hf-specvla {self.command}`, this is `hf-specvla {other.command}`"]
-        saved, now = _flatten(self.settings), _flatten(other.settings)
+        saved = {**IMPLIED_SETTINGS.get(self.command, {}), **_flatten(self.settings)}
+        now = _flatten(other.settings)
         keys = sorted((set(saved) | set(now)) - LEGACY_PATH_SETTINGS, key=_importance)
         missing = "(not set)"
         return [

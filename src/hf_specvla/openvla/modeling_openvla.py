@@ -33,7 +33,7 @@ from transformers import AutoModelForCausalLM, GenerationMixin, PreTrainedModel
 from transformers import initialization as init
 from transformers.modeling_outputs import ModelOutput
 
-from ..action_tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
+from ..actions.tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
 from ..speculative import Drafter, DraftHead, SpeculativeGenerationMixin, is_local_path, named_weight_errors
 from .configuration_openvla import OpenVLAConfig
 from .vision import AttentionPoolLatent, LayerScale, OpenVLAProjector, OpenVLAVisionBackbone, VisionTransformer

@@ -1,6 +1,6 @@
 """The speculative engine: a transformers extension that knows nothing of robots or simulators.
 
-Imports point down: this package uses transformers, torch and ``hf_specvla.action_tokenizer`` only.
+Imports point down: this package uses transformers, torch and ``hf_specvla.actions.tokenizer`` only.
 """
 
 from .acceptance import (

@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from ..action_tokenizer import ActionLayout
+from ..actions.tokenizer import ActionLayout
 from .tree import DraftTree, TreeBatch
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from ..action_tokenizer import ActionLayout
+from ..actions.tokenizer import ActionLayout
 
 #: Appended to the AttributeError transformers' own assisted generation raises when it is handed a hf_specvla
 #: assistant because the target's ``generate`` was never speculation-enabled (it is not enabled automatically).

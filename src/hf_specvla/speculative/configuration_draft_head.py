@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from transformers import LlamaConfig, PretrainedConfig
 
-from ..action_tokenizer import DEFAULT_N_BINS, ActionLayout, ActionTokenizer
+from ..actions.tokenizer import DEFAULT_N_BINS, ActionLayout, ActionTokenizer
 
 
 class DraftHeadConfig(PretrainedConfig):

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import torch
 from transformers import PreTrainedModel
 
-from ..action_tokenizer import ActionLayout
+from ..actions.tokenizer import ActionLayout
 from .config import NOT_ENABLED_HINT
 from .tree import DraftTree
 

@@ -23,7 +23,7 @@ from transformers import AutoConfig, AutoModel, PreTrainedModel
 from transformers.cache_utils import Cache
 from transformers.models.llama.modeling_llama import LlamaDecoderLayer, LlamaRMSNorm, LlamaRotaryEmbedding
 
-from ..action_tokenizer import DEFAULT_N_BINS, ActionTokenizer
+from ..actions.tokenizer import DEFAULT_N_BINS, ActionTokenizer
 from .config import NOT_ENABLED_HINT
 from .configuration_draft_head import DraftHeadConfig
 from .masks import causal_mask

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from ...action_tokenizer import ActionLayout
+from ...actions.tokenizer import ActionLayout
 from ..drafter import CandidateDrafter, DraftContext, Drafter, DraftSession, PathSession, PerRowDrafter
 
 

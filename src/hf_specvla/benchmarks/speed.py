@@ -1,0 +1,387 @@
+"""Speed benchmark: plain greedy vs speculative decoding, in one process, interleaved.
+
+For every repeat and prompt, the methods run in a freshly shuffled order, so drift in machine load hits them
+alike. Reported per method: median per-action latency, speed-up = median(greedy) / median(method), mean accept
+length (tokens per target forward), where the time goes (target forwards / draft forwards / the rest), and how
+far the actions moved from greedy's (mean and max bin distance; 0 for lossless methods).
+"""
+
+from __future__ import annotations
+
+import random
+import statistics
+import time
+from dataclasses import dataclass, field
+
+import torch
+
+from ..actions.tokenizer import ActionTokenizer
+from ..progress import progress_bar
+from ..speculative import ActionPriorDrafter, SpeculationStats
+
+
+@dataclass
+class Method:
+    """One decoding configuration: a name and the extra ``generate`` keyword arguments it uses."""
+
+    name: str
+    generate_kwargs: dict = field(default_factory=dict)
+
+
+@dataclass
+class MethodResult:
+    name: str
+    latencies: list[float] = field(default_factory=list)
+    stats: SpeculationStats | None = None
+    bin_distances: list[int] = field(default_factory=list)
+
+    @property
+    def median_latency(self) -> float:
+        return statistics.median(self.latencies)
+
+
+def speculative_methods(draft_head, chain_lengths=(2, 4, 6), bin_tolerances=(1, 2, 4), relaxed_chain=6) -> list[Method]:
+    """Greedy, strict chains of several lengths k, and relaxed acceptance at several r (chain ``relaxed_chain``)."""
+    methods = [Method("greedy")]
+    for k in chain_lengths:
+        methods.append(Method(f"spec k={k} r=0", dict(assistant_model=draft_head, num_draft_tokens=k)))
+    for r in bin_tolerances:
+        kwargs = dict(assistant_model=draft_head, num_draft_tokens=relaxed_chain, bin_tolerance=r)
+        methods.append(Method(f"spec k={relaxed_chain} r={r}", kwargs))
+    return methods
+
+
+@torch.no_grad()
+def run_benchmark(
+    target,
+    prompts: list[dict],
+    methods: list[Method],
+    max_new_tokens: int,
+    action_tokenizer: ActionTokenizer,
+    repeats: int = 3,
+    warmup: int = 2,
+    seed: int = 0,
+    progress: bool = True,
+) -> list[MethodResult]:
+    """Times every method on every prompt ``repeats`` times, interleaved. The first method is the baseline."""
+    results = {m.name: MethodResult(m.name) for m in methods}
+    base = dict(max_new_tokens=max_new_tokens, min_new_tokens=max_new_tokens, do_sample=False)
+    for method in methods:  # warm-up: allocator, lazy init
+        for prompt in prompts[:warmup]:
+            target.generate(**prompt, **base, **method.generate_kwargs)
+    rng = random.Random(seed)
+    order = list(methods)
+    for _ in progress_bar(range(repeats), desc="benchmark", disable=not progress):
+        for prompt in prompts:
+            rng.shuffle(order)
+            outputs = {}
+            for method in order:
+                start = time.perf_counter()
+                out = target.generate(**prompt, **base, **method.generate_kwargs, return_dict_in_generate=True)
+                results[method.name].latencies.append(time.perf_counter() - start)
+                outputs[method.name] = out.sequences[:, -max_new_tokens:]
+                spec = getattr(out, "speculation", None)
+                if spec is not None:
+                    prev = results[method.name].stats
+                    results[method.name].stats = spec if prev is None else prev.merge(spec)
+            reference = outputs[methods[0].name]
+            for name, tokens in outputs.items():
+                distance = action_tokenizer.bin_distance(tokens, reference)
+                results[name].bin_distances.extend(distance.flatten().tolist())
+    return [results[m.name] for m in methods]
+
+
+def format_report(results: list[MethodResult]) -> str:
+    """Markdown table of [`run_benchmark`] results; the first row is the baseline."""
+    baseline = results[0].median_latency
+    lines = [
+        "| method | median ms/action | speed-up | mean accept length | target / draft / other time | "
+        "bin distance to greedy (mean / max) |",
+        "|---|---:|---:|---:|---|---|",
+    ]
+    for result in results:
+        stats = result.stats
+        if stats is None:
+            accept, split = "1.00", "100% / 0% / 0%"
+        else:
+            total = stats.total_seconds or 1.0
+            target_share, draft_share = stats.target_seconds / total, stats.draft_seconds / total
+            accept = f"{stats.mean_accept_length:.2f}"
+            split = f"{target_share:.0%} / {draft_share:.0%} / {1 - target_share - draft_share:.0%}"
+        distances = result.bin_distances or [0]
+        lines.append(
+            f"| {result.name} | {1000 * result.median_latency:.2f} | {baseline / result.median_latency:.2f}x | "
+            f"{accept} | {split} | {statistics.mean(distances):.2f} / {max(distances)} |"
+        )
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- episodes (previous actions are real)
+@dataclass
+class EpisodeMethod:
+    """One decoding configuration for [`run_episode_benchmark`]: ``generate`` options, and whether the episode's
+    previous actions are drafted ([`ActionPriorDrafter`], verified inside the prefill)."""
+
+    name: str
+    generate_kwargs: dict = field(default_factory=dict)
+    action_prior: bool = False
+
+
+@dataclass
+class EpisodeMethodResult:
+    """Per-action measurements of one method over every replayed step."""
+
+    name: str
+    latencies: list[float] = field(default_factory=list)
+    target_forwards: list[int] = field(default_factory=list)
+    draft_forwards: list[int] = field(default_factory=list)
+    new_tokens: list[int] = field(default_factory=list)
+    bin_distances: list[int] = field(default_factory=list)
+    target_seconds: float = 0.0
+    draft_seconds: float = 0.0
+    total_seconds: float = 0.0
+    split_seconds: dict[str, float] = field(default_factory=dict)  # where the time goes, summed over calls
+
+    @property
+    def median_latency(self) -> float:
+        return statistics.median(self.latencies)
+
+
+#: where a policy call's time goes (see [`ForwardClock`]): the image encoder, the target's first forward (the
+#: prefill, drafts verified inside it included), its later forwards (verifications, or greedy's decoding steps),
+#: drafting (the drafter's own work: head forwards, tree building), and the rest (preprocessing, generate's
+#: preparation, the loop's own steps: acceptance, cache surgery, logits processors, stopping criteria)
+TIME_SPLIT = ("vision", "prefill", "later forwards", "drafting", "rest")
+
+
+class ForwardClock:
+    """Wall time spent inside a VLM's image encoder and language model during one call, from forward hooks.
+
+    Args:
+        model: a Llava-style model (``model.model.vision_tower`` / ``.language_model``, or the same on ``model``).
+    """
+
+    def __init__(self, model):
+        inner = getattr(model, "model", model)
+        self.vision_tower = getattr(inner, "vision_tower", None)
+        self.language_model = getattr(inner, "language_model", None)
+        if self.language_model is None:
+            raise ValueError(f"{type(model).__name__} has no language_model to time")
+        self.reset()
+        self._starts: dict[str, float] = {}
+        for name, module in (("vision", self.vision_tower), ("language", self.language_model)):
+            if module is not None:
+                module.register_forward_pre_hook(self._enter(name))
+                module.register_forward_hook(self._leave(name))
+
+    def reset(self) -> None:
+        self.vision_seconds, self.language_seconds = 0.0, []  # one entry per language-model forward
+
+    def _enter(self, name: str):
+        def hook(module, args):
+            self._starts[name] = time.perf_counter()
+
+        return hook
+
+    def _leave(self, name: str):
+        def hook(module, args, output):
+            elapsed = time.perf_counter() - self._starts.pop(name)
+            if name == "vision":
+                self.vision_seconds += elapsed
+            else:
+                self.language_seconds.append(elapsed)
+
+        return hook
+
+    def split(self, call_seconds: float, draft_seconds: float) -> dict[str, float]:
+        """One call's seconds per [`TIME_SPLIT`] part (``rest`` = the call's wall time minus the others)."""
+        prefill = self.language_seconds[0] if self.language_seconds else 0.0
+        later = sum(self.language_seconds[1:])
+        parts = {"vision": self.vision_seconds, "prefill": prefill, "later forwards": later, "drafting": draft_seconds}
+        parts["rest"] = call_seconds - sum(parts.values())
+        return parts
+
+
+def run_episode_benchmark(
+    act,
+    episodes: list[list],
+    methods: list[EpisodeMethod],
+    action_dim: int,
+    repeats: int = 1,
+    warmup: int = 3,
+    seed: int = 0,
+    progress: bool = True,
+    clock: ForwardClock | None = None,
+) -> list[EpisodeMethodResult]:
+    """Replays observation sequences with every method, interleaved; the first method is the baseline.
+
+    Args:
+        act: ``act(observation, previous_action_ids, action_prior, **generate_kwargs) -> (action_ids, output)``;
+            ``previous_action_ids`` is this method's own episode memory (its earlier actions in this episode,
+            oldest first), so each method drafts from the actions it produced itself.
+        episodes: lists of observations (whatever ``act`` reads).
+        clock: a [`ForwardClock`] on the target: each result's ``split_seconds`` then says where the time went.
+    At every step the methods run in a fresh random order on the same observation, so machine-load drift hits
+    them alike; bin distances compare each action token with the baseline's at the same step.
+    """
+    results = {m.name: EpisodeMethodResult(m.name) for m in methods}
+    first = episodes[0]
+    for method in methods:  # warm-up: allocator, lazy init, both code paths of every method
+        history: list[list[int]] = []
+        for observation in first[:warmup]:
+            ids, _ = act(observation, history, method.action_prior, **method.generate_kwargs)
+            history = [*history, ids][-ActionPriorDrafter.history_length :]
+    rng = random.Random(seed)
+    order = list(methods)
+    total = repeats * sum(len(e) for e in episodes)
+    with progress_bar(total=total, desc="episode benchmark", disable=not progress, mininterval=10) as bar:
+        for _ in range(repeats):
+            for episode in episodes:
+                histories: dict[str, list[list[int]]] = {m.name: [] for m in methods}
+                for observation in episode:
+                    rng.shuffle(order)
+                    actions = {}
+                    for method in order:
+                        if clock is not None:
+                            clock.reset()
+                        start = time.perf_counter()
+                        ids, output = act(observation, histories[method.name], method.action_prior,
+                                          **method.generate_kwargs)  # fmt: skip
+                        elapsed = time.perf_counter() - start
+                        result = results[method.name]
+                        result.latencies.append(elapsed)
+                        spec = getattr(output, "speculation", None)
+                        result.target_forwards.append(spec.num_target_forwards if spec else action_dim)
+                        result.draft_forwards.append(spec.num_draft_forwards if spec else 0)
+                        result.new_tokens.append(spec.num_new_tokens if spec else action_dim)
+                        if spec is not None:
+                            result.target_seconds += spec.target_seconds
+                            result.draft_seconds += spec.draft_seconds
+                            result.total_seconds += spec.total_seconds
+                        if clock is not None:
+                            for part, seconds in clock.split(elapsed, spec.draft_seconds if spec else 0.0).items():
+                                result.split_seconds[part] = result.split_seconds.get(part, 0.0) + seconds
+                        histories[method.name] = [*histories[method.name], ids][-ActionPriorDrafter.history_length :]
+                        actions[method.name] = ids
+                    reference = actions[methods[0].name]
+                    for name, ids in actions.items():
+                        results[name].bin_distances.extend(abs(a - b) for a, b in zip(ids, reference))
+                    bar.update(1)
+    return [results[m.name] for m in methods]
+
+
+def format_episode_report(results: list[EpisodeMethodResult]) -> str:
+    """Markdown table of [`run_episode_benchmark`] results; the first row is the baseline."""
+    baseline = results[0].median_latency
+    lines = [
+        "| method | median ms/action | speed-up | target forwards/action | one-forward actions | tokens/target "
+        "forward | draft forwards/action | target / draft / other time | bin distance to greedy (mean / max) |",
+        "|---|---:|---:|---:|---:|---:|---:|---|---|",
+    ]
+    for r in results:
+        forwards = statistics.mean(r.target_forwards)
+        one_forward = sum(f == 1 for f in r.target_forwards) / len(r.target_forwards)
+        tokens = sum(r.new_tokens) / sum(r.target_forwards)
+        if r.total_seconds:
+            t, d = r.target_seconds / r.total_seconds, r.draft_seconds / r.total_seconds
+            split = f"{t:.0%} / {d:.0%} / {1 - t - d:.0%}"
+        else:
+            split = "-"
+        lines.append(
+            f"| {r.name} | {1000 * r.median_latency:.2f} | {baseline / r.median_latency:.2f}x | {forwards:.2f} | "
+            f"{one_forward:.0%} | {tokens:.2f} | {statistics.mean(r.draft_forwards):.2f} | {split} | "
+            f"{statistics.mean(r.bin_distances):.2f} / {max(r.bin_distances)} |"
+        )
+    if all(r.split_seconds for r in results):
+        lines += ["", "Where the time goes (mean ms per call; rest = preprocessing, generate's preparation and the "
+                  "loop's own steps):", "", "| method | " + " | ".join(TIME_SPLIT) + " | total |",
+                  "|---|" + "---:|" * (len(TIME_SPLIT) + 1)]  # fmt: skip
+        for r in results:
+            calls = len(r.latencies)
+            cells = [f"{1000 * r.split_seconds[part] / calls:.1f}" for part in TIME_SPLIT]
+            lines.append(f"| {r.name} | " + " | ".join(cells) + f" | {1000 * sum(r.latencies) / calls:.1f} |")
+    return "\n".join(lines)
+
+
+def episode_methods(
+    draft_head, bin_tolerances=(0, 1, 2, 4, 8), tree=None, chain_length: int = 3
+) -> list[EpisodeMethod]:
+    """Greedy; the action prior at every r; the draft head's chain and EAGLE-2 tree at r=0 and the largest r <= 4;
+    the prior followed by the tree at the same two r."""
+    from ..speculative import DraftHeadDrafter
+
+    methods = [EpisodeMethod("greedy")]
+    for r in bin_tolerances:
+        methods.append(EpisodeMethod(f"prior r={r}", dict(bin_tolerance=r), action_prior=True))
+    if draft_head is None:
+        return methods
+    chain = DraftHeadDrafter(draft_head, num_draft_tokens=chain_length)
+    tree_drafter = DraftHeadDrafter(draft_head, tree=tree) if tree is not None else None
+    relaxed = max([r for r in bin_tolerances if 0 < r <= 4], default=None)
+    methods.append(EpisodeMethod(f"head chain k={chain_length} r=0", dict(assistant_model=chain)))
+    if tree_drafter is not None:
+        for r in [0] + ([relaxed] if relaxed else []):
+            methods.append(EpisodeMethod(f"head tree r={r}", dict(assistant_model=tree_drafter, bin_tolerance=r)))
+        for r in [0] + ([relaxed] if relaxed else []):
+            methods.append(
+                EpisodeMethod(f"prior+tree r={r}", dict(assistant_model=tree_drafter, bin_tolerance=r), True)
+            )
+    return methods
+
+
+def policy_actor(policy):
+    """``act`` for [`run_episode_benchmark`] over a [`VLAPolicy`]; observations are dicts with ``image``,
+    ``instruction`` and ``state``."""
+
+    dim = policy.config.action_dim
+
+    def act(observation, previous_action_ids, action_prior, **generate_kwargs):
+        # the benchmark remembers each call's tokens (a chunk: H actions), the policy one list per action
+        actions = [call[i : i + dim] for call in previous_action_ids for i in range(0, len(call), dim)]
+        policy.previous_action_ids = actions[-policy.HISTORY_LENGTH :]
+        _, output = policy.predict_action(
+            observation["image"], observation["instruction"], observation["state"], return_output=True,
+            action_prior=action_prior, **generate_kwargs,
+        )  # fmt: skip
+        return output.sequences[0, -policy.config.action_tokens :].tolist(), output
+
+    return act
+
+
+def toy_actor(pipeline):
+    """``act`` for [`run_episode_benchmark`] over the toy target; observations are [`DotScene`]s."""
+    from ..actions.tokenizer import ActionLayout
+    from ..speculative import SPECULATION_KWARGS, as_drafter, with_action_prior
+    from .toy import ACTION_DIM, toy_inputs
+
+    layout = ActionLayout(pipeline.action_tokenizer, ACTION_DIM)
+
+    def act(scene, previous_action_ids, action_prior, **generate_kwargs):
+        kwargs = dict(generate_kwargs)
+        drafter = as_drafter(kwargs.pop("assistant_model", None), None)
+        if action_prior:
+            drafter = with_action_prior(drafter, previous_action_ids, layout)
+        if drafter is None:  # nothing to draft from (an episode's first step): plain greedy, as the policy does
+            kwargs = {k: v for k, v in kwargs.items() if k not in SPECULATION_KWARGS}
+        else:
+            kwargs.update(assistant_model=drafter, action_layout=layout)
+        output = pipeline.target.generate(
+            **toy_inputs([scene], pipeline.tokenizer), max_new_tokens=ACTION_DIM, min_new_tokens=ACTION_DIM,
+            do_sample=False, return_dict_in_generate=True, **kwargs,
+        )  # fmt: skip
+        return output.sequences[0, -ACTION_DIM:].tolist(), output
+
+    return act
+
+
+def toy_episodes(num_episodes: int) -> list[list]:
+    """Toy "episodes": a dot moving one grid cell per step along a row (held-out scenes included), so that
+    consecutive actions are close, as a robot's are."""
+    from .toy import COLOURS, GRID_SIZE, TASKS, DotScene
+
+    episodes = []
+    for i in range(num_episodes):
+        colour, task = list(COLOURS)[i % len(COLOURS)], list(TASKS)[(i // len(COLOURS)) % len(TASKS)]
+        row = (3 * i) % GRID_SIZE
+        episodes.append([DotScene(col, row, colour, task) for col in range(GRID_SIZE)])
+    return episodes

@@ -1,0 +1,104 @@
+"""``hf-specvla bench-episodes``: replay recorded episodes (so the previous actions are real) and time greedy
+against the action prior, the draft head's chain and its EAGLE-2 tree, interleaved at every step, with where the
+time goes (vision, prefill, later forwards, drafting, the rest)."""
+
+from __future__ import annotations
+
+from ..metaworld.seeds import BENCH_SEED_START
+from .benchmark import load_pipeline
+from .common import NON_NEGATIVE, POSITIVE, check_draft_head_flag, load_draft_head_for, load_policy, usage_errors
+
+NAME = "bench-episodes"
+HELP = "replay recorded episodes: greedy vs prior / head / tree drafts"
+EXAMPLES = """
+    # Replay recorded episodes (previous actions are real): greedy vs action prior vs draft head chain / tree
+    hf-specvla bench-episodes --policy policies/mt10_vla --tasks MT10 --episodes 1 --steps 40 --threads 1
+    hf-specvla bench-episodes --pipeline-dir runs/toy --episodes 16 --threads 1
+"""
+
+
+def add_arguments(parser) -> None:
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--policy", help="a policy folder: record its greedy Meta-World rollouts, then replay them")
+    source.add_argument("--pipeline-dir", help="a toy pipeline saved by `hf-specvla demo`: replay moving-dot episodes")
+    parser.add_argument("--tasks", nargs="+", default=["MT10"], help="with --policy: suites and/or task names")
+    parser.add_argument("--episodes", type=POSITIVE, default=1, help="episodes per task (toy: episodes in all)")
+    parser.add_argument(
+        "--steps", type=POSITIVE, default=40, help="with --policy: steps recorded per episode (at most)"
+    )
+    parser.add_argument("--seed-start", type=NON_NEGATIVE, default=BENCH_SEED_START,
+                        help="with --policy: first rollout seed")  # fmt: skip
+    parser.add_argument("--bin-tolerances", type=NON_NEGATIVE, nargs="+", default=[0, 1, 2, 4, 8],
+                        help="r for the prior")  # fmt: skip
+    parser.add_argument("--draft-head", default=None,
+                        help="a DraftHead folder (default: an untrained head, seeded; toy: its own)")  # fmt: skip
+    parser.add_argument("--chain-length", type=POSITIVE, default=None,
+                        help="draft-head chain length k (default: tokens per call - 1)")  # fmt: skip
+    parser.add_argument(
+        "--tree-top-k", type=POSITIVE, default=None, help="EAGLE-2 tree top_k (default: DraftTreeConfig's)"
+    )
+    parser.add_argument(
+        "--tree-depth", type=POSITIVE, default=None, help="EAGLE-2 tree depth (default: DraftTreeConfig's)"
+    )
+    parser.add_argument("--tree-total-tokens", type=POSITIVE, default=None, help="EAGLE-2 tree nodes kept")
+    parser.add_argument("--repeats", type=POSITIVE, default=1, help="timed passes over the episodes")
+    parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (method order, untrained head)")
+
+
+def _policy_episodes(args, parser):
+    """(act, action_dim, episodes, target, draft_head, head_name) for ``--policy``: its greedy rollouts recorded."""
+    import torch
+
+    from ..benchmarks.speed import policy_actor
+    from ..metaworld.evaluation import record_observations
+    from ..speculative import DraftHead
+
+    policy = load_policy(args.policy, parser)
+    if args.draft_head:
+        draft_head, head_name = load_draft_head_for(policy, args.draft_head, parser), args.draft_head
+    else:
+        torch.manual_seed(args.seed)
+        draft_head = DraftHead.from_target(policy.model, policy.action_tokenizer, policy.config.action_dim).eval()
+        head_name = f"an untrained DraftHead (seed {args.seed})"
+    seeds = [args.seed_start + i for i in range(args.episodes)]
+    episodes = record_observations(policy, args.tasks, seeds, args.steps)
+    return policy_actor(policy), policy.config.action_tokens, episodes, policy.model, draft_head, head_name
+
+
+def _toy_episodes(args, parser):
+    """The same for ``--pipeline-dir``: moving-dot episodes of a saved toy pipeline."""
+    from ..benchmarks.speed import toy_actor, toy_episodes
+    from ..benchmarks.toy import ACTION_DIM
+    from ..speculative import DraftHead
+
+    pipeline = load_pipeline(args.pipeline_dir, parser)
+    draft_head = DraftHead.from_pretrained(args.draft_head).eval() if args.draft_head else pipeline.draft_head
+    head_name = args.draft_head or f"{pipeline.output_dir}/draft_head"
+    return toy_actor(pipeline), ACTION_DIM, toy_episodes(args.episodes), pipeline.target, draft_head, head_name
+
+
+def run(args, parser) -> int:
+    import torch
+
+    from ..benchmarks.speed import ForwardClock, episode_methods, format_episode_report, run_episode_benchmark
+    from ..speculative import DraftTreeConfig
+
+    tree_settings = {k: v for k, v in (("top_k", args.tree_top_k), ("depth", args.tree_depth),
+                                       ("total_tokens", args.tree_total_tokens)) if v is not None}  # fmt: skip
+    with usage_errors(parser, errors=(ValueError,)):
+        tree = DraftTreeConfig(**tree_settings)
+    check_draft_head_flag(args.draft_head, parser)
+    source = _policy_episodes if args.policy is not None else _toy_episodes
+    act, action_dim, episodes, target, draft_head, head_name = source(args, parser)
+    methods = episode_methods(draft_head, args.bin_tolerances, tree, args.chain_length or action_dim - 1)
+    results = run_episode_benchmark(act, episodes, methods, action_dim, repeats=args.repeats, seed=args.seed,
+                                    clock=ForwardClock(target))  # fmt: skip
+    steps = sum(len(e) for e in episodes)
+    print(
+        f"\n{len(episodes)} episodes, {steps} steps x {args.repeats} repeats, {action_dim} action tokens per action, "
+        f"{torch.get_num_threads()} CPU threads; draft head: {head_name}; tree: {tree}; methods interleaved in a "
+        f"fresh random order at every step:\n"
+    )
+    print(format_episode_report(results))
+    return 0

@@ -1,0 +1,63 @@
+"""``hf-specvla benchmark``: re-time a toy pipeline a previous ``demo`` saved (strict chains and relaxed r)."""
+
+from __future__ import annotations
+
+from .common import NON_NEGATIVE, POSITIVE, usage_errors
+
+NAME = "benchmark"
+HELP = "benchmark a pipeline saved by `demo`"
+EXAMPLES = """
+    # Re-run only the benchmark on a pipeline a previous demo saved
+    hf-specvla benchmark --pipeline-dir runs/toy --chain-lengths 2 4 6 --bin-tolerances 1 2 4
+"""
+
+
+def add_benchmark_arguments(parser) -> None:
+    """The timing options ``demo`` and ``benchmark`` share."""
+    parser.add_argument("--chain-lengths", type=POSITIVE, nargs="+", default=[2, 4, 6], help="strict chains k to time")
+    parser.add_argument(
+        "--bin-tolerances", type=NON_NEGATIVE, nargs="+", default=[1, 2, 4], help="relaxed r to time (k=6)"
+    )
+    parser.add_argument("--prompts", type=POSITIVE, default=48, help="held-out toy scenes to decode (of 256)")
+    parser.add_argument("--repeats", type=POSITIVE, default=3, help="timed passes over the prompts")
+    parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed")
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--pipeline-dir", required=True, help="a folder written by `hf-specvla demo`")
+    add_benchmark_arguments(parser)
+
+
+def load_pipeline(pipeline_dir: str, parser):
+    """The toy pipeline a previous `demo` saved in ``pipeline_dir``; a usage error when there is none."""
+    from ..benchmarks.toy import load_toy_pipeline
+
+    with usage_errors(parser, "--pipeline-dir", (FileNotFoundError,)):
+        return load_toy_pipeline(pipeline_dir)
+
+
+def time_pipeline(pipeline, args) -> None:
+    """The strict / relaxed table on held-out toy scenes, methods interleaved."""
+    import torch
+
+    from ..benchmarks.speed import format_report, run_benchmark, speculative_methods
+    from ..benchmarks.toy import ACTION_DIM, split_scenes, toy_inputs
+
+    scenes = split_scenes()[1]  # never seen by the target's or the draft head's training
+    step = max(1, len(scenes) // args.prompts)
+    prompts = [toy_inputs([s], pipeline.tokenizer) for s in scenes[step // 2 :: step][: args.prompts]]
+    methods = speculative_methods(pipeline.draft_head, args.chain_lengths, args.bin_tolerances)
+    results = run_benchmark(
+        pipeline.target, prompts, methods, ACTION_DIM, pipeline.action_tokenizer, repeats=args.repeats, seed=args.seed
+    )
+    print(
+        f"\n{len(prompts)} prompts x {args.repeats} repeats, {ACTION_DIM} action tokens each, "
+        f"{torch.get_num_threads()} CPU threads, methods interleaved in random order:\n"
+    )
+    print(format_report(results))
+
+
+def run(args, parser) -> int:
+    time_pipeline(load_pipeline(args.pipeline_dir, parser), args)
+    return 0

@@ -1,0 +1,107 @@
+"""What the commands share: argument types, the help format, the one place where a library error becomes a usage
+error, the training-run flags and logging. Light at import: no torch, no model library."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from contextlib import contextmanager
+from pathlib import Path
+
+
+def at_least(minimum: int):
+    """argparse ``type``: an int >= ``minimum``, else a usage error naming the value (exit code 2)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    parse.__name__ = f"int >= {minimum}"  # what argparse names in its error
+    return parse
+
+
+POSITIVE, NON_NEGATIVE = at_least(1), at_least(0)
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Keeps the examples' line breaks and shows every option's default."""
+
+
+@contextmanager
+def usage_errors(parser: argparse.ArgumentParser, flag: str | None = None,
+                 errors: tuple[type[Exception], ...] = (ValueError, FileExistsError, FileNotFoundError)):  # fmt: skip
+    """A library refusal raised inside the block (bad value, folder of another run, missing folder) becomes a usage
+    error (exit code 2) that names ``flag``: the only place the CLI translates library errors."""
+    try:
+        yield
+    except errors as error:
+        parser.error(f"{flag}: {error}" if flag else str(error))
+
+
+def add_training_run_arguments(parser: argparse.ArgumentParser, seed: int) -> None:
+    """--resume, --overwrite-output-dir, --seed, --threads: shared by the trainers."""
+    parser.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --output-dir")
+    parser.add_argument(
+        "--overwrite-output-dir", action="store_true", help="move the folder's previous run aside, train from scratch"
+    )
+    parser.add_argument("--seed", type=int, default=seed, help="random seed")
+    parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
+
+
+def check_training_folder(output_dir: str, resume: bool, overwrite: bool, parser) -> None:
+    """The common folder mistakes as usage errors before any data is loaded (the full check of the folder's
+    run.json runs once the data's fingerprint is known)."""
+    from ..training.checkpoints import check_output_dir
+
+    with usage_errors(parser, errors=(FileExistsError, FileNotFoundError)):
+        check_output_dir(Path(output_dir), None, resume, overwrite)
+
+
+def check_draft_head_flag(draft_head: str | None, parser) -> None:
+    """``--draft-head`` must be a saved draft head (or a hub id): a usage error before anything is loaded."""
+    from ..speculative import check_draft_head_folder
+
+    if draft_head is not None:
+        with usage_errors(parser, "--draft-head", (FileNotFoundError, ValueError)):
+            check_draft_head_folder(draft_head)
+
+
+def load_policy(path: str, parser):
+    """``--policy``: the saved policy; a usage error when the folder holds none."""
+    from ..policies import VLAPolicy
+
+    with usage_errors(parser, "--policy", (FileNotFoundError,)):
+        return VLAPolicy.from_pretrained(path)
+
+
+def load_draft_head_for(policy, draft_head: str, parser):
+    """The ``--draft-head`` for ``policy``; a usage error when it was made for another model."""
+    from ..speculative import DraftHead
+
+    head = DraftHead.from_pretrained(draft_head).eval()
+    with usage_errors(parser, f"--draft-head {draft_head}"):
+        policy.check_draft_head(head)
+    return head
+
+
+def configure_logging(verbose: bool = False) -> None:
+    """hf_specvla's own messages at INFO (DEBUG with ``-v``), each on its own line even while a progress bar is
+    drawn; other libraries' INFO (OpenGL, accelerate, ...) and transformers' weight-loading bars are left out."""
+    from transformers.utils import logging as transformers_logging
+
+    from ..progress import ProgressAwareHandler
+
+    handler = ProgressAwareHandler()
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    for existing in [h for h in root.handlers if isinstance(h, ProgressAwareHandler)]:  # main() called again
+        root.removeHandler(existing)
+    root.addHandler(handler)
+    root.setLevel(logging.WARNING)
+    logging.getLogger("hf_specvla").setLevel(logging.DEBUG if verbose else logging.INFO)
+    transformers_logging.disable_progress_bar()

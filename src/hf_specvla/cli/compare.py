@@ -1,0 +1,68 @@
+"""``hf-specvla compare``: a paired side-by-side of decoding methods on the same seeds (every method runs a seed
+before the next): success with 95% intervals, speed-up, forwards per action, bin deviation; a table, JSON and plots
+(resumable)."""
+
+from __future__ import annotations
+
+import logging
+
+from ..metaworld.comparison.methods import DRAFTER_CHOICES, CompareConfig
+from .common import NON_NEGATIVE, POSITIVE, check_draft_head_flag, load_policy, usage_errors
+
+logger = logging.getLogger(__name__)
+
+NAME = "compare"
+HELP = "paired side-by-side of decoding methods on the same seeds (resumable)"
+EXAMPLES = """
+    # Paired side-by-side of decoding methods (same seeds; every method runs a seed before the next): success with
+    # 95% intervals, speed-up, forwards per action, bin deviation; a table, JSON and plots (resumable)
+    hf-specvla compare --policy policies/mt10_vla --draft-head policies/mt10_vla_draft --tasks MT10 --episodes 20 \\
+        --methods greedy head tree tree:r=4 prior prior:r=2 prior:r=4 prior:r=8 prior+tree:r=4 --workers 2 \\
+        --output-dir runs/compare_mt10
+    hf-specvla compare --policy policies/mt10_vla --tasks reach --episodes 2 --methods greedy prior prior:r=4 \\
+        --output-dir runs/compare_smoke
+"""
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
+    parser.add_argument("--draft-head", default=None, help="the DraftHead folder the head / tree methods use")
+    parser.add_argument("--methods", nargs="+", default=list(CompareConfig.methods),
+                        help="<drafters>[:r=<int>][,k=<int>], drafters one of " + ", ".join(DRAFTER_CHOICES)
+                             + " (greedy always runs: the baseline)")  # fmt: skip
+    parser.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
+    parser.add_argument("--episodes", type=POSITIVE, default=CompareConfig.episodes_per_task, help="seeds per task")
+    parser.add_argument("--seed-start", type=NON_NEGATIVE, default=CompareConfig.seed_start, help="first seed")
+    parser.add_argument("--max-episode-steps", type=POSITIVE, default=CompareConfig.max_episode_steps,
+                        help="step limit")  # fmt: skip
+    parser.add_argument("--workers", type=POSITIVE, default=CompareConfig.workers,
+                        help="processes the seeds are split between (timings compared within a worker)")  # fmt: skip
+    parser.add_argument("--threads", type=POSITIVE, default=CompareConfig.threads, help="torch CPU threads per worker")
+    parser.add_argument("--seed", type=int, default=CompareConfig.order_seed, help="seeds the method order per seed")
+    parser.add_argument("--output-dir", required=True, help="logs, summary.json, compare.md, plots (resumes)")
+    parser.add_argument(
+        "--overwrite-output-dir", action="store_true", help="move a folder holding another run aside, start over"
+    )
+
+
+def run(args, parser) -> int:
+    from ..metaworld.comparison import format_comparison, run_comparison
+    from ..speculative import DraftHead
+
+    with usage_errors(parser, errors=(ValueError,)):
+        config = CompareConfig(args.tasks, args.episodes, args.methods, args.seed_start, args.max_episode_steps,
+                               args.workers, args.threads, args.seed)  # fmt: skip
+        config.check_draft_head_given(args.draft_head is not None)
+    if args.draft_head and not config.draft_head_methods():
+        logger.warning("--draft-head %s is not used: none of the methods %s drafts with a head (head, tree, "
+                       "prior+head, prior+tree); it is ignored", args.draft_head, config.methods)  # fmt: skip
+        args.draft_head = None
+    check_draft_head_flag(args.draft_head, parser)
+    policy = load_policy(args.policy, parser)
+    draft_head = DraftHead.from_pretrained(args.draft_head).eval() if args.draft_head else None
+    with usage_errors(parser, errors=(FileExistsError, ValueError)):
+        summary = run_comparison(policy, config, args.output_dir, draft_head, args.policy, args.draft_head,
+                                 overwrite=args.overwrite_output_dir)  # fmt: skip
+    print(format_comparison(summary))
+    print(f"table, JSON and plots in {args.output_dir}")
+    return 0

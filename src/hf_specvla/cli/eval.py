@@ -1,0 +1,123 @@
+"""``hf-specvla eval``: roll a policy out on Meta-World's held-out seeds and report per-task success, with any
+decoding method (``--method`` takes `compare`'s names; the older flags build the same method), resumable."""
+
+from __future__ import annotations
+
+import logging
+
+from ..metaworld.env import EnvConfig
+from ..metaworld.seeds import EVAL_SEED_START
+from .common import NON_NEGATIVE, POSITIVE, check_draft_head_flag, load_draft_head_for, load_policy, usage_errors
+
+logger = logging.getLogger(__name__)
+
+NAME = "eval"
+HELP = "roll a policy out on Meta-World and report per-task success (resumable)"
+EXAMPLES = """
+    # Evaluation on held-out seeds; with a video; with speculative decoding (a method as `compare` names it)
+    hf-specvla eval --policy policies/mt10_vla --tasks MT10 --episodes 20 --output-dir runs/eval_greedy
+    hf-specvla eval --policy policies/mt10_vla --tasks reach push --episodes 5 --video runs/reach.gif \\
+        --output-dir runs/eval_reach_push
+    hf-specvla eval --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft --method prior+tree:r=4 \\
+        --tasks reach --episodes 2 --output-dir runs/eval_prior_tree
+    hf-specvla eval --policy policies/mt10_vla --draft-head runs/draft --bin-tolerance 2 --output-dir runs/eval_spec
+    hf-specvla eval --policy policies/mt10_vla --action-prior --bin-tolerance 2 --output-dir runs/eval_prior
+    hf-specvla eval --policy policies/mt10_vla --tasks MT10 --episodes 2 --num-envs 10 --output-dir runs/eval_batched
+"""
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
+    parser.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
+    parser.add_argument("--episodes", type=POSITIVE, default=20, help="episodes per task")
+    parser.add_argument("--output-dir", required=True, help="episodes.jsonl + summary.json go here (resumes)")
+    parser.add_argument("--seed-start", type=NON_NEGATIVE, default=EVAL_SEED_START, help="first evaluation seed")
+    parser.add_argument("--max-episode-steps", type=int, default=EnvConfig.max_episode_steps, help="step limit")
+    parser.add_argument("--video", default=None, help="save the first episode as .gif / .mp4")
+    parser.add_argument(
+        "--overwrite-output-dir", action="store_true", help="move a folder holding another run aside, start over"
+    )
+    parser.add_argument("--method", default=None,
+                        help="a decoding method as `compare` names it (e.g. prior+tree:r=4, head:k=3), instead of "
+                             "--action-prior / --draft-tree / --num-draft-tokens / --bin-tolerance")  # fmt: skip
+    parser.add_argument("--draft-head", default=None, help="speculative decoding with this DraftHead folder")
+    parser.add_argument("--bin-tolerance", type=NON_NEGATIVE, nargs="+", default=None,
+                        help="relaxed acceptance r (or one per dim)")  # fmt: skip
+    parser.add_argument("--num-draft-tokens", type=POSITIVE, default=None, help="chain length k (default: the head's)")
+    parser.add_argument("--draft-tree", action="store_true", help="the draft head drafts an EAGLE-2 tree, not a chain")
+    parser.add_argument("--action-prior", action="store_true",
+                        help="draft each action from the episode's previous actions (verified inside the "
+                             "prefill)")  # fmt: skip
+    parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads")
+    parser.add_argument("--num-envs", type=POSITIVE, default=1,
+                        help="episodes run in lockstep, one batched policy call per step for all of them (same "
+                             "results, less wall time)")  # fmt: skip
+
+
+def decoding_method(args, parser):
+    """The [`DecodingMethod`] that ``--method`` or the older flags name, checked before anything loads."""
+    from ..metaworld.comparison.methods import DecodingMethod
+
+    if args.method is not None:
+        flags = [flag for flag, given in (("--action-prior", args.action_prior), ("--draft-tree", args.draft_tree),
+                 ("--num-draft-tokens", args.num_draft_tokens is not None),
+                 ("--bin-tolerance", args.bin_tolerance is not None)) if given]  # fmt: skip
+        if flags:
+            parser.error(f"--method {args.method} already says how to decode; drop {' / '.join(flags)}")
+        with usage_errors(parser, "--method", (ValueError,)):
+            method = DecodingMethod.parse(args.method)
+        if method.uses_draft_head and not args.draft_head:
+            parser.error(f"--method {method.name} drafts with the draft head: give --draft-head")
+        return method
+    if args.bin_tolerance is not None and not (args.draft_head or args.action_prior):
+        parser.error("--bin-tolerance needs --draft-head and/or --action-prior (something to draft with)")
+    if (args.num_draft_tokens is not None or args.draft_tree) and not args.draft_head:
+        parser.error("--num-draft-tokens / --draft-tree need --draft-head")
+    if args.num_draft_tokens is not None and args.draft_tree:
+        parser.error("--num-draft-tokens sets a chain; --draft-tree drafts a tree: give one of them")
+    parts = ["prior"] * args.action_prior + (["tree" if args.draft_tree else "head"] if args.draft_head else [])
+    tolerance = args.bin_tolerance or [0]
+    return DecodingMethod(
+        "+".join(parts) or "greedy", tolerance[0] if len(tolerance) == 1 else 0, args.num_draft_tokens
+    )
+
+
+def _check_tolerances(policy, method, args, parser) -> None:
+    widest = policy.action_tokenizer.n_bins - 1
+    tolerances = args.bin_tolerance or [method.bin_tolerance]
+    if max(tolerances) > widest:
+        given = f"--method {method.name}" if args.method else f"--bin-tolerance {' '.join(map(str, tolerances))}"
+        parser.error(f"{given}: the policy's {widest + 1} bins are at most {widest} apart (r={widest} already "
+                     f"accepts any action token); use r=0..{widest}")  # fmt: skip
+
+
+def run(args, parser) -> int:
+    import json
+
+    from ..metaworld.evaluation import check_video_path, evaluate, format_summary
+
+    method = decoding_method(args, parser)
+    check_draft_head_flag(args.draft_head, parser)
+    if args.video is not None:
+        with usage_errors(parser, "--video", (ValueError,)):
+            check_video_path(args.video)
+    policy = load_policy(args.policy, parser)
+    _check_tolerances(policy, method, args, parser)
+    if args.draft_head and not method.uses_draft_head:
+        logger.warning("--method %s drafts without a head: --draft-head %s is not used", method.name, args.draft_head)
+    draft_head = load_draft_head_for(policy, args.draft_head, parser) if method.uses_draft_head else None
+    generate_kwargs = method.generate_kwargs(draft_head)
+    if args.bin_tolerance is not None:  # as given (one r, or one per action dimension), as eval folders record it
+        tolerance = args.bin_tolerance
+        generate_kwargs["bin_tolerance"] = tolerance[0] if len(tolerance) == 1 else tolerance
+    env_config = EnvConfig(policy.config.image_size, policy.config.camera, args.max_episode_steps)
+    with usage_errors(parser, errors=(FileExistsError,)):
+        summary = evaluate(policy, args.tasks, args.episodes, args.output_dir, env_config, args.seed_start,
+                           generate_kwargs, args.video, overwrite=args.overwrite_output_dir,
+                           num_envs=args.num_envs)  # fmt: skip
+    print(format_summary(summary))
+    calls = "one batched call decides the actions" if args.num_envs > 1 else "one call decides the action"
+    chunk = f" of the next {policy.config.chunk_length} steps" if policy.config.chunk_length > 1 else ""
+    print(f"ms/call: the median wall time of a policy call ({calls}{chunk} of {args.num_envs} environment(s))")
+    print(json.dumps(summary["overall"]))
+    return 0

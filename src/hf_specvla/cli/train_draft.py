@@ -1,0 +1,82 @@
+"""``hf-specvla train-draft``: a draft head for a policy, self-distilled on the policy's own rollouts (and
+optionally demonstration frames), validated by the engine, saved with a model card (resumable)."""
+
+from __future__ import annotations
+
+from ..training.configuration import POLICY_DRAFT_DEFAULTS, DraftDataConfig, DraftTrainingConfig
+from .common import NON_NEGATIVE, POSITIVE, add_training_run_arguments, check_training_folder, load_policy, usage_errors
+
+NAME = "train-draft"
+HELP = "train a draft head for a policy: self-distillation on its rollouts (resumable)"
+EXAMPLES = """
+    # A draft head for a policy: self-distillation on its own rollouts (+ demonstrations), validated by the engine
+    hf-specvla train-draft --policy policies/mt10_vla --tasks MT10 --max-steps 3000 --output-dir runs/mt10_draft
+    hf-specvla train-draft --policy policies/mt10_vla --tasks reach --rollout-episodes 2 --max-steps 20 \\
+        --output-dir runs/reach_draft_smoke
+"""
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--policy", required=True, help="the policy folder (train-vla output)")
+    parser.add_argument("--output-dir", required=True, help="the draft head folder (and checkpoints)")
+    parser.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
+    parser.add_argument("--data", nargs="+", default=None,
+                        help="also distil on frames of these `collect` folders (default: rollouts only)")  # fmt: skip
+    parser.add_argument("--demo-frames-per-task", type=NON_NEGATIVE, default=DraftDataConfig.demo_frames_per_task,
+                        help="with --data: frames sampled per task")  # fmt: skip
+    parser.add_argument("--rollout-episodes", type=POSITIVE, default=DraftDataConfig.rollout_episodes,
+                        help="greedy on-policy episodes per task (the last --validation-episodes held "
+                             "out)")  # fmt: skip
+    parser.add_argument("--rollout-max-steps", type=POSITIVE, default=DraftDataConfig.rollout_max_steps,
+                        help="steps kept per rollout")  # fmt: skip
+    parser.add_argument("--rollout-seed-start", type=NON_NEGATIVE, default=DraftDataConfig.rollout_seed_start,
+                        help="first rollout seed")  # fmt: skip
+    parser.add_argument("--validation-episodes", type=POSITIVE, default=DraftDataConfig.validation_episodes,
+                        help="held-out rollouts per task")  # fmt: skip
+    parser.add_argument("--validation-frames", type=POSITIVE, default=DraftDataConfig.validation_frames,
+                        help="held-out frames the engine validates on (evenly spread)")  # fmt: skip
+    parser.add_argument("--num-draft-tokens", type=POSITIVE, default=None,
+                        help="the head's default chain length k (default: tokens per call - 1)")  # fmt: skip
+    defaults = POLICY_DRAFT_DEFAULTS
+    parser.add_argument("--max-steps", type=POSITIVE, default=defaults["max_steps"], help="optimizer steps")
+    parser.add_argument("--batch-size", type=POSITIVE, default=defaults["batch_size"], help="sequences per step")
+    parser.add_argument("--learning-rate", type=float, default=defaults["learning_rate"],
+                        help="peak AdamW learning rate")  # fmt: skip
+    parser.add_argument("--lr-schedule", choices=("constant", "cosine"), default=defaults["lr_schedule"],
+                        help="after warm-up")  # fmt: skip
+    parser.add_argument("--warmup-steps", type=NON_NEGATIVE, default=defaults["warmup_steps"],
+                        help="linear warm-up steps")  # fmt: skip
+    parser.add_argument("--eval-every", type=NON_NEGATIVE, default=defaults["eval_every"],
+                        help="steps between validations (0: only at the end)")  # fmt: skip
+    parser.add_argument("--save-every", type=NON_NEGATIVE, default=defaults["save_every"],
+                        help="steps between checkpoints (0: only the final head)")  # fmt: skip
+    add_training_run_arguments(parser, DraftTrainingConfig.seed)
+
+
+def run(args, parser) -> int:
+    import shlex
+
+    from ..metaworld.demonstrations import dataset_info
+    from ..training.policy_draft import train_policy_draft_head
+
+    check_training_folder(args.output_dir, args.resume, args.overwrite_output_dir, parser)
+    with usage_errors(parser, errors=(ValueError, FileNotFoundError)):
+        data_config = DraftDataConfig(
+            args.tasks, args.rollout_episodes, args.rollout_max_steps, args.rollout_seed_start,
+            args.validation_episodes, args.validation_frames, args.demo_frames_per_task, seed=args.seed,
+        )  # fmt: skip
+        training_config = DraftTrainingConfig(
+            args.output_dir, max_steps=args.max_steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
+            warmup_steps=args.warmup_steps, lr_schedule=args.lr_schedule, save_every=args.save_every,
+            eval_every=args.eval_every, resume=args.resume, overwrite_output_dir=args.overwrite_output_dir,
+            seed=args.seed,
+        )  # fmt: skip
+        for root in args.data or []:
+            dataset_info(root)
+    policy = load_policy(args.policy, parser)
+    command = shlex.join(["hf-specvla", *args.argv])
+    with usage_errors(parser, errors=(FileExistsError,)):
+        head = train_policy_draft_head(policy, training_config, data_config, args.data or [], args.num_draft_tokens,
+                                       command=command)  # fmt: skip
+    print(f"draft head saved to {args.output_dir} ({head.num_parameters():,} parameters); see its README.md")
+    return 0

@@ -1,1 +1,0 @@
-"""Simulated environments to validate policies on (Meta-World)."""

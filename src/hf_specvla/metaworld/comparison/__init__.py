@@ -1,0 +1,38 @@
+"""Paired side-by-side evaluation of decoding methods on Meta-World: ``hf-specvla compare``.
+
+**Pairing.** Every method runs the same (task, seed) starts. For each seed, every method runs its episode before
+the next seed starts, in a fresh random order per seed, in one process: each method's speed is measured next to
+greedy's under the same load, and success is compared on identical starts. With ``workers > 1`` the seeds are
+split between processes (one CPU thread each by default); a seed's methods always run in one worker, so every
+timing ratio is taken within a worker.
+
+**Methods** are named ``<drafters>[:r=<bin tolerance>][,k=<chain length>]`` with drafters one of
+``greedy``, ``head`` (the draft head's chain), ``tree`` (its EAGLE-2 tree), ``prior`` (the episode's previous
+actions), ``prior+head``, ``prior+tree``: e.g. ``greedy``, ``head:k=3``, ``tree:r=4``, ``prior:r=2``,
+``prior+tree:r=4``. Greedy is always run: it is the baseline every figure is paired with.
+
+**Per method** (see [`summarize_comparison`]): success rate; the paired difference to greedy with a 95% bootstrap
+interval over seeds and the discordant counts; mean episode length; median ms per policy call (one action, or one
+chunk of actions for a chunked policy) and the speed-up vs greedy (median over seeds of the ratio of the two
+episodes' median ms per call); target forwards per call and per action (env step);
+tokens per target forward; for relaxed methods the bin deviation from greedy's action *on the same observation*
+(greedy decoded off the clock at every step); for lossless methods how many episodes were identical to greedy's.
+
+**Folder**: ``run.json`` (policy and draft-head weights, env, seeds, methods), one ``episodes.worker-<i>.jsonl``
+log per worker (a finished (task, seed, method) episode is never run again: resumable, and more tasks or episodes
+continue a folder), ``summary.json``, ``compare.md`` and PNG plots.
+"""
+
+from ..._lazy import lazy_exports
+
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        ".methods": ("DEFAULT_METHODS", "DRAFTER_CHOICES", "GREEDY", "METHOD_KEYS", "CompareConfig", "DecodingMethod",
+                     "parse_methods"),
+        ".runner": ("LOG_PATTERN", "read_episode_logs", "run_comparison", "run_method_episode"),
+        ".statistics": ("BOOTSTRAP_RESAMPLES", "PLOTS", "format_comparison", "paired_difference", "plot_comparison",
+                        "summarize_comparison"),
+    },
+    globals(),
+)  # fmt: skip

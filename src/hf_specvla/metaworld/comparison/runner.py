@@ -1,0 +1,264 @@
+"""Running a comparison: every method on every (task, seed), seed-major, methods in a fresh random order per seed,
+in one or several worker processes; one resumable log per worker; the summary, table and plots at the end."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import random
+import threading
+import time
+from collections import Counter
+from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+from dataclasses import asdict
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ...policies import VLAPolicy
+from ...progress import progress_bar
+from ...run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
+from ...speculative import DraftHead
+from ..env import EnvConfig, MetaWorldEnv
+from ..rollout import rollout
+from .methods import CompareConfig, DecodingMethod
+from .statistics import format_comparison, plot_comparison, summarize_comparison
+
+logger = logging.getLogger(__name__)
+
+LOG_PATTERN = "episodes.worker-*.jsonl"
+
+
+# ----------------------------------------------------------------------------- episodes
+def _greedy_action_ids(policy: VLAPolicy, obs: dict) -> list[int]:
+    """Greedy's action ids on ``obs``, leaving the policy's episode memory as it was."""
+    memory = policy.previous_action_ids
+    try:
+        _, output = policy.predict_action(obs["image"], obs["instruction"], obs["state"], return_output=True)
+    finally:
+        policy.previous_action_ids = memory
+    return output.sequences[0, -policy.config.action_tokens :].tolist()
+
+
+def run_method_episode(
+    policy: VLAPolicy, env: MetaWorldEnv, seed: int, method: DecodingMethod, draft_head: DraftHead | None
+) -> dict:
+    """One episode of ``method`` from ``env.reset(seed)``: the record a comparison log holds."""
+    kwargs = method.generate_kwargs(draft_head)
+    action_dim = policy.config.action_tokens  # tokens per call (a chunk's, for a chunked policy)
+    policy.reset()
+    latencies, accept_counts, digest = [], Counter(), hashlib.sha256()
+    target_forwards = new_tokens = 0
+    distances: list[int] = []
+
+    def decide(rows: list[int], observations: list[dict]) -> list:
+        nonlocal target_forwards, new_tokens
+        obs = observations[0]
+        start = time.perf_counter()
+        action, output = policy.predict_action(
+            obs["image"], obs["instruction"], obs["state"], return_output=True, **kwargs
+        )
+        latencies.append(round(1000 * (time.perf_counter() - start), 3))
+        action_ids = output.sequences[0, -action_dim:].tolist()
+        stats = getattr(output, "speculation", None)
+        if stats is None:  # plain greedy decoding: one target forward per token
+            target_forwards, new_tokens = target_forwards + action_dim, new_tokens + action_dim
+            accept_counts[1] += action_dim
+        else:
+            target_forwards, new_tokens = target_forwards + stats.num_target_forwards, new_tokens + stats.num_new_tokens
+            accept_counts.update(stats.accept_lengths)
+        if not method.lossless:  # off the clock: how far is this from greedy's action on the same observation?
+            reference = _greedy_action_ids(policy, obs)
+            distances.extend(abs(a - b) for a, b in zip(action_ids, reference))
+        digest.update(np.asarray(action_ids, np.int64).tobytes())
+        return [policy.action_steps(action)]
+
+    episode = rollout([env], [seed], decide)[0]
+    success, length = episode.success, episode.length
+    return {
+        "task": env.task, "seed": seed, "method": method.name, "success": success,
+        "length": length, "latencies_ms": latencies, "target_forwards": target_forwards,
+        "new_tokens": new_tokens, "accept_length_counts": {str(k): v for k, v in sorted(accept_counts.items())},
+        "bin_distance_sum": sum(distances), "bin_distance_count": len(distances),
+        "bin_distance_max": max(distances, default=0), "actions_digest": digest.hexdigest()[:16],
+    }  # fmt: skip
+
+
+def _run_shard(
+    policy: VLAPolicy,
+    draft_head: DraftHead | None,
+    config: CompareConfig,
+    pairs: list[tuple[str, int]],
+    log_path: Path,
+    done: set[tuple[str, int, str]],
+    bar=None,
+) -> None:
+    """Runs every method not yet ``done`` on each (task, seed) of ``pairs``, seed by seed, appending to
+    ``log_path``."""
+    env_config = EnvConfig(policy.config.image_size, policy.config.camera, config.max_episode_steps)
+    methods = config.decoding_methods()
+    env = None
+    try:
+        for task, seed in pairs:  # in order (seed-major): an env is made when the task changes
+            todo = [m for m in methods if (task, seed, m.name) not in done]
+            if not todo:
+                continue
+            if env is None or env.task != task:
+                if env is not None:
+                    env.close()
+                env = MetaWorldEnv(task, env_config)
+            random.Random(f"{config.order_seed}:{task}:{seed}").shuffle(todo)
+            for method in todo:
+                record = run_method_episode(policy, env, seed, method, draft_head)
+                with log_path.open("a") as log:
+                    log.write(json.dumps(record) + "\n")
+                if bar is not None:
+                    bar.update(1)
+    finally:
+        if env is not None:
+            env.close()
+
+
+def _exit_with_parent(poll_seconds: float = 1.0) -> None:
+    """Ends this worker when the process that started it is gone (killed, crashed): an orphaned worker would go
+    on appending to a folder that a new run may be resuming."""
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(poll_seconds)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="exit-with-parent").start()
+
+
+def _worker_main(policy_dir: str, draft_head_dir: str | None, config: dict, pairs: list, log_path: str,
+                 done: list) -> None:  # fmt: skip
+    """Entry point of a worker process (spawned: loads its own policy and head)."""
+    from transformers.utils import logging as transformers_logging
+
+    _exit_with_parent()
+    transformers_logging.disable_progress_bar()  # a worker's weight loading draws no bars of its own
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    config = CompareConfig(**config)
+    torch.set_num_threads(config.threads)
+    policy = VLAPolicy.from_pretrained(policy_dir)
+    draft_head = None if draft_head_dir is None else DraftHead.from_pretrained(draft_head_dir).eval()
+    _run_shard(policy, draft_head, config, [tuple(p) for p in pairs], Path(log_path), {tuple(d) for d in done})
+
+
+def _count_log_lines(output_dir: Path) -> int:
+    return sum(path.read_bytes().count(b"\n") for path in output_dir.glob(LOG_PATTERN))
+
+
+def read_episode_logs(output_dir: Path) -> list[dict]:
+    """Every episode record of a comparison folder (all workers' logs)."""
+    return [record for path in sorted(output_dir.glob(LOG_PATTERN)) for record in read_jsonl(path)]
+
+
+def run_comparison(
+    policy: VLAPolicy,
+    config: CompareConfig,
+    output_dir: str | Path,
+    draft_head: DraftHead | None = None,
+    policy_dir: str | None = None,
+    draft_head_dir: str | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> dict:
+    """Runs (or resumes) a comparison into ``output_dir`` and writes its summary, table and plots.
+
+    ``workers > 1`` spawns processes that load the policy (and head) from ``policy_dir`` (``draft_head_dir``);
+    with one worker everything runs in this process on ``policy``.
+
+    Raises:
+        ValueError: a method needs a draft head and none was given, or the head was made for another policy.
+        FileExistsError: ``output_dir`` holds another comparison (other weights, env, seeds or methods).
+    """
+    methods = config.decoding_methods()
+    config.check_draft_head_given(draft_head is not None)
+    if draft_head is not None:
+        policy.check_draft_head(draft_head)
+    if config.workers > 1 and policy_dir is None:
+        raise ValueError("workers > 1 load the policy in each process: pass policy_dir (and draft_head_dir)")
+    widest = policy.action_tokenizer.n_bins - 1
+    too_wide = [m.name for m in methods if m.bin_tolerance > widest]
+    if too_wide:
+        raise ValueError(
+            f"methods {too_wide}: r is wider than the action range (the policy's {widest + 1} bins are at most "
+            f"{widest} apart; r={widest} already accepts any action token); use r in 0..{widest}"
+        )
+    output_dir = Path(output_dir)
+    env_config = EnvConfig(policy.config.image_size, policy.config.camera, config.max_episode_steps)
+    settings = {
+        "policy": policy.weights_fingerprint(),
+        "draft_head": None if draft_head is None else fingerprint(draft_head),
+        "env": asdict(env_config), "seed_start": config.seed_start, "methods": sorted(config.methods),
+        "order_seed": config.order_seed,
+    }  # fmt: skip
+    with claim_run_folder(output_dir, RunRecord("compare", settings), overwrite) as run:
+        output_dir = run.bound  # writes stay in the claimed folder, renamed or not
+        done = {(r["task"], r["seed"], r["method"]) for r in read_episode_logs(output_dir)}
+        pairs = config.pairs()
+        total = len(pairs) * len(methods)
+        remaining = sum((t, s, m.name) not in done for t, s in pairs for m in methods)
+        logger.info("compare: %d episodes (%d methods x %d seeds), %d to run", total, len(methods), len(pairs),
+                    remaining)  # fmt: skip
+        bar = progress_bar(total=total, initial=total - remaining, desc="compare", unit="episode", disable=not progress)
+        if config.workers == 1:
+            _run_shard(policy, draft_head, config, pairs, output_dir / "episodes.worker-0.jsonl", done, bar)
+        else:
+            _run_in_workers(config, pairs, done, output_dir, policy_dir, draft_head_dir, bar)
+        bar.close()
+        records = read_episode_logs(output_dir)
+        wanted = {(t, s) for t, s in pairs}
+        in_folder = len(records)
+        records = [r for r in records if (r["task"], r["seed"]) in wanted and r["method"] in config.methods]
+        if len(records) < in_folder:
+            logger.warning(
+                "summary.json and compare.md cover the %d episodes this run asked for (%d tasks x %d seeds x %d "
+                "methods); the folder holds %d, and a run with more --episodes summarises them all",
+                len(records), len(config.tasks), config.episodes_per_task, len(methods), in_folder,
+            )  # fmt: skip
+        summary = summarize_comparison(records, config.methods)
+        summary["settings"] = {**settings, "tasks": config.tasks, "episodes_per_task": config.episodes_per_task,
+                               "workers": config.workers, "threads": config.threads}  # fmt: skip
+        write_json_atomic(output_dir / "summary.json", summary)
+        (output_dir / "compare.md").write_text(format_comparison(summary) + "\n")
+        plot_comparison(summary, output_dir)
+        return summary
+
+
+def _run_in_workers(config: CompareConfig, pairs: list, done: set, output_dir: Path, policy_dir: str | None,
+                    draft_head_dir: str | None, bar) -> None:  # fmt: skip
+    """Splits ``pairs`` between ``config.workers`` spawned processes (a seed never spans two) and follows their
+    logs on ``bar``."""
+    shards = [pairs[i :: config.workers] for i in range(config.workers)]
+    bar_start, lines_at_start = bar.n, _count_log_lines(output_dir)
+    with ProcessPoolExecutor(config.workers, mp_context=get_context("spawn")) as pool:
+        pending = {
+            pool.submit(
+                _worker_main,
+                policy_dir,
+                draft_head_dir,
+                asdict(config),
+                shard,
+                str(output_dir / f"episodes.worker-{i}.jsonl"),
+                sorted(done),
+            )  # fmt: skip
+            for i, shard in enumerate(shards)
+            if shard
+        }
+        while pending:
+            finished, pending = wait(pending, timeout=10, return_when=FIRST_EXCEPTION)
+            for future in finished:
+                future.result()  # a worker's exception surfaces here
+            # new finished lines only (workers write only wanted episodes; repairing a log with read_jsonl while
+            # its worker appends would race); update() keeps the bar's redraw interval
+            written = min(bar.total, bar_start + _count_log_lines(output_dir) - lines_at_start)
+            if written > bar.n:
+                bar.update(written - bar.n)

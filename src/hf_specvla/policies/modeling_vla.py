@@ -1,0 +1,407 @@
+"""An OpenVLA-style vision-language-action policy, small enough to train and run on a CPU.
+
+Model: a transformers ``LlavaForConditionalGeneration`` (CLIP vision encoder -> MLP projector -> Llama decoder),
+built from small configs; its decoder is a plain transformers language model, so ``generate`` (and the
+speculative engine, via ``assistant_model=DraftHead``) drives it unchanged.
+
+Prompt (OpenVLA's, plus the proprio state):
+
+    <s> <image> x N  "in: what action should the robot take to {instruction}?"  "state:" s1 s2 s3 s4  "out:"
+
+The image enters as N placeholder tokens that Llava replaces with projected patch features. The proprio state
+(hand xyz + gripper, 4 numbers) is q01/q99-normalised and discretised with the *action* tokenizer, i.e. it
+reuses the 256 bin tokens, so no new vocabulary is needed. The model then generates ``action_dim`` action tokens
+greedily; ``predict_action`` maps them back through the bin centers and the action statistics.
+
+One folder is a complete policy: ``save_pretrained`` writes the model, the tokenizer and ``policy_config.json``
+(image processing, prompt layout and the normalisation statistics).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from transformers import (
+    CLIPVisionConfig,
+    LlamaConfig,
+    LlavaConfig,
+    LlavaForConditionalGeneration,
+    PreTrainedTokenizerFast,
+)
+
+from ..actions.tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
+from ..actions.vla_tokenizer import build_vla_tokenizer
+from ..run_folder import fingerprint
+from ..speculative import (
+    SPECULATION_KWARGS,
+    ActionPriorDrafter,
+    Drafter,
+    DraftHead,
+    as_drafter,
+    enable_speculation,
+    named_weight_errors,
+    with_action_priors,
+)
+from .configuration_vla import POLICY_CONFIG_NAME, VLAPolicyConfig
+
+
+class VLAPolicy:
+    """An OpenVLA-style policy: ``predict_action(image, instruction, state)`` -> un-normalised action.
+
+    Attributes:
+        model: the Llava model (speculation enabled: ``generate`` accepts a DraftHead assistant).
+        tokenizer, action_tokenizer, action_normalizer, state_normalizer, config.
+        action_layout: the action tokens and ``action_dim`` (what relaxed acceptance needs).
+        previous_action_ids: this episode's actions so far as token ids, oldest first (cleared by ``reset``); the
+            source of ``predict_action(action_prior=True)``'s drafts.
+    """
+
+    #: previous actions kept for the action prior (as many as it reads).
+    HISTORY_LENGTH = ActionPriorDrafter.history_length
+
+    def __init__(self, model, tokenizer, config: VLAPolicyConfig):
+        self.model = enable_speculation(model)
+        self.tokenizer = tokenizer
+        self.config = config
+        self.action_tokenizer = ActionTokenizer(len(tokenizer))
+        self.action_layout = ActionLayout(self.action_tokenizer, config.action_dim)
+        self.previous_action_ids: list[list[int]] = []
+        self.action_normalizer = ActionNormalizer.from_dict(config.action_stats) if config.action_stats else None
+        self.state_normalizer = ActionNormalizer.from_dict(config.state_stats) if config.state_stats else None
+        self.scene_normalizer = ActionNormalizer.from_dict(config.scene_stats) if config.scene_stats else None
+        self.name_or_path: str | None = None  # the folder it was loaded from (from_pretrained)
+        self._weights_fingerprint: str | None = None
+        self._prefix_cache: dict[str, list[int]] = {}  # instruction -> [<s>, <image> x N, prompt text]
+        self._state_word, self._out_words = self._encode("\nState:"), self._encode("\nOut:")
+
+    # ----------------------------------------------------------------------------- building
+    @classmethod
+    def build(
+        cls,
+        instructions: list[str],
+        action_normalizer: ActionNormalizer,
+        state_normalizer: ActionNormalizer | None,
+        config: VLAPolicyConfig | None = None,
+        seed: int = 0,
+        scene_normalizer: ActionNormalizer | None = None,
+    ) -> VLAPolicy:
+        """A new, untrained policy whose tokenizer covers ``instructions`` (``scene_normalizer``: the scene-state
+        statistics, needed when ``config.scene_state_dim > 0``)."""
+        config = config or VLAPolicyConfig()
+        if action_normalizer.action_dim != config.action_dim:
+            raise ValueError(
+                f"the action statistics have {action_normalizer.action_dim} dimensions, the policy "
+                f"action_dim={config.action_dim}"
+            )
+        scene_dim = scene_normalizer.action_dim if scene_normalizer is not None else 0
+        if config.scene_state_dim and scene_dim != config.scene_state_dim:
+            raise ValueError(
+                f"scene_state_dim={config.scene_state_dim} needs scene-state statistics of that many dimensions, "
+                f"got {scene_dim}"
+            )
+        config.action_stats = action_normalizer.to_dict()
+        config.state_stats = state_normalizer.to_dict() if state_normalizer is not None else {}
+        config.scene_stats = scene_normalizer.to_dict() if config.scene_state_dim else {}
+        tokenizer = build_vla_tokenizer([*instructions, "state:"])
+        vision = CLIPVisionConfig(
+            hidden_size=config.vision_hidden_size, intermediate_size=2 * config.vision_hidden_size,
+            num_hidden_layers=config.vision_layers, num_attention_heads=4, image_size=config.image_size,
+            patch_size=config.patch_size, projection_dim=config.vision_hidden_size,
+        )  # fmt: skip
+        text = LlamaConfig(
+            vocab_size=len(tokenizer), hidden_size=config.text_hidden_size,
+            intermediate_size=2 * config.text_hidden_size, num_hidden_layers=config.text_layers,
+            num_attention_heads=config.text_heads, num_key_value_heads=max(1, config.text_heads // 2),
+            max_position_embeddings=256, bos_token_id=tokenizer.bos_token_id, eos_token_id=tokenizer.eos_token_id,
+            pad_token_id=tokenizer.pad_token_id,
+        )  # fmt: skip
+        llava = LlavaConfig(
+            vision_config=vision, text_config=text, image_token_id=tokenizer.convert_tokens_to_ids("<image>"),
+            image_seq_length=config.num_image_tokens, vision_feature_select_strategy="default",
+            vision_feature_layer=-1,
+        )  # fmt: skip
+        torch.manual_seed(seed)
+        model = LlavaForConditionalGeneration(llava)
+        model.generation_config.pad_token_id = tokenizer.pad_token_id
+        return cls(model.eval(), tokenizer, config)
+
+    # ----------------------------------------------------------------------------- inputs
+    def preprocess_images(self, images) -> torch.Tensor:
+        """uint8 images ``[S, S, 3]`` or ``[B, S, S, 3]`` -> pixel_values float ``[B, 3, S, S]`` in [-1, 1].
+
+        Raises:
+            ValueError / TypeError: wrong size, channel count or dtype, naming what was expected.
+        """
+        images = np.asarray(images)
+        if images.dtype != np.uint8:
+            raise TypeError(f"images must be uint8 RGB (0..255), got dtype {images.dtype}")
+        if images.ndim == 3:
+            images = images[None]
+        size = self.config.image_size
+        if images.ndim != 4 or images.shape[1:] != (size, size, 3):
+            raise ValueError(
+                f"images must have shape [{size}, {size}, 3] (or [B, {size}, {size}, 3]), got {images.shape}"
+            )
+        pixels = torch.tensor(images).permute(0, 3, 1, 2).float() / 127.5 - 1.0  # a copy: read-only arrays welcome
+        return pixels.to(self.model.device, self.model.dtype)
+
+    def state_token_ids(self, state) -> list[int]:
+        """The discretised proprio state as action-bin token ids."""
+        state = np.asarray(state, dtype=np.float64).reshape(-1)
+        if state.shape[0] != self.config.state_dim:
+            raise ValueError(f"state must have {self.config.state_dim} numbers, got {state.shape[0]}")
+        normalized = self.state_normalizer.normalize(state) if self.state_normalizer else np.clip(state, -1, 1)
+        return self.action_tokenizer.encode(normalized).tolist()
+
+    def _encode(self, text: str) -> list[int]:
+        return self.tokenizer(text.lower(), add_special_tokens=False)["input_ids"]
+
+    def prompt_ids(self, instruction: str, state=None) -> list[int]:
+        """Token ids of the prompt (see module docstring)."""
+        if instruction not in self._prefix_cache:
+            text = f"In: What action should the robot take to {instruction.lower().strip().rstrip('.')}?"
+            image_id = self.tokenizer.convert_tokens_to_ids("<image>")
+            prefix = [self.tokenizer.bos_token_id] + [image_id] * self.config.num_image_tokens + self._encode(text)
+            self._prefix_cache[instruction] = prefix
+        ids = list(self._prefix_cache[instruction])
+        if self.config.use_state:
+            if state is None:
+                raise ValueError("this policy was built with use_state=True: pass state=[x, y, z, gripper]")
+            ids += self._state_word + self.state_token_ids(state)
+        return ids + self._out_words
+
+    def action_token_ids(self, actions) -> np.ndarray:
+        """Raw actions ``[..., action_dim]`` -> their token ids (normalised with the policy's statistics)."""
+        return self.action_tokenizer.encode(self.action_normalizer.normalize(actions))
+
+    def training_batch(
+        self, images, states, actions, instructions: list[str], scene_states=None
+    ) -> dict[str, torch.Tensor]:
+        """Teacher-forcing inputs for behaviour cloning: ``input_ids`` ``[B, L]`` (right-padded), ``attention_mask``,
+        ``pixel_values``, ``labels`` (-100 except on the target tokens: the ``chunk_length * action_dim`` action
+        tokens, then, when ``config.scene_state_dim``, the discretised ``scene_states`` ``[B, scene_state_dim]``).
+
+        ``actions``: ``[B, action_dim]`` for a policy without chunks, ``[B, chunk_length, action_dim]`` (the frame's
+        action and the next ones) for any policy.
+        """
+        target_ids = self.action_token_ids(self._check_action_chunks(np.asarray(actions)))  # [B, H, A]
+        target_ids = target_ids.reshape(len(target_ids), -1)  # [B, H * A]
+        if self.config.scene_state_dim:
+            if scene_states is None:
+                raise ValueError(
+                    f"this policy learns scene_state_dim={self.config.scene_state_dim} scene targets: pass "
+                    "scene_states (demonstrations with the scene_state column)"
+                )
+            scene_ids = self.action_tokenizer.encode(self.scene_normalizer.normalize(np.asarray(scene_states)))
+            target_ids = np.concatenate([target_ids, scene_ids], axis=1)  # [B, A + scene_state_dim]
+        targets = target_ids.shape[1]
+        sequences = [
+            self.prompt_ids(instruction, state) + ids.tolist()
+            for instruction, state, ids in zip(instructions, states, target_ids)
+        ]
+        length = max(len(s) for s in sequences)
+        input_ids = torch.full((len(sequences), length), self.tokenizer.pad_token_id, dtype=torch.long)
+        attention_mask = torch.zeros_like(input_ids)
+        labels = torch.full_like(input_ids, -100)
+        for i, seq in enumerate(sequences):
+            input_ids[i, : len(seq)] = torch.tensor(seq)
+            attention_mask[i, : len(seq)] = 1
+            labels[i, len(seq) - targets : len(seq)] = input_ids[i, len(seq) - targets : len(seq)]
+        return {
+            "input_ids": input_ids.to(self.model.device),
+            "attention_mask": attention_mask.to(self.model.device),
+            "pixel_values": self.preprocess_images(images),
+            "labels": labels.to(self.model.device),
+        }
+
+    def _check_action_chunks(self, actions: np.ndarray) -> np.ndarray:
+        """``actions`` as ``[B, chunk_length, action_dim]``; a clear error for another layout."""
+        chunk, dim = self.config.chunk_length, self.config.action_dim
+        if actions.ndim == 2 and chunk == 1:
+            actions = actions[:, None]
+        if actions.ndim != 3 or actions.shape[1:] != (chunk, dim):
+            expected = f"[B, {chunk}, {dim}]" + (f" or [B, {dim}]" if chunk == 1 else "")
+            raise ValueError(
+                f"this policy predicts chunks of chunk_length={chunk} actions of action_dim={dim}: training actions "
+                f"must have shape {expected}, got {list(actions.shape)}"
+            )
+        return actions
+
+    # ----------------------------------------------------------------------------- acting
+    def check_env_config(self, env_config) -> None:
+        """Raises ValueError when an [`EnvConfig`] renders other images than the ones this policy was trained on."""
+        if env_config.image_size != self.config.image_size:
+            raise ValueError(
+                f"the policy reads {self.config.image_size}px images, the env makes {env_config.image_size}px"
+            )
+        if env_config.camera != self.config.camera:
+            raise ValueError(
+                f"the policy was trained on camera {self.config.camera!r}, the env renders {env_config.camera!r}; "
+                f"use EnvConfig(camera={self.config.camera!r})"
+            )
+
+    def reset(self) -> None:
+        """Start of an episode: forgets the previous actions (the action prior's drafts)."""
+        self.previous_action_ids = []
+
+    @torch.no_grad()
+    def predict_action(
+        self,
+        image,
+        instruction,
+        state=None,
+        return_output: bool = False,
+        action_prior: bool = False,
+        previous_action_ids: list[list[list[int]]] | None = None,
+        **generate_kwargs,
+    ):
+        """The action for one observation, or the actions for a batch of observations (one ``generate`` call).
+
+        Args:
+            image: uint8 ``[S, S, 3]`` RGB, or ``[B, S, S, 3]`` for a batch (e.g. B environments in lockstep).
+            instruction: the task in words (for a batch: one per row, or one for all rows).
+            state: the proprio state ``[state_dim]`` (``[B, state_dim]`` for a batch; required when
+                ``config.use_state``).
+            return_output: also return ``generate``'s output (with ``return_dict_in_generate=True``: sequences,
+                and ``.speculation`` when speculative decoding ran; per row in ``.speculation.rows`` for a batch).
+            action_prior: draft this action from the episode's previous actions ([`ActionPriorDrafter`]), verified
+                inside the prefill; combined with ``assistant_model`` when one is given (the head continues where
+                the prior's drafts stop being accepted). No effect on the first step of an episode.
+            previous_action_ids: for a batch, each row's episode memory (its previous actions as token ids, oldest
+                first): read by ``action_prior`` and updated in place with the new actions. A single observation
+                uses the policy's own ``previous_action_ids`` (cleared by ``reset``).
+            generate_kwargs: anything ``generate`` accepts, e.g. ``assistant_model=draft_head, bin_tolerance=2``.
+
+        Returns:
+            the un-normalised action, float64 ``[action_dim]`` (``[B, action_dim]`` for a batch), and the generate
+            output if ``return_output``.
+
+        Raises:
+            ValueError: a batch whose images, instructions, states or memories disagree in number.
+        """
+        batched = np.asarray(image).ndim == 4
+        if not batched:
+            if previous_action_ids is not None:
+                raise ValueError("previous_action_ids is for a batch of images; one observation uses the policy's own")
+            histories = [list(self.previous_action_ids)]  # a new list: callers may hold the old one
+            images, instructions, states = np.asarray(image)[None], [instruction], [state]
+        else:
+            images = np.asarray(image)
+            count = len(images)
+            instructions = [instruction] * count if isinstance(instruction, str) else list(instruction)
+            self._rows("instruction", instructions, count)
+            states = [None] * count if state is None else self._rows("state", list(np.asarray(state)), count)
+            histories = [[] for _ in images] if previous_action_ids is None else previous_action_ids
+            self._rows("previous_action_ids", histories, count)
+        actions, output = self._act(images, instructions, states, histories, action_prior, return_output,
+                                    generate_kwargs)  # fmt: skip
+        if not batched:
+            self.previous_action_ids = histories[0]
+            actions = actions[0]
+        return (actions, output) if return_output else actions
+
+    def action_steps(self, actions: np.ndarray) -> list[np.ndarray]:
+        """One observation's ``predict_action`` output as the env steps to run, in order: ``[action]`` for a policy
+        without chunks, the chunk's H actions for a chunked one (a chunk is executed whole before the next call)."""
+        actions = np.asarray(actions)
+        return list(actions) if self.config.chunk_length > 1 else [actions]
+
+    @staticmethod
+    def _rows(name: str, values: list, batch_size: int) -> list:
+        if len(values) != batch_size:
+            raise ValueError(f"a batch of {batch_size} images needs {batch_size} {name} rows, got {len(values)}")
+        return values
+
+    def _act(self, images, instructions, states, histories, action_prior, return_output, generate_kwargs):
+        """One ``generate`` over the batch (prompts left-padded); updates ``histories`` in place."""
+        prompts = [self.prompt_ids(i, s) for i, s in zip(instructions, states)]
+        width = max(len(p) for p in prompts)
+        pad_id = self.tokenizer.pad_token_id
+        input_ids = torch.tensor([[pad_id] * (width - len(p)) + p for p in prompts], device=self.model.device)
+        inputs = {"input_ids": input_ids, "pixel_values": self.preprocess_images(images)}
+        if any(len(p) < width for p in prompts):
+            mask = [[0] * (width - len(p)) + [1] * len(p) for p in prompts]
+            inputs["attention_mask"] = torch.tensor(mask, device=self.model.device)
+        tokens = self.config.action_tokens
+        kwargs = dict(max_new_tokens=tokens, min_new_tokens=tokens, do_sample=False, pad_token_id=pad_id)
+        if return_output:
+            kwargs["return_dict_in_generate"] = True
+        kwargs.update(generate_kwargs)
+        drafter = self._drafter(kwargs.pop("assistant_model", None), action_prior, kwargs.pop("num_draft_tokens", None),
+                                histories)  # fmt: skip
+        if drafter is not None:
+            kwargs["assistant_model"] = drafter
+            kwargs.setdefault("action_layout", self.action_layout)
+        elif action_prior:  # the episodes' first step: nothing to draft from, plain greedy decoding
+            for name in SPECULATION_KWARGS:
+                kwargs.pop(name, None)
+        output = self.model.generate(**inputs, **kwargs)
+        sequences = output.sequences if hasattr(output, "sequences") else output
+        chunk, dim = self.config.chunk_length, self.config.action_dim
+        action_ids = sequences[:, -chunk * dim :].reshape(-1, chunk, dim)  # [B, H, A]
+        for history, ids in zip(histories, action_ids):
+            if bool(self.action_tokenizer.is_action_token(ids).all()):  # an untrained model may emit text ids
+                history[:] = [*history, *ids.tolist()][-self.HISTORY_LENGTH :]
+            else:
+                history.clear()
+        actions = self.action_normalizer.unnormalize(self.action_tokenizer.decode(action_ids))  # [B, H, A]
+        return (actions[:, 0] if chunk == 1 else actions), output
+
+    def _drafter(
+        self, assistant: DraftHead | Drafter | None, action_prior: bool, num_draft_tokens, histories
+    ) -> Drafter | None:
+        """The drafter for this step: the assistant's, the action prior's, or both composed (prior first); one
+        per row (a [`PerRowDrafter`]) when the rows' memories differ."""
+        if num_draft_tokens is not None and assistant is None:
+            raise ValueError("num_draft_tokens needs assistant_model=<DraftHead>")
+        drafter = as_drafter(assistant, num_draft_tokens)
+        if not action_prior:
+            return drafter
+        return with_action_priors(drafter, histories, self.action_layout, self.config.chunk_length)
+
+    def weights_fingerprint(self) -> str:
+        """Content fingerprint of the model's weights (computed once; a policy's weights do not change at
+        inference)."""
+        if self._weights_fingerprint is None:
+            self._weights_fingerprint = fingerprint(self.model)
+        return self._weights_fingerprint
+
+    def check_draft_head(self, draft_head: DraftHead) -> None:
+        """Raises ValueError when ``draft_head`` was made for another model (shapes, or distilled from other
+        weights: see [`DraftHead.check_target`])."""
+        draft_head.check_target(self.model, self.weights_fingerprint())
+
+    # ----------------------------------------------------------------------------- persistence
+    def save_pretrained(self, folder: str | Path) -> None:
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        self.model.save_pretrained(folder)
+        self.tokenizer.save_pretrained(folder)
+        (folder / POLICY_CONFIG_NAME).write_text(json.dumps(asdict(self.config), indent=2))
+
+    @classmethod
+    def from_pretrained(cls, folder: str | Path, **model_kwargs) -> VLAPolicy:
+        """Loads a policy folder written by ``save_pretrained``.
+
+        Raises:
+            FileNotFoundError: naming the missing folder or file.
+        """
+        folder = Path(folder)
+        if not folder.is_dir():
+            raise FileNotFoundError(f"policy folder {str(folder)!r} does not exist")
+        if not (folder / POLICY_CONFIG_NAME).exists():
+            raise FileNotFoundError(
+                f"{str(folder)!r} has no {POLICY_CONFIG_NAME}: not a policy saved by VLAPolicy.save_pretrained "
+                f"(or hf-specvla train-vla)"
+            )
+        config = VLAPolicyConfig(**json.loads((folder / POLICY_CONFIG_NAME).read_text()))
+        with named_weight_errors(folder, "policy"):
+            model = LlavaForConditionalGeneration.from_pretrained(folder, **model_kwargs)
+        tokenizer = PreTrainedTokenizerFast.from_pretrained(folder)
+        policy = cls(model.eval(), tokenizer, config)
+        policy.name_or_path = str(folder)
+        return policy

@@ -1,0 +1,20 @@
+"""Training: one loop (``training.loop``) behind behaviour cloning of the Meta-World policy, draft-head
+distillation and the toy target; checkpoints and resumable run folders; the draft-head recipes for a policy and
+for OpenVLA.
+
+``from hf_specvla.training import DraftTrainingConfig, train_draft_head`` keeps working: the draft-head names
+are re-exported here.
+"""
+
+from .._lazy import lazy_exports
+
+_EXPORTS = {
+    ".configuration": ("DraftDataConfig", "DraftTrainingConfig", "TrainingConfig", "VLATrainingConfig"),
+    ".loop": ("TRAINING_LOG", "VALIDATION_LOG", "TrainingJob", "learning_rate_factor", "run_training"),
+    ".draft_head": ("build_distillation_dataset", "collate_distillation", "distillation_loss", "draft_training_record",
+                    "speculative_acceptance", "train_draft_head"),
+    ".behaviour_cloning": ("train_vla",),
+}  # fmt: skip
+__all__ = sorted(name for names in _EXPORTS.values() for name in names)
+
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())

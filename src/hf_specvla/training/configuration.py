@@ -1,0 +1,178 @@
+"""Training settings, defined once: the draft-head distillation run, behaviour cloning of the Meta-World policy,
+the data a policy's draft head learns from, and ``train-draft``'s defaults for policy-sized targets.
+
+Plain validated dataclasses (no torch): the CLI reads its defaults here without loading a model library.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..metaworld.env import resolve_tasks
+from ..metaworld.seeds import DRAFT_SEED_START
+
+
+def check_ranges(config, at_least_one=(), positive=(), non_negative=()) -> None:
+    """Raises ValueError naming the first field of ``config`` out of its range (``config.<name> must be ...``)."""
+    kind = type(config).__name__
+    for names, ok, rule in ((at_least_one, lambda v: v >= 1, ">= 1"), (positive, lambda v: v > 0, "> 0"),
+                            (non_negative, lambda v: v >= 0, ">= 0")):  # fmt: skip
+        for name in names:
+            value = getattr(config, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not ok(value):
+                raise ValueError(f"{kind}.{name} must be a number {rule}, got {value!r}")
+
+
+@dataclass
+class TrainingConfig:
+    """The training loop's settings ([`run_training`]), shared by every trainer; each trainer's config extends it
+    with its own fields and defaults.
+
+    Args:
+        output_dir: checkpoints (``checkpoint-<step>/``), logs and the final model go here.
+        max_steps: optimizer steps.
+        batch_size: examples per step per process.
+        learning_rate, betas, weight_decay, max_grad_norm: AdamW + gradient clipping.
+        warmup_steps: linear warm-up steps.
+        lr_schedule: after warm-up, "constant" or "cosine" (decays to 0 at max_steps).
+        save_every: steps between checkpoints (0 = none on the way; the last step always gets one).
+        eval_every: steps between validations (0 = only after the last step).
+        log_every: steps between lines of ``training_log.jsonl``.
+        keep_checkpoints: most recent checkpoints kept on disk.
+        resume: continue from the newest ``checkpoint-*`` in output_dir if there is one.
+        overwrite_output_dir: train from scratch into a non-empty output_dir: the previous contents are moved aside
+            whole to ``<output_dir>.replaced-<UTC time>`` (nothing deleted, nothing of the old run mixed in).
+        seed: data order and per-step noise.
+        mixed_precision: accelerate's "no" / "fp16" / "bf16".
+    """
+
+    output_dir: str
+    max_steps: int = 1000
+    batch_size: int = 32
+    learning_rate: float = 1e-3
+    betas: tuple[float, float] = (0.9, 0.999)
+    weight_decay: float = 0.0
+    max_grad_norm: float = 1.0
+    warmup_steps: int = 0
+    lr_schedule: str = "constant"
+    save_every: int = 500
+    eval_every: int = 0
+    log_every: int = 100
+    keep_checkpoints: int = 2
+    resume: bool = False
+    overwrite_output_dir: bool = False
+    seed: int = 0
+    mixed_precision: str = "no"
+
+    def __post_init__(self):
+        check_ranges(self, at_least_one=("max_steps", "batch_size", "log_every", "keep_checkpoints"),
+                     positive=("learning_rate", "max_grad_norm"),
+                     non_negative=("weight_decay", "warmup_steps", "save_every", "eval_every"))  # fmt: skip
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
+        if self.mixed_precision not in ("no", "fp16", "bf16"):
+            raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
+
+
+@dataclass
+class DraftTrainingConfig(TrainingConfig):
+    """Settings of [`train_draft_head`]: the loop's ([`TrainingConfig`]) with the paper's defaults for a 7B target
+    (AdamW 5e-5, betas (0.9, 0.95), no weight decay, clipping at 0.5; a toy target wants a larger learning rate),
+    and the distillation's own.
+
+    Args:
+        feature_loss_weight / token_loss_weight: weights of the SmoothL1 feature loss and the soft cross-entropy.
+        feature_noise: width of the uniform noise added to the input hidden states (U(-a/2, a/2)).
+    """
+
+    output_dir: str
+    max_steps: int = 2000
+    batch_size: int = 8
+    learning_rate: float = 5e-5
+    betas: tuple[float, float] = (0.9, 0.95)
+    max_grad_norm: float = 0.5
+    feature_loss_weight: float = 1.0
+    token_loss_weight: float = 0.1
+    feature_noise: float = 0.2
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_ranges(self, non_negative=("feature_noise", "feature_loss_weight", "token_loss_weight"))
+
+
+@dataclass
+class VLATrainingConfig(TrainingConfig):
+    """Settings of [`train_vla`]: the loop's ([`TrainingConfig`]) with behaviour cloning's defaults (AdamW 1e-3,
+    weight decay 0.01, 200 warm-up steps then cosine decay), and its own.
+
+    Args:
+        val_episodes: episodes per task held out for validation.
+        augment_shift: pixels of random-shift augmentation (0 = off).
+        scene_loss_weight: weight of the scene-state tokens' loss against the action tokens' (policies with
+            ``scene_state_dim`` only).
+    """
+
+    output_dir: str
+    max_steps: int = 6000
+    batch_size: int = 64
+    weight_decay: float = 0.01
+    warmup_steps: int = 200
+    lr_schedule: str = "cosine"
+    eval_every: int = 500
+    save_every: int = 1000
+    val_episodes: int = 2
+    augment_shift: int = 4
+    scene_loss_weight: float = 0.5
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_ranges(self, non_negative=("val_episodes", "augment_shift", "scene_loss_weight"))
+
+
+#: ``train-draft``'s training settings for a policy-sized target (a few-million-parameter policy on a CPU): a
+#: larger learning rate than [`DraftTrainingConfig`]'s (the paper's, for a 7B target). The chain length is not
+#: here: it defaults to the policy's tokens per call minus one (the prefill makes the first token, so 3 drafted
+#: tokens complete a 4-token action and 7 a chunk of two).
+POLICY_DRAFT_DEFAULTS = dict(max_steps=3000, batch_size=32, learning_rate=3e-3,
+                             lr_schedule="cosine", warmup_steps=50, eval_every=500, save_every=500)  # fmt: skip
+
+
+@dataclass
+class DraftDataConfig:
+    """What a policy's draft head learns from.
+
+    Args:
+        tasks: Meta-World tasks (names or a suite, e.g. "MT10").
+        rollout_episodes: greedy on-policy episodes per task (seeds ``rollout_seed_start``, +1, ...); the last
+            ``validation_episodes`` of each task are held out for validation.
+        rollout_max_steps: policy calls kept per rollout (an episode is cut there; a chunked policy takes H env
+            steps per call).
+        rollout_seed_start: first rollout seed.
+        validation_episodes: held-out rollouts per task (>= 1).
+        validation_frames: at most this many held-out frames are validated (evenly spread; the engine runs once
+            per frame).
+        demo_frames_per_task: frames sampled per task from the demonstration folders (when given).
+        prompt_batch_size: prompts per batched greedy pass when the targets are computed.
+        seed: the demonstration sampling.
+    """
+
+    tasks: str | list[str] = "MT10"
+    rollout_episodes: int = 6
+    rollout_max_steps: int = 150
+    rollout_seed_start: int = DRAFT_SEED_START
+    validation_episodes: int = 1
+    validation_frames: int = 200
+    demo_frames_per_task: int = 300
+    prompt_batch_size: int = 32
+    seed: int = 0
+
+    def __post_init__(self):
+        self.tasks = resolve_tasks(self.tasks)
+        check_ranges(self, at_least_one=("rollout_max_steps", "validation_episodes", "validation_frames",
+                                         "prompt_batch_size"),
+                     non_negative=("demo_frames_per_task", "rollout_seed_start"))  # fmt: skip
+        if self.rollout_episodes <= self.validation_episodes:
+            raise ValueError(
+                f"rollout_episodes ({self.rollout_episodes}) must exceed validation_episodes "
+                f"({self.validation_episodes}): the last validation_episodes rollouts of each task are held out"
+            )

@@ -1,0 +1,297 @@
+"""Draft-head training by self-distillation from a frozen target, on accelerate.
+
+Recipe (Spec-VLA section 3.2, following EAGLE):
+
+1. [`build_distillation_dataset`]: run the target greedily over the prompts (images + text); keep the full
+   sequence (prompt + the target's *own* action tokens) and the target's last hidden state at every position.
+2. [`train_draft_head`]: teacher-forced draft forward over ``(x[p+1], h[p] + noise)``; loss on the positions whose
+   next token is a generated action token:
+
+       loss = feature_loss_weight * SmoothL1(features[p], h[p+1])
+            + token_loss_weight   * CE(softmax(lm_head(h[p+1])), log_softmax(lm_head(features[p])))
+
+   AdamW (betas 0.9/0.95), gradient clipping, uniform feature noise. Periodic ``save_pretrained`` checkpoints
+   with full accelerate state (optimizer, RNG), resumable. The same code runs on one CPU or many GPUs
+   (``accelerate launch``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import torch
+from accelerate import Accelerator
+from accelerate.utils import DataLoaderConfiguration
+from torch.utils.data import Dataset
+from transformers import PreTrainedModel
+
+from ..progress import progress_bar
+from ..run_folder import fingerprint, fingerprint_arrays
+from ..speculative import (
+    DraftHead,
+    SpeculationStats,
+    TargetHandles,
+    causal_mask,
+    embed_tokens,
+    softcap_logits,
+    speculative_generate,
+)
+from .checkpoints import latest_checkpoint, prepare_output_dir, training_record
+from .configuration import DraftTrainingConfig
+from .loop import TrainingJob, run_training
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "DraftTrainingConfig",
+    "build_distillation_dataset",
+    "latest_checkpoint",
+    "speculative_acceptance",
+    "train_draft_head",
+]
+
+
+# ----------------------------------------------------------------------------- data
+class DistillationDataset(Dataset):
+    """Sequences the target generated, with its hidden states.
+
+    Each item: ``input_ids`` ``[L]`` (prompt + generated tokens), ``hidden`` ``[L, H]`` (the target's last hidden
+    state at each position), ``loss_mask`` ``[L]`` (True at positions p whose token x[p+2] is a generated action
+    token, i.e. where the draft head's prediction is used).
+    """
+
+    def __init__(self, examples: list[dict[str, torch.Tensor]]):
+        if not examples:
+            raise ValueError("a DistillationDataset needs at least one example")
+        self.examples = examples
+
+    def __len__(self) -> int:
+        return len(self.examples)
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        return self.examples[index]
+
+    def save(self, path: str | Path) -> None:
+        torch.save(self.examples, path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> DistillationDataset:
+        return cls(torch.load(path, weights_only=True))
+
+
+@torch.no_grad()
+def build_distillation_dataset(
+    target: PreTrainedModel,
+    prompts: Iterable[dict[str, torch.Tensor]],
+    max_new_tokens: int,
+    action_tokenizer,
+    progress: bool = True,
+) -> DistillationDataset:
+    """Runs the target greedily on each prompt and records its sequence and hidden states.
+
+    Args:
+        target: the frozen target (any model ``generate`` works on; images go in the prompt dicts).
+        prompts: model inputs, e.g. ``{"input_ids": [B, S], "pixel_values": [B, 3, H, W]}``. A dict may hold
+            several examples (batched generation) when it has no padding; with an ``attention_mask`` that has
+            padding, give one example per dict.
+        max_new_tokens: tokens the target generates (an action's worth: OpenVLA 7).
+        action_tokenizer: which generated tokens count for the loss.
+    """
+    target.eval()
+    examples = []
+    for inputs in progress_bar(list(prompts), desc="self-distillation data", disable=not progress):
+        inputs = {k: v.to(target.device) if isinstance(v, torch.Tensor) else v for k, v in inputs.items()}
+        mask = inputs.get("attention_mask")
+        if inputs["input_ids"].shape[0] != 1 and mask is not None and not bool(mask.all()):
+            raise ValueError("prompts with padding must be given one example per dict (batch size 1)")
+        # Greedy to exactly max_new_tokens tokens, so every example has the same layout.
+        sequences = target.generate(
+            **inputs, max_new_tokens=max_new_tokens, min_new_tokens=max_new_tokens, do_sample=False
+        )  # [B, L]
+        forward_inputs = dict(inputs, input_ids=sequences)
+        if mask is not None:
+            forward_inputs["attention_mask"] = torch.cat([mask, mask.new_ones(mask.shape[0], max_new_tokens)], 1)
+        hidden = target(**forward_inputs, output_hidden_states=True).hidden_states[-1]  # [B, L, H]
+        prompt_len, length = inputs["input_ids"].shape[1], sequences.shape[1]
+        positions = torch.arange(length)
+        for ids, states in zip(sequences.cpu(), hidden.cpu()):
+            generated_action = (positions >= prompt_len) & action_tokenizer.is_action_token(ids)
+            loss_mask = torch.zeros(length, dtype=torch.bool)
+            loss_mask[: length - 2] = generated_action[2:]  # position p predicts token p+2
+            examples.append({"input_ids": ids, "hidden": states, "loss_mask": loss_mask})
+    return DistillationDataset(examples)
+
+
+def collate_distillation(batch: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Right-pads a list of dataset items to ``input_ids`` ``[B, L]``, ``hidden`` ``[B, L, H]``,
+    ``loss_mask`` ``[B, L]``, ``padding_mask`` ``[B, L]`` (True = real token)."""
+    length = max(item["input_ids"].shape[0] for item in batch)
+    hidden_size = batch[0]["hidden"].shape[-1]
+    out = {
+        "input_ids": torch.zeros(len(batch), length, dtype=torch.long),
+        "hidden": torch.zeros(len(batch), length, hidden_size, dtype=batch[0]["hidden"].dtype),
+        "loss_mask": torch.zeros(len(batch), length, dtype=torch.bool),
+        "padding_mask": torch.zeros(len(batch), length, dtype=torch.bool),
+    }
+    for i, item in enumerate(batch):
+        n = item["input_ids"].shape[0]
+        out["input_ids"][i, :n] = item["input_ids"]
+        out["hidden"][i, :n] = item["hidden"]
+        out["loss_mask"][i, :n] = item["loss_mask"]
+        out["padding_mask"][i, :n] = True
+    return out
+
+
+# ----------------------------------------------------------------------------- loss
+def distillation_loss(
+    draft_head: DraftHead,
+    handles: TargetHandles,
+    batch: dict[str, torch.Tensor],
+    config: DraftTrainingConfig,
+    generator: torch.Generator | None = None,
+) -> dict[str, torch.Tensor]:
+    """EAGLE objective on one batch (see module docstring). Returns ``loss``, ``feature_loss``, ``token_loss``
+    and ``token_accuracy`` (draft argmax == target argmax on the loss positions)."""
+    input_ids, hidden = batch["input_ids"], batch["hidden"]  # [B, L], [B, L, H]
+    length = input_ids.shape[1]
+    dtype = next(draft_head.parameters()).dtype
+    hidden = hidden.to(dtype)
+    inputs_hidden = hidden[:, :-1]  # h[p], p = 0..L-2
+    if config.feature_noise > 0:
+        noise = torch.rand(inputs_hidden.shape, generator=generator, device="cpu").to(inputs_hidden.device)
+        inputs_hidden = inputs_hidden + (noise - 0.5) * config.feature_noise
+    token_embeds = embed_tokens(handles, input_ids[:, 1:]).to(dtype)  # x[p+1]
+    positions = torch.arange(length - 1, device=input_ids.device)[None].expand(input_ids.shape[0], -1)
+    mask = causal_mask(length - 1, 0, dtype, input_ids.device, batch["padding_mask"][:, :-1])
+    features = draft_head(token_embeds, inputs_hidden, positions, mask)  # [B, L-1, H] ~ h[p+1]
+
+    target_features = hidden[:, 1:]
+    loss_mask = batch["loss_mask"][:, :-1]  # [B, L-1]
+    n = loss_mask.sum().clamp(min=1)
+    feature_loss = torch.nn.functional.smooth_l1_loss(features, target_features, reduction="none").mean(-1)
+    feature_loss = (feature_loss * loss_mask).sum() / n
+    cap = draft_head.config.final_logit_softcapping  # the target caps its logits (Gemma-2): so does the loss
+    selected_features = features[loss_mask]  # [N, H]
+    with torch.no_grad():
+        target_logits = softcap_logits(handles.lm_head(target_features[loss_mask]).float(), cap)
+        target_probs = target_logits.softmax(-1)
+    draft_logits = softcap_logits(handles.lm_head(selected_features).float(), cap)
+    token_loss = -(target_probs * draft_logits.log_softmax(-1)).sum(-1).mean() if len(draft_logits) else n * 0.0
+    accuracy = (draft_logits.argmax(-1) == target_logits.argmax(-1)).float().mean() if len(draft_logits) else n * 0.0
+    loss = config.feature_loss_weight * feature_loss + config.token_loss_weight * token_loss
+    return {"loss": loss, "feature_loss": feature_loss, "token_loss": token_loss, "token_accuracy": accuracy}
+
+
+# ----------------------------------------------------------------------------- training
+def train_draft_head(
+    draft_head: DraftHead,
+    target: PreTrainedModel,
+    dataset: DistillationDataset,
+    config: DraftTrainingConfig,
+    accelerator: Accelerator | None = None,
+    progress: bool = True,
+    validate: Callable[[DraftHead], dict] | None = None,
+    inputs: dict | None = None,
+    target_fingerprint: str | None = None,
+    paths: dict | None = None,
+) -> DraftHead:
+    """Trains ``draft_head`` against the frozen ``target`` on a [`DistillationDataset`].
+
+    Only the draft head is optimised; the target's embedding and lm_head are used frozen. Checkpoints
+    (``output_dir/checkpoint-<step>/``: the head via ``save_pretrained`` plus the accelerate state) are written
+    every ``save_every`` steps and after the last one; with ``resume=True`` training continues from the newest
+    one (so a finished run can be continued with a larger ``max_steps``). The final head is
+    saved to ``output_dir`` and returned (unwrapped, in eval mode).
+
+    Args:
+        validate: called with the head (in eval mode, without gradients) every ``eval_every`` steps and after the
+            last one, e.g. ``lambda head: speculative_acceptance(target, head, held_out_prompts, 7)``; its numbers
+            are logged and appended to ``output_dir/validation.jsonl`` with the step.
+        inputs: what the data is, for the folder's ``run.json`` (so that ``resume`` refuses a run fed from elsewhere):
+            by default a fingerprint of the dataset's token ids; a caller whose data is a deterministic recipe
+            (e.g. a policy's rollouts on given seeds) passes the recipe, and can check the folder with
+            [`draft_training_record`] and ``checkpointing.check_output_dir`` before building the data.
+        target_fingerprint: ``run_folder.fingerprint(target)`` when the caller already has it (hashed otherwise).
+        paths: where the inputs were read from, recorded in ``run.json`` for people (never compared).
+    """
+    output_dir = Path(config.output_dir)
+    if inputs is None:
+        inputs = {"data": fingerprint_arrays(*[example["input_ids"] for example in dataset.examples])}
+    record = draft_training_record(draft_head, target_fingerprint or fingerprint(target), config, inputs, paths)
+    with prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir) as run:
+        accelerator = accelerator or Accelerator(
+            mixed_precision=config.mixed_precision,
+            dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
+        )
+        handles = draft_head.target_handles(target)
+        for module in handles:
+            module.requires_grad_(False)
+        generator = torch.Generator()
+
+        def loss(model: DraftHead, batch: dict, step: int):
+            # Noise seeded per step (and process), so a resumed run draws what an uninterrupted one would.
+            generator.manual_seed(hash((config.seed, step, accelerator.process_index)) % 2**63)
+            losses = distillation_loss(model, handles, batch, config, generator)
+            return losses["loss"], {name: value.detach() for name, value in losses.items()}
+
+        job = TrainingJob(
+            draft_head, dataset, loss, save=lambda model, folder: model.save_pretrained(folder), validate=validate,
+            collate_fn=collate_distillation, checkpoint_name="draft_head", description="train draft head",
+        )  # fmt: skip
+        model, _ = run_training(job, config, run.bound, accelerator, progress)  # run.bound: the claimed folder
+        return model
+
+
+def draft_training_record(
+    draft_head: DraftHead, target_fingerprint: str, config: DraftTrainingConfig, inputs: dict, paths: dict | None = None
+):
+    """The ``run.json`` record of a draft-head training: its settings, the target's weights (``fingerprint``) and
+    the head's identity, and ``inputs`` (what the data is). The target's path is recorded under ``paths`` (a copy of
+    the same target elsewhere continues the run)."""
+    head_config = {k: v for k, v in draft_head.config.to_dict().items() if k != "transformers_version"}
+    target_path = head_config.pop("target_name_or_path", None)
+    identity = {"target": target_fingerprint, "draft_head_config": head_config}
+    return training_record("train-draft", config, {**identity, **inputs}, {"target": target_path, **(paths or {})})
+
+
+@torch.no_grad()
+def speculative_acceptance(
+    target: PreTrainedModel,
+    draft_head: DraftHead,
+    prompts: Iterable[dict[str, torch.Tensor]],
+    max_new_tokens: int,
+    **generate_kwargs,
+) -> dict:
+    """What speculative decoding with ``draft_head`` does on held-out ``prompts``, at ``bin_tolerance=0`` unless
+    ``generate_kwargs`` say otherwise: the engine itself runs, so these are the numbers a user will see.
+
+    Args:
+        prompts: model inputs of one example each (``input_ids`` ``[1, S]``, images...).
+        generate_kwargs: more speculation settings (``num_draft_tokens``, ``action_layout``...).
+
+    Returns:
+        ``acceptance_per_position`` (``[d]``: of the verifications that drafted a token at depth d, the fraction
+        that accepted it), ``tokens_per_target_forward``, ``target_forwards_per_sequence`` and ``sequences``.
+    """
+    stats, sequences = SpeculationStats(), 0
+    for inputs in prompts:
+        if inputs["input_ids"].shape[0] != 1:
+            raise ValueError(f"speculative_acceptance takes prompts of one example, got {inputs['input_ids'].shape}")
+        inputs = {k: v.to(target.device) if isinstance(v, torch.Tensor) else v for k, v in inputs.items()}
+        output = target.generate(
+            **inputs, max_new_tokens=max_new_tokens, min_new_tokens=max_new_tokens, do_sample=False,
+            custom_generate=speculative_generate, drafter=draft_head, return_dict_in_generate=True,
+            **{"bin_tolerance": 0, **generate_kwargs},
+        )  # fmt: skip
+        stats = stats.merge(output.speculation)
+        sequences += 1
+    if not sequences:
+        raise ValueError("speculative_acceptance needs at least one prompt")
+    return {
+        "acceptance_per_position": [round(x, 4) for x in stats.acceptance_rate_per_position],
+        "tokens_per_target_forward": round(stats.tokens_per_target_forward, 4),
+        "target_forwards_per_sequence": round(stats.num_target_forwards / sequences, 4),
+        "sequences": sequences,
+    }

@@ -1,0 +1,242 @@
+"""A draft head for a [`VLAPolicy`]: what ``hf-specvla train-draft`` runs.
+
+Self-distillation (see [`hf_specvla.training.draft_head`]) on the policy's own greedy actions, over two kinds of frames:
+
+* **on-policy**: the states the policy itself reaches in greedy rollouts (seeds from ``DRAFT_SEED_START``,
+  400000), which is where the head is used; the last ``validation_episodes`` rollouts of every task are held out;
+* **demonstrations** (optional): frames of ``hf-specvla collect`` folders, sampled per task.
+
+Validation runs the speculative engine itself (draft-head chain, ``bin_tolerance=0``) on the held-out rollouts'
+frames and reports its per-position acceptance and tokens per target forward: the numbers a user will see.
+
+Seed ranges, kept apart: demonstrations 0.., evaluation 100000.., the second fidelity range 200000.., the episode
+benchmark 300000.., draft training 400000.., so that a head is never measured on a start it was trained on.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..metaworld.demonstrations import dataset_fingerprint, dataset_info, load_demonstrations
+from ..metaworld.env import TASK_INSTRUCTIONS, EnvConfig
+from ..metaworld.evaluation import record_observations
+from ..policies import VLAPolicy
+from ..run_folder import read_jsonl
+from ..speculative import DraftHead
+from .checkpoints import check_output_dir
+from .configuration import DraftDataConfig, DraftTrainingConfig
+from .draft_head import (
+    build_distillation_dataset,
+    draft_training_record,
+    speculative_acceptance,
+    train_draft_head,
+)
+from .loop import VALIDATION_LOG
+
+logger = logging.getLogger(__name__)
+
+MODEL_CARD = "README.md"
+
+
+# ----------------------------------------------------------------------------- frames
+def rollout_frames(policy: VLAPolicy, config: DraftDataConfig, env_config: EnvConfig) -> tuple[list, list]:
+    """Greedy rollouts of ``policy``: (training frames, held-out frames), each a list of observation dicts."""
+    seeds = [config.rollout_seed_start + i for i in range(config.rollout_episodes)]
+    held_out = set(seeds[-config.validation_episodes :])
+    train, validation = [], []
+    for task in config.tasks:
+        episodes = record_observations(policy, [task], seeds, config.rollout_max_steps, env_config)
+        for seed, episode in zip(seeds, episodes):
+            (validation if seed in held_out else train).extend(episode)
+    return train, validation
+
+
+def demonstration_frames(roots: list[str | Path], config: DraftDataConfig, policy: VLAPolicy) -> list[dict]:
+    """``demo_frames_per_task`` frames of each task sampled from demonstration folders (fewer if a task has
+    fewer); each an observation dict."""
+    info = dataset_info(roots)
+    if info.get("image_size") != policy.config.image_size or info.get("camera") != policy.config.camera:
+        raise ValueError(
+            f"the demonstrations have image_size={info.get('image_size')}, camera={info.get('camera')!r}; the policy "
+            f"sees image_size={policy.config.image_size}, camera={policy.config.camera!r}: collect them with the "
+            f"policy's settings"
+        )
+    demos = load_demonstrations(roots, config.tasks, progress=False)
+    rng = np.random.default_rng(config.seed)
+    tasks = np.asarray(demos.tasks)
+    frames = []
+    for task in config.tasks:
+        indices = np.flatnonzero(tasks == task)
+        if len(indices) == 0:
+            raise ValueError(f"the demonstrations in {[str(r) for r in roots]} have no frames of {task!r}")
+        chosen = np.sort(rng.choice(indices, min(config.demo_frames_per_task, len(indices)), replace=False))
+        frames.extend(
+            {"image": demos.images[i], "instruction": TASK_INSTRUCTIONS[task], "state": demos.states[i]} for i in chosen
+        )
+    return frames
+
+
+def policy_prompts(policy: VLAPolicy, frames: list[dict], batch_size: int) -> list[dict[str, torch.Tensor]]:
+    """Model inputs for ``frames``, batched by instruction (one prompt length per batch, so no padding):
+    ``input_ids`` ``[B, S]``, ``pixel_values`` ``[B, 3, H, W]``."""
+    by_instruction: dict[str, list[dict]] = {}
+    for frame in frames:
+        by_instruction.setdefault(frame["instruction"], []).append(frame)
+    prompts = []
+    for group in by_instruction.values():
+        for start in range(0, len(group), batch_size):
+            chunk = group[start : start + batch_size]
+            input_ids = torch.tensor([policy.prompt_ids(f["instruction"], f["state"]) for f in chunk])
+            pixel_values = policy.preprocess_images(np.stack([f["image"] for f in chunk]))
+            prompts.append({"input_ids": input_ids.to(policy.model.device), "pixel_values": pixel_values})
+    return prompts
+
+
+def _spread(frames: list, count: int) -> list:
+    """At most ``count`` of ``frames``, evenly spread (deterministic)."""
+    if len(frames) <= count:
+        return frames
+    return [frames[int(i)] for i in np.linspace(0, len(frames) - 1, count).round()]
+
+
+# ----------------------------------------------------------------------------- training
+def train_policy_draft_head(
+    policy: VLAPolicy,
+    training_config: DraftTrainingConfig,
+    data_config: DraftDataConfig | None = None,
+    demonstrations: list[str | Path] | tuple = (),
+    num_draft_tokens: int | None = None,
+    progress: bool = True,
+    command: str | None = None,
+) -> DraftHead:
+    """Trains a [`DraftHead`] for ``policy`` (see module docstring) into ``training_config.output_dir``.
+
+    The head records the policy it was distilled from (``target_name_or_path``, ``target_fingerprint``), so that
+    a head used with another policy is refused. The folder gets the head, ``validation.jsonl`` and a model card
+    (``README.md``, with the measured acceptance and ``command``). The folder rule (``run.json``: the policy's
+    weights, the data recipe, the training settings) is checked before any rollout runs.
+    """
+    data_config = data_config or DraftDataConfig()
+    demonstrations = [str(Path(root)) for root in demonstrations]
+    output_dir = Path(training_config.output_dir)
+    if num_draft_tokens is None:
+        num_draft_tokens = policy.config.action_tokens - 1
+    if num_draft_tokens < 1:
+        raise ValueError(f"num_draft_tokens must be >= 1, got {num_draft_tokens}")
+    env_config = EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)
+    torch.manual_seed(training_config.seed)
+    head = DraftHead.from_target(
+        policy.model, policy.action_tokenizer, action_dim=policy.config.action_dim, num_draft_tokens=num_draft_tokens,
+        target_name_or_path=policy.name_or_path, target_fingerprint=policy.weights_fingerprint(),
+    )  # fmt: skip
+    recipe = {"data": {**asdict(data_config),
+                       "demonstration_fingerprints": [dataset_fingerprint(root) for root in demonstrations],
+                       "demonstration_info": [dataset_info(root) for root in demonstrations]}}  # fmt: skip
+    paths = {"demonstrations": demonstrations}
+    record = draft_training_record(head, policy.weights_fingerprint(), training_config, recipe, paths)
+    check_output_dir(output_dir, record, training_config.resume, training_config.overwrite_output_dir)
+
+    logger.info("on-policy rollouts: %d per task on %d tasks", data_config.rollout_episodes, len(data_config.tasks))
+    train_frames, validation_frames = rollout_frames(policy, data_config, env_config)
+    if demonstrations:
+        train_frames += demonstration_frames(demonstrations, data_config, policy)
+    validation_frames = _spread(validation_frames, data_config.validation_frames)
+    logger.info("%d training frames, %d held-out frames", len(train_frames), len(validation_frames))
+    dataset = build_distillation_dataset(
+        policy.model, policy_prompts(policy, train_frames, data_config.prompt_batch_size), policy.config.action_tokens,
+        policy.action_tokenizer, progress=progress,
+    )  # fmt: skip
+    validation_prompts = policy_prompts(policy, validation_frames, batch_size=1)
+
+    def validate(draft_head: DraftHead) -> dict:
+        return speculative_acceptance(policy.model, draft_head, validation_prompts, policy.config.action_tokens,
+                                      action_layout=policy.action_layout)  # fmt: skip
+
+    head = train_draft_head(head, policy.model, dataset, training_config, progress=progress, validate=validate,
+                            inputs=recipe, target_fingerprint=policy.weights_fingerprint(), paths=paths)  # fmt: skip
+    write_model_card(output_dir, head, training_config, data_config, demonstrations, len(dataset), command,
+                     policy.config.action_tokens)  # fmt: skip
+    return head
+
+
+# ----------------------------------------------------------------------------- model card
+def write_model_card(
+    output_dir: Path,
+    head: DraftHead,
+    training_config: DraftTrainingConfig,
+    data_config: DraftDataConfig,
+    demonstrations: list[str],
+    num_examples: int,
+    command: str | None,
+    tokens_per_call: int | None = None,
+) -> None:
+    """``README.md`` with YAML metadata, as hub models have: target, data, command, measured acceptance."""
+    validations = read_jsonl(output_dir / VALIDATION_LOG)
+    final = validations[-1] if validations else {}
+    acceptance = final.get("acceptance_per_position", [])
+    rows = "\n".join(f"| {depth + 1} | {rate:.1%} |" for depth, rate in enumerate(acceptance))
+    config = head.config
+    tasks = ", ".join(data_config.tasks)
+    kept_rollouts = data_config.rollout_episodes - data_config.validation_episodes
+    demo_text = (
+        f"and {data_config.demo_frames_per_task} demonstration frames per task from {', '.join(demonstrations)}"
+        if demonstrations
+        else "(no demonstrations)"
+    )
+    card = f"""---
+library_name: hf_specvla
+pipeline_tag: robotics
+tags:
+- speculative-decoding
+- draft-head
+- eagle
+- vision-language-action
+base_model: {config.target_name_or_path}
+---
+
+# Draft head for `{config.target_name_or_path}`
+
+An EAGLE-style draft head (one decoder layer, {head.num_parameters():,} parameters) for speculative decoding of
+the vision-language-action policy `{config.target_name_or_path}` (weights fingerprint `{config.target_fingerprint}`;
+a head is refused by a policy with other weights). It borrows the policy's embedding and lm_head at run time.
+
+```python
+from hf_specvla import DraftHead
+from hf_specvla.policies import VLAPolicy
+
+policy = VLAPolicy.from_pretrained("{config.target_name_or_path}")
+draft_head = DraftHead.from_pretrained("{output_dir}")
+action = policy.predict_action(image, instruction, state, assistant_model=draft_head)  # identical to greedy
+```
+
+## Training
+
+Self-distillation on the policy's own greedy actions (`hf-specvla train-draft`), {num_examples} frames:
+greedy rollouts of the policy on {tasks} ({kept_rollouts} per task, seeds from {data_config.rollout_seed_start},
+cut at {data_config.rollout_max_steps} steps) {demo_text}; {training_config.max_steps} steps, batch
+{training_config.batch_size}, learning rate {training_config.learning_rate} ({training_config.lr_schedule}), chain
+length {config.num_draft_tokens}.
+
+```bash
+{command or "(trained from Python: hf_specvla.training.policy_draft.train_policy_draft_head)"}
+```
+
+## Measured acceptance
+
+The speculative engine itself (draft-head chain, `bin_tolerance=0`) on {final.get("sequences", 0)} held-out frames (the
+last {data_config.validation_episodes} rollout(s) of each task), after {final.get("step", 0)} steps: tokens per target
+forward **{final.get("tokens_per_target_forward", float("nan")):.2f}**, target forwards per action
+**{final.get("target_forwards_per_sequence", float("nan")):.2f}** (greedy: {tokens_per_call or config.action_dim}).
+
+| drafted position | accepted |
+|---:|---:|
+{rows}
+
+Every validation is in `validation.jsonl`; what produced this folder is in `run.json`.
+"""
+    (output_dir / MODEL_CARD).write_text(card)

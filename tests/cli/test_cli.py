@@ -1,0 +1,117 @@
+"""The command line: help shows examples; benchmark runs on a saved pipeline and refuses a wrong folder."""
+
+import pytest
+import torch
+
+from hf_specvla.cli import main
+
+
+def test_help_shows_examples(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    assert exit_info.value.code == 0
+    assert "hf-specvla demo" in capsys.readouterr().out
+
+
+def test_benchmark_on_saved_pipeline(toy_pipeline, capsys):
+    args = ["--prompts", "2", "--repeats", "1", "--chain-lengths", "6", "--bin-tolerances", "2"]
+    assert main(["benchmark", "--pipeline-dir", toy_pipeline.output_dir, *args]) == 0
+    out = capsys.readouterr().out
+    assert "| greedy |" in out and "| spec k=6 r=2 |" in out
+
+
+def test_benchmark_refuses_a_folder_without_a_pipeline(tmp_path):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["benchmark", "--pipeline-dir", str(tmp_path)])
+    assert exit_info.value.code == 2
+
+
+def test_bench_episodes_on_the_toy(toy_pipeline, capsys):
+    tree = ["--tree-top-k", "2", "--tree-depth", "3", "--tree-total-tokens", "5"]
+    args = [
+        "bench-episodes",
+        "--pipeline-dir",
+        toy_pipeline.output_dir,
+        "--episodes",
+        "1",
+        "--bin-tolerances",
+        "0",
+        "2",
+    ]
+    assert main([*args, "--chain-length", "2", *tree]) == 0
+    out = capsys.readouterr().out
+    for row in ("| greedy |", "| prior r=0 |", "| prior r=2 |", "| head chain k=2 r=0 |", "| head tree r=2 |",
+                "| prior+tree r=0 |"):  # fmt: skip
+        assert row in out
+    # prior r=0 is lossless: its actions never move from greedy's
+    assert "| prior r=0 |" in out and out.split("| prior r=0 |")[1].split("\n")[0].endswith("0.00 / 0 |")
+    # where the time goes: the parts add up to the call; greedy drafts nothing and decodes after its prefill
+    split = out.split("Where the time goes")[1]
+    assert "| method | vision | prefill | later forwards | drafting | rest | total |" in split
+    for line in [row for row in split.splitlines() if row.startswith("| ") and "method" not in row]:
+        *parts, total = [float(cell) for cell in line.strip("|").split("|")[1:]]
+        assert sum(parts) == pytest.approx(total, abs=0.2), line  # rounding of 6 cells to 0.1 ms
+        assert min(parts[:4]) >= 0, line
+    greedy_parts = [float(cell) for cell in split.split("| greedy |")[1].split("\n")[0].strip(" |").split("|")]
+    assert greedy_parts[3] == 0 and greedy_parts[2] > 0 and greedy_parts[0] > 0
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [(["--tree-total-tokens", "2", "--tree-depth", "4"], "total_tokens"), (["--steps", "0"], "--steps: must be >= 1")],
+)
+def test_bench_episodes_usage_errors(tmp_path, capsys, extra, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["bench-episodes", "--pipeline-dir", str(tmp_path), *extra])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["benchmark", "--pipeline-dir", "p", "--prompts", "0"], "argument --prompts: must be >= 1, got 0"),
+        (["benchmark", "--pipeline-dir", "p", "--repeats", "0"], "argument --repeats: must be >= 1, got 0"),
+        (["eval", "--policy", "p", "--output-dir", "o", "--threads", "-1"], "argument --threads: must be >= 1, got -1"),
+        (["eval", "--policy", "p", "--output-dir", "o", "--threads", "0"], "argument --threads: must be >= 1, got 0"),
+        (["demo", "--threads", "two"], "argument --threads: expected an integer >= 1, got 'two'"),
+    ],
+)
+def test_bad_numbers_are_usage_errors(capsys, argv, message):
+    """Regression (reliability issue, case 6): crashes (ZeroDivisionError, StatisticsError, RuntimeError) and a
+    silent '--threads 0 means default' are now argparse usage errors, before anything is loaded."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_progress_bars_are_slow_when_redirected_and_logs_stay_ours():
+    """Regression (reliability issue, case 11): a 300-step job used to write 38 KB of bar redraws to a log, and
+    third-party INFO (OpenGL, accelerate) showed on every run."""
+    import io
+    import logging
+
+    from hf_specvla.cli.common import configure_logging
+    from hf_specvla.progress import progress_bar
+
+    redirected = io.StringIO()  # not a terminal
+    with progress_bar(total=300, desc="train", file=redirected) as bar:
+        for step in range(300):
+            bar.update(1)
+            bar.set_postfix(loss=f"{1 / (step + 1):.3f}")  # tqdm's default would redraw here every step
+    assert redirected.getvalue().count("\r") <= 3  # first draw, maybe one timed update, the final one
+    configure_logging()
+    assert logging.getLogger("hf_specvla.training.draft_head").isEnabledFor(logging.INFO)
+    assert not logging.getLogger("OpenGL.acceleratesupport").isEnabledFor(logging.INFO)
+    assert not logging.getLogger("accelerate.checkpointing").isEnabledFor(logging.INFO)
+
+
+def test_demo_refuses_a_folder_holding_another_pipeline(toy_pipeline, capsys):
+    """Regression (reliability issue, case 5): `demo --size medium` into a folder holding the small pipeline used
+    to reuse the small one silently; the same settings still reuse it (nothing retrained)."""
+    from hf_specvla.benchmarks.toy import build_toy_pipeline
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["demo", "--size", "medium", "--output-dir", toy_pipeline.output_dir])
+    assert exit_info.value.code == 2 and "holds another run: size.hidden_size: " in capsys.readouterr().err
+    again = build_toy_pipeline(toy_pipeline.output_dir, progress=False)  # same settings: loaded, not retrained
+    assert torch.equal(again.draft_head.fuse.weight, toy_pipeline.draft_head.fuse.weight)

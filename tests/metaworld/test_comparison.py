@@ -1,0 +1,193 @@
+"""`hf-specvla compare`: paired side-by-side of decoding methods; its statistics on hand-made outcomes; bad input."""
+
+import json
+import re
+
+import pytest
+
+from hf_specvla.metaworld.comparison import DRAFTER_CHOICES, DecodingMethod, paired_difference, parse_methods
+
+
+def test_paired_difference_known_answers():
+    same = paired_difference([True, False] * 10, [True, False] * 10)
+    assert (same["difference"], same["ci_low"], same["ci_high"]) == (0.0, 0.0, 0.0)
+    assert (same["greedy_only"], same["method_only"], same["pairs"]) == (0, 0, 20)
+    better = paired_difference([True] * 5, [False] * 5)
+    assert (better["difference"], better["ci_low"], better["ci_high"], better["method_only"]) == (1.0, 1.0, 1.0, 5)
+    # 100 pairs, 10 won by the method only: d = 0.10, sd(d) = 0.30 -> about 0.10 +- 1.96 * 0.030
+    won = paired_difference([True] * 10 + [False] * 90, [False] * 100)
+    assert won["difference"] == pytest.approx(0.10)
+    assert 0.04 <= won["ci_low"] <= 0.06 and 0.15 <= won["ci_high"] <= 0.17
+    # 20 won, 10 lost, 70 tied: d = 0.10, var(d) = 0.30 - 0.01 -> se 0.054: the interval includes 0
+    method = [True] * 20 + [False] * 10 + [True] * 35 + [False] * 35
+    greedy = [False] * 20 + [True] * 10 + [True] * 35 + [False] * 35
+    mixed = paired_difference(method, greedy)
+    assert mixed["difference"] == pytest.approx(0.10) and (mixed["greedy_only"], mixed["method_only"]) == (10, 20)
+    assert -0.02 <= mixed["ci_low"] <= 0.01 and 0.19 <= mixed["ci_high"] <= 0.22
+    with pytest.raises(ValueError, match="equally long"):
+        paired_difference([True], [True, False])
+
+
+def test_method_names():
+    assert DecodingMethod.parse("prior+tree:r=4") == DecodingMethod("prior+tree", 4)
+    assert DecodingMethod.parse("head:k=3").name == "head:k=3"
+    assert DecodingMethod.parse("prior:r=0").name == "prior" and DecodingMethod.parse("prior").lossless
+    assert DecodingMethod.parse("tree:r=2").uses_draft_head and not DecodingMethod.parse("prior:r=2").uses_draft_head
+    assert [m.name for m in parse_methods(["prior", "prior:r=0", "head"])] == ["greedy", "prior", "head"]
+    with pytest.raises(ValueError, match=re.escape("valid: " + ", ".join(DRAFTER_CHOICES))):
+        DecodingMethod.parse("eagle")
+    for bad, message in [("prior:k=3", "needs the head chain"), ("greedy:r=2", "takes no r or k"),
+                         ("prior:x=1", "bad option 'x=1'"), ("head:k=0", "k must be >= 1"),
+                         ("prior:r=-1", "r must be an integer >= 0"), ("prior:r=x", "bad option 'r=x'")]:  # fmt: skip
+        with pytest.raises(ValueError, match=message):
+            DecodingMethod.parse(bad)
+
+
+# ----------------------------------------------------------------------------- the command, on Meta-World
+metaworld = pytest.importorskip("metaworld")
+
+from hf_specvla.cli import main  # noqa: E402
+from hf_specvla.metaworld.comparison import PLOTS  # noqa: E402
+from tests.training.test_policy_draft import build_policy  # noqa: E402
+
+COLUMNS = {"episodes", "success_rate", "task_success_rates", "vs_greedy", "mean_episode_length", "median_ms_per_call",
+           "speedup", "target_forwards_per_action", "target_forwards_per_call", "tokens_per_target_forward",
+           "accept_length_counts", "mean_bin_deviation", "max_bin_deviation", "identical_to_greedy"}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def policy_dir(tmp_path_factory):
+    return build_policy(tmp_path_factory.mktemp("compare") / "policy", seed=0)
+
+
+def test_compare_pairs_seeds_keeps_r0_identical_and_resumes(policy_dir, tmp_path, capsys):
+    out = tmp_path / "compare"
+    args = ["compare", "--policy", policy_dir, "--tasks", "reach", "--episodes", "2", "--max-episode-steps", "6",
+            "--methods", "prior", "prior:r=8", "--output-dir", str(out)]  # fmt: skip
+    assert main(args) == 0
+    assert "| prior:r=8 |" in capsys.readouterr().out
+    log = [json.loads(line) for line in (out / "episodes.worker-0.jsonl").read_text().splitlines()]
+    assert len(log) == 6
+    # pairing: every method ran every seed, and a seed's methods all ran before the next seed started
+    methods = {"greedy", "prior", "prior:r=8"}
+    for seed in (100_000, 100_001):
+        assert {r["method"] for r in log if r["seed"] == seed} == methods
+    assert [r["seed"] for r in log] == sorted(r["seed"] for r in log)
+    # r=0 is lossless: the same actions, so the same episodes
+    by_key = {(r["seed"], r["method"]): r for r in log}
+    for seed in (100_000, 100_001):
+        greedy, prior = by_key[seed, "greedy"], by_key[seed, "prior"]
+        assert [prior[k] for k in ("length", "success", "actions_digest")] == [
+            greedy[k] for k in ("length", "success", "actions_digest")
+        ]
+        assert by_key[seed, "prior:r=8"]["bin_distance_count"] == 4 * by_key[seed, "prior:r=8"]["length"]
+    summary = json.loads((out / "summary.json").read_text())
+    for name, row in summary["methods"].items():
+        assert COLUMNS <= set(row), name
+    assert summary["methods"]["prior"]["identical_to_greedy"] == 2
+    assert summary["methods"]["greedy"]["target_forwards_per_action"] == 4.0
+    assert summary["methods"]["greedy"]["target_forwards_per_call"] == 4.0
+    for plot in PLOTS:
+        assert (out / plot).read_bytes()[:4] == b"\x89PNG"
+    assert (out / "compare.md").read_text().startswith("| method |")
+    # resume: finished (seed, method) episodes are not run again; more seeds continue the folder
+    assert main(args) == 0
+    assert len((out / "episodes.worker-0.jsonl").read_text().splitlines()) == 6
+    assert main([*args[:6], "3", *args[7:]]) == 0
+    assert len((out / "episodes.worker-0.jsonl").read_text().splitlines()) == 9
+    # fewer seeds than the folder holds: the summary covers the asked-for subset, and says so
+    capsys.readouterr()
+    assert main(args) == 0
+    assert "summary.json and compare.md cover the 6 episodes this run asked for" in capsys.readouterr().err
+    assert json.loads((out / "summary.json").read_text())["methods"]["prior"]["episodes"] == 2
+    # other methods in the same folder: refused, naming the setting
+    with pytest.raises(SystemExit) as exit_info:
+        main([*args[:-4], "prior:r=2", "--output-dir", str(out)])
+    assert exit_info.value.code == 2 and "holds another run: methods: [" in capsys.readouterr().err
+
+
+def test_compare_splits_seeds_between_workers(policy_dir, tmp_path):
+    out = tmp_path / "workers"
+    assert main(["compare", "--policy", policy_dir, "--tasks", "reach", "--episodes", "2", "--max-episode-steps",
+                 "3", "--methods", "prior", "--workers", "2", "--output-dir", str(out)]) == 0  # fmt: skip
+    logs = sorted(out.glob("episodes.worker-*.jsonl"))
+    assert len(logs) == 2
+    seeds = [{json.loads(line)["seed"] for line in path.read_text().splitlines()} for path in logs]
+    assert seeds == [{100_000}, {100_001}]  # each seed's methods in one worker: ratios taken within a worker
+    assert json.loads((out / "summary.json").read_text())["methods"]["prior"]["identical_to_greedy"] == 2
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--methods", "greedy", "eagle"], "valid: greedy, head, tree, prior, prior+head, prior+tree"),
+        (["--workers", "0"], "--workers: must be >= 1, got 0"),
+        (["--methods", "tree:r=4"], "draft with a draft head: pass --draft-head"),
+        (["--tasks", "bogus"], "bogus"),
+        (["--methods", "prior:r=999"], "methods ['prior:r=999']: r is wider than the action range"),
+        (["--methods", "prior:r=-1"], "r must be an integer >= 0"),
+    ],
+)
+def test_compare_bad_input_is_a_usage_error(policy_dir, tmp_path, capsys, flags, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["compare", "--policy", policy_dir, "--output-dir", str(tmp_path / "out"), *flags])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_compare_refuses_a_draft_head_of_another_policy(policy_dir, tmp_path, capsys):
+    from hf_specvla import DraftHead
+    from hf_specvla.policies import VLAPolicy
+
+    other = VLAPolicy.from_pretrained(build_policy(tmp_path / "other", seed=1))
+    head = DraftHead.from_target(other.model, other.action_tokenizer, action_dim=4,
+                                 target_fingerprint=other.weights_fingerprint())  # fmt: skip
+    head.save_pretrained(tmp_path / "head")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["compare", "--policy", policy_dir, "--draft-head", str(tmp_path / "head"), "--tasks", "reach",
+              "--methods", "head", "--output-dir", str(tmp_path / "out")])  # fmt: skip
+    assert exit_info.value.code == 2 and "trained for another model" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_compare_refuses_a_folder_another_live_run_is_writing(policy_dir, tmp_path, capsys):
+    import os
+
+    from hf_specvla.run_folder import lock_folder
+
+    out = tmp_path / "locked"
+    args = ["compare", "--policy", policy_dir, "--tasks", "reach", "--episodes", "1", "--max-episode-steps", "2",
+            "--methods", "prior", "--output-dir", str(out)]  # fmt: skip
+    assert main(args) == 0
+    assert (out / ".lock").read_text() == ""  # released after the run: no holder named
+    with lock_folder(out):  # a live holder (this process, through another open file)
+        with pytest.raises(SystemExit) as exit_info:
+            main(args)
+    assert exit_info.value.code == 2 and f"pid {os.getpid()}" in capsys.readouterr().err
+    (out / ".lock").write_text("999999999")  # a holder that is gone (an older hf_specvla's bare pid): taken over
+    assert main(args) == 0
+
+
+def test_an_unused_draft_head_is_ignored_with_a_warning(policy_dir, tmp_path, capsys):
+    from hf_specvla import DraftHead
+    from hf_specvla.policies import VLAPolicy
+
+    policy = VLAPolicy.from_pretrained(policy_dir)
+    head = DraftHead.from_target(policy.model, policy.action_tokenizer, action_dim=4,
+                                 target_fingerprint=policy.weights_fingerprint())  # fmt: skip
+    head.save_pretrained(tmp_path / "head")
+    out = tmp_path / "no_head_methods"
+    args = ["compare", "--policy", policy_dir, "--draft-head", str(tmp_path / "head"), "--tasks", "reach",
+            "--episodes", "1", "--max-episode-steps", "2", "--methods", "prior", "--output-dir", str(out)]  # fmt: skip
+    assert main(args) == 0
+    assert "is not used: none of the methods ['greedy', 'prior'] drafts with a head" in capsys.readouterr().err
+    assert json.loads((out / "run.json").read_text())["settings"]["draft_head"] is None
+
+
+def test_seeds_run_seed_major_so_a_partial_run_covers_every_task():
+    from hf_specvla.metaworld.comparison import CompareConfig
+
+    config = CompareConfig(tasks=["reach", "push", "door-open"], episodes_per_task=2, methods=["greedy"], workers=2)
+    pairs = config.pairs()
+    assert pairs[:3] == [("reach-v3", 100000), ("push-v3", 100000), ("door-open-v3", 100000)]
+    assert sorted(pairs) == sorted((t, 100000 + i) for t in ("reach-v3", "push-v3", "door-open-v3") for i in range(2))

@@ -1,0 +1,66 @@
+"""The package was split into folders by job: old import paths, the shipped policies and draft heads, and run
+folders written before the move keep working."""
+
+from __future__ import annotations
+
+import importlib
+import shutil
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+
+from hf_specvla._moved import MOVED_MODULES
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("old_name", sorted(MOVED_MODULES))
+def test_an_old_module_path_is_the_new_module(old_name):
+    sys.modules.pop(old_name, None)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        old = importlib.import_module(old_name)
+    assert old is importlib.import_module(MOVED_MODULES[old_name])
+    assert any(issubclass(w.category, FutureWarning) and MOVED_MODULES[old_name] in str(w.message) for w in caught)
+
+
+def test_old_from_imports_give_the_same_classes():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)
+        from hf_specvla.comparison import CompareConfig as OldCompareConfig
+        from hf_specvla.policy import VLAPolicy as OldVLAPolicy
+
+        from hf_specvla.training import DraftTrainingConfig as OldDraftTrainingConfig
+    from hf_specvla.metaworld.comparison import CompareConfig
+    from hf_specvla.policies import VLAPolicy
+    from hf_specvla.training.configuration import DraftTrainingConfig
+
+    assert (OldVLAPolicy, OldCompareConfig, OldDraftTrainingConfig) == (VLAPolicy, CompareConfig, DraftTrainingConfig)
+
+
+@pytest.mark.parametrize(("policy", "draft_head"), [("mt10_vla", "mt10_vla_draft"), ("mt10_vla2", "mt10_vla2_draft")])
+def test_the_shipped_policies_and_heads_load(policy, draft_head):
+    from hf_specvla import DraftHead
+    from hf_specvla.policies import VLAPolicy
+
+    loaded = VLAPolicy.from_pretrained(ROOT / "policies" / policy)
+    loaded.check_draft_head(DraftHead.from_pretrained(ROOT / "policies" / draft_head))
+
+
+def test_a_compare_folder_written_before_the_move_resumes(tmp_path, monkeypatch, capsys):
+    """Written by the pre-move code (`compare --policy policies/mt10_vla --tasks reach --episodes 1 --methods greedy
+    prior:r=4 --max-episode-steps 12`): the same command finds every episode done and runs none."""
+    pytest.importorskip("metaworld")
+    from hf_specvla.cli import main
+    from hf_specvla.metaworld.comparison import runner
+
+    folder = tmp_path / "compare"
+    shutil.copytree(ROOT / "tests" / "fixtures" / "compare_before_move", folder)
+    monkeypatch.setattr(runner, "run_method_episode", lambda *a, **k: pytest.fail("a finished episode ran again"))
+    main(["compare", "--policy", str(ROOT / "policies" / "mt10_vla"), "--tasks", "reach", "--episodes", "1",
+          "--methods", "greedy", "prior:r=4", "--max-episode-steps", "12", "--threads", "1",
+          "--output-dir", str(folder)])  # fmt: skip
+    assert "| prior:r=4 | 1 |" in capsys.readouterr().out
+    assert (folder / "summary.json").exists()
