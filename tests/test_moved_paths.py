@@ -64,3 +64,22 @@ def test_a_compare_folder_written_before_the_move_resumes(tmp_path, monkeypatch,
           "--output-dir", str(folder)])  # fmt: skip
     assert "| prior:r=4 | 1 |" in capsys.readouterr().out
     assert (folder / "summary.json").exists()
+
+
+def test_a_train_vla_record_from_before_the_loop_reads_its_fixed_optimisation():
+    """train-vla's betas, clipping, schedule and precision were hard-coded before the one training loop made them
+    settings: an old record without them continues with the same values and refuses others."""
+    from dataclasses import replace
+
+    from hf_specvla.run_folder import RunRecord
+    from hf_specvla.training.checkpoints import training_record
+    from hf_specvla.training.configuration import VLATrainingConfig
+
+    config = VLATrainingConfig("runs/x")
+    now = training_record("train-vla", config, {"data": "abc"})
+    old_settings = {k: v for k, v in now.settings.items()
+                    if k not in ("betas", "max_grad_norm", "lr_schedule", "mixed_precision")}  # fmt: skip
+    old = RunRecord("train-vla", old_settings)
+    assert old.differences(now) == []
+    other = training_record("train-vla", replace(config, max_grad_norm=0.5), {"data": "abc"})
+    assert old.differences(other) == ["max_grad_norm: 0.5 here vs 1.0 there"]

@@ -3,7 +3,7 @@ optionally demonstration frames), validated by the engine, saved with a model ca
 
 from __future__ import annotations
 
-from ..training.configuration import POLICY_DRAFT_DEFAULTS, DraftDataConfig, DraftTrainingConfig
+from ..training.configuration import DraftDataConfig, PolicyDraftTrainingConfig
 from .common import NON_NEGATIVE, POSITIVE, add_training_run_arguments, check_training_folder, load_policy, usage_errors
 
 NAME = "train-draft"
@@ -37,20 +37,20 @@ def add_arguments(parser) -> None:
                         help="held-out frames the engine validates on (evenly spread)")  # fmt: skip
     parser.add_argument("--num-draft-tokens", type=POSITIVE, default=None,
                         help="the head's default chain length k (default: tokens per call - 1)")  # fmt: skip
-    defaults = POLICY_DRAFT_DEFAULTS
-    parser.add_argument("--max-steps", type=POSITIVE, default=defaults["max_steps"], help="optimizer steps")
-    parser.add_argument("--batch-size", type=POSITIVE, default=defaults["batch_size"], help="sequences per step")
-    parser.add_argument("--learning-rate", type=float, default=defaults["learning_rate"],
+    defaults = PolicyDraftTrainingConfig
+    parser.add_argument("--max-steps", type=POSITIVE, default=defaults.max_steps, help="optimizer steps")
+    parser.add_argument("--batch-size", type=POSITIVE, default=defaults.batch_size, help="sequences per step")
+    parser.add_argument("--learning-rate", type=float, default=defaults.learning_rate,
                         help="peak AdamW learning rate")  # fmt: skip
-    parser.add_argument("--lr-schedule", choices=("constant", "cosine"), default=defaults["lr_schedule"],
+    parser.add_argument("--lr-schedule", choices=("constant", "cosine"), default=defaults.lr_schedule,
                         help="after warm-up")  # fmt: skip
-    parser.add_argument("--warmup-steps", type=NON_NEGATIVE, default=defaults["warmup_steps"],
+    parser.add_argument("--warmup-steps", type=NON_NEGATIVE, default=defaults.warmup_steps,
                         help="linear warm-up steps")  # fmt: skip
-    parser.add_argument("--eval-every", type=NON_NEGATIVE, default=defaults["eval_every"],
+    parser.add_argument("--eval-every", type=NON_NEGATIVE, default=defaults.eval_every,
                         help="steps between validations (0: only at the end)")  # fmt: skip
-    parser.add_argument("--save-every", type=NON_NEGATIVE, default=defaults["save_every"],
+    parser.add_argument("--save-every", type=NON_NEGATIVE, default=defaults.save_every,
                         help="steps between checkpoints (0: only the final head)")  # fmt: skip
-    add_training_run_arguments(parser, DraftTrainingConfig.seed)
+    add_training_run_arguments(parser, defaults.seed)
 
 
 def run(args, parser) -> int:
@@ -65,7 +65,7 @@ def run(args, parser) -> int:
             args.tasks, args.rollout_episodes, args.rollout_max_steps, args.rollout_seed_start,
             args.validation_episodes, args.validation_frames, args.demo_frames_per_task, seed=args.seed,
         )  # fmt: skip
-        training_config = DraftTrainingConfig(
+        training_config = PolicyDraftTrainingConfig(
             args.output_dir, max_steps=args.max_steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
             warmup_steps=args.warmup_steps, lr_schedule=args.lr_schedule, save_every=args.save_every,
             eval_every=args.eval_every, resume=args.resume, overwrite_output_dir=args.overwrite_output_dir,

@@ -9,7 +9,8 @@ are re-exported here.
 from .._lazy import lazy_exports
 
 _EXPORTS = {
-    ".configuration": ("DraftDataConfig", "DraftTrainingConfig", "TrainingConfig", "VLATrainingConfig"),
+    ".configuration": ("DraftDataConfig", "DraftTrainingConfig", "PolicyDraftTrainingConfig", "TrainingConfig",
+                       "VLATrainingConfig"),
     ".loop": ("TRAINING_LOG", "VALIDATION_LOG", "TrainingJob", "learning_rate_factor", "run_training"),
     ".draft_head": ("build_distillation_dataset", "collate_distillation", "distillation_loss", "draft_training_record",
                     "speculative_acceptance", "train_draft_head"),

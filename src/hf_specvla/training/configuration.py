@@ -129,12 +129,22 @@ class VLATrainingConfig(TrainingConfig):
         check_ranges(self, non_negative=("val_episodes", "augment_shift", "scene_loss_weight"))
 
 
-#: ``train-draft``'s training settings for a policy-sized target (a few-million-parameter policy on a CPU): a
-#: larger learning rate than [`DraftTrainingConfig`]'s (the paper's, for a 7B target). The chain length is not
-#: here: it defaults to the policy's tokens per call minus one (the prefill makes the first token, so 3 drafted
-#: tokens complete a 4-token action and 7 a chunk of two).
-POLICY_DRAFT_DEFAULTS = dict(max_steps=3000, batch_size=32, learning_rate=3e-3,
-                             lr_schedule="cosine", warmup_steps=50, eval_every=500, save_every=500)  # fmt: skip
+@dataclass
+class PolicyDraftTrainingConfig(DraftTrainingConfig):
+    """``train-draft``'s settings for a policy-sized target (a few-million-parameter policy on a CPU): a larger
+    learning rate than [`DraftTrainingConfig`]'s (the paper's, for a 7B target), cosine decay after 50 warm-up
+    steps, validation and a checkpoint every 500 steps. The chain length is not here: it defaults to the policy's
+    tokens per call minus one (the prefill makes the first token, so 3 drafted tokens complete a 4-token action and
+    7 a chunk of two)."""
+
+    output_dir: str
+    max_steps: int = 3000
+    batch_size: int = 32
+    learning_rate: float = 3e-3
+    lr_schedule: str = "cosine"
+    warmup_steps: int = 50
+    eval_every: int = 500
+    save_every: int = 500
 
 
 @dataclass

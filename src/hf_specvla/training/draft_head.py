@@ -38,7 +38,7 @@ from ..speculative import (
     softcap_logits,
     speculative_generate,
 )
-from .checkpoints import latest_checkpoint, prepare_output_dir, training_record
+from .checkpoints import check_output_dir, latest_checkpoint, prepare_output_dir, training_record
 from .configuration import DraftTrainingConfig
 from .loop import TrainingJob, run_training
 
@@ -242,6 +242,58 @@ def train_draft_head(
         )  # fmt: skip
         model, _ = run_training(job, config, run.bound, accelerator, progress)  # run.bound: the claimed folder
         return model
+
+
+def distil_draft_head(
+    target: PreTrainedModel,
+    training_config: DraftTrainingConfig,
+    recipe: dict,
+    prompts: Callable[[], tuple[list[dict], list[dict]]],
+    tokens_per_call: int,
+    *,
+    action_tokenizer=None,
+    action_dim: int,
+    num_draft_tokens: int,
+    action_layout=None,
+    target_name_or_path: str | None = None,
+    target_fingerprint: str | None = None,
+    paths: dict | None = None,
+    progress: bool = True,
+) -> DraftHead:
+    """The draft-head recipe every target shares (a Meta-World policy, OpenVLA): an untrained head sized for
+    ``target`` (seeded by ``training_config.seed``) that records what it was distilled from; the folder's
+    ``run.json`` (target weights, ``recipe``, settings) checked *before* ``prompts()`` builds the data (rollouts are
+    slow); the target's own greedy ``tokens_per_call`` tokens on the training prompts as the distillation set; the
+    engine at r=0 on the held-out prompts as validation; [`train_draft_head`].
+
+    Args:
+        recipe: what the data is, for the record (a fingerprint, or the settings of a deterministic recipe).
+        prompts: builds ``(training prompts, held-out prompts)``, each a list of ``generate`` inputs.
+        action_tokenizer / action_dim / num_draft_tokens: the head's action layout (default: the target's
+            ``action_tokenizer``) and default chain length.
+        action_layout: the target's ``ActionLayout`` for validation (which ids are actions, tokens per action).
+        target_name_or_path: recorded in the head's config (for people; never compared).
+    """
+    target_fingerprint = target_fingerprint or fingerprint(target)
+    torch.manual_seed(training_config.seed)  # the head's initialisation
+    head = DraftHead.from_target(
+        target, action_tokenizer, action_dim=action_dim, num_draft_tokens=num_draft_tokens,
+        target_name_or_path=target_name_or_path, target_fingerprint=target_fingerprint,
+    )  # fmt: skip
+    record = draft_training_record(head, target_fingerprint, training_config, recipe, paths)
+    check_output_dir(Path(training_config.output_dir), record, training_config.resume,
+                     training_config.overwrite_output_dir)  # fmt: skip
+    training_prompts, held_out_prompts = prompts()
+    action_tokenizer = action_tokenizer or target.action_tokenizer  # the labels' action ids, as the head's default
+    dataset = build_distillation_dataset(target, training_prompts, tokens_per_call, action_tokenizer,
+                                         progress=progress)  # fmt: skip
+
+    def validate(draft_head: DraftHead) -> dict:
+        return speculative_acceptance(target, draft_head, held_out_prompts, tokens_per_call,
+                                      action_layout=action_layout)  # fmt: skip
+
+    return train_draft_head(head, target, dataset, training_config, progress=progress, validate=validate,
+                            inputs=recipe, target_fingerprint=target_fingerprint, paths=paths)  # fmt: skip
 
 
 def draft_training_record(

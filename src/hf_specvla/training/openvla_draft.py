@@ -28,16 +28,10 @@ from PIL import Image
 
 from ..openvla.modeling_openvla import OpenVLAForActionPrediction
 from ..openvla.processing_openvla import OpenVLAProcessor
-from ..run_folder import fingerprint, fingerprint_arrays
+from ..run_folder import fingerprint_arrays
 from ..speculative import DraftHead
-from .checkpoints import check_output_dir
 from .configuration import DraftTrainingConfig
-from .draft_head import (
-    build_distillation_dataset,
-    draft_training_record,
-    speculative_acceptance,
-    train_draft_head,
-)
+from .draft_head import distil_draft_head
 
 logger = logging.getLogger(__name__)
 
@@ -118,27 +112,18 @@ def train_openvla_draft_head(
     if not train_frames or not validation_frames:
         raise ValueError(f"need training and validation frames, got {len(train_frames)} and {len(validation_frames)}")
     action_dim = model.get_action_dim(unnorm_key)
-    target_fingerprint = fingerprint(model)
-    torch.manual_seed(training_config.seed)
-    head = DraftHead.from_target(
-        model, action_dim=action_dim, num_draft_tokens=num_draft_tokens,
-        target_name_or_path=model.config._name_or_path or None, target_fingerprint=target_fingerprint,
-    )  # fmt: skip
     train_prompts = openvla_prompts(model, processor, train_frames)
     recipe = {"data": {"frames": len(train_prompts), "fingerprint": fingerprint_prompts(train_prompts)}}
-    record = draft_training_record(head, target_fingerprint, training_config, recipe)
-    check_output_dir(Path(training_config.output_dir), record, training_config.resume,
-                     training_config.overwrite_output_dir)  # fmt: skip
-    logger.info("labelling %d frames with the model's own greedy actions", len(train_prompts))
-    dataset = build_distillation_dataset(model, train_prompts, action_dim, model.action_tokenizer, progress=progress)
-    validation_prompts = openvla_prompts(model, processor, validation_frames)
-    layout = model.action_layout(unnorm_key)
 
-    def validate(draft_head: DraftHead) -> dict:
-        return speculative_acceptance(model, draft_head, validation_prompts, action_dim, action_layout=layout)
+    def prompts() -> tuple[list, list]:
+        logger.info("labelling %d frames with the model's own greedy actions", len(train_prompts))
+        return train_prompts, openvla_prompts(model, processor, validation_frames)
 
-    return train_draft_head(head, model, dataset, training_config, progress=progress, validate=validate,
-                            inputs=recipe, target_fingerprint=target_fingerprint)  # fmt: skip
+    return distil_draft_head(
+        model, training_config, recipe, prompts, action_dim, action_dim=action_dim,
+        num_draft_tokens=num_draft_tokens, action_layout=model.action_layout(unnorm_key),
+        target_name_or_path=model.config._name_or_path or None, progress=progress,
+    )  # fmt: skip
 
 
 def fingerprint_prompts(prompts: list[dict[str, torch.Tensor]]) -> str:

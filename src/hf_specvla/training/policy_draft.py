@@ -28,14 +28,8 @@ from ..metaworld.evaluation import record_observations
 from ..policies import VLAPolicy
 from ..run_folder import read_jsonl
 from ..speculative import DraftHead
-from .checkpoints import check_output_dir
 from .configuration import DraftDataConfig, DraftTrainingConfig
-from .draft_head import (
-    build_distillation_dataset,
-    draft_training_record,
-    speculative_acceptance,
-    train_draft_head,
-)
+from .draft_head import distil_draft_head
 from .loop import VALIDATION_LOG
 
 logger = logging.getLogger(__name__)
@@ -129,37 +123,30 @@ def train_policy_draft_head(
     if num_draft_tokens < 1:
         raise ValueError(f"num_draft_tokens must be >= 1, got {num_draft_tokens}")
     env_config = EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)
-    torch.manual_seed(training_config.seed)
-    head = DraftHead.from_target(
-        policy.model, policy.action_tokenizer, action_dim=policy.config.action_dim, num_draft_tokens=num_draft_tokens,
-        target_name_or_path=policy.name_or_path, target_fingerprint=policy.weights_fingerprint(),
-    )  # fmt: skip
     recipe = {"data": {**asdict(data_config),
                        "demonstration_fingerprints": [dataset_fingerprint(root) for root in demonstrations],
                        "demonstration_info": [dataset_info(root) for root in demonstrations]}}  # fmt: skip
     paths = {"demonstrations": demonstrations}
-    record = draft_training_record(head, policy.weights_fingerprint(), training_config, recipe, paths)
-    check_output_dir(output_dir, record, training_config.resume, training_config.overwrite_output_dir)
+    sequences = []  # training sequences, one per frame (for the model card)
 
-    logger.info("on-policy rollouts: %d per task on %d tasks", data_config.rollout_episodes, len(data_config.tasks))
-    train_frames, validation_frames = rollout_frames(policy, data_config, env_config)
-    if demonstrations:
-        train_frames += demonstration_frames(demonstrations, data_config, policy)
-    validation_frames = _spread(validation_frames, data_config.validation_frames)
-    logger.info("%d training frames, %d held-out frames", len(train_frames), len(validation_frames))
-    dataset = build_distillation_dataset(
-        policy.model, policy_prompts(policy, train_frames, data_config.prompt_batch_size), policy.config.action_tokens,
-        policy.action_tokenizer, progress=progress,
+    def prompts() -> tuple[list, list]:
+        logger.info("on-policy rollouts: %d per task on %d tasks", data_config.rollout_episodes, len(data_config.tasks))
+        train_frames, validation_frames = rollout_frames(policy, data_config, env_config)
+        if demonstrations:
+            train_frames += demonstration_frames(demonstrations, data_config, policy)
+        validation_frames = _spread(validation_frames, data_config.validation_frames)
+        logger.info("%d training frames, %d held-out frames", len(train_frames), len(validation_frames))
+        sequences.append(len(train_frames))
+        return (policy_prompts(policy, train_frames, data_config.prompt_batch_size),
+                policy_prompts(policy, validation_frames, batch_size=1))  # fmt: skip
+
+    head = distil_draft_head(
+        policy.model, training_config, recipe, prompts, policy.config.action_tokens,
+        action_tokenizer=policy.action_tokenizer, action_dim=policy.config.action_dim,
+        num_draft_tokens=num_draft_tokens, action_layout=policy.action_layout, target_name_or_path=policy.name_or_path,
+        target_fingerprint=policy.weights_fingerprint(), paths=paths, progress=progress,
     )  # fmt: skip
-    validation_prompts = policy_prompts(policy, validation_frames, batch_size=1)
-
-    def validate(draft_head: DraftHead) -> dict:
-        return speculative_acceptance(policy.model, draft_head, validation_prompts, policy.config.action_tokens,
-                                      action_layout=policy.action_layout)  # fmt: skip
-
-    head = train_draft_head(head, policy.model, dataset, training_config, progress=progress, validate=validate,
-                            inputs=recipe, target_fingerprint=policy.weights_fingerprint(), paths=paths)  # fmt: skip
-    write_model_card(output_dir, head, training_config, data_config, demonstrations, len(dataset), command,
+    write_model_card(output_dir, head, training_config, data_config, demonstrations, sequences[0], command,
                      policy.config.action_tokens)  # fmt: skip
     return head
 
