@@ -1,11 +1,16 @@
-"""Policies: the Meta-World VLA (configuration + modeling). A policy imports no simulator, training or CLI code."""
+"""Policies: the Meta-World VLA as transformers splits a model (configuration, processing, modeling). A policy
+imports no simulator, training or CLI code."""
 
 from .._lazy import lazy_exports
 
-__all__ = ["POLICY_CONFIG_NAME", "VLAPolicy", "VLAPolicyConfig"]
+__all__ = ["POLICY_CONFIG_NAME", "VLAPolicy", "VLAPolicyConfig", "VLAProcessor"]
 
 __getattr__, __dir__ = lazy_exports(
     __name__,
-    {".configuration_vla": ("POLICY_CONFIG_NAME", "VLAPolicyConfig"), ".modeling_vla": ("VLAPolicy",)},
+    {
+        ".configuration_vla": ("POLICY_CONFIG_NAME", "VLAPolicyConfig"),
+        ".processing_vla": ("VLAProcessor",),
+        ".modeling_vla": ("VLAPolicy",),
+    },
     globals(),
 )
