@@ -50,7 +50,7 @@ def test_bench_episodes_on_the_toy(toy_pipeline, capsys):
     assert "| method | vision | prefill | later forwards | drafting | rest | total |" in split
     for line in [row for row in split.splitlines() if row.startswith("| ") and "method" not in row]:
         *parts, total = [float(cell) for cell in line.strip("|").split("|")[1:]]
-        assert sum(parts) == pytest.approx(total, abs=0.2), line  # rounding of 6 cells to 0.1 ms
+        assert sum(parts) == pytest.approx(total, abs=0.3001), line  # 6 cells rounded to 0.1 ms: 6 x 0.05 at most
         assert min(parts[:4]) >= 0, line
     greedy_parts = [float(cell) for cell in split.split("| greedy |")[1].split("\n")[0].strip(" |").split("|")]
     assert greedy_parts[3] == 0 and greedy_parts[2] > 0 and greedy_parts[0] > 0
