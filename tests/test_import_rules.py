@@ -63,7 +63,7 @@ def test_the_tree_shows_the_jobs():
     folders = {path.name for path in PACKAGE.iterdir() if path.is_dir() and (path / "__init__.py").exists()}
     assert folders == {"actions", "speculative", "openvla", "policies", "training", "metaworld", "benchmarks", "cli"}
     top_level = {path.stem for path in PACKAGE.glob("*.py")}
-    assert top_level == {"__init__", "_lazy", "_moved", "progress", "run_folder"}
+    assert top_level == {"__init__", "_lazy", "_moved", "_validation", "progress", "run_folder"}
 
 
 def test_actions_import_nothing_of_the_package():

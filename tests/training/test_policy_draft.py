@@ -130,7 +130,7 @@ def test_train_draft_names_a_folder_that_holds_no_run_and_a_resume_of_nothing(po
 
 
 def test_draft_data_config_validates():
-    with pytest.raises(ValueError, match="validation_frames must be a number >= 1"):
+    with pytest.raises(ValueError, match="validation_frames must be >= 1"):
         DraftDataConfig(validation_frames=0)
     assert DraftDataConfig(tasks="MT10").tasks[0].endswith("-v3")
 

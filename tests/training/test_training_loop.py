@@ -96,7 +96,7 @@ def test_the_learning_rate_schedule():
     assert learning_rate_factor(2, 2, 10, "cosine") == 1.0 and learning_rate_factor(10, 2, 10, "cosine") == 0.0
 
 
-@pytest.mark.parametrize(("overrides", "match"), [(dict(max_steps=0), "TrainingConfig.max_steps must be a number >= 1"),
+@pytest.mark.parametrize(("overrides", "match"), [(dict(max_steps=0), "TrainingConfig.max_steps must be >= 1"),
                                                   (dict(lr_schedule="linear"), "lr_schedule"),
                                                   (dict(mixed_precision="fp8"), "mixed_precision"),
                                                   (dict(max_grad_norm=0), "max_grad_norm")])  # fmt: skip

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from .._validation import check_ranges
+
 POLICY_CONFIG_NAME = "policy_config.json"
 
 
@@ -59,10 +61,8 @@ class VLAPolicyConfig:
                 "vision_hidden_size must be a positive multiple of 4 (the encoder's attention heads) and "
                 f"vision_layers >= 1, got {self.vision_hidden_size} and {self.vision_layers}"
             )
-        for name in ("text_hidden_size", "text_layers", "text_heads", "chunk_length"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"VLAPolicyConfig.{name} must be an int >= 1, got {value!r}")
+        check_ranges(self, at_least_one=("text_hidden_size", "text_layers", "text_heads", "chunk_length"),
+                     integers=("text_hidden_size", "text_layers", "text_heads", "chunk_length"))  # fmt: skip
         if self.text_hidden_size % self.text_heads:
             raise ValueError(
                 f"text_hidden_size {self.text_hidden_size} must be a multiple of text_heads {self.text_heads}"

@@ -8,19 +8,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from .._validation import check_ranges
 from ..metaworld.env import resolve_tasks
 from ..metaworld.seeds import DRAFT_SEED_START
-
-
-def check_ranges(config, at_least_one=(), positive=(), non_negative=()) -> None:
-    """Raises ValueError naming the first field of ``config`` out of its range (``config.<name> must be ...``)."""
-    kind = type(config).__name__
-    for names, ok, rule in ((at_least_one, lambda v: v >= 1, ">= 1"), (positive, lambda v: v > 0, "> 0"),
-                            (non_negative, lambda v: v >= 0, ">= 0")):  # fmt: skip
-        for name in names:
-            value = getattr(config, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not ok(value):
-                raise ValueError(f"{kind}.{name} must be a number {rule}, got {value!r}")
 
 
 @dataclass

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from ..._validation import check_ranges
 from ..env import EnvConfig, resolve_tasks
 from ..seeds import EVAL_SEED_START
 
@@ -138,11 +139,8 @@ class CompareConfig:
 
     def __post_init__(self):
         self.tasks = resolve_tasks(self.tasks)
-        for name in ("episodes_per_task", "workers", "threads"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.seed_start < 0:
-            raise ValueError(f"seed_start must be >= 0, got {self.seed_start}")
+        names = ("episodes_per_task", "workers", "threads", "seed_start", "max_episode_steps")
+        check_ranges(self, at_least_one=names[:3] + names[4:], non_negative=names[3:4], integers=names)
         self.methods = [m.name for m in parse_methods(list(self.methods))]
 
     def decoding_methods(self) -> list[DecodingMethod]:
