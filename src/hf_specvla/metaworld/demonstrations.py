@@ -278,7 +278,7 @@ def collect_demonstrations(
     tasks = resolve_tasks(tasks)
     driver = {"policy": None, "expert_mix": None, "policy_weights": None}
     if policy is not None:
-        policy.check_env_config(env_config)
+        env_config.check_renders_for(policy.config)
         driver = {"policy": policy.name_or_path or "in-memory", "expert_mix": float(expert_mix),
                   "policy_weights": fingerprint(policy.model)}  # fmt: skip
     _check_info(root, env_config, float(action_noise), driver, write=False)  # refusals first: nothing written yet

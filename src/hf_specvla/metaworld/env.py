@@ -158,6 +158,17 @@ class EnvConfig:
                 f"hand_start_noise must be in [0, {MAX_HAND_START_NOISE}] metres, got {self.hand_start_noise}"
             )
 
+    def check_renders_for(self, policy_config) -> None:
+        """Raises ValueError when this env renders other images than the ones a policy (its ``VLAPolicyConfig``:
+        ``image_size``, ``camera``) was trained on. The simulator checks the policy, not the other way round."""
+        if self.image_size != policy_config.image_size:
+            raise ValueError(f"the policy reads {policy_config.image_size}px images, the env makes {self.image_size}px")
+        if self.camera != policy_config.camera:
+            raise ValueError(
+                f"the policy was trained on camera {policy_config.camera!r}, the env renders {self.camera!r}; "
+                f"use EnvConfig(camera={policy_config.camera!r})"
+            )
+
 
 class MetaWorldEnv:
     """One Meta-World v3 task with image observations. Use as a context manager or call ``close()``.

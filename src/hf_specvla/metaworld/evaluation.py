@@ -108,7 +108,7 @@ def record_observations(
     decided on (``image``, ``instruction``, ``state``; a chunked policy decides once per chunk), one list per
     episode. What the episode benchmark replays and draft heads train on."""
     env_config = env_config or EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)
-    policy.check_env_config(env_config)
+    env_config.check_renders_for(policy.config)
     episodes = []
     for task in resolve_tasks(tasks):
         with MetaWorldEnv(task, env_config) as env:
@@ -215,7 +215,7 @@ def evaluate(
     if video_path is not None:
         check_video_path(video_path)
     env_config = env_config or EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)
-    policy.check_env_config(env_config)
+    env_config.check_renders_for(policy.config)
     output_dir = Path(output_dir)
     generate_kwargs = dict(generate_kwargs or {})
     settings = {"policy": fingerprint(policy.model), "env": asdict(env_config), "seed_start": seed_start,

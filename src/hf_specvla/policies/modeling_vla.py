@@ -144,18 +144,6 @@ class VLAPolicy:
         return {name: value.to(self.model.device) for name, value in batch.items()}
 
     # ----------------------------------------------------------------------------- acting
-    def check_env_config(self, env_config) -> None:
-        """Raises ValueError when an [`EnvConfig`] renders other images than the ones this policy was trained on."""
-        if env_config.image_size != self.config.image_size:
-            raise ValueError(
-                f"the policy reads {self.config.image_size}px images, the env makes {env_config.image_size}px"
-            )
-        if env_config.camera != self.config.camera:
-            raise ValueError(
-                f"the policy was trained on camera {self.config.camera!r}, the env renders {env_config.camera!r}; "
-                f"use EnvConfig(camera={self.config.camera!r})"
-            )
-
     def reset(self) -> None:
         """Start of an episode: forgets the previous actions (the action prior's drafts)."""
         self.previous_action_ids = []
