@@ -10,9 +10,11 @@ Recipe (Spec-VLA section 3.2, following EAGLE):
        loss = feature_loss_weight * SmoothL1(features[p], h[p+1])
             + token_loss_weight   * CE(softmax(lm_head(h[p+1])), log_softmax(lm_head(features[p])))
 
-   AdamW (betas 0.9/0.95), gradient clipping, uniform feature noise. Periodic ``save_pretrained`` checkpoints
-   with full accelerate state (optimizer, RNG), resumable. The same code runs on one CPU or many GPUs
-   (``accelerate launch``).
+   AdamW (betas 0.9/0.95), gradient clipping, uniform feature noise, in the one training loop
+   (``training.loop``: checkpoints with the full accelerate state, exact resume, one CPU or many GPUs with
+   ``accelerate launch``).
+3. [`distil_draft_head`]: the whole recipe for a target (a policy, OpenVLA): head, record, folder check, data,
+   validation by the engine, training.
 """
 
 from __future__ import annotations
@@ -212,7 +214,8 @@ def train_draft_head(
         inputs: what the data is, for the folder's ``run.json`` (so that ``resume`` refuses a run fed from elsewhere):
             by default a fingerprint of the dataset's token ids; a caller whose data is a deterministic recipe
             (e.g. a policy's rollouts on given seeds) passes the recipe, and can check the folder with
-            [`draft_training_record`] and ``checkpointing.check_output_dir`` before building the data.
+            [`draft_training_record`] and ``checkpoints.check_output_dir`` before building the data (as
+            [`distil_draft_head`] does).
         target_fingerprint: ``run_folder.fingerprint(target)`` when the caller already has it (hashed otherwise).
         paths: where the inputs were read from, recorded in ``run.json`` for people (never compared).
     """
