@@ -130,3 +130,12 @@ def test_eval_refuses_missing_policy_and_stray_flags(tmp_path, capsys):
     assert exit_info.value.code == 2
     assert "--policy: policy folder" in capsys.readouterr().err
     assert not (tmp_path / "e").exists()
+
+
+def test_train_vla_refuses_a_folder_that_holds_no_demonstrations(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train-vla", "--data", str(tmp_path / "none"), "--output-dir", str(tmp_path / "policy")])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "--data: " in err and "is not a demonstrations folder" in err and "hf-specvla collect" in err
+    assert not (tmp_path / "policy").exists()

@@ -82,10 +82,11 @@ def run(args, parser) -> int:
     if args.scene_loss_weight is not None and not args.scene_targets:
         parser.error("--scene-loss-weight needs --scene-targets (it weighs the scene-state tokens' loss)")
     check_training_folder(args.output_dir, args.resume, args.overwrite_output_dir, parser)
-    stats = dataset_stats(args.data)
-    scene_stats = stats.scene_normalizer() if args.scene_targets else None  # before the slow load: fails fast
+    with usage_errors(parser, "--data", (FileNotFoundError, ValueError)):  # not a collect folder, mixed folders
+        stats, info = dataset_stats(args.data), dataset_info(args.data)
+        scene_stats = stats.scene_normalizer() if args.scene_targets else None  # before the slow load: fails fast
     action_stats, state_stats = stats.action, stats.state
-    config, policy_config = _configs(args, parser, dataset_info(args.data))
+    config, policy_config = _configs(args, parser, info)
     source = None
     if args.init_from is not None:
         source = load_policy(args.init_from, parser)
