@@ -139,3 +139,36 @@ def test_train_vla_refuses_a_folder_that_holds_no_demonstrations(tmp_path, capsy
     err = capsys.readouterr().err
     assert "--data: " in err and "is not a demonstrations folder" in err and "hf-specvla collect" in err
     assert not (tmp_path / "policy").exists()
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["collect", "--tasks", "nosuchtask", "--output-dir", "{out}"],
+        ["eval", "--policy", "{policy}", "--tasks", "nosuchtask", "--output-dir", "{out}"],
+        ["bench-episodes", "--policy", "{policy}", "--tasks", "nosuchtask"],
+        ["train-vla", "--data", "{out}", "--tasks", "nosuchtask", "--output-dir", "{out}"],
+    ],
+)
+def test_an_unknown_task_is_a_usage_error_before_anything_loads(tmp_path, capsys, argv):
+    from pathlib import Path
+
+    policy = Path(__file__).resolve().parents[2] / "policies" / "mt10_vla"
+    argv = [a.format(out=tmp_path / "out", policy=policy) for a in argv]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert "--tasks: unknown Meta-World task 'nosuchtask'" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_missing_policy_folder_names_the_flag_that_gave_it(tmp_path, capsys):
+    import argparse
+
+    from hf_specvla.cli.common import load_policy
+
+    parser = argparse.ArgumentParser(prog="hf-specvla train-vla")
+    with pytest.raises(SystemExit) as exit_info:
+        load_policy(str(tmp_path / "none"), parser, "--init-from")
+    assert exit_info.value.code == 2
+    assert "error: --init-from: policy folder" in capsys.readouterr().err

@@ -6,7 +6,15 @@ from __future__ import annotations
 
 from ..metaworld.seeds import BENCH_SEED_START
 from .benchmark import load_pipeline
-from .common import NON_NEGATIVE, POSITIVE, check_draft_head_flag, load_draft_head_for, load_policy, usage_errors
+from .common import (
+    NON_NEGATIVE,
+    POSITIVE,
+    check_draft_head_flag,
+    check_tasks,
+    load_draft_head_for,
+    load_policy,
+    usage_errors,
+)
 
 NAME = "bench-episodes"
 HELP = "replay recorded episodes: greedy vs prior / head / tree drafts"
@@ -84,6 +92,7 @@ def run(args, parser) -> int:
     from ..benchmarks.speed import ForwardClock, episode_methods, format_episode_report, run_episode_benchmark
     from ..speculative import DraftTreeConfig
 
+    check_tasks(args.tasks, parser)
     tree_settings = {k: v for k, v in (("top_k", args.tree_top_k), ("depth", args.tree_depth),
                                        ("total_tokens", args.tree_total_tokens)) if v is not None}  # fmt: skip
     with usage_errors(parser, errors=(ValueError,)):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from ..metaworld.env import CAMERAS, EnvConfig
 from ..metaworld.seeds import COLLECT_SEED_START
-from .common import NON_NEGATIVE, POSITIVE, load_policy
+from .common import NON_NEGATIVE, POSITIVE, check_tasks, load_policy
 
 NAME = "collect"
 HELP = "record scripted-expert Meta-World demonstrations (Parquet; resumable)"
@@ -46,6 +46,7 @@ def add_arguments(parser) -> None:
 def run(args, parser) -> int:
     from ..metaworld.demonstrations import collect_demonstrations
 
+    check_tasks(args.tasks, parser)
     if args.policy is None and args.expert_mix is not None:
         parser.error("--expert-mix needs --policy (it mixes expert steps into the policy's rollouts)")
     policy = load_policy(args.policy, parser) if args.policy is not None else None

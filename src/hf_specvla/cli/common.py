@@ -71,12 +71,20 @@ def check_draft_head_flag(draft_head: str | None, parser) -> None:
             check_draft_head_folder(draft_head)
 
 
-def load_policy(path: str, parser):
-    """``--policy``: the saved policy; a usage error when the folder holds none."""
+def load_policy(path: str, parser, flag: str = "--policy"):
+    """The saved policy ``flag`` names; a usage error when the folder holds none."""
     from ..policies import VLAPolicy
 
-    with usage_errors(parser, "--policy", (FileNotFoundError,)):
+    with usage_errors(parser, flag, (FileNotFoundError,)):
         return VLAPolicy.from_pretrained(path)
+
+
+def check_tasks(tasks: list[str], parser) -> None:
+    """``--tasks``: suites and/or Meta-World task names; a usage error listing the valid ones, before anything loads."""
+    from ..metaworld.env import resolve_tasks
+
+    with usage_errors(parser, "--tasks", (ValueError,)):
+        resolve_tasks(tasks)
 
 
 def load_draft_head_for(policy, draft_head: str, parser):

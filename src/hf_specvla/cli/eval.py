@@ -7,7 +7,15 @@ import logging
 
 from ..metaworld.env import EnvConfig
 from ..metaworld.seeds import EVAL_SEED_START
-from .common import NON_NEGATIVE, POSITIVE, check_draft_head_flag, load_draft_head_for, load_policy, usage_errors
+from .common import (
+    NON_NEGATIVE,
+    POSITIVE,
+    check_draft_head_flag,
+    check_tasks,
+    load_draft_head_for,
+    load_policy,
+    usage_errors,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -96,6 +104,7 @@ def run(args, parser) -> int:
 
     from ..metaworld.evaluation import check_video_path, evaluate, format_summary
 
+    check_tasks(args.tasks, parser)
     method = decoding_method(args, parser)
     check_draft_head_flag(args.draft_head, parser)
     if args.video is not None:

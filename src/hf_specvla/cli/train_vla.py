@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from ..policies.configuration_vla import VLAPolicyConfig
 from ..training.configuration import VLATrainingConfig
-from .common import POSITIVE, add_training_run_arguments, check_training_folder, load_policy, usage_errors
+from .common import POSITIVE, add_training_run_arguments, check_tasks, check_training_folder, load_policy, usage_errors
 
 NAME = "train-vla"
 HELP = "behaviour-clone an OpenVLA-style policy on demonstrations (resumable)"
@@ -81,6 +81,8 @@ def run(args, parser) -> int:
 
     if args.scene_loss_weight is not None and not args.scene_targets:
         parser.error("--scene-loss-weight needs --scene-targets (it weighs the scene-state tokens' loss)")
+    if args.tasks is not None:
+        check_tasks(args.tasks, parser)
     check_training_folder(args.output_dir, args.resume, args.overwrite_output_dir, parser)
     with usage_errors(parser, "--data", (FileNotFoundError, ValueError)):  # not a collect folder, mixed folders
         stats, info = dataset_stats(args.data), dataset_info(args.data)
@@ -89,7 +91,7 @@ def run(args, parser) -> int:
     config, policy_config = _configs(args, parser, info)
     source = None
     if args.init_from is not None:
-        source = load_policy(args.init_from, parser)
+        source = load_policy(args.init_from, parser, "--init-from")
         if source.config.text_layers > policy_config.text_layers:
             parser.error(f"--init-from {args.init_from} has {source.config.text_layers} decoder layers: "
                          f"--text-layers must be at least that, got {args.text_layers}")  # fmt: skip
