@@ -83,3 +83,17 @@ def test_a_train_vla_record_from_before_the_loop_reads_its_fixed_optimisation():
     assert old.differences(now) == []
     other = training_record("train-vla", replace(config, max_grad_norm=0.5), {"data": "abc"})
     assert old.differences(other) == ["max_grad_norm: 0.5 here vs 1.0 there"]
+
+
+def test_importing_the_package_registers_the_draft_head_with_the_auto_classes():
+    """README: draft heads load with ``AutoModel``: ``import hf_specvla`` alone must register them (a fresh process, so
+    no other test's import does it)."""
+    import subprocess
+    import sys
+
+    head = str(ROOT / "policies" / "mt10_vla2_draft")
+    code = "\n".join(["import hf_specvla", "from transformers import AutoModel",
+                      f"print(type(AutoModel.from_pretrained({head!r})).__name__)"])  # fmt: skip
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                            env={**__import__("os").environ, "HF_HUB_OFFLINE": "1"})  # fmt: skip
+    assert result.stdout.strip().endswith("DraftHead"), result.stderr[-2000:]

@@ -1,7 +1,35 @@
-"""hf_specvla: speculative decoding with relaxed action acceptance for VLA models in transformers."""
+"""hf_specvla: speculative decoding with relaxed action acceptance for VLA models in transformers.
+
+Importing the package imports the engine (``speculative``), which registers the draft head with transformers' Auto
+classes (``AutoModel.from_pretrained(<draft head folder>)`` works after ``import hf_specvla``). The job folders
+(``training``, ``metaworld``, ``benchmarks``, ``policies``, ``cli``) load their heavy parts on first use.
+"""
 
 from . import _moved
-from ._lazy import lazy_exports
+from .actions.tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
+from .speculative import (
+    AcceptanceRule,
+    ActionPriorDrafter,
+    CandidateDrafter,
+    ComposedDrafter,
+    Drafter,
+    DraftHead,
+    DraftHeadConfig,
+    DraftHeadDrafter,
+    DraftTree,
+    DraftTreeConfig,
+    ExactMatch,
+    PerRowDrafter,
+    RelaxedBinMatch,
+    SpeculationConfig,
+    SpeculationStats,
+    SpeculativeDecoderOnlyOutput,
+    SpeculativeGenerationMixin,
+    disable_speculation,
+    enable_speculation,
+    make_acceptance_rule,
+    speculative_generate,
+)
 
 __version__ = "0.1.0"
 
@@ -33,12 +61,3 @@ __all__ = [
     "make_acceptance_rule",
     "speculative_generate",
 ]
-
-__getattr__, __dir__ = lazy_exports(
-    __name__,
-    {
-        ".actions": ("ActionLayout", "ActionNormalizer", "ActionTokenizer"),
-        ".speculative": tuple(sorted(set(__all__) - {"ActionLayout", "ActionNormalizer", "ActionTokenizer"})),
-    },
-    globals(),
-)  # fmt: skip

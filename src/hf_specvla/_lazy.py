@@ -1,5 +1,6 @@
 """Lazy package exports (PEP 562): a package names its public names and the submodule holding each, and a name's
-submodule is imported on first access. ``hf-specvla --help`` and reading a config's defaults then load no torch."""
+submodule is imported on first access, so a job package (training, a comparison, a policy) loads its heavy parts
+(accelerate, MuJoCo, matplotlib) only when a command uses them."""
 
 from __future__ import annotations
 

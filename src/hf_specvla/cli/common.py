@@ -1,5 +1,5 @@
 """What the commands share: argument types, the help format, the one place where a library error becomes a usage
-error, the training-run flags and logging. Light at import: no torch, no model library."""
+error, the training-run flags and logging. Light at import: no training, simulator or data code."""
 
 from __future__ import annotations
 

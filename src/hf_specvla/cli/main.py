@@ -1,6 +1,6 @@
 """``hf-specvla``: the dispatcher. Each command is a module of this package with ``NAME``, ``HELP``, ``EXAMPLES``,
-``add_arguments(parser)`` and ``run(args, parser)``; heavy libraries load inside ``run``, so ``--help`` and usage
-errors come back at once."""
+``add_arguments(parser)`` and ``run(args, parser)``; heavy libraries (accelerate, MuJoCo, the data and training
+code) load inside ``run``, so ``--help`` and usage errors come back before any of them loads."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Training settings, defined once: the draft-head distillation run, behaviour cloning of the Meta-World policy,
 the data a policy's draft head learns from, and ``train-draft``'s defaults for policy-sized targets.
 
-Plain validated dataclasses (no torch): the CLI reads its defaults here without loading a model library.
+Plain validated dataclasses: the CLI reads its defaults here without loading accelerate or the trainers.
 """
 
 from __future__ import annotations
