@@ -58,6 +58,9 @@ def test_the_loop_logs_validates_checkpoints_and_saves(tmp_path):
     assert [row["step"] for row in validations] == [7]  # eval_every=0: only after the last step
     assert metrics["val_weight_norm"] == pytest.approx(validations[0]["weight_norm"]) and not model.training
     assert json.loads((tmp_path / "training_config.json").read_text())["steps"] == 7
+    # resuming a finished run with the same max_steps trains nothing and keeps its final record
+    _, again = run_training(_job(), _config(tmp_path, resume=True), tmp_path, progress=False)
+    assert again == {} and json.loads((tmp_path / "training_config.json").read_text())["final_metrics"] == metrics
 
 
 def test_a_resumed_run_equals_an_uninterrupted_one(tmp_path):

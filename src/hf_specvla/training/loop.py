@@ -135,7 +135,7 @@ def run_training(job: TrainingJob, config, output_dir: Path, accelerator: Accele
             _append_jsonl(output_dir / VALIDATION_LOG, {"step": step, **metrics})
         return {f"val_{name}": value for name, value in metrics.items()}
 
-    step = resume_step(accelerator, output_dir) if config.resume else 0
+    step = start = resume_step(accelerator, output_dir) if config.resume else 0
     if step:
         logger.info("%s: resuming from step %d", job.description, step)
     if step >= config.max_steps:
@@ -170,7 +170,8 @@ def run_training(job: TrainingJob, config, output_dir: Path, accelerator: Accele
                 break
     bar.close()
     unwrapped = accelerator.unwrap_model(model).eval()
-    if accelerator.is_main_process:
+    finished_before = step == start and (output_dir / TRAINING_CONFIG).exists()  # resumed a finished run: keep it
+    if accelerator.is_main_process and not finished_before:
         job.save(unwrapped, output_dir)
         (output_dir / TRAINING_CONFIG).write_text(
             json.dumps({**asdict(config), "steps": step, "final_metrics": metrics}, indent=2)
