@@ -81,12 +81,18 @@ IMPORTANT_SETTINGS = ("target", "policy", "init_from", "draft_head", "data", "de
 
 #: dotted settings that hold paths in records written before ``RunRecord.paths`` existed: never compared
 LEGACY_PATH_SETTINGS = frozenset({"draft_head_config.target_name_or_path", "data.demonstrations"})
-#: settings added to records later: a folder recorded before they existed continues without them
-ADDED_SETTINGS = frozenset({"data.demonstration_fingerprints", "draft_head_config.final_logit_softcapping"})
-#: per command, settings added to records later whose value was fixed before: a record without one is read with that
-#: value (train-vla's optimisation, hard-coded until the one training loop made it a setting)
-IMPLIED_SETTINGS = {
-    "train-vla": {"betas": [0.9, 0.999], "max_grad_norm": 1.0, "lr_schedule": "cosine", "mixed_precision": "no"}
+#: a setting an old record cannot be compared on (see ``ADDED_SETTINGS``)
+NOT_COMPARED = object()
+#: settings added to records later: a record written before one existed (and a run that records it) is read with the
+#: value it implied then, or not compared on it (``NOT_COMPARED``)
+ADDED_SETTINGS = {
+    "data.demonstration_fingerprints": NOT_COMPARED,
+    "draft_head_config.final_logit_softcapping": NOT_COMPARED,
+    # train-vla's optimisation, hard-coded until the one training loop made it settings
+    "betas": [0.9, 0.999],
+    "max_grad_norm": 1.0,
+    "lr_schedule": "cosine",
+    "mixed_precision": "no",
 }
 
 
@@ -132,14 +138,16 @@ class RunRecord:
         ``name: <this run's value> here vs <the folder's> there`` (values shortened)."""
         if self.command != other.command:
             return [f"it was written by `hf-specvla {self.command}`, this is `hf-specvla {other.command}`"]
-        saved = {**IMPLIED_SETTINGS.get(self.command, {}), **_flatten(self.settings)}
-        now = _flatten(other.settings)
+        saved, now = _flatten(self.settings), _flatten(other.settings)
+        for key, implied in ADDED_SETTINGS.items():
+            if key in now and key not in saved:
+                saved[key] = now[key] if implied is NOT_COMPARED else implied
         keys = sorted((set(saved) | set(now)) - LEGACY_PATH_SETTINGS, key=_importance)
         missing = "(not set)"
         return [
             f"{key}: {_shorten(now.get(key, missing))} here vs {_shorten(saved.get(key, missing))} there"
             for key in keys
-            if saved.get(key, missing) != now.get(key, missing) and not (key in ADDED_SETTINGS and key not in saved)
+            if saved.get(key, missing) != now.get(key, missing)
         ]
 
 

@@ -75,7 +75,6 @@ class DraftTrainingConfig(TrainingConfig):
         feature_noise: width of the uniform noise added to the input hidden states (U(-a/2, a/2)).
     """
 
-    output_dir: str
     max_steps: int = 2000
     batch_size: int = 8
     learning_rate: float = 5e-5
@@ -102,7 +101,6 @@ class VLATrainingConfig(TrainingConfig):
             ``scene_state_dim`` only).
     """
 
-    output_dir: str
     max_steps: int = 6000
     batch_size: int = 64
     weight_decay: float = 0.01
@@ -127,7 +125,6 @@ class PolicyDraftTrainingConfig(DraftTrainingConfig):
     tokens per call minus one (the prefill makes the first token, so 3 drafted tokens complete a 4-token action and
     7 a chunk of two)."""
 
-    output_dir: str
     max_steps: int = 3000
     batch_size: int = 32
     learning_rate: float = 3e-3

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import torch
 from accelerate import Accelerator
-from accelerate.utils import DataLoaderConfiguration
 from torch.utils.data import Dataset
 from transformers import PreTrainedModel
 
@@ -42,7 +41,7 @@ from ..speculative import (
 )
 from .checkpoints import check_output_dir, latest_checkpoint, prepare_output_dir, training_record
 from .configuration import DraftTrainingConfig
-from .loop import TrainingJob, run_training
+from .loop import TrainingJob, default_accelerator, run_training
 
 logger = logging.getLogger(__name__)
 
@@ -224,10 +223,7 @@ def train_draft_head(
         inputs = {"data": fingerprint_arrays(*[example["input_ids"] for example in dataset.examples])}
     record = draft_training_record(draft_head, target_fingerprint or fingerprint(target), config, inputs, paths)
     with prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir) as run:
-        accelerator = accelerator or Accelerator(
-            mixed_precision=config.mixed_precision,
-            dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
-        )
+        accelerator = accelerator or default_accelerator(config)  # the loop's: the loss seeds noise per process
         handles = draft_head.target_handles(target)
         for module in handles:
             module.requires_grad_(False)

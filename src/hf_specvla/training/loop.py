@@ -78,6 +78,14 @@ def learning_rate_factor(step: int, warmup_steps: int, max_steps: int, schedule:
     return 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
 
 
+def default_accelerator(config) -> Accelerator:
+    """The accelerator a run gets unless the caller brings one: ``config.mixed_precision``, a seedable sampler (the
+    data order resume relies on)."""
+    return Accelerator(
+        mixed_precision=config.mixed_precision, dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True)
+    )
+
+
 def _numbers(metrics: dict) -> dict:
     """0-d tensors as floats; other values (numbers, per-position lists) as they are."""
     return {name: value.item() if isinstance(value, torch.Tensor) else value for name, value in metrics.items()}
@@ -100,9 +108,7 @@ def run_training(job: TrainingJob, config, output_dir: Path, accelerator: Accele
         (the unwrapped model in eval mode, the last step's metrics with the final validation's).
     """
     output_dir = Path(output_dir)
-    accelerator = accelerator or Accelerator(
-        mixed_precision=config.mixed_precision, dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True)
-    )
+    accelerator = accelerator or default_accelerator(config)
     if accelerator.is_main_process:
         output_dir.mkdir(parents=True, exist_ok=True)
     set_seed(config.seed)

@@ -127,7 +127,7 @@ def train_policy_draft_head(
                        "demonstration_fingerprints": [dataset_fingerprint(root) for root in demonstrations],
                        "demonstration_info": [dataset_info(root) for root in demonstrations]}}  # fmt: skip
     paths = {"demonstrations": demonstrations}
-    sequences = []  # training sequences, one per frame (for the model card)
+    sequences = 0  # training sequences, one per frame (for the model card)
 
     def prompts() -> tuple[list, list]:
         logger.info("on-policy rollouts: %d per task on %d tasks", data_config.rollout_episodes, len(data_config.tasks))
@@ -136,7 +136,8 @@ def train_policy_draft_head(
             train_frames += demonstration_frames(demonstrations, data_config, policy)
         validation_frames = _spread(validation_frames, data_config.validation_frames)
         logger.info("%d training frames, %d held-out frames", len(train_frames), len(validation_frames))
-        sequences.append(len(train_frames))
+        nonlocal sequences
+        sequences = len(train_frames)
         return (policy_prompts(policy, train_frames, data_config.prompt_batch_size),
                 policy_prompts(policy, validation_frames, batch_size=1))  # fmt: skip
 
@@ -146,7 +147,7 @@ def train_policy_draft_head(
         num_draft_tokens=num_draft_tokens, action_layout=policy.action_layout, target_name_or_path=policy.name_or_path,
         target_fingerprint=policy.weights_fingerprint(), paths=paths, progress=progress,
     )  # fmt: skip
-    write_model_card(output_dir, head, training_config, data_config, demonstrations, sequences[0], command,
+    write_model_card(output_dir, head, training_config, data_config, demonstrations, sequences, command,
                      policy.config.action_tokens)  # fmt: skip
     return head
 

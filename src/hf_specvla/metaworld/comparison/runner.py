@@ -78,10 +78,9 @@ def run_method_episode(
         return [policy.action_steps(action)]
 
     episode = rollout([env], [seed], decide)[0]
-    success, length = episode.success, episode.length
     return {
-        "task": env.task, "seed": seed, "method": method.name, "success": success,
-        "length": length, "latencies_ms": latencies, "target_forwards": target_forwards,
+        "task": env.task, "seed": seed, "method": method.name, "success": episode.success,
+        "length": episode.length, "latencies_ms": latencies, "target_forwards": target_forwards,
         "new_tokens": new_tokens, "accept_length_counts": {str(k): v for k, v in sorted(accept_counts.items())},
         "bin_distance_sum": sum(distances), "bin_distance_count": len(distances),
         "bin_distance_max": max(distances, default=0), "actions_digest": digest.hexdigest()[:16],
