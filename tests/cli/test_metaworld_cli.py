@@ -61,12 +61,14 @@ def test_collect_train_eval(tmp_path, capsys):
     assert [json.loads(x)["length"] for x in method_log] == greedy_lengths
     with pytest.raises(SystemExit) as exit_info:
         main([*eval_args[:9], "--output-dir", str(tmp_path / "wide_method"), "--method", "prior:r=999"])
-    assert exit_info.value.code == 2 and "bins are at most 255 apart" in capsys.readouterr().err
-    assert not (tmp_path / "wide_method").exists()
+    error = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "--method prior:r=999: r is wider than the action range" in error
+    assert "use r in 0..255" in error and not (tmp_path / "wide_method").exists()
     # r beyond the 256 bins: a usage error before anything is written
     with pytest.raises(SystemExit) as exit_info:
         main([*prior_args[:-3], "--output-dir", str(tmp_path / "wide"), "--action-prior", "--bin-tolerance", "999"])
-    assert exit_info.value.code == 2 and "bins are at most 255 apart" in capsys.readouterr().err
+    error = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "--bin-tolerance 999: r is wider than the action range" in error
     assert not (tmp_path / "wide").exists()
     # the episode benchmark on the policy's own recorded rollouts
     bench = ["bench-episodes", "--policy", str(policy), "--tasks", "reach", "--steps", "3", "--bin-tolerances", "0"]

@@ -61,6 +61,9 @@ def test_rule_factory(layout):
         ("2", TypeError, "non-negative int"),
         ([1, 2], ValueError, "7 dimensions"),
         ([1] * 6 + [-2], ValueError, r"\[6\]"),
+        # the one wording the engine, compare and eval share
+        (256, ValueError, r"bin_tolerance=256: r is wider than the action range .*256 bins.* use r in 0..255"),
+        ([0] * 6 + [300], ValueError, r"bin_tolerance=\[0, 0, 0, 0, 0, 0, 300\]: r is wider"),
     ],
 )
 def test_bad_tolerance(layout, tolerance, error, match):

@@ -9,6 +9,7 @@ import pytest
 import torch
 from transformers import (
     LogitsProcessorList,
+    MinLengthLogitsProcessor,
     MinNewTokensLengthLogitsProcessor,
     NoRepeatNGramLogitsProcessor,
     RepetitionPenaltyLogitsProcessor,
@@ -22,7 +23,7 @@ from hf_specvla.speculative import SpeculationStats, accept_trees
 from hf_specvla.speculative.drafter import PathSession
 from hf_specvla.speculative.loop import RowState, emit_tokens
 from hf_specvla.speculative.tree import TreeBatch
-from hf_specvla.speculative.verify import apply_processors, target_greedy_ids
+from hf_specvla.speculative.verify import eos_hidden_below, target_greedy_ids
 
 VOCAB = 320  # action ids 64..319 (the conftest action tokenizer), text ids below
 
@@ -42,24 +43,62 @@ def random_batch(seed: int, batch_size: int = 5):
     return trees, sequences
 
 
+def min_lengths():
+    """What ``min_length`` / ``min_new_tokens`` add: hide EOS (66, an id the random trees draft) below a length that
+    falls inside the trees' depths."""
+    return [
+        MinLengthLogitsProcessor(8, eos_token_id=66),
+        MinNewTokensLengthLogitsProcessor(prompt_length_to_skip=5, min_new_tokens=4, eos_token_id=[66, 67]),
+    ]
+
+
+PROCESSOR_LISTS = {
+    # reads the tokens of the whole prefix, then its length
+    "general, then lengths": lambda: [
+        RepetitionPenaltyLogitsProcessor(1.7),
+        NoRepeatNGramLogitsProcessor(2),
+        *min_lengths(),
+    ],
+    "lengths only (applied as one mask)": min_lengths,
+    "lengths (one mask), then general": lambda: [
+        *min_lengths(),
+        RepetitionPenaltyLogitsProcessor(1.7),
+        NoRepeatNGramLogitsProcessor(2),
+    ],
+    "mask, general, mask": lambda: [min_lengths()[0], RepetitionPenaltyLogitsProcessor(0.6), min_lengths()[1]],
+}
+
+
+@pytest.mark.parametrize("processors", PROCESSOR_LISTS.values(), ids=PROCESSOR_LISTS.keys())
 @pytest.mark.parametrize("seed", range(6))
-def test_batched_target_ids_equal_each_node_processed_alone(seed):
+def test_batched_target_ids_equal_each_node_processed_alone(seed, processors):
     trees, sequences = random_batch(seed)
     logits = torch.randn(len(sequences), 1 + trees.num_nodes, VOCAB, generator=torch.Generator().manual_seed(seed))
-    processors = LogitsProcessorList([
-        RepetitionPenaltyLogitsProcessor(1.7),  # reads the tokens of the whole prefix
-        NoRepeatNGramLogitsProcessor(2),
-        MinNewTokensLengthLogitsProcessor(prompt_length_to_skip=5, min_new_tokens=4, eos_token_id=66),  # its length
-    ])  # fmt: skip
+    processors = LogitsProcessorList(processors())
     target_ids, scores = target_greedy_ids(processors, sequences, trees, logits)
     assert target_ids.shape == logits.shape[:2]
+    masked = 0
     for b, (tree, sequence) in enumerate(zip(trees.trees, sequences)):
         for column in range(1 + tree.num_nodes):
             path = [] if column == 0 else tree.token_ids[tree.path_to(column - 1)].tolist()
             prefix = torch.cat([sequence, torch.tensor([path], dtype=torch.long)], dim=1)
-            expected = apply_processors(processors, prefix, logits[b, column][None])[0]
-            torch.testing.assert_close(scores[b, column], expected)
+            expected = processors(prefix, logits[b, column][None])[0]  # transformers' own list, node by node
+            torch.testing.assert_close(scores[b, column], expected, rtol=0, atol=0)
             assert int(target_ids[b, column]) == int(expected.argmax())
+            masked += bool(torch.isinf(expected[66]))
+    assert masked > 0  # the lengths fall inside the trees: some nodes hide EOS, others do not
+
+
+class HidesEosAndMore(MinLengthLogitsProcessor):
+    def __call__(self, input_ids, scores):
+        return super().__call__(input_ids, scores) * 2
+
+
+def test_only_transformers_own_length_processors_become_masks():
+    assert eos_hidden_below(MinLengthLogitsProcessor(8, eos_token_id=2)) == 8
+    assert eos_hidden_below(MinNewTokensLengthLogitsProcessor(5, 4, eos_token_id=2)) == 9
+    assert eos_hidden_below(HidesEosAndMore(8, eos_token_id=2)) is None  # a subclass may do more
+    assert eos_hidden_below(RepetitionPenaltyLogitsProcessor(1.5)) is None
 
 
 def reference_path(tree: DraftTree, target_ids: list[int], rule, layout, prior_actions: int):

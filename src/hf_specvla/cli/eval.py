@@ -7,6 +7,7 @@ import logging
 
 from ..metaworld.env import EnvConfig
 from ..metaworld.seeds import EVAL_SEED_START
+from ..speculative.acceptance import check_bin_tolerance_range
 from .common import (
     NON_NEGATIVE,
     POSITIVE,
@@ -91,12 +92,12 @@ def decoding_method(args, parser):
 
 
 def _check_tolerances(policy, method, args, parser) -> None:
-    widest = policy.action_tokenizer.n_bins - 1
     tolerances = args.bin_tolerance or [method.bin_tolerance]
-    if max(tolerances) > widest:
-        given = f"--method {method.name}" if args.method else f"--bin-tolerance {' '.join(map(str, tolerances))}"
-        parser.error(f"{given}: the policy's {widest + 1} bins are at most {widest} apart (r={widest} already "
-                     f"accepts any action token); use r=0..{widest}")  # fmt: skip
+    given = f"--method {method.name}" if args.method else f"--bin-tolerance {' '.join(map(str, tolerances))}"
+    try:
+        check_bin_tolerance_range(tolerances, policy.action_tokenizer.n_bins, given)
+    except ValueError as error:
+        parser.error(str(error))
 
 
 def run(args, parser) -> int:

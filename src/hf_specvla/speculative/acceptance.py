@@ -129,6 +129,21 @@ class RelaxedBinMatch(AcceptanceRule):
         )
 
 
+def check_bin_tolerance_range(tolerances: Sequence[int], n_bins: int, given: str) -> None:
+    """Refuses an r wider than the action range, naming ``given`` (what the user wrote: ``bin_tolerance=300``,
+    ``--bin-tolerance 300``, ``methods ['prior:r=300']``): the one wording the engine and the CLI share.
+
+    Raises:
+        ValueError: some tolerance exceeds ``n_bins - 1``.
+    """
+    widest = n_bins - 1
+    if max(tolerances) > widest:
+        raise ValueError(
+            f"{given}: r is wider than the action range (with {n_bins} bins two action tokens are at most {widest} "
+            f"bins apart; r={widest} already accepts any action token); use r in 0..{widest}"
+        )
+
+
 def make_acceptance_rule(bin_tolerance: int | Sequence[int], action_layout: ActionLayout | None) -> AcceptanceRule:
     """[`ExactMatch`] when every tolerance is 0, else [`RelaxedBinMatch`] (which needs the action layout).
 
@@ -146,12 +161,7 @@ def make_acceptance_rule(bin_tolerance: int | Sequence[int], action_layout: Acti
             "or use a DraftHead (its config records the layout)"
         )
     tolerance = validate_bin_tolerance(bin_tolerance, action_layout.action_dim)
-    widest = action_layout.tokenizer.n_bins - 1
-    if max(tolerance) > widest:
-        raise ValueError(
-            f"bin_tolerance={bin_tolerance!r} is wider than the action range: with {widest + 1} bins two tokens are at "
-            f"most {widest} bins apart (r={widest} already accepts any action token); use 0..{widest}"
-        )
+    check_bin_tolerance_range(tolerance, action_layout.tokenizer.n_bins, f"bin_tolerance={bin_tolerance!r}")
     if all(t == 0 for t in tolerance):
         return ExactMatch()
     return RelaxedBinMatch(action_layout, tolerance)

@@ -14,7 +14,11 @@ from typing import NamedTuple
 import torch
 from torch.nn.utils.rnn import pad_sequence
 from transformers import LogitsProcessorList, PreTrainedModel
-from transformers.generation.logits_process import PrefixConstrainedLogitsProcessor
+from transformers.generation.logits_process import (
+    MinLengthLogitsProcessor,
+    MinNewTokensLengthLogitsProcessor,
+    PrefixConstrainedLogitsProcessor,
+)
 
 from .masks import to_additive_mask, tree_verification_allowed
 from .tree import TreeBatch
@@ -109,15 +113,29 @@ def apply_processors(logits_processor: LogitsProcessorList, input_ids: torch.Ten
     return scores
 
 
+def eos_hidden_below(processor) -> int | None:
+    """The prefix length below which ``processor`` sets its EOS scores to -inf, when that is all it does (transformers'
+    ``MinLengthLogitsProcessor`` and ``MinNewTokensLengthLogitsProcessor``, what ``min_length`` / ``min_new_tokens``
+    add); None for any other processor, subclasses included (they may do more)."""
+    if type(processor) is MinLengthLogitsProcessor:
+        return processor.min_length
+    if type(processor) is MinNewTokensLengthLogitsProcessor:
+        return processor.prompt_length_to_skip + processor.min_new_tokens
+    return None
+
+
 def target_greedy_ids(
     logits_processor: LogitsProcessorList, sequences: Sequence[torch.Tensor], trees: TreeBatch, logits: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Every row's greedy token after its root and after each of its nodes, with the logits processors applied.
 
     The processors at row b's node i see row b's sequence + the tokens on node i's path: exactly what plain greedy
-    decoding would pass them had that path been generated. Every (row, node) whose prefix has the same length is
-    processed in one call (the prefill: one call per depth for the whole batch), except under processors that read
-    the batch index (``prefix_allowed_tokens_fn``, batch size 1 only), which see each node alone as batch row 0.
+    decoding would pass them had that path been generated. The leading processors that only hide EOS below a
+    length (``min_length``, ``min_new_tokens``: [`eos_hidden_below`]) are applied to every (row, node) at once as
+    the mask they are; every later processor runs once per prefix length over the (row, node)s of that length (the
+    prefill: one call per depth for the whole batch), except processors that read the batch index
+    (``prefix_allowed_tokens_fn``, batch size 1 only), which see each node alone as batch row 0. Order is kept, so
+    the scores equal the list applied node by node.
 
     Args:
         sequences: per row, ``[1, L_b]`` the tokens emitted so far (ending with the root).
@@ -132,11 +150,33 @@ def target_greedy_ids(
     lengths = torch.tensor([s.shape[1] for s in sequences], device=device)[:, None]  # [B, 1]
     prefix_lengths = torch.cat([lengths, lengths + 1 + trees.depths], dim=1)  # [B, 1 + N]
     scored = torch.cat([trees.is_real.new_ones(batch_size, 1), trees.is_real], dim=1)  # [B, 1 + N]
+    scores = logits.clone()
+    num_masks = 0
+    for processor in logits_processor:
+        threshold = eos_hidden_below(processor)
+        if threshold is None:
+            break
+        num_masks += 1
+        hidden = (prefix_lengths < threshold) & scored  # [B, 1 + N]
+        eos_ids = processor.eos_token_id.to(device).reshape(-1)  # [E]
+        scores[..., eos_ids] = torch.where(hidden[..., None], -torch.inf, scores[..., eos_ids])
+    remaining = logits_processor[num_masks:]
+    if remaining:
+        _apply_by_prefix_length(remaining, sequences, trees, prefix_lengths, scored, scores)
+    return scores.argmax(dim=-1), scores
+
+
+def _apply_by_prefix_length(
+    logits_processor, sequences: Sequence[torch.Tensor], trees: TreeBatch, prefix_lengths, scored, scores
+) -> None:
+    """``scores`` ``[B, 1 + N, V]`` through ``logits_processor`` in place, one call per prefix length (see
+    [`target_greedy_ids`])."""
+    batch_size, device = scores.shape[0], scores.device
+    lengths = prefix_lengths[:, :1]  # [B, 1]
     sequence_table = pad_sequence([s[0] for s in sequences], batch_first=True)  # [B, L_max]
     path_tokens = trees.path_token_ids  # [B, N, D]
     path_tokens = torch.cat([path_tokens.new_zeros(batch_size, 1, path_tokens.shape[2]), path_tokens], dim=1)
     by_row = any(isinstance(p, PrefixConstrainedLogitsProcessor) for p in logits_processor)
-    scores = logits.clone()
     for length in prefix_lengths[scored].unique().tolist():
         rows, columns = ((prefix_lengths == length) & scored).nonzero(as_tuple=True)  # [n] each
         # each (row, column)'s prefix: the row's sequence, then the node's path tokens
@@ -148,6 +188,5 @@ def target_greedy_ids(
         groups = [[i] for i in range(len(rows))] if by_row else [slice(None)]
         for group in groups:
             scores[rows[group], columns[group]] = apply_processors(
-                logits_processor, input_ids[group], logits[rows[group], columns[group]]
+                logits_processor, input_ids[group], scores[rows[group], columns[group]]
             )
-    return scores.argmax(dim=-1), scores

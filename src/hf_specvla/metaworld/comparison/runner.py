@@ -23,6 +23,7 @@ from ...policies import VLAPolicy
 from ...progress import progress_bar
 from ...run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
 from ...speculative import DraftHead
+from ...speculative.acceptance import check_bin_tolerance_range
 from ..env import EnvConfig, MetaWorldEnv
 from ..rollout import rollout
 from .methods import CompareConfig, DecodingMethod
@@ -184,13 +185,10 @@ def run_comparison(
         policy.check_draft_head(draft_head)
     if config.workers > 1 and policy_dir is None:
         raise ValueError("workers > 1 load the policy in each process: pass policy_dir (and draft_head_dir)")
-    widest = policy.action_tokenizer.n_bins - 1
-    too_wide = [m.name for m in methods if m.bin_tolerance > widest]
+    n_bins = policy.action_tokenizer.n_bins
+    too_wide = [m.name for m in methods if m.bin_tolerance > n_bins - 1]
     if too_wide:
-        raise ValueError(
-            f"methods {too_wide}: r is wider than the action range (the policy's {widest + 1} bins are at most "
-            f"{widest} apart; r={widest} already accepts any action token); use r in 0..{widest}"
-        )
+        check_bin_tolerance_range([max(m.bin_tolerance for m in methods)], n_bins, f"methods {too_wide}")
     output_dir = Path(output_dir)
     env_config = EnvConfig(policy.config.image_size, policy.config.camera, config.max_episode_steps)
     settings = {
