@@ -10,7 +10,8 @@ def test_seed_ranges_are_ordered_and_distinct():
 
 
 def test_every_consumer_takes_its_range_from_the_one_definition():
-    from hf_specvla import comparison, evaluation, policy_draft
+    from hf_specvla.metaworld import comparison, evaluation
+    from hf_specvla.training import policy_draft
 
     assert evaluation.EVAL_SEED_START is seeds.EVAL_SEED_START
     assert comparison.CompareConfig().seed_start == seeds.EVAL_SEED_START

@@ -7,7 +7,7 @@ import logging
 
 from ..metaworld.env import EnvConfig
 from ..metaworld.seeds import EVAL_SEED_START
-from ..speculative.acceptance import check_bin_tolerance_range
+from ..speculative import check_bin_tolerance_range
 from .common import (
     NON_NEGATIVE,
     POSITIVE,

@@ -10,6 +10,7 @@ from .acceptance import (
     RelaxedBinMatch,
     accept_tree,
     accept_trees,
+    check_bin_tolerance_range,
     make_acceptance_rule,
 )
 from .config import SpeculationConfig
@@ -70,6 +71,7 @@ __all__ = [
     "SpeculativeGenerationMixin",
     "accept_tree",
     "accept_trees",
+    "check_bin_tolerance_range",
     "disable_speculation",
     "enable_speculation",
     "make_acceptance_rule",

@@ -22,8 +22,7 @@ import torch
 from ...policies import VLAPolicy
 from ...progress import progress_bar
 from ...run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
-from ...speculative import DraftHead
-from ...speculative.acceptance import check_bin_tolerance_range
+from ...speculative import DraftHead, check_bin_tolerance_range
 from ..env import EnvConfig, MetaWorldEnv
 from ..rollout import rollout
 from .methods import CompareConfig, DecodingMethod
