@@ -186,8 +186,7 @@ def run_comparison(
         raise ValueError("workers > 1 load the policy in each process: pass policy_dir (and draft_head_dir)")
     n_bins = policy.action_tokenizer.n_bins
     too_wide = [m.name for m in methods if m.bin_tolerance > n_bins - 1]
-    if too_wide:
-        check_bin_tolerance_range([max(m.bin_tolerance for m in methods)], n_bins, f"methods {too_wide}")
+    check_bin_tolerance_range([m.bin_tolerance for m in methods], n_bins, f"methods {too_wide}")
     output_dir = Path(output_dir)
     env_config = EnvConfig(policy.config.image_size, policy.config.camera, config.max_episode_steps)
     settings = {
