@@ -27,6 +27,7 @@ from transformers.cache_utils import DynamicCache
 
 from hf_specvla import ActionPriorDrafter, DraftHead, DraftHeadDrafter, DraftTree, DraftTreeConfig
 from hf_specvla.openvla import OpenVLAConfig, OpenVLAForActionPrediction, VisionTowerSpec, register_vision_tower
+from hf_specvla.speculative import CACHE_KEY
 from hf_specvla.speculative.cache import truncate_cache
 from hf_specvla.speculative.masks import causal_mask, to_additive_mask, tree_verification_allowed
 
@@ -141,7 +142,7 @@ def main() -> None:
 
     with torch.no_grad():
         prefilled = DynamicCache()
-        out = model(input_ids, pixel_values=pixel_values, past_key_values=prefilled, use_cache=True,
+        out = model(input_ids, pixel_values=pixel_values, **{CACHE_KEY: prefilled}, use_cache=True,
                     output_hidden_states=True)  # fmt: skip
         prompt_hidden = out.hidden_states[-1]  # [1, S, H]
         head_cache = DynamicCache()
@@ -174,11 +175,11 @@ def main() -> None:
               position_ids=tree_positions, use_cache=True, logits_to_keep=tree.num_nodes + 1)  # fmt: skip
 
     def decode_step():
-        model(greedy_ids[:, :1], past_key_values=prefilled, position_ids=positions[:, -1:] + 1, use_cache=True)
+        model(greedy_ids[:, :1], **{CACHE_KEY: prefilled}, position_ids=positions[:, -1:] + 1, use_cache=True)
         truncate_cache(prefilled, prompt_length)
 
     def verify_tree_after_prefill():
-        model(after_ids, past_key_values=prefilled, attention_mask=after_mask, position_ids=after_positions,
+        model(after_ids, **{CACHE_KEY: prefilled}, attention_mask=after_mask, position_ids=after_positions,
               use_cache=True, logits_to_keep=tree.num_nodes + 1)  # fmt: skip
         truncate_cache(prefilled, prompt_length)
 

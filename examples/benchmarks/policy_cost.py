@@ -35,6 +35,7 @@ from transformers.cache_utils import DynamicCache
 from hf_specvla import ActionNormalizer, DraftHead, DraftHeadDrafter
 from hf_specvla.metaworld.env import TASK_INSTRUCTIONS
 from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
+from hf_specvla.speculative import CACHE_KEY
 from hf_specvla.speculative.cache import truncate_cache
 from hf_specvla.speculative.drafter import Commit, DraftContext, DraftRound
 
@@ -66,7 +67,7 @@ def measurements(policy: VLAPolicy, draft_head: DraftHead, drafted: int, chain_d
     action_ids = torch.tensor(policy.action_token_ids(np.zeros((1, drafted // 4 + 1, 4))).reshape(1, -1)[:, :drafted])
     with torch.no_grad():
         cache = DynamicCache()
-        prefill = model(input_ids=input_ids, pixel_values=pixel_values, past_key_values=cache, use_cache=True,
+        prefill = model(input_ids=input_ids, pixel_values=pixel_values, **{CACHE_KEY: cache}, use_cache=True,
                         output_hidden_states=True)  # fmt: skip
     prompt_length = input_ids.shape[1]
     hidden = prefill.hidden_states[-1]  # [1, S, H]: post-norm, what a Commit carries
@@ -79,7 +80,7 @@ def measurements(policy: VLAPolicy, draft_head: DraftHead, drafted: int, chain_d
 
     @torch.no_grad()
     def decode():
-        model(input_ids=action_ids[:, :1], past_key_values=cache, use_cache=True)
+        model(input_ids=action_ids[:, :1], **{CACHE_KEY: cache}, use_cache=True)
         truncate_cache(cache, prompt_length)
 
     def propose(depth: int):

@@ -35,6 +35,7 @@ from transformers import (
 from transformers.cache_utils import DynamicIndexedLayer, DynamicSlidingWindowLayer
 
 from hf_specvla import ActionLayout, ActionTokenizer, DraftHead, DraftHeadDrafter, DraftTreeConfig, enable_speculation
+from hf_specvla.speculative import CACHE_KEY, cache_of
 
 VOCAB = 320  # ids 64..319 are the 256 action bins
 IMAGE = 5
@@ -273,7 +274,7 @@ def test_sliding_window_shorter_than_prompt_plus_drafts_is_exact():
     out = greedy(model, inputs, draft_ids=candidates, return_dict_in_generate=True)
     assert torch.equal(out.sequences, expected)
     assert out.speculation.num_batch_forwards == 1
-    layers = [layer for layer in out.past_key_values.layers if isinstance(layer, DynamicSlidingWindowLayer)]
+    layers = [layer for layer in cache_of(out).layers if isinstance(layer, DynamicSlidingWindowLayer)]
     assert layers and all(layer.sliding_window == 14 and layer.keys.shape[-2] <= 13 for layer in layers)  # restored
 
 
@@ -300,7 +301,7 @@ def test_unsupported_cache_layer_is_refused_before_any_forward(tiny_llama):
     cache.layers[1] = DynamicIndexedLayer()
     with pytest.raises(TypeError, match="layer 1's DynamicIndexedLayer"):
         tiny_llama.generate(input_ids=torch.tensor([[1, 7, 9]]), max_new_tokens=3, do_sample=False,
-                            draft_ids=torch.tensor([[70]]), past_key_values=cache)  # fmt: skip
+                            draft_ids=torch.tensor([[70]]), **{CACHE_KEY: cache})  # fmt: skip
     assert counter.count == 0
 
 

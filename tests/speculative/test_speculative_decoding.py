@@ -18,6 +18,7 @@ from hf_specvla import (
     disable_speculation,
     enable_speculation,
 )
+from hf_specvla.speculative import CACHE_KEY, cache_of
 from hf_specvla.speculative.drafter import DraftSession
 from hf_specvla.speculative.drafters.draft_head import embed_tokens
 from hf_specvla.speculative.masks import causal_mask
@@ -463,7 +464,7 @@ def test_caches_after_a_non_leftmost_path_match_a_fresh_prefill(tiny_llava, rand
     # target: the kept cache gives the next-token logits of a fresh prefill over the emitted sequence
     sequence = out.sequences
     position = torch.tensor([[sequence.shape[1] - 1]])
-    step = tiny_llava(input_ids=sequence[:, -1:], past_key_values=out.past_key_values, position_ids=position)
+    step = tiny_llava(input_ids=sequence[:, -1:], position_ids=position, **{CACHE_KEY: cache_of(out)})
     fresh = tiny_llava(input_ids=sequence, pixel_values=prompt["pixel_values"])
     torch.testing.assert_close(step.logits[0, -1], fresh.logits[0, -1], atol=1e-4, rtol=1e-4)
     # draft head: its root feature after the catch-up equals a fresh run over every (token, true hidden) pair

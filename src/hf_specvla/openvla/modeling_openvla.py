@@ -31,10 +31,18 @@ import torch
 from torch import nn
 from transformers import AutoModelForCausalLM, GenerationMixin, PreTrainedModel
 from transformers import initialization as init
-from transformers.modeling_outputs import ModelOutput
+from transformers.modeling_outputs import CausalLMOutputWithPast
 
 from ..actions.tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
-from ..speculative import Drafter, DraftHead, SpeculativeGenerationMixin, is_local_path, named_weight_errors
+from ..speculative import (
+    CACHE_KEY,
+    Drafter,
+    DraftHead,
+    SpeculativeGenerationMixin,
+    cache_of,
+    is_local_path,
+    named_weight_errors,
+)
 from .configuration_openvla import OpenVLAConfig
 from .vision import AttentionPoolLatent, LayerScale, OpenVLAProjector, OpenVLAVisionBackbone, VisionTransformer
 
@@ -90,19 +98,15 @@ def check_checkpoint_folder(name_or_path: str | os.PathLike) -> None:
 
 
 @dataclass
-class OpenVLACausalLMOutputWithPast(ModelOutput):
-    """The language model's output, plus the projected patch features when asked for.
+class OpenVLACausalLMOutputWithPast(CausalLMOutputWithPast):
+    """The language model's output (its cache under the installed transformers' name, ``CACHE_KEY``), plus the
+    projected patch features when asked for.
 
     Attributes:
         logits: ``[B, L, V]`` (``L`` counts the image rows).
         projector_features: ``[B, num_patches, llm_dim]`` or None.
     """
 
-    loss: torch.FloatTensor | None = None
-    logits: torch.FloatTensor | None = None
-    past_key_values: object | None = None
-    hidden_states: tuple[torch.FloatTensor, ...] | None = None
-    attentions: tuple[torch.FloatTensor, ...] | None = None
     projector_features: torch.FloatTensor | None = None
 
 
@@ -112,7 +116,7 @@ class OpenVLAPreTrainedModel(PreTrainedModel):
     main_input_name = "input_ids"
     supports_gradient_checkpointing = False
     _no_split_modules = ["VisionBlock", "OpenVLAProjector", "LlamaDecoderLayer"]
-    _skip_keys_device_placement = "past_key_values"
+    _skip_keys_device_placement = CACHE_KEY
     _supports_sdpa = True
     _supports_flash_attn = True
 
@@ -213,6 +217,7 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         pixel_values: torch.FloatTensor | None = None,
         labels: torch.LongTensor | None = None,
         inputs_embeds: torch.FloatTensor | None = None,
+        cache=None,
         past_key_values=None,
         position_ids: torch.LongTensor | None = None,
         use_cache: bool | None = None,
@@ -231,8 +236,11 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
             attention_mask: ``[B, L]`` 2D padding mask or a 4D mask (generation); extended with ones when
                 patches are inserted.
             labels: ``[B, L]``; extended with ``IGNORE_INDEX`` when patches are inserted.
+            cache / past_key_values: the KV cache, under either name (generate passes ``cache`` from transformers
+                5.24, ``past_key_values`` before).
             kwargs: passed to the language model (``logits_to_keep``, ...).
         """
+        cache = cache if cache is not None else past_key_values
         if (input_ids is None) == (inputs_embeds is None):
             raise ValueError("pass exactly one of input_ids and inputs_embeds")
         projected = None
@@ -277,9 +285,7 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
                     f"(config.image_token_id={self.config.image_token_id}); got {counts.tolist()}"
                 )
             input_ids = None
-        elif (
-            input_ids is not None and bool((input_ids == self.config.image_token_id).any()) and past_key_values is None
-        ):
+        elif input_ids is not None and bool((input_ids == self.config.image_token_id).any()) and cache is None:
             raise ValueError(
                 f"input_ids hold image tokens (config.image_token_id={self.config.image_token_id}) but no pixel_values "
                 f"were given"
@@ -289,20 +295,20 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
             inputs_embeds=inputs_embeds,
             attention_mask=attention_mask,
             position_ids=position_ids,
-            past_key_values=past_key_values,
             labels=labels,
             use_cache=use_cache,
             output_hidden_states=output_hidden_states,
             return_dict=True,
+            **{CACHE_KEY: cache},
             **kwargs,
         )
         return OpenVLACausalLMOutputWithPast(
             loss=outputs.loss,
             logits=outputs.logits,
-            past_key_values=outputs.past_key_values,
             hidden_states=outputs.hidden_states,
             attentions=outputs.attentions,
             projector_features=projected if output_projector_features else None,
+            **{CACHE_KEY: cache_of(outputs)},
         )
 
     # --- generation -----------------------------------------------------------------------------------------

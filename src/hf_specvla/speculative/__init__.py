@@ -13,6 +13,14 @@ from .acceptance import (
     check_bin_tolerance_range,
     make_acceptance_rule,
 )
+from .compat import (
+    CACHE_KEY,
+    NEWEST_TESTED_TRANSFORMERS,
+    OLDEST_TESTED_TRANSFORMERS,
+    SUPPORTED_TRANSFORMERS,
+    cache_of,
+    check_transformers_support,
+)
 from .config import SpeculationConfig
 from .configuration_draft_head import DraftHeadConfig
 from .drafter import (
@@ -37,7 +45,13 @@ from .tree import DraftTree
 from .weights import named_weight_errors
 
 __all__ = [
+    "CACHE_KEY",
+    "NEWEST_TESTED_TRANSFORMERS",
+    "OLDEST_TESTED_TRANSFORMERS",
+    "SUPPORTED_TRANSFORMERS",
     "SPECULATION_KWARGS",
+    "cache_of",
+    "check_transformers_support",
     "TargetHandles",
     "as_drafter",
     "causal_mask",

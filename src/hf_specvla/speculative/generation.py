@@ -13,6 +13,7 @@ import inspect
 
 from transformers import PreTrainedModel
 
+from .compat import check_transformers_support
 from .config import SpeculationConfig
 from .drafter import Drafter
 from .loop import speculative_generate
@@ -36,6 +37,7 @@ class SpeculativeGenerationMixin:
     def generate(self, *args, assistant_model=None, draft_ids=None, **kwargs):
         ours = isinstance(assistant_model, (DraftHead, Drafter))
         if ours or draft_ids is not None:
+            check_transformers_support()
             if kwargs.get("custom_generate") is not None:
                 raise ValueError("pass either a hf_specvla assistant_model / draft_ids or custom_generate, not both")
             if kwargs.get("streamer") is not None:

@@ -43,6 +43,7 @@ from .cache import (
     sliding_window,
     truncate_cache,
 )
+from .compat import CACHE_KEY, check_transformers_support
 from .config import SpeculationConfig
 from .drafter import (
     CandidateDrafter,
@@ -434,6 +435,7 @@ def speculative_generate(
         ``return_dict_in_generate=True`` a [`SpeculativeDecoderOnlyOutput`] whose ``.speculation`` is a
         [`SpeculationStats`] (summed over rows; ``.rows`` per row when B > 1).
     """
+    check_transformers_support()
     if drafter is not None and draft_head is not None:
         raise ValueError("pass drafter= or draft_head=, not both")
     settings = SpeculationConfig(bin_tolerance, num_draft_tokens, action_layout, profile_speculation)
@@ -480,10 +482,10 @@ def speculative_generate(
     keep_logits = return_dict and generation_config.output_logits
     total_start = time.perf_counter()
 
-    if model_kwargs.get("past_key_values") is not None:
-        check_rollback_cache(model_kwargs["past_key_values"], generation_config.max_length)
+    if model_kwargs.get(CACHE_KEY) is not None:
+        check_rollback_cache(model_kwargs[CACHE_KEY], generation_config.max_length)
     model_inputs = prefill_inputs(model, input_ids, model_kwargs)
-    check_rollback_cache(model_inputs["past_key_values"], generation_config.max_length)
+    check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length)
     prompt_positions, position_offsets = _prompt_positions(model_inputs, input_ids, prompt_padding)
     state = DecodeState(
         rows=rows,
@@ -491,7 +493,7 @@ def speculative_generate(
         pending_positions=prompt_positions,
         position_offsets=position_offsets,
         key_valid=None if prompt_padding is None else prompt_padding.bool(),
-        target_cache=model_inputs["past_key_values"],
+        target_cache=model_inputs[CACHE_KEY],
     )
     max_length = generation_config.max_length
     at_prefill = True
@@ -522,7 +524,7 @@ def speculative_generate(
             with stopwatch.section("target_seconds"):
                 output = verify_trees(
                     model,
-                    model_inputs if at_prefill else {"past_key_values": state.target_cache},
+                    model_inputs if at_prefill else {CACHE_KEY: state.target_cache},
                     state.pending_ids,
                     state.pending_positions,
                     trees,
@@ -582,6 +584,6 @@ def speculative_generate(
         sequences=sequences,
         scores=_per_step(all_rows, "scores") if keep_scores else None,
         logits=_per_step(all_rows, "logits") if keep_logits else None,
-        past_key_values=state.target_cache if batch_size == 1 else None,
         speculation=stats,
+        **{CACHE_KEY: state.target_cache if batch_size == 1 else None},
     )

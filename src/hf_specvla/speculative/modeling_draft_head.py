@@ -24,6 +24,7 @@ from transformers.cache_utils import Cache
 from transformers.models.llama.modeling_llama import LlamaDecoderLayer, LlamaRMSNorm, LlamaRotaryEmbedding
 
 from ..actions.tokenizer import DEFAULT_N_BINS, ActionTokenizer
+from .compat import CACHE_KEY
 from .config import NOT_ENABLED_HINT
 from .configuration_draft_head import DraftHeadConfig
 from .masks import causal_mask
@@ -289,7 +290,7 @@ class DraftHead(PreTrainedModel):
         target_hidden: torch.Tensor,
         position_ids: torch.Tensor,
         attention_mask: torch.Tensor | None = None,
-        past_key_values: Cache | None = None,
+        cache: Cache | None = None,
     ) -> torch.Tensor:
         """Predicts the target's next hidden states.
 
@@ -298,12 +299,12 @@ class DraftHead(PreTrainedModel):
             target_hidden: ``[B, q, H]`` target (or previously drafted) hidden states ``h[p]``.
             position_ids: ``[B, q]`` positions p.
             attention_mask: additive float ``[B, 1, q, past + q]``; default causal over the cache + new tokens.
-            past_key_values: the head's own KV cache (one layer), updated in place.
+            cache: the head's own KV cache (one layer), updated in place.
 
         Returns:
             features ``[B, q, H]``, estimates of ``h[p+1]``.
         """
-        past_len = 0 if past_key_values is None else past_key_values.get_seq_length()
+        past_len = 0 if cache is None else cache.get_seq_length()
         if attention_mask is None:
             attention_mask = causal_mask(token_embeds.shape[1], past_len, token_embeds.dtype, token_embeds.device)
         fused = self.fuse(torch.cat([token_embeds, target_hidden], dim=-1))  # [B, q, H]
@@ -312,8 +313,8 @@ class DraftHead(PreTrainedModel):
             fused,
             attention_mask=attention_mask,
             position_ids=position_ids,
-            past_key_values=past_key_values,
-            use_cache=past_key_values is not None,
+            use_cache=cache is not None,
+            **{CACHE_KEY: cache},
             position_embeddings=position_embeddings,
         )
         if isinstance(hidden, tuple):  # older decoder layers return (hidden_states, ...)

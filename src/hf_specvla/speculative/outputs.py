@@ -15,7 +15,8 @@ class SpeculativeDecoderOnlyOutput(GenerateDecoderOnlyOutput):
 
     ``sequences`` is ``[B, S + new]``; ``scores`` / ``logits`` (when requested) hold one ``[B, V]`` tensor per new
     token, the processed / raw target logits at the position that emitted it (zeros in a row that had already
-    stopped). ``past_key_values`` is the target cache for B = 1, None for a batch (its cache has holes).
+    stopped). The target cache (``.cache`` from transformers 5.24, ``.past_key_values`` before) is returned for
+    B = 1, None for a batch (its cache has holes).
     """
 
     speculation: SpeculationStats | None = None
