@@ -94,9 +94,13 @@ def drafters(policy: VLAPolicy) -> dict:
             "prior+tree": dict(action_prior=True, assistant_model=tree)}  # fmt: skip
 
 
+@pytest.mark.parametrize("cache", ["dynamic", "static"])
 @pytest.mark.parametrize("method", ["head", "tree", "prior", "prior+tree"])
-def test_r0_gives_greedys_chunk_for_every_drafter(chunked, method):
-    kwargs = drafters(chunked)[method]
+def test_r0_gives_greedys_chunk_for_every_drafter(chunked, method, cache):
+    """Against plain greedy on the default cache; ``predict_action`` passes ``cache_implementation`` through."""
+    kwargs = dict(drafters(chunked)[method])
+    if cache == "static":
+        kwargs["cache_implementation"] = "static"
     for seed in range(4):
         image, state = observation(seed)
         history = [chunked.action_token_ids(np.random.default_rng(seed).uniform(-1, 1, 4)).tolist()] * 2

@@ -4,9 +4,10 @@ bins, fp32.
 
 For each text backbone and VLM: right drafts known up front pass in one target forward and give greedy's tokens;
 wrong drafts, an untrained head's EAGLE-2 tree and a left-padded batch of 3 give greedy's tokens exactly at r=0; at
-r > 0 every emitted action token is within r bins of the target's greedy token given its prefix. Then the cache
-kinds: sliding windows shorter than the drafts (exact), shorter than the generation (refused before any forward),
-and caches that cannot be rolled back (refused before any forward).
+r > 0 every emitted action token is within r bins of the target's greedy token given its prefix. A static cache
+(``cache_implementation="static"``, batch 1) gives the same tokens for every drafter and keeps the bound. Then the
+cache kinds: sliding windows shorter than the drafts (exact), shorter than the generation (refused before any
+forward), and caches that cannot be rolled back (refused before any forward).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from transformers import (
     Qwen2VLForConditionalGeneration,
     SiglipVisionConfig,
 )
-from transformers.cache_utils import DynamicIndexedLayer, DynamicSlidingWindowLayer
+from transformers.cache_utils import DynamicIndexedLayer, DynamicSlidingWindowLayer, StaticCache
 
 from hf_specvla import ActionLayout, ActionTokenizer, DraftHead, DraftHeadDrafter, DraftTreeConfig, enable_speculation
 from hf_specvla.speculative import CACHE_KEY, cache_of
@@ -218,8 +219,45 @@ def test_left_padded_batch_decodes_like_batched_greedy(backbone):
         assert torch.equal(greedy(backbone.model, inputs, **kwargs), expected), kwargs
 
 
+class BufferAddresses:
+    """Records the address of the static cache's first key buffer after every forward of ``model``."""
+
+    def __init__(self, model):
+        self.seen: set[int] = set()
+        model.register_forward_hook(self, with_kwargs=True)
+
+    def __call__(self, module, args, kwargs, output):
+        cache = kwargs.get(CACHE_KEY)
+        if cache is not None and getattr(cache.layers[0], "keys", None) is not None:
+            self.seen.add(cache.layers[0].keys.data_ptr())
+
+
+def test_static_cache_decodes_exactly(backbone):
+    """``cache_implementation="static"``: right drafts in one forward, wrong drafts, candidates and the head's chain
+    and tree give greedy's tokens; the cache's buffers are never re-allocated (rolled back in place)."""
+    inputs = backbone.inputs([5], seed=3)
+    expected = greedy(backbone.model, inputs)
+    right = expected[:, inputs["input_ids"].shape[1] : -1]
+    wrong = right.clone()
+    wrong[:, 2] = (wrong[:, 2] + 1) % VOCAB
+    head = untrained_head(backbone.model)
+    tree = DraftHeadDrafter(head, tree=DraftTreeConfig(top_k=3, depth=4, total_tokens=12))
+    candidates = torch.stack([wrong, (right + 7) % VOCAB, right[:, [0, 0, 0, 0, 0, 0]]], dim=1)
+    calls = [dict(draft_ids=right), dict(draft_ids=wrong), dict(draft_ids=candidates), dict(assistant_model=head),
+             dict(assistant_model=tree), dict(draft_ids=wrong, assistant_model=tree)]  # fmt: skip
+    buffers = BufferAddresses(backbone.model)
+    for kwargs in calls:
+        buffers.seen = set()
+        out = greedy(backbone.model, inputs, cache_implementation="static", return_dict_in_generate=True, **kwargs)
+        assert torch.equal(out.sequences, expected), kwargs
+        if kwargs.get("draft_ids") is right:
+            assert out.speculation.num_batch_forwards == 1
+        assert len(buffers.seen) == 1, kwargs  # one buffer address through every round: rolled back in place
+
+
 # ----------------------------------------------------------------------------- r > 0
-def test_relaxed_action_tokens_stay_within_r_bins(backbone):
+@pytest.mark.parametrize("cache_implementation", [None, "static"])
+def test_relaxed_action_tokens_stay_within_r_bins(backbone, cache_implementation):
     tokenizer, tolerance = ActionTokenizer(VOCAB), 3
     layout = ActionLayout(tokenizer, 7)
     actions_only = dict(suppress_tokens=list(range(tokenizer.action_token_begin)))  # the policy emits actions only
@@ -229,7 +267,7 @@ def test_relaxed_action_tokens_stay_within_r_bins(backbone):
     # drafts `tolerance` bins off greedy's action tokens (clamped to the bins): relaxed acceptance takes them
     nudged = (expected + tolerance).clamp(max=VOCAB - 1)
     out = greedy(backbone.model, inputs, draft_ids=nudged[:, :-1], bin_tolerance=tolerance, action_layout=layout,
-                 return_dict_in_generate=True, **actions_only)  # fmt: skip
+                 return_dict_in_generate=True, cache_implementation=cache_implementation, **actions_only)  # fmt: skip
     sequence = out.sequences
     assert sum(out.speculation.accepted_per_position) > 0  # relaxed drafts were accepted: the bound is exercised
     for position in range(prompt_length, sequence.shape[1]):
@@ -287,11 +325,30 @@ def test_generation_longer_than_the_sliding_window_is_refused_before_any_forward
     assert counter.count == 0
 
 
-def test_static_cache_is_refused_before_any_forward(tiny_llama):
+def test_static_cache_for_a_batch_is_refused_before_any_forward(tiny_llama):
     counter = ForwardCounter(tiny_llama)
-    with pytest.raises(TypeError, match="StaticLayer.*DynamicLayer and DynamicSlidingWindowLayer"):
-        tiny_llama.generate(input_ids=torch.tensor([[1, 7, 9]]), max_new_tokens=3, do_sample=False,
-                            draft_ids=torch.tensor([[70]]), cache_implementation="static")  # fmt: skip
+    with pytest.raises(ValueError, match=r"static KV cache \(layer 0's StaticLayer\) is supported for one unpadded "
+                                         r"sequence, got batch size 2"):  # fmt: skip
+        tiny_llama.generate(input_ids=torch.tensor([[1, 7, 9], [1, 8, 9]]), max_new_tokens=3, do_sample=False,
+                            draft_ids=torch.tensor([[70], [71]]), cache_implementation="static")  # fmt: skip
+    assert counter.count == 0
+
+
+def test_static_cache_too_short_is_refused_before_any_forward(tiny_llama):
+    counter = ForwardCounter(tiny_llama)
+    cache = StaticCache(config=tiny_llama.config, max_cache_len=6)
+    with pytest.raises(ValueError, match=r"holds 6 tokens .* feeds up to 8 .* max_cache_len >= 8"):
+        tiny_llama.generate(input_ids=torch.tensor([[1, 7, 9]]), max_new_tokens=6, do_sample=False,
+                            draft_ids=torch.tensor([[70]]), **{CACHE_KEY: cache})  # fmt: skip
+    assert counter.count == 0
+
+
+def test_static_sliding_layer_shorter_than_the_generation_is_refused_before_any_forward():
+    model = _sliding_model(window=10)
+    counter = ForwardCounter(model)
+    with pytest.raises(ValueError, match=r"StaticSlidingWindowLayer.*its window \(10\)"):
+        greedy(model, {"input_ids": torch.randint(6, 64, (1, 7))}, draft_ids=torch.tensor([[70, 71]]),
+               cache_implementation="static")  # fmt: skip
     assert counter.count == 0
 
 

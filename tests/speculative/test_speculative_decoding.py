@@ -3,7 +3,7 @@ stopping, consistent caches after a non-leftmost path, clear on bad input."""
 
 import pytest
 import torch
-from transformers import LlamaForCausalLM
+from transformers import LlamaForCausalLM, StaticCache
 
 from hf_specvla import (
     ActionLayout,
@@ -452,21 +452,30 @@ class SpyDrafter(DraftHeadDrafter):
         return session
 
 
-def test_caches_after_a_non_leftmost_path_match_a_fresh_prefill(tiny_llava, random_llava_draft):
+@pytest.mark.parametrize("static", [False, True])
+def test_caches_after_a_non_leftmost_path_match_a_fresh_prefill(tiny_llava, random_llava_draft, static):
     generator = torch.Generator().manual_seed(16)
     prompt = llava_prompt(generator, 3)
     g = greedy_continuation(tiny_llava, prompt, 8)
     tree = DraftTree.from_paths([[g[0], (g[1] + 1) % 320], [g[0], g[1], g[2]]], "hand")  # right branch not leftmost
     spy = SpyDrafter(random_llava_draft, num_draft_tokens=2)
+    cache = StaticCache(config=tiny_llava.config, max_cache_len=32) if static else None  # room for one more step
+    assistant = ComposedDrafter([FixedTreeDrafter(tree), spy])
     out = tiny_llava.generate(**prompt, max_new_tokens=8, do_sample=False, return_dict_in_generate=True,
-                              assistant_model=ComposedDrafter([FixedTreeDrafter(tree), spy]))  # fmt: skip
+                              assistant_model=assistant, **{CACHE_KEY: cache})  # fmt: skip
     assert out.sequences[0, -8:].tolist() == g and out.speculation.accept_lengths[0] == 4
     # target: the kept cache gives the next-token logits of a fresh prefill over the emitted sequence
     sequence = out.sequences
     position = torch.tensor([[sequence.shape[1] - 1]])
-    step = tiny_llava(input_ids=sequence[:, -1:], position_ids=position, **{CACHE_KEY: cache_of(out)})
-    fresh = tiny_llava(input_ids=sequence, pixel_values=prompt["pixel_values"])
+    cache = cache_of(out)
+    assert int(cache.get_seq_length()) == sequence.shape[1] - 1  # the last token is emitted, not fed
+    step = tiny_llava(input_ids=sequence[:, -1:], position_ids=position, **{CACHE_KEY: cache})
+    fresh = tiny_llava(input_ids=sequence, pixel_values=prompt["pixel_values"], use_cache=True)
     torch.testing.assert_close(step.logits[0, -1], fresh.logits[0, -1], atol=1e-4, rtol=1e-4)
+    # every kept entry equals the fresh prefill's (a static cache's accepted path was compacted into its first slots)
+    for layer, fresh_layer in zip(cache.layers, cache_of(fresh).layers):
+        torch.testing.assert_close(layer.keys[..., : sequence.shape[1], :], fresh_layer.keys, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(layer.values[..., : sequence.shape[1], :], fresh_layer.values, atol=1e-5, rtol=1e-5)
     # draft head: its root feature after the catch-up equals a fresh run over every (token, true hidden) pair
     seen_sequence, root_feature = spy.records[0]
     length = seen_sequence.shape[1]

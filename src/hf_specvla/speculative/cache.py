@@ -1,19 +1,26 @@
 """KV-cache surgery after a verification: keep the accepted entries, drop the rest.
 
-Works on transformers' layered caches (``cache.layers[i].keys / .values``, each ``[B, H_kv, S, D]``).
-``DynamicCache.crop`` only takes a number of tokens to remove in 5.x and is missing on some layer types, so the
-slicing is done here, explicitly, for the layer types where it is correct:
+Works on transformers' layered caches (``cache.layers[i].keys / .values``, each ``[B, H_kv, S, D]``), for the layer
+types where it is exact:
 
-* ``DynamicLayer`` (full attention): every entry is kept, any prefix or path can be kept.
+* ``DynamicLayer`` (full attention): every entry is kept, any prefix or path can be kept (by slicing).
 * ``DynamicSlidingWindowLayer`` (Gemma-2/3, PaliGemma-2, Mistral with a window): the layer keeps only its last
   ``sliding_window - 1`` entries, so a rejected draft could push out an entry the accepted path still needs. When
   the whole generation fits in the window (prompt + ``max_new_tokens`` <= window, always true for a VLA prompt of a
   few hundred tokens against a 4096 window), sliding attention *is* full attention for every token greedy decoding
   emits, so [`open_sliding_windows`] holds the layers open (nothing dropped) while the loop runs and restores them
   afterwards. A generation that does not fit is refused before the first forward ([`check_rollback_cache`]).
+* ``StaticLayer`` (``cache_implementation="static"``, a ``StaticCache``): preallocated ``[B, H_kv, max_cache_len, D]``
+  buffers written at a length counter. Rolled back **in place**, never re-allocated (compiled graphs and CUDA graphs
+  hold the buffers' addresses): a rejected entry is dropped by moving the counter back (the next forward overwrites
+  it; keys past the counter are masked), a tree's accepted path is copied into consecutive slots. Batch 1 without
+  prompt padding (a batch's rows would keep different entries).
+* ``StaticSlidingWindowLayer`` (a static cache of a model with sliding layers): allocates ``min(window,
+  max_cache_len)`` slots and rolls its entries once full. When the generation fits in those slots it never rolls
+  and is rolled back like a ``StaticLayer``; a generation that does not fit is refused before the first forward.
 
-Any other layer (static, quantized, linear-attention / recurrent states, offloaded or indexed layers) cannot be
-rolled back here and is refused before the first forward.
+Any other layer (quantized, linear-attention / recurrent states, offloaded or indexed layers) cannot be rolled back
+here and is refused before the first forward.
 """
 
 from __future__ import annotations
@@ -21,10 +28,18 @@ from __future__ import annotations
 from contextlib import contextmanager
 
 import torch
-from transformers.cache_utils import Cache, DynamicLayer, DynamicSlidingWindowLayer
+from transformers.cache_utils import (
+    Cache,
+    DynamicLayer,
+    DynamicSlidingWindowLayer,
+    StaticLayer,
+    StaticSlidingWindowLayer,
+)
 
-#: the layer types whose entries can be sliced (exact types: subclasses change how entries are stored)
-ROLLBACK_LAYER_TYPES = (DynamicLayer, DynamicSlidingWindowLayer)
+#: preallocated layers written at a counter (exact types)
+STATIC_LAYER_TYPES = (StaticLayer, StaticSlidingWindowLayer)
+#: the layer types whose entries can be rolled back (exact types: subclasses change how entries are stored)
+ROLLBACK_LAYER_TYPES = (DynamicLayer, DynamicSlidingWindowLayer, *STATIC_LAYER_TYPES)
 
 #: what a sliding layer's window is raised to while held open (larger than any sequence)
 _OPEN_WINDOW = 2**62
@@ -40,23 +55,26 @@ def _layers(cache: Cache) -> list:
     return layers
 
 
-def check_rollback_cache(cache: Cache, max_length: int) -> None:
+def check_rollback_cache(cache: Cache, max_length: int, batch_size: int = 1, padded: bool = False) -> None:
     """Refuses, before any forward runs, a cache that speculative decoding cannot roll back exactly.
 
     Args:
         max_length: the longest sequence the generation can reach (prompt + ``max_new_tokens``).
+        batch_size / padded: the call's batch size and whether its prompt has padding (static layers: B = 1 only).
     Raises:
         TypeError: a layer type that cannot be rolled back (names the layer and what would work).
-        ValueError: a sliding-window layer whose window is shorter than ``max_length`` (names both).
+        ValueError: a sliding-window layer whose window is shorter than ``max_length``, a static layer with fewer
+            slots than ``max_length``, or a static cache for a batch (each names the values and the fix).
     """
     for index, layer in enumerate(_layers(cache)):
         kind = type(layer)
         if kind not in ROLLBACK_LAYER_TYPES:
             raise TypeError(
-                f"speculative decoding rolls back rejected drafts by slicing the KV cache, which it cannot do for "
-                f"layer {index}'s {kind.__name__}; it supports DynamicLayer and DynamicSlidingWindowLayer (the "
-                f"default DynamicCache, cache_implementation=None). Static, quantized, offloaded and recurrent / "
-                f"linear-attention caches are not supported: generate without assistant_model / draft_ids for those"
+                f"speculative decoding rolls back rejected drafts in the KV cache, which it cannot do for layer "
+                f"{index}'s {kind.__name__}; it supports DynamicLayer, DynamicSlidingWindowLayer (DynamicCache, the "
+                f"default), StaticLayer and StaticSlidingWindowLayer (StaticCache, cache_implementation='static'). "
+                f"Quantized, offloaded and recurrent / linear-attention caches are not supported: generate without "
+                f"assistant_model / draft_ids for those, or with the default cache"
             )
         if kind is DynamicSlidingWindowLayer and max_length > layer.sliding_window:
             raise ValueError(
@@ -65,6 +83,39 @@ def check_rollback_cache(cache: Cache, max_length: int) -> None:
                 f"push out entries the accepted tokens still need. Keep prompt + max_new_tokens <= "
                 f"{layer.sliding_window}, or generate without assistant_model / draft_ids"
             )
+        if kind in STATIC_LAYER_TYPES:
+            if batch_size > 1 or padded:
+                raise ValueError(
+                    f"a static KV cache (layer {index}'s {kind.__name__}) is supported for one unpadded sequence, got "
+                    f"batch size {batch_size}{' with prompt padding' if padded else ''}: the rows of a batch keep "
+                    f"different entries. Generate each row alone with the static cache, or use the default "
+                    f"DynamicCache (cache_implementation=None) for the batch"
+                )
+            if layer.max_cache_len < max_length - 1:  # the last token is emitted, never fed (as in generate)
+                window = getattr(layer, "sliding_window", None) or layer.max_cache_len
+                raise ValueError(
+                    f"the static KV cache holds {layer.max_cache_len} tokens (layer {index}'s {kind.__name__}) but "
+                    f"this generation feeds up to {max_length - 1} (prompt + max_new_tokens - 1): build it with "
+                    f"max_cache_len >= {max_length - 1}"
+                    + (
+                        f"; a sliding layer holds at most its window ({window}): keep prompt + max_new_tokens <= "
+                        f"{window + 1} or use the default DynamicCache"
+                        if kind is StaticSlidingWindowLayer
+                        else ""
+                    )
+                )
+
+
+def static_capacity(cache: Cache) -> int | None:
+    """The number of slots of the cache's static layers (the smallest), None when it has none: a forward over
+    ``q`` tokens fits when ``cache_length(cache) + q <= static_capacity(cache)``."""
+    sizes = [layer.max_cache_len for layer in _layers(cache) if type(layer) in STATIC_LAYER_TYPES]
+    return min(sizes) if sizes else None
+
+
+def cache_length(cache: Cache) -> int:
+    """The number of entries the cache holds (a static layer's counter read on the host)."""
+    return int(cache.get_seq_length())
 
 
 def sliding_window(cache: Cache) -> int | None:
@@ -100,23 +151,42 @@ def _stored_layers(cache: Cache):
     for layer in _layers(cache):
         if type(layer) not in ROLLBACK_LAYER_TYPES:
             raise TypeError(
-                f"speculative decoding can roll back only DynamicLayer and DynamicSlidingWindowLayer cache layers, "
-                f"got {type(layer).__name__}; use the default DynamicCache (cache_implementation=None)"
+                f"speculative decoding can roll back only DynamicLayer, DynamicSlidingWindowLayer and StaticLayer "
+                f"cache layers, got {type(layer).__name__}; use the default DynamicCache (cache_implementation=None)"
             )
         if getattr(layer, "is_initialized", True) and layer.keys is not None and layer.keys.numel():
             yield layer
 
 
 def _stored(layer, keys: torch.Tensor, values: torch.Tensor) -> None:
+    """Makes ``keys`` / ``values`` ``[B, H_kv, K, D]`` the layer's entries (a static layer: copied into its first K
+    slots in place, its counter set to K)."""
+    if type(layer) in STATIC_LAYER_TYPES:
+        length = keys.shape[-2]
+        layer.keys[..., :length, :].copy_(keys)
+        layer.values[..., :length, :].copy_(values)
+        _set_static_length(layer, length)
+        return
     layer.keys, layer.values = keys, values
     if type(layer) is DynamicSlidingWindowLayer:  # its length is a counter, not the tensor's (held open: the same)
         layer.cumulative_length = keys.shape[-2]
 
 
+def _set_static_length(layer, length: int) -> None:
+    """Moves a static layer's length counter(s) in place (the tensor keeps its address; a sliding layer also
+    counts on the host)."""
+    layer.cumulative_length.fill_(length)
+    if type(layer) is StaticSlidingWindowLayer:
+        layer.cumulative_length_int = length
+
+
 def truncate_cache(cache: Cache, length: int) -> None:
-    """Keeps the first ``length`` positions of every layer, in place."""
+    """Keeps the first ``length`` positions of every layer, in place (a static layer: its counter moves back)."""
     for layer in _stored_layers(cache):
-        _stored(layer, layer.keys[..., :length, :], layer.values[..., :length, :])
+        if type(layer) in STATIC_LAYER_TYPES:
+            _set_static_length(layer, min(length, int(layer.get_seq_length())))
+        else:
+            _stored(layer, layer.keys[..., :length, :], layer.values[..., :length, :])
 
 
 def select_cache_positions(cache: Cache, positions: torch.Tensor) -> None:

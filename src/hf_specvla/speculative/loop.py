@@ -36,11 +36,13 @@ from transformers.generation.logits_process import PrefixConstrainedLogitsProces
 from ..actions.tokenizer import ActionLayout
 from .acceptance import AcceptanceRule, AcceptedPath, accept_trees, make_acceptance_rule
 from .cache import (
+    cache_length,
     check_rollback_cache,
     open_sliding_windows,
     select_cache_positions,
     select_cache_rows,
     sliding_window,
+    static_capacity,
     truncate_cache,
 )
 from .compat import CACHE_KEY, check_transformers_support
@@ -253,7 +255,7 @@ def commit_paths(
         one [`Commit`] per row: kept inputs = pending tokens + path nodes; the token after each; hidden states.
     """
     batch_size, num_pending = state.pending_ids.shape
-    base = state.target_cache.get_seq_length() - trees.num_nodes  # cache entries before the tree's
+    base = cache_length(state.target_cache) - trees.num_nodes  # cache entries before the tree's
     device = state.pending_ids.device
     longest = max(len(p.nodes) for p in paths)
     path_valid = torch.tensor(
@@ -482,10 +484,11 @@ def speculative_generate(
     keep_logits = return_dict and generation_config.output_logits
     total_start = time.perf_counter()
 
+    padded = prompt_padding is not None
     if model_kwargs.get(CACHE_KEY) is not None:
-        check_rollback_cache(model_kwargs[CACHE_KEY], generation_config.max_length)
+        check_rollback_cache(model_kwargs[CACHE_KEY], generation_config.max_length, batch_size, padded)
     model_inputs = prefill_inputs(model, input_ids, model_kwargs)
-    check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length)
+    check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length, batch_size, padded)
     prompt_positions, position_offsets = _prompt_positions(model_inputs, input_ids, prompt_padding)
     state = DecodeState(
         rows=rows,
@@ -498,6 +501,7 @@ def speculative_generate(
     max_length = generation_config.max_length
     at_prefill = True
     window = sliding_window(state.target_cache)
+    capacity = static_capacity(state.target_cache)  # a static cache's slots: the trees must fit in them
     # A prefix-LM prompt (PaliGemma's token_type_ids: the prompt attends to itself both ways at the prefill) needs the
     # model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies one chain.
     prefix_attention = model_inputs.get("token_type_ids") is not None
@@ -518,6 +522,9 @@ def speculative_generate(
                     trees.append(row.session.propose(draft_round).truncate_depth(draft_round.max_depth))
             if at_prefill and prefix_attention:
                 trees = [tree.first_path() for tree in trees]
+            if capacity is not None:  # batch 1: the pending tokens and the tree go into the free slots
+                free = capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
+                trees = [tree.truncate_nodes(free) for tree in trees]
             trees = TreeBatch(trees)
 
             # 2. Verify every row's tree in one target forward (the prefill's forward at the first round).
@@ -532,6 +539,7 @@ def speculative_generate(
                     output_hidden=drafter.needs_hidden_states,
                     sliding_window=window,
                     position_offsets=state.position_offsets,
+                    key_length=capacity,
                 )
             stats.num_batch_forwards += 1
             at_prefill = False

@@ -166,6 +166,12 @@ class DraftTree:
             return self
         return self.select(self.depths < max_depth)
 
+    def truncate_nodes(self, max_nodes: int) -> DraftTree:
+        """The first ``max_nodes`` nodes (a sub-tree: parents come first), e.g. to fit a fixed number of cache slots."""
+        if self.num_nodes <= max_nodes:
+            return self
+        return self.select(torch.arange(self.num_nodes, device=self.token_ids.device) < max(max_nodes, 0))
+
     def merge(self, other: DraftTree) -> DraftTree:
         """Union of two trees: nodes with the same token path become one (the first tree's source is kept)."""
         if other.num_nodes == 0:

@@ -53,6 +53,7 @@ def verify_trees(
     output_hidden: bool,
     sliding_window: int | None = None,
     position_offsets: torch.Tensor | None = None,
+    key_length: int | None = None,
 ) -> TargetOutput:
     """One target forward over ``[pending tokens ; each row's tree nodes]`` on top of the target cache.
 
@@ -70,6 +71,8 @@ def verify_trees(
         position_offsets: ``[K, B, 1]`` for models with K-component position ids (Qwen2-VL: text, temporal,
             height, width): each component of a generated token is its text position + the offset; the prefill's
             pending tokens keep the model's prepared ``[K, B, P]`` positions (images have their own).
+        key_length: the number of keys attention sees when it is not the cached and new entries (a static cache: its
+            slots); an explicit mask hides the slots past the new entries.
     Returns:
         [`TargetOutput`] with logits ``[B, 1 + N, V]`` and hidden states ``[B, P + N, H]``.
     """
@@ -85,7 +88,7 @@ def verify_trees(
             prepared if prepared is not None and prepared.ndim == 3 else pending_positions[None] + position_offsets
         )
         inputs["position_ids"] = torch.cat([pending, node_positions[None] + position_offsets], dim=-1)  # [K, B, P + N]
-    past_length = model_inputs[CACHE_KEY].get_seq_length()
+    past_length = int(model_inputs[CACHE_KEY].get_seq_length())
     within_window = sliding_window is None or past_length + num_pending + num_nodes <= sliding_window
     if trees.is_causal and within_window:
         # Chains (or no drafts): the causal mask is every tree mask, so the model builds its own mask (the kernels a
@@ -98,6 +101,8 @@ def verify_trees(
             inputs["attention_mask"] = torch.cat([key_valid, new_keys], dim=1).long()
     else:
         allowed = tree_verification_allowed(past_length, num_pending, trees.ancestor_or_self, key_valid)
+        if key_length is not None:  # [B, q, key_length]: the free slots after the new entries are hidden
+            allowed = torch.nn.functional.pad(allowed, (0, key_length - allowed.shape[-1]), value=False)
         inputs["attention_mask"] = to_additive_mask(allowed, model.dtype)
     inputs["logits_to_keep"] = num_nodes + 1
     inputs["use_cache"] = True
