@@ -92,14 +92,13 @@ def check_rollback_cache(cache: Cache, max_length: int, batch_size: int = 1, pad
                     f"DynamicCache (cache_implementation=None) for the batch"
                 )
             if layer.max_cache_len < max_length - 1:  # the last token is emitted, never fed (as in generate)
-                window = getattr(layer, "sliding_window", None) or layer.max_cache_len
                 raise ValueError(
                     f"the static KV cache holds {layer.max_cache_len} tokens (layer {index}'s {kind.__name__}) but "
                     f"this generation feeds up to {max_length - 1} (prompt + max_new_tokens - 1): build it with "
                     f"max_cache_len >= {max_length - 1}"
                     + (
-                        f"; a sliding layer holds at most its window ({window}): keep prompt + max_new_tokens <= "
-                        f"{window + 1} or use the default DynamicCache"
+                        f"; a sliding layer holds at most its window ({layer.max_cache_len}): keep prompt + "
+                        f"max_new_tokens <= {layer.max_cache_len + 1} or use the default DynamicCache"
                         if kind is StaticSlidingWindowLayer
                         else ""
                     )
@@ -151,7 +150,7 @@ def _stored_layers(cache: Cache):
     for layer in _layers(cache):
         if type(layer) not in ROLLBACK_LAYER_TYPES:
             raise TypeError(
-                f"speculative decoding can roll back only DynamicLayer, DynamicSlidingWindowLayer and StaticLayer "
+                f"speculative decoding can roll back only {', '.join(t.__name__ for t in ROLLBACK_LAYER_TYPES)} "
                 f"cache layers, got {type(layer).__name__}; use the default DynamicCache (cache_implementation=None)"
             )
         if getattr(layer, "is_initialized", True) and layer.keys is not None and layer.keys.numel():
@@ -183,8 +182,10 @@ def _set_static_length(layer, length: int) -> None:
 def truncate_cache(cache: Cache, length: int) -> None:
     """Keeps the first ``length`` positions of every layer, in place (a static layer: its counter moves back)."""
     for layer in _stored_layers(cache):
-        if type(layer) in STATIC_LAYER_TYPES:
-            _set_static_length(layer, min(length, int(layer.get_seq_length())))
+        if type(layer) in STATIC_LAYER_TYPES:  # the counter only moves back, on the device (no host read)
+            layer.cumulative_length.clamp_(max=length)
+            if type(layer) is StaticSlidingWindowLayer:
+                layer.cumulative_length_int = min(layer.cumulative_length_int, length)
         else:
             _stored(layer, layer.keys[..., :length, :], layer.values[..., :length, :])
 

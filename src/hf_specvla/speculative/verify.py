@@ -20,6 +20,7 @@ from transformers.generation.logits_process import (
     PrefixConstrainedLogitsProcessor,
 )
 
+from .cache import cache_length
 from .compat import CACHE_KEY
 from .masks import to_additive_mask, tree_verification_allowed
 from .tree import TreeBatch
@@ -88,7 +89,7 @@ def verify_trees(
             prepared if prepared is not None and prepared.ndim == 3 else pending_positions[None] + position_offsets
         )
         inputs["position_ids"] = torch.cat([pending, node_positions[None] + position_offsets], dim=-1)  # [K, B, P + N]
-    past_length = int(model_inputs[CACHE_KEY].get_seq_length())
+    past_length = cache_length(model_inputs[CACHE_KEY])
     within_window = sliding_window is None or past_length + num_pending + num_nodes <= sliding_window
     if trees.is_causal and within_window:
         # Chains (or no drafts): the causal mask is every tree mask, so the model builds its own mask (the kernels a
