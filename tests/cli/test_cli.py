@@ -14,10 +14,19 @@ def test_help_shows_examples(capsys):
 
 
 def test_benchmark_on_saved_pipeline(toy_pipeline, capsys):
-    args = ["--prompts", "2", "--repeats", "1", "--chain-lengths", "6", "--bin-tolerances", "2"]
+    args = ["--prompts", "2", "--repeats", "1", "--chain-lengths", "6", "--bin-tolerances", "2", "--no-compile"]
     assert main(["benchmark", "--pipeline-dir", toy_pipeline.output_dir, *args]) == 0
     out = capsys.readouterr().out
-    assert "| greedy |" in out and "| spec k=6 r=2 |" in out
+    assert "| greedy |" in out and "| spec k=6 r=2 |" in out and ":compile" not in out
+
+
+def eager_backend_compiled_kwargs(device_type="cpu"):
+    """What ``:compile`` methods pass, with dynamo's cheap ``eager`` backend (traced and guarded, no codegen)."""
+    from transformers import CompileConfig
+
+    config = CompileConfig(backend="eager", fullgraph=True, dynamic=False, mode="default")
+    config._compile_all_devices = True
+    return dict(cache_implementation="static", compile_config=config)
 
 
 def test_benchmark_refuses_a_folder_without_a_pipeline(tmp_path):
@@ -26,7 +35,10 @@ def test_benchmark_refuses_a_folder_without_a_pipeline(tmp_path):
     assert exit_info.value.code == 2
 
 
-def test_bench_episodes_on_the_toy(toy_pipeline, capsys):
+def test_bench_episodes_on_the_toy(toy_pipeline, capsys, monkeypatch):
+    """Eager and compiled rows (transformers' greedy:compile, our :compile; dynamo's eager backend here), speed-ups
+    against the fastest greedy, and where the time goes (compiled calls timed from outside the graph)."""
+    monkeypatch.setattr("hf_specvla.speculative.compiled_decoding_kwargs", eager_backend_compiled_kwargs)
     tree = ["--tree-top-k", "2", "--tree-depth", "3", "--tree-total-tokens", "5"]
     args = [
         "bench-episodes",
@@ -41,10 +53,13 @@ def test_bench_episodes_on_the_toy(toy_pipeline, capsys):
     assert main([*args, "--chain-length", "2", *tree]) == 0
     out = capsys.readouterr().out
     for row in ("| greedy |", "| prior r=0 |", "| prior r=2 |", "| head chain k=2 r=0 |", "| head tree r=2 |",
-                "| prior+tree r=0 |"):  # fmt: skip
+                "| prior+tree r=0 |", "| greedy:compile |", "| prior r=0:compile |", "| head tree r=0:compile |",
+                "| prior+tree r=0:compile |"):  # fmt: skip
         assert row in out
-    # prior r=0 is lossless: its actions never move from greedy's
-    assert "| prior r=0 |" in out and out.split("| prior r=0 |")[1].split("\n")[0].endswith("0.00 / 0 |")
+    assert "speed-up vs greedy" in out and "| vs greedy |" in out
+    # r=0 is lossless, eager or compiled: its actions never move from greedy's
+    for row in ("| prior r=0 |", "| prior+tree r=0:compile |", "| greedy:compile |"):
+        assert out.split(row)[1].split("\n")[0].endswith("0.00 / 0 |"), row
     # where the time goes: the parts add up to the call; greedy drafts nothing and decodes after its prefill
     split = out.split("Where the time goes")[1]
     assert "| method | vision | prefill | later forwards | drafting | rest | total |" in split
@@ -52,8 +67,9 @@ def test_bench_episodes_on_the_toy(toy_pipeline, capsys):
         *parts, total = [float(cell) for cell in line.strip("|").split("|")[1:]]
         assert sum(parts) == pytest.approx(total, abs=0.3001), line  # 6 cells rounded to 0.1 ms: 6 x 0.05 at most
         assert min(parts[:4]) >= 0, line
-    greedy_parts = [float(cell) for cell in split.split("| greedy |")[1].split("\n")[0].strip(" |").split("|")]
-    assert greedy_parts[3] == 0 and greedy_parts[2] > 0 and greedy_parts[0] > 0
+    for row in ("| greedy |", "| greedy:compile |"):  # the compiled decoding steps are timed too
+        greedy_parts = [float(cell) for cell in split.split(row)[1].split("\n")[0].strip(" |").split("|")]
+        assert greedy_parts[3] == 0 and greedy_parts[2] > 0 and greedy_parts[0] > 0, row
 
 
 @pytest.mark.parametrize(

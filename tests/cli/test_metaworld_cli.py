@@ -71,7 +71,18 @@ def test_collect_train_eval(tmp_path, capsys):
     assert exit_info.value.code == 2 and "--bin-tolerance 999: r is wider than the action range" in error
     assert not (tmp_path / "wide").exists()
     # the episode benchmark on the policy's own recorded rollouts
-    bench = ["bench-episodes", "--policy", str(policy), "--tasks", "reach", "--steps", "3", "--bin-tolerances", "0"]
+    bench = [
+        "bench-episodes",
+        "--policy",
+        str(policy),
+        "--tasks",
+        "reach",
+        "--steps",
+        "3",
+        "--bin-tolerances",
+        "0",
+        "--no-compile",
+    ]
     assert main([*bench, "--chain-length", "2", "--tree-depth", "2", "--tree-total-tokens", "4"]) == 0
     assert "| prior+tree r=0 |" in capsys.readouterr().out
     # a policy only sees the camera it was trained on

@@ -34,11 +34,22 @@ def test_method_names():
     assert DecodingMethod.parse("prior:r=0").name == "prior" and DecodingMethod.parse("prior").lossless
     assert DecodingMethod.parse("tree:r=2").uses_draft_head and not DecodingMethod.parse("prior:r=2").uses_draft_head
     assert [m.name for m in parse_methods(["prior", "prior:r=0", "head"])] == ["greedy", "prior", "head"]
+    # :compile (static cache + CompileConfig): after the drafters or after the options; one canonical name
+    assert DecodingMethod.parse("greedy:compile") == DecodingMethod(compiled=True)
+    assert DecodingMethod.parse("prior+tree:r=4:compile") == DecodingMethod("prior+tree", 4, compiled=True)
+    assert DecodingMethod.parse("prior+tree:r=4,compile").name == "prior+tree:r=4:compile"
+    assert DecodingMethod.parse("head:compile,k=3").name == "head:k=3:compile"
+    assert DecodingMethod.parse("tree:compile").uses_draft_head and DecodingMethod.parse("tree:compile").lossless
+    kwargs = DecodingMethod.parse("prior:compile").generate_kwargs(None)
+    assert kwargs["cache_implementation"] == "static" and kwargs["compile_config"]._compile_all_devices
+    assert "compile_config" not in DecodingMethod.parse("prior").generate_kwargs(None)
     with pytest.raises(ValueError, match=re.escape("valid: " + ", ".join(DRAFTER_CHOICES))):
         DecodingMethod.parse("eagle")
     for bad, message in [("prior:k=3", "needs the head chain"), ("greedy:r=2", "takes no r or k"),
                          ("prior:x=1", "bad option 'x=1'"), ("head:k=0", "k must be >= 1"),
-                         ("prior:r=-1", "r must be an integer >= 0"), ("prior:r=x", "bad option 'r=x'")]:  # fmt: skip
+                         ("prior:r=-1", "r must be an integer >= 0"), ("prior:r=x", "bad option 'r=x'"),
+                         ("greedy:compile:compile", "'compile' given twice"),
+                         ("prior:compiled", "bad option 'compiled'")]:  # fmt: skip
         with pytest.raises(ValueError, match=message):
             DecodingMethod.parse(bad)
 
@@ -51,8 +62,9 @@ from hf_specvla.metaworld.comparison import PLOTS  # noqa: E402
 from tests.training.test_policy_draft import build_policy  # noqa: E402
 
 COLUMNS = {"episodes", "success_rate", "task_success_rates", "vs_greedy", "mean_episode_length", "median_ms_per_call",
-           "speedup", "target_forwards_per_action", "target_forwards_per_call", "tokens_per_target_forward",
-           "accept_length_counts", "mean_bin_deviation", "max_bin_deviation", "identical_to_greedy"}  # fmt: skip
+           "speedup", "speedup_vs_greedy_compile", "target_forwards_per_action", "target_forwards_per_call",
+           "tokens_per_target_forward", "accept_length_counts", "mean_bin_deviation", "max_bin_deviation",
+           "identical_to_greedy"}  # fmt: skip
 
 
 @pytest.fixture(scope="module")

@@ -17,11 +17,13 @@ from .common import (
 )
 
 NAME = "bench-episodes"
-HELP = "replay recorded episodes: greedy vs prior / head / tree drafts"
+HELP = "replay recorded episodes: greedy (eager and compiled) vs prior / head / tree drafts"
 EXAMPLES = """
     # Replay recorded episodes (previous actions are real): greedy vs action prior vs draft head chain / tree
     hf-specvla bench-episodes --policy policies/mt10_vla --tasks MT10 --episodes 1 --steps 40 --threads 1
     hf-specvla bench-episodes --pipeline-dir runs/toy --episodes 16 --threads 1
+    # Eager rows only (no compilation)
+    hf-specvla bench-episodes --pipeline-dir runs/toy --episodes 4 --threads 1 --no-compile
 """
 
 
@@ -49,6 +51,9 @@ def add_arguments(parser) -> None:
         "--tree-depth", type=POSITIVE, default=None, help="EAGLE-2 tree depth (default: DraftTreeConfig's)"
     )
     parser.add_argument("--tree-total-tokens", type=POSITIVE, default=None, help="EAGLE-2 tree nodes kept")
+    parser.add_argument("--no-compile", dest="compile", action="store_false",
+                        help="skip the compiled rows (transformers' greedy:compile and every method :compile, on a "
+                             "static cache; they compile on first use, off the clock)")  # fmt: skip
     parser.add_argument("--repeats", type=POSITIVE, default=1, help="timed passes over the episodes")
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (method order, untrained head)")
@@ -100,7 +105,8 @@ def run(args, parser) -> int:
     check_draft_head_flag(args.draft_head, parser)
     source = _policy_episodes if args.policy is not None else _toy_episodes
     act, action_dim, episodes, target, draft_head, head_name = source(args, parser)
-    methods = episode_methods(draft_head, args.bin_tolerances, tree, args.chain_length or action_dim - 1)
+    compiled_on = target.device.type if args.compile else None
+    methods = episode_methods(draft_head, args.bin_tolerances, tree, args.chain_length or action_dim - 1, compiled_on)
     results = run_episode_benchmark(act, episodes, methods, action_dim, repeats=args.repeats, seed=args.seed,
                                     clock=ForwardClock(target))  # fmt: skip
     steps = sum(len(e) for e in episodes)

@@ -9,6 +9,8 @@ HELP = "benchmark a pipeline saved by `demo`"
 EXAMPLES = """
     # Re-run only the benchmark on a pipeline a previous demo saved
     hf-specvla benchmark --pipeline-dir runs/toy --chain-lengths 2 4 6 --bin-tolerances 1 2 4
+    # Eager rows only (no compilation)
+    hf-specvla benchmark --pipeline-dir runs/toy --no-compile
 """
 
 
@@ -22,6 +24,9 @@ def add_benchmark_arguments(parser) -> None:
     parser.add_argument("--repeats", type=POSITIVE, default=3, help="timed passes over the prompts")
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0, help="random seed")
+    parser.add_argument("--no-compile", dest="compile", action="store_false",
+                        help="skip the compiled rows (transformers' greedy:compile and the chains :compile, on a "
+                             "static cache; they compile on first use, off the clock)")  # fmt: skip
 
 
 def add_arguments(parser) -> None:
@@ -47,7 +52,8 @@ def time_pipeline(pipeline, args) -> None:
     scenes = split_scenes()[1]  # never seen by the target's or the draft head's training
     step = max(1, len(scenes) // args.prompts)
     prompts = [toy_inputs([s], pipeline.tokenizer) for s in scenes[step // 2 :: step][: args.prompts]]
-    methods = speculative_methods(pipeline.draft_head, args.chain_lengths, args.bin_tolerances)
+    compiled_on = pipeline.target.device.type if args.compile else None
+    methods = speculative_methods(pipeline.draft_head, args.chain_lengths, args.bin_tolerances, compiled_on=compiled_on)
     results = run_benchmark(
         pipeline.target, prompts, methods, ACTION_DIM, pipeline.action_tokenizer, repeats=args.repeats, seed=args.seed
     )

@@ -57,7 +57,8 @@ def time_episodes(pipeline, args) -> None:
     from ..speculative import DraftTreeConfig
 
     tolerances = [0, *args.bin_tolerances[:1]]
-    methods = episode_methods(pipeline.draft_head, tolerances, DraftTreeConfig(), chain_length=ACTION_DIM - 1)
+    compiled_on = pipeline.target.device.type if args.compile else None
+    methods = episode_methods(pipeline.draft_head, tolerances, DraftTreeConfig(), ACTION_DIM - 1, compiled_on)
     episodes = toy_episodes(args.episodes)
     results = run_episode_benchmark(toy_actor(pipeline), episodes, methods, ACTION_DIM, seed=args.seed)
     print(

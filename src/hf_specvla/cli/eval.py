@@ -116,7 +116,7 @@ def run(args, parser) -> int:
     if args.draft_head and not method.uses_draft_head:
         logger.warning("--method %s drafts without a head: --draft-head %s is not used", method.name, args.draft_head)
     draft_head = load_draft_head_for(policy, args.draft_head, parser) if method.uses_draft_head else None
-    generate_kwargs = method.generate_kwargs(draft_head)
+    generate_kwargs = method.generate_kwargs(draft_head, policy.model.device.type)
     if args.bin_tolerance is not None:  # as given (one r, or one per action dimension), as eval folders record it
         tolerance = args.bin_tolerance
         generate_kwargs["bin_tolerance"] = tolerance[0] if len(tolerance) == 1 else tolerance

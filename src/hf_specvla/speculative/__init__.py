@@ -21,6 +21,7 @@ from .compat import (
     cache_of,
     check_transformers_support,
 )
+from .compiled import NODE_BUCKETS, compiled_decoding_kwargs, compiles_verification, verification_width
 from .config import SpeculationConfig
 from .configuration_draft_head import DraftHeadConfig
 from .drafter import (
@@ -50,6 +51,10 @@ __all__ = [
     "OLDEST_TESTED_TRANSFORMERS",
     "SUPPORTED_TRANSFORMERS",
     "SPECULATION_KWARGS",
+    "NODE_BUCKETS",
+    "compiled_decoding_kwargs",
+    "compiles_verification",
+    "verification_width",
     "cache_of",
     "check_transformers_support",
     "TargetHandles",

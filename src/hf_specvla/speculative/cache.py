@@ -32,6 +32,7 @@ from transformers.cache_utils import (
     Cache,
     DynamicLayer,
     DynamicSlidingWindowLayer,
+    StaticCache,
     StaticLayer,
     StaticSlidingWindowLayer,
 )
@@ -103,6 +104,32 @@ def check_rollback_cache(cache: Cache, max_length: int, batch_size: int = 1, pad
                         else ""
                     )
                 )
+
+
+def with_draft_slots(config, cache: Cache | None, slots: int) -> Cache | None:
+    """``generate``'s own static cache (``cache_implementation="static"``) rebuilt with ``slots`` more slots, so that
+    a draft tree fits beside the tokens greedy decoding would store (``generate`` sizes it for those alone); the new
+    cache is allocated lazily, at the prefill, like the one it replaces. A cache the user passed, a cache already
+    holding entries, or any other cache is returned as it is (a user's static cache: trees are cut to its free slots).
+    With sliding-window layers (which hold at most their window) it grows only up to the window, so that every layer
+    keeps the same number of slots (one explicit mask serves them all).
+
+    Args:
+        config: the target's config (its decoder's text config is read, as ``generate`` does).
+    """
+    if type(cache) is not StaticCache or getattr(cache, "_is_user_defined", False) or slots <= 0:
+        return cache
+    if any(getattr(layer, "is_initialized", False) for layer in cache.layers):
+        return cache
+    capacity = max(layer.max_cache_len for layer in cache.layers)
+    windows = [layer.max_cache_len for layer in cache.layers if type(layer) is StaticSlidingWindowLayer]
+    if windows:  # a sliding layer holds at most its window: grow only within it (every layer keeps one slot count)
+        slots = min(slots, min(windows) - capacity)
+        if slots <= 0 or any(w != capacity for w in windows):
+            return cache
+    offloading = bool(getattr(cache, "offloading", False))
+    text_config = config.get_text_config(decoder=True)
+    return StaticCache(config=text_config, max_cache_len=capacity + slots, offloading=offloading)
 
 
 def static_capacity(cache: Cache) -> int | None:

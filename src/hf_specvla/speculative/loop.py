@@ -44,8 +44,10 @@ from .cache import (
     sliding_window,
     static_capacity,
     truncate_cache,
+    with_draft_slots,
 )
 from .compat import CACHE_KEY, check_transformers_support
+from .compiled import NODE_BUCKETS, compiled_call, compiles_verification, verification_width
 from .config import SpeculationConfig
 from .drafter import (
     CandidateDrafter,
@@ -485,6 +487,8 @@ def speculative_generate(
     total_start = time.perf_counter()
 
     padded = prompt_padding is not None
+    # generate's own static cache holds the tokens greedy decoding stores; a tree needs slots beside them
+    model_kwargs[CACHE_KEY] = with_draft_slots(model.config, model_kwargs.get(CACHE_KEY), NODE_BUCKETS[-1])
     if model_kwargs.get(CACHE_KEY) is not None:
         check_rollback_cache(model_kwargs[CACHE_KEY], generation_config.max_length, batch_size, padded)
     model_inputs = prefill_inputs(model, input_ids, model_kwargs)
@@ -502,6 +506,9 @@ def speculative_generate(
     at_prefill = True
     window = sliding_window(state.target_cache)
     capacity = static_capacity(state.target_cache)  # a static cache's slots: the trees must fit in them
+    compiled = None  # the compiled model call verifying every round after the prefill (fixed widths), or eager
+    if compiles_verification(model, generation_config, state.target_cache):
+        compiled = compiled_call(model, generation_config, NODE_BUCKETS)
     # A prefix-LM prompt (PaliGemma's token_type_ids: the prompt attends to itself both ways at the prefill) needs the
     # model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies one chain.
     prefix_attention = model_inputs.get("token_type_ids") is not None
@@ -522,10 +529,14 @@ def speculative_generate(
                     trees.append(row.session.propose(draft_round).truncate_depth(draft_round.max_depth))
             if at_prefill and prefix_attention:
                 trees = [tree.first_path() for tree in trees]
+            width = 0  # the node count a compiled verification is padded to
             if capacity is not None:  # batch 1: the pending tokens and the tree go into the free slots
                 free = capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
+                if compiled is not None and not at_prefill:  # one width per bucket: padded, or cut to fit
+                    free = width = verification_width(max(tree.num_nodes for tree in trees), free, NODE_BUCKETS)
+                    stats.compiled_widths.append(width)
                 trees = [tree.truncate_nodes(free) for tree in trees]
-            trees = TreeBatch(trees)
+            trees = TreeBatch(trees, min_nodes=width)
 
             # 2. Verify every row's tree in one target forward (the prefill's forward at the first round).
             with stopwatch.section("target_seconds"):
@@ -540,6 +551,7 @@ def speculative_generate(
                     sliding_window=window,
                     position_offsets=state.position_offsets,
                     key_length=capacity,
+                    forward=None if at_prefill else compiled,
                 )
             stats.num_batch_forwards += 1
             at_prefill = False

@@ -211,7 +211,9 @@ class TreeBatch:
 
     Attributes:
         trees: the rows' trees.
-        token_ids: ``[B, N]`` int64 (N = the largest tree's node count).
+        min_nodes: pad to at least this many nodes (a fixed verification width, so that a compiled forward sees
+            one shape; see ``speculative.compiled``).
+        token_ids: ``[B, N]`` int64 (N = the largest tree's node count, at least ``min_nodes``).
         parents: ``[B, N]`` int64 (filler: -1, a child of the root).
         depths: ``[B, N]`` int64.
         ancestor_or_self: ``[B, N, N]`` bool, each row's tree mask (filler: the diagonal only).
@@ -219,6 +221,7 @@ class TreeBatch:
     """
 
     trees: list[DraftTree]
+    min_nodes: int = 0
     token_ids: torch.Tensor = field(init=False)
     parents: torch.Tensor = field(init=False)
     depths: torch.Tensor = field(init=False)
@@ -229,7 +232,7 @@ class TreeBatch:
         if not self.trees:
             raise ValueError("TreeBatch needs at least one tree")
         device = self.trees[0].token_ids.device
-        n, b = max(t.num_nodes for t in self.trees), len(self.trees)
+        n, b = max(self.min_nodes, *(t.num_nodes for t in self.trees)), len(self.trees)
         self.token_ids = torch.zeros(b, n, dtype=torch.long, device=device)
         self.parents = torch.full((b, n), -1, dtype=torch.long, device=device)
         self.depths = torch.zeros(b, n, dtype=torch.long, device=device)

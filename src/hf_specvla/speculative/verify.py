@@ -8,7 +8,7 @@ builds its own causal mask (the cheapest path, identical to a plain decoding ste
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import torch
@@ -55,6 +55,7 @@ def verify_trees(
     sliding_window: int | None = None,
     position_offsets: torch.Tensor | None = None,
     key_length: int | None = None,
+    forward: Callable | None = None,
 ) -> TargetOutput:
     """One target forward over ``[pending tokens ; each row's tree nodes]`` on top of the target cache.
 
@@ -74,6 +75,9 @@ def verify_trees(
             pending tokens keep the model's prepared ``[K, B, P]`` positions (images have their own).
         key_length: the number of keys attention sees when it is not the cached and new entries (a static cache: its
             slots); an explicit mask hides the slots past the new entries.
+        forward: the model call to run (a compiled one, see ``speculative.compiled``); None: ``model`` itself. A
+            compiled call always gets the explicit tree mask (one mask kind, one shape per width) and its outputs are
+            copied (a CUDA graph's outputs are overwritten by its next replay).
     Returns:
         [`TargetOutput`] with logits ``[B, 1 + N, V]`` and hidden states ``[B, P + N, H]``.
     """
@@ -91,7 +95,7 @@ def verify_trees(
         inputs["position_ids"] = torch.cat([pending, node_positions[None] + position_offsets], dim=-1)  # [K, B, P + N]
     past_length = cache_length(model_inputs[CACHE_KEY])
     within_window = sliding_window is None or past_length + num_pending + num_nodes <= sliding_window
-    if trees.is_causal and within_window:
+    if trees.is_causal and within_window and forward is None:
         # Chains (or no drafts): the causal mask is every tree mask, so the model builds its own mask (the kernels a
         # plain decoding step uses; in bf16 an explicit 4D mask selects other kernels, whose rounding can flip a
         # near-tied argmax away from plain greedy decoding's). Invalid keys go in a 2D mask, as generate passes.
@@ -107,9 +111,11 @@ def verify_trees(
         inputs["attention_mask"] = to_additive_mask(allowed, model.dtype)
     inputs["logits_to_keep"] = num_nodes + 1
     inputs["use_cache"] = True
-    outputs = model(**inputs, output_hidden_states=output_hidden, return_dict=True)
-    hidden = outputs.hidden_states[-1] if output_hidden else None
-    return TargetOutput(outputs.logits.float(), hidden)
+    outputs = (forward or model)(**inputs, output_hidden_states=output_hidden, return_dict=True)
+    logits, hidden = outputs.logits.float(), outputs.hidden_states[-1] if output_hidden else None
+    if forward is not None:
+        logits, hidden = logits.clone(), None if hidden is None else hidden.clone()
+    return TargetOutput(logits, hidden)
 
 
 def apply_processors(logits_processor: LogitsProcessorList, input_ids: torch.Tensor, scores: torch.Tensor):

@@ -28,8 +28,8 @@ from ..._lazy import lazy_exports
 __getattr__, __dir__ = lazy_exports(
     __name__,
     {
-        ".methods": ("DEFAULT_METHODS", "DRAFTER_CHOICES", "GREEDY", "METHOD_KEYS", "CompareConfig", "DecodingMethod",
-                     "parse_methods"),
+        ".methods": ("COMPILED_GREEDY", "DEFAULT_METHODS", "DRAFTER_CHOICES", "GREEDY", "METHOD_KEYS", "CompareConfig",
+                     "DecodingMethod", "parse_methods"),
         ".runner": ("LOG_PATTERN", "read_episode_logs", "run_comparison", "run_method_episode"),
         ".statistics": ("BOOTSTRAP_RESAMPLES", "PLOTS", "format_comparison", "paired_difference", "plot_comparison",
                         "summarize_comparison"),

@@ -1,6 +1,10 @@
-"""Decoding methods of a comparison: ``<drafters>[:r=<bin tolerance>][,k=<chain length>]`` parsed, named and turned
-into ``predict_action`` options, and [`CompareConfig`], what a comparison runs. No torch at import: the CLI reads
-the choices and defaults here."""
+"""Decoding methods of a comparison: ``<drafters>[:r=<bin tolerance>][,k=<chain length>][:compile]`` parsed, named
+and turned into ``predict_action`` options, and [`CompareConfig`], what a comparison runs. No torch at import: the CLI
+reads the choices and defaults here.
+
+``:compile`` decodes on a static cache with transformers' ``CompileConfig``: ``greedy:compile`` is transformers' own
+compiled greedy decoding (the baseline a user who wants speed has), ``tree:compile`` / ``prior+tree:r=4:compile``
+verify drafts through the same compiled model call (``speculative.compiled``)."""
 
 from __future__ import annotations
 
@@ -16,6 +20,8 @@ if TYPE_CHECKING:
 
 DRAFTER_CHOICES = ("greedy", "head", "tree", "prior", "prior+head", "prior+tree")
 METHOD_KEYS = {"r": "bin tolerance (relaxed acceptance; 0 = lossless)", "k": "draft-head chain length (head only)"}
+#: the option word that compiles a method (static cache + transformers' CompileConfig)
+COMPILE = "compile"
 DEFAULT_METHODS = ("greedy", "head", "tree", "tree:r=4", "prior", "prior:r=2", "prior:r=4", "prior:r=8",
                    "prior+tree:r=4")  # fmt: skip
 
@@ -28,6 +34,7 @@ class DecodingMethod:
     drafters: str = "greedy"
     bin_tolerance: int = 0
     num_draft_tokens: int | None = None
+    compiled: bool = False
 
     @classmethod
     def parse(cls, text: str) -> DecodingMethod:
@@ -36,12 +43,17 @@ class DecodingMethod:
         Raises:
             ValueError: naming the bad part and listing what is valid.
         """
-        valid = f"valid: {', '.join(DRAFTER_CHOICES)}, optionally followed by :r=<int>[,k=<int>] (e.g. prior+tree:r=4)"
+        valid = (f"valid: {', '.join(DRAFTER_CHOICES)}, optionally followed by :r=<int>[,k=<int>] and/or :compile "
+                 f"(e.g. prior+tree:r=4, greedy:compile, prior+tree:r=4:compile)")  # fmt: skip
         drafters, _, options = text.strip().partition(":")
         if drafters not in DRAFTER_CHOICES:
             raise ValueError(f"unknown decoding method {text!r}: {drafters!r} is not a drafter; {valid}")
         values: dict[str, int] = {}
-        for option in filter(None, options.split(",")):
+        parts = options.replace(":", ",").split(",")
+        compiled = COMPILE in parts
+        if parts.count(COMPILE) > 1:
+            raise ValueError(f"decoding method {text!r}: {COMPILE!r} given twice; {valid}")
+        for option in filter(None, (p for p in parts if p != COMPILE)):
             key, _, value = option.partition("=")
             if key in METHOD_KEYS and value.strip().lstrip("-").isdigit() and int(value) < 0:
                 raise ValueError(f"decoding method {text!r}: {key} must be an integer >= 0 ({METHOD_KEYS[key]}), "
@@ -52,9 +64,9 @@ class DecodingMethod:
                     + ", ".join(f"{k}=<int> ({v})" for k, v in METHOD_KEYS.items())
                 )
             values[key] = int(value)
-        if options and not values:
+        if options and not values and not compiled:
             raise ValueError(f"decoding method {text!r}: empty options after ':'; {valid}")
-        method = cls(drafters, values.get("r", 0), values.get("k"))
+        method = cls(drafters, values.get("r", 0), values.get("k"), compiled)
         if method.drafters == "greedy" and (method.bin_tolerance or method.num_draft_tokens):
             raise ValueError(f"decoding method {text!r}: greedy drafts nothing, so it takes no r or k")
         if method.num_draft_tokens is not None and "head" not in method.drafters.split("+"):
@@ -65,10 +77,10 @@ class DecodingMethod:
 
     @property
     def name(self) -> str:
-        """Canonical name (``prior+tree:r=4``; ``r=0`` is left out)."""
+        """Canonical name (``prior+tree:r=4``, ``prior+tree:r=4:compile``; ``r=0`` is left out)."""
         options = [f"r={self.bin_tolerance}"] if self.bin_tolerance else []
         options += [f"k={self.num_draft_tokens}"] if self.num_draft_tokens is not None else []
-        return self.drafters + (":" + ",".join(options) if options else "")
+        return self.drafters + (":" + ",".join(options) if options else "") + (f":{COMPILE}" if self.compiled else "")
 
     @property
     def uses_draft_head(self) -> bool:
@@ -78,12 +90,12 @@ class DecodingMethod:
     def lossless(self) -> bool:
         return self.bin_tolerance == 0
 
-    def generate_kwargs(self, draft_head: DraftHead | None) -> dict:
-        """``predict_action`` options for this method."""
-        from ...speculative import DraftHeadDrafter, DraftTreeConfig
+    def generate_kwargs(self, draft_head: DraftHead | None, device_type: str = "cpu") -> dict:
+        """``predict_action`` options for this method (``device_type``: the policy's, for ``:compile``)."""
+        from ...speculative import DraftHeadDrafter, DraftTreeConfig, compiled_decoding_kwargs
 
         parts = self.drafters.split("+")
-        kwargs: dict = {}
+        kwargs: dict = compiled_decoding_kwargs(device_type) if self.compiled else {}
         if self.uses_draft_head:
             if draft_head is None:
                 raise ValueError(f"decoding method {self.name!r} needs a draft head (--draft-head)")
@@ -101,6 +113,8 @@ class DecodingMethod:
 
 
 GREEDY = DecodingMethod()
+#: transformers' own compiled greedy decoding (static cache + CompileConfig): the baseline a user who wants speed has
+COMPILED_GREEDY = DecodingMethod(compiled=True)
 
 
 def parse_methods(names: list[str]) -> list[DecodingMethod]:

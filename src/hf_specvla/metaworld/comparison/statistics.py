@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .methods import GREEDY, DecodingMethod
+from .methods import COMPILED_GREEDY, GREEDY, DecodingMethod
 
 BOOTSTRAP_RESAMPLES = 10_000
 PLOTS = ("speedup_vs_r.png", "success_vs_r.png", "accept_lengths.png")
@@ -53,6 +53,7 @@ def summarize_comparison(records: list[dict], methods: list[str]) -> dict:
         if record["method"] in by_method:
             by_method[record["method"]][(record["task"], record["seed"])] = record
     greedy = by_method[GREEDY.name]
+    compiled_greedy = by_method.get(COMPILED_GREEDY.name, {})
     summary: dict = {"methods": {}}
     for name in methods:
         episodes = by_method[name]
@@ -64,6 +65,11 @@ def summarize_comparison(records: list[dict], methods: list[str]) -> dict:
         ratios = [
             statistics.median(greedy[key]["latencies_ms"]) / statistics.median(episodes[key]["latencies_ms"])
             for key in paired
+        ]
+        compiled_paired = [key for key in episodes if key in compiled_greedy]
+        compiled_ratios = [
+            statistics.median(compiled_greedy[key]["latencies_ms"]) / statistics.median(episodes[key]["latencies_ms"])
+            for key in compiled_paired
         ]
         accept_counts: Counter = Counter()
         for record in episodes.values():
@@ -83,6 +89,8 @@ def summarize_comparison(records: list[dict], methods: list[str]) -> dict:
             "mean_episode_length": statistics.mean(r["length"] for r in episodes.values()),
             "median_ms_per_call": statistics.median(latencies),  # one call decides one action, or one chunk
             "speedup": statistics.median(ratios) if ratios else None,
+            # against transformers' compiled greedy decoding, when the comparison ran it (greedy:compile)
+            "speedup_vs_greedy_compile": statistics.median(compiled_ratios) if compiled_ratios else None,
             "target_forwards_per_action": forwards / actions,  # per env step
             "target_forwards_per_call": forwards / len(latencies),
             "tokens_per_target_forward": sum(r["new_tokens"] for r in episodes.values()) / forwards,
@@ -105,9 +113,9 @@ def format_comparison(summary: dict) -> str:
     """The markdown table of a comparison summary."""
     lines = [
         "| method | episodes | success | vs greedy (95% CI) | greedy-only / method-only | mean length "
-        "| median ms/call | speed-up | target fwd/call | tokens/target fwd | bin dev. mean / max "
+        "| median ms/call | speed-up | vs greedy:compile | target fwd/call | tokens/target fwd | bin dev. mean / max "
         "| identical to greedy |",
-        "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---|---:|",
+        "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---:|",
     ]
     for name, row in summary["methods"].items():
         paired = row.get("vs_greedy")
@@ -117,11 +125,13 @@ def format_comparison(summary: dict) -> str:
             versus = f"{paired['difference']:+.1%} [{paired['ci_low']:+.1%}, {paired['ci_high']:+.1%}]"
             discordant = f"{paired['greedy_only']} / {paired['method_only']}"
         speedup = "-" if row["speedup"] is None else f"{row['speedup']:.2f}x"
+        compiled = row.get("speedup_vs_greedy_compile")
+        versus_compiled = "-" if compiled is None else f"{compiled:.2f}x"
         deviation = "-" if not row["bin_tolerance"] else f"{row['mean_bin_deviation']:.2f} / {row['max_bin_deviation']}"
         identical = f"{row['identical_to_greedy']}/{paired['pairs'] if paired else 0}"
         lines.append(
             f"| {name} | {row['episodes']} | {row['success_rate']:.1%} | {versus} | {discordant} "
-            f"| {row['mean_episode_length']:.0f} | {row['median_ms_per_call']:.2f} | {speedup} "
+            f"| {row['mean_episode_length']:.0f} | {row['median_ms_per_call']:.2f} | {speedup} | {versus_compiled} "
             f"| {row['target_forwards_per_call']:.2f} | {row['tokens_per_target_forward']:.2f} | {deviation} "
             f"| {identical} |"
         )

@@ -1,0 +1,122 @@
+"""Compiled verification: the target's verification forwards at a few fixed widths, each compiled once.
+
+A compiled graph (and a CUDA graph) holds one input shape. Every verification after the prefill feeds the pending
+token and a draft tree: its node count is rounded **up** to a width bucket (filler nodes pad it, see
+[`TreeBatch`]), its mask is always the explicit ``[1, 1, 1 + N, slots]`` tree mask over the static cache's slots,
+and it keeps ``1 + N`` logits, so a call site compiles one graph per bucket it meets and none afterwards, whatever
+the drafts, the accepted lengths or the tree shapes. Near the end of the cache, where a bucket no longer fits the
+free slots, the tree is cut to the largest bucket that does (fewer drafts, still exact) rather than compiling a
+new width.
+
+Compilation is transformers' own: ``model.get_compiled_call(generation_config.compile_config)``, under the criteria
+of its compiled greedy decoding (a static cache; a CUDA / XPU device, or ``CompileConfig._compile_all_devices``; not
+``disable_compile``; no quantizer that refuses it). So ``cache_implementation="static"`` speeds up speculative and
+plain greedy decoding alike, and the two share the compiled model call. The prefill stays eager (its shape changes
+with the prompt and the drafts it verifies), as in transformers' greedy decoding.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+
+import torch
+from transformers import GenerationConfig, PreTrainedModel
+from transformers.cache_utils import Cache
+
+from .cache import STATIC_LAYER_TYPES
+
+logger = logging.getLogger(__name__)
+
+#: the node counts a compiled verification is padded to (0: a plain decoding step); one graph per bucket met
+NODE_BUCKETS: tuple[int, ...] = (0, 2, 4, 8, 16, 32)  # checked by check_buckets below
+
+#: graphs transformers' own compiled decoding may hold on the same model call (greedy's decode step, assisted
+#: generation's verification lengths) beside ours: the recompile limit is raised to the buckets + this
+_GRAPHS_BESIDE_OURS = 16
+
+_DEVICES_COMPILED_BY_DEFAULT = ("cuda", "xpu", "neuron", "tpu")
+
+
+def compiled_decoding_kwargs(device_type: str = "cpu") -> dict:
+    """``generate`` arguments for transformers' compiled decoding on ``device_type``: a static cache and a
+    ``CompileConfig`` (CUDA graphs on a GPU, inductor's default mode elsewhere, where transformers compiles only when
+    told with ``_compile_all_devices``). The same for greedy (transformers' own compiled greedy decoding) and for
+    speculative decoding (compiled verification)."""
+    from transformers import CompileConfig
+
+    if device_type in _DEVICES_COMPILED_BY_DEFAULT:
+        return dict(cache_implementation="static", compile_config=CompileConfig(fullgraph=True, dynamic=False))
+    config = CompileConfig(fullgraph=True, dynamic=False, mode="default")
+    config._compile_all_devices = True
+    return dict(cache_implementation="static", compile_config=config)
+
+
+def compiles_verification(model: PreTrainedModel, generation_config: GenerationConfig, cache: Cache | None) -> bool:
+    """Whether verifications run through the compiled model call: transformers' criteria for its compiled greedy
+    decoding (a cache whose layers are all static; a CUDA / XPU device or ``compile_config._compile_all_devices``;
+    ``disable_compile`` unset; no quantization that refuses compilation)."""
+    if getattr(generation_config, "disable_compile", False) or cache is None:
+        return False
+    layers = getattr(cache, "layers", None)
+    if not layers or not all(type(layer) in STATIC_LAYER_TYPES for layer in layers):
+        return False
+    compile_config = getattr(generation_config, "compile_config", None)
+    all_devices = compile_config is not None and bool(getattr(compile_config, "_compile_all_devices", False))
+    if model.device.type not in _DEVICES_COMPILED_BY_DEFAULT and not all_devices:
+        if compile_config is not None:
+            logger.warning(
+                "compile_config is set but the target is on %s, which transformers compiles only with "
+                "compile_config._compile_all_devices = True: verifying eagerly",
+                model.device.type,
+            )
+        return False
+    quantizer = getattr(model, "hf_quantizer", None)
+    return quantizer is None or bool(getattr(quantizer, "is_compileable", False))
+
+
+def compiled_call(model: PreTrainedModel, generation_config: GenerationConfig, buckets: Sequence[int]) -> Callable:
+    """The model's compiled ``__call__`` (transformers' ``get_compiled_call``, shared with its compiled greedy
+    decoding), with dynamo's recompile limit raised to hold one graph per bucket (past the limit dynamo would
+    silently run eagerly)."""
+    allow_graphs(len(buckets) + _GRAPHS_BESIDE_OURS)
+    return model.get_compiled_call(generation_config.compile_config)
+
+
+def allow_graphs(count: int) -> None:
+    """Raises dynamo's per-function recompile limit to ``count`` graphs when it is lower (never lowers it)."""
+    config = torch._dynamo.config
+    name = "recompile_limit" if hasattr(config, "recompile_limit") else "cache_size_limit"
+    if getattr(config, name) < count:
+        logger.info("raising torch._dynamo.config.%s from %d to %d", name, getattr(config, name), count)
+        setattr(config, name, count)
+
+
+def verification_width(num_nodes: int, free_slots: int, buckets: Sequence[int] = NODE_BUCKETS) -> int:
+    """The node count a verification of a ``num_nodes``-node tree is padded (or cut) to.
+
+    Args:
+        num_nodes: the largest tree's real nodes.
+        free_slots: cache slots left after the pending tokens (the padded tree must fit in them).
+        buckets: the allowed node counts, ascending, starting at 0.
+    Returns:
+        the smallest bucket >= ``num_nodes`` that fits, else the largest bucket that fits (the tree is then cut to it;
+        0, a plain decoding step, always fits).
+    """
+    fitting = [b for b in buckets if b <= free_slots]
+    if not fitting:
+        raise ValueError(f"no verification width fits {free_slots} free cache slots (buckets {tuple(buckets)})")
+    return next((b for b in fitting if b >= num_nodes), fitting[-1])
+
+
+def check_buckets(buckets: Sequence[int]) -> tuple[int, ...]:
+    """Validates node buckets: distinct integers >= 0, ascending, starting at 0 (a plain decoding step)."""
+    values = tuple(buckets)
+    if not values or values[0] != 0 or any(not isinstance(b, int) or b < 0 for b in values):
+        raise ValueError(f"node buckets must be integers >= 0 starting at 0, got {values}")
+    if any(b >= c for b, c in zip(values, values[1:])):
+        raise ValueError(f"node buckets must be strictly ascending, got {values}")
+    return values
+
+
+check_buckets(NODE_BUCKETS)

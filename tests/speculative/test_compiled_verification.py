@@ -1,0 +1,162 @@
+"""Compiled verification (``speculative.compiled``): on a static cache with a ``CompileConfig`` every verification after
+the prefill runs through transformers' compiled model call at a fixed width bucket.
+
+Compiled here with dynamo's ``eager`` backend (it traces, guards and recompiles exactly as inductor would, without
+generating code): r=0 gives greedy's tokens for every drafter on Llama, a sliding-window family and a VLM; after a
+warm-up, calls with other drafts, accepted lengths and tree shapes compile nothing new; the widths stay in the
+buckets; generate's own static cache gets slots for the trees, a user's cache is used as it is.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from transformers import AutoConfig, AutoModelForCausalLM, CompileConfig, LlamaForCausalLM
+from transformers.cache_utils import StaticCache
+
+from hf_specvla import DraftHead, DraftHeadDrafter, DraftTreeConfig, enable_speculation
+from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
+from hf_specvla.speculative import CACHE_KEY, NODE_BUCKETS, cache_of, verification_width
+from hf_specvla.speculative.compiled import check_buckets
+
+from ..conftest import tiny_llama_config
+from .test_backbones import TEXT, TEXT_BACKBONES
+
+VOCAB = 320
+NEW_TOKENS = 7
+
+
+def eager_compile_config() -> CompileConfig:
+    """dynamo with its ``eager`` backend, on any device (transformers compiles on CUDA only unless told)."""
+    config = CompileConfig(backend="eager", fullgraph=True, dynamic=False, mode="default")
+    config._compile_all_devices = True
+    return config
+
+
+@pytest.fixture(autouse=True)
+def fresh_dynamo():
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    yield
+    torch._dynamo.reset()
+
+
+def _model(name: str):
+    torch.manual_seed(0)
+    if name == "llama":
+        return enable_speculation(LlamaForCausalLM(tiny_llama_config()).eval())
+    config = AutoConfig.for_model(name, **TEXT, **TEXT_BACKBONES[name])
+    return enable_speculation(AutoModelForCausalLM.from_config(config).float().eval())
+
+
+def greedy(model, input_ids, **kwargs):
+    return model.generate(input_ids=input_ids, max_new_tokens=NEW_TOKENS, do_sample=False, **kwargs)
+
+
+def calls_for(model, input_ids, expected):
+    """generate kwargs for every drafter: right / wrong drafts, candidates, head chain, EAGLE-2 tree, composed."""
+    torch.manual_seed(1)
+    head = DraftHead.from_target(model, num_draft_tokens=3).eval()
+    tree = DraftHeadDrafter(head, tree=DraftTreeConfig(top_k=3, depth=4, total_tokens=12))
+    right = expected[:, input_ids.shape[1] : -1]
+    wrong = right.clone()
+    wrong[:, 2] = (wrong[:, 2] + 1) % VOCAB
+    candidates = torch.stack([wrong, (right + 7) % VOCAB], dim=1)
+    return [dict(draft_ids=right), dict(draft_ids=wrong), dict(draft_ids=candidates), dict(assistant_model=head),
+            dict(assistant_model=tree), dict(draft_ids=wrong, assistant_model=tree)]  # fmt: skip
+
+
+@pytest.mark.parametrize("name", ["llama", "gemma2"])
+def test_compiled_verification_gives_greedys_tokens_for_every_drafter(name):
+    model = _model(name)
+    input_ids = torch.randint(6, 64, (1, 6), generator=torch.Generator().manual_seed(3))
+    expected = greedy(model, input_ids)
+    compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
+    for kwargs in calls_for(model, input_ids, expected):
+        out = greedy(model, input_ids, return_dict_in_generate=True, **compiled, **kwargs)
+        assert torch.equal(out.sequences, expected), kwargs
+        widths = out.speculation.compiled_widths
+        assert len(widths) == out.speculation.num_batch_forwards - 1  # every round after the (eager) prefill
+        assert set(widths) <= set(NODE_BUCKETS), widths
+
+
+def test_no_recompilation_after_warm_up():
+    """Other prompts' drafts, accepted lengths and tree shapes reuse the graphs compiled during the warm-up."""
+    model = _model("llama")
+    compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
+    prompts = [torch.randint(6, 64, (1, 6), generator=torch.Generator().manual_seed(s)) for s in range(4)]
+    plans = []
+    for input_ids in prompts:
+        expected = greedy(model, input_ids)
+        plans += [(input_ids, expected, kwargs) for kwargs in calls_for(model, input_ids, expected)]
+    warm_up, steady = plans[:6], plans[6:]  # one prompt's calls, then three other prompts'
+    widths = set()
+    for input_ids, _, kwargs in warm_up:
+        out = greedy(model, input_ids, return_dict_in_generate=True, **compiled, **kwargs)
+        widths |= set(out.speculation.compiled_widths)
+    graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
+    assert len(widths) <= graphs <= 2 * len(widths)  # one per width met (with and without hidden states at most)
+    with torch._dynamo.config.patch(error_on_recompile=True):
+        for input_ids, expected, kwargs in steady:
+            out = greedy(model, input_ids, return_dict_in_generate=True, **compiled, **kwargs)
+            assert torch.equal(out.sequences, expected), kwargs
+            assert set(out.speculation.compiled_widths) <= widths  # only widths the warm-up met
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs  # nothing compiled after the warm-up
+    assert len(widths) > 1  # several buckets were met (the test is not vacuous)
+
+
+def test_compiled_verification_in_a_chunked_policy():
+    """``predict_action`` passes ``cache_implementation`` and ``compile_config`` through; r=0 is greedy's chunk."""
+    from ..policies.test_action_chunks import ACTIONS, CHUNK, INSTRUCTIONS, SMALL, STATES, action_only, drafters
+    from ..policies.test_action_chunks import observation as chunk_observation
+
+    torch.manual_seed(0)
+    policy = action_only(VLAPolicy.build(INSTRUCTIONS, ACTIONS, STATES, VLAPolicyConfig(**SMALL, chunk_length=CHUNK)))
+    methods = drafters(policy)
+    compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
+    history = [[200, 210, 220, 230]] * 2
+    for seed in range(3):
+        image, state = chunk_observation(seed)
+        policy.previous_action_ids = list(history)
+        _, plain = policy.predict_action(image, "reach the goal", state, return_output=True)
+        for name in ("tree", "prior", "prior+tree"):
+            policy.previous_action_ids = list(history)
+            _, out = policy.predict_action(image, "reach the goal", state, return_output=True, **compiled,
+                                           **methods[name])  # fmt: skip
+            assert torch.equal(out.sequences, plain.sequences), name
+            assert out.speculation.compiled_widths or out.speculation.num_batch_forwards == 1, name
+
+
+def test_without_compile_all_devices_the_cpu_verifies_eagerly(tiny_llama):
+    input_ids = torch.tensor([[1, 7, 9, 11]])
+    config = CompileConfig(backend="eager", mode="default")  # no _compile_all_devices: transformers would not compile
+    out = greedy(tiny_llama, input_ids, draft_ids=torch.tensor([[70, 71, 72]]), cache_implementation="static",
+                 compile_config=config, return_dict_in_generate=True)  # fmt: skip
+    assert out.speculation.compiled_widths == []
+    assert torch.equal(out.sequences, greedy(tiny_llama, input_ids))
+
+
+def test_generates_own_static_cache_gets_slots_for_the_trees_a_users_cache_is_kept(tiny_llama):
+    input_ids = torch.tensor([[1, 7, 9, 11]])
+    out = greedy(tiny_llama, input_ids, draft_ids=torch.tensor([[70]]), cache_implementation="static",
+                 return_dict_in_generate=True)  # fmt: skip
+    # generate sizes its cache for greedy's tokens (prompt + new - 1); the loop adds the largest bucket's slots
+    assert cache_of(out).layers[0].max_cache_len == input_ids.shape[1] + NEW_TOKENS - 1 + NODE_BUCKETS[-1]
+    users = StaticCache(config=tiny_llama.config, max_cache_len=input_ids.shape[1] + NEW_TOKENS)
+    out = greedy(tiny_llama, input_ids, draft_ids=torch.tensor([[70]]), return_dict_in_generate=True,
+                 **{CACHE_KEY: users})  # fmt: skip
+    assert cache_of(out) is users and users.layers[0].max_cache_len == input_ids.shape[1] + NEW_TOKENS
+
+
+@pytest.mark.parametrize(
+    "num_nodes, free, width",
+    [(0, 50, 0), (1, 50, 2), (3, 50, 4), (12, 50, 16), (24, 50, 32), (40, 50, 32), (24, 20, 16), (5, 1, 0)],
+)
+def test_verification_width_pads_up_to_a_bucket_or_cuts_to_the_largest_that_fits(num_nodes, free, width):
+    assert verification_width(num_nodes, free) == width
+
+
+@pytest.mark.parametrize("buckets", [(), (2, 4), (0, 4, 2), (0, 2, 2), (0, -1), (0, 2.5)])
+def test_bad_buckets_are_refused(buckets):
+    with pytest.raises(ValueError, match="node buckets"):
+        check_buckets(buckets)
