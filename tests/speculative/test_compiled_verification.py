@@ -17,7 +17,7 @@ from transformers.cache_utils import StaticCache
 from hf_specvla import DraftHead, DraftHeadDrafter, DraftTreeConfig, enable_speculation
 from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
 from hf_specvla.speculative import CACHE_KEY, NODE_BUCKETS, cache_of, verification_width
-from hf_specvla.speculative.compiled import check_buckets
+from hf_specvla.speculative.compiled import SLOT_MULTIPLE, check_buckets
 
 from ..conftest import tiny_llama_config
 from .test_backbones import TEXT, TEXT_BACKBONES
@@ -90,17 +90,22 @@ def test_no_recompilation_after_warm_up():
         expected = greedy(model, input_ids)
         plans += [(input_ids, expected, kwargs) for kwargs in calls_for(model, input_ids, expected)]
     warm_up, steady = plans[:6], plans[6:]  # one prompt's calls, then three other prompts'
-    widths = set()
+    widths, compile_seconds = set(), []
     for input_ids, _, kwargs in warm_up:
         out = greedy(model, input_ids, return_dict_in_generate=True, **compiled, **kwargs)
         widths |= set(out.speculation.compiled_widths)
+        compile_seconds.append(out.speculation.compile_seconds)
+    # the first call without and the first with hidden states compile every width; later calls none
+    assert sum(s > 0 for s in compile_seconds) == 2, compile_seconds
     graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
-    assert len(widths) <= graphs <= 2 * len(widths)  # one per width met (with and without hidden states at most)
+    # every width compiled up front (before the first compiled round), with and without hidden states
+    assert graphs == 2 * len(NODE_BUCKETS)
     with torch._dynamo.config.patch(error_on_recompile=True):
         for input_ids, expected, kwargs in steady:
             out = greedy(model, input_ids, return_dict_in_generate=True, **compiled, **kwargs)
             assert torch.equal(out.sequences, expected), kwargs
             assert set(out.speculation.compiled_widths) <= widths  # only widths the warm-up met
+            assert out.speculation.compile_seconds == 0
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs  # nothing compiled after the warm-up
     assert len(widths) > 1  # several buckets were met (the test is not vacuous)
 
@@ -140,8 +145,10 @@ def test_generates_own_static_cache_gets_slots_for_the_trees_a_users_cache_is_ke
     input_ids = torch.tensor([[1, 7, 9, 11]])
     out = greedy(tiny_llama, input_ids, draft_ids=torch.tensor([[70]]), cache_implementation="static",
                  return_dict_in_generate=True)  # fmt: skip
-    # generate sizes its cache for greedy's tokens (prompt + new - 1); the loop adds the largest bucket's slots
-    assert cache_of(out).layers[0].max_cache_len == input_ids.shape[1] + NEW_TOKENS - 1 + NODE_BUCKETS[-1]
+    # generate sizes its cache for greedy's tokens (prompt + new - 1); the loop adds the largest bucket's slots, and
+    # rounds up (prompts of other lengths share the compiled graphs)
+    slots = input_ids.shape[1] + NEW_TOKENS - 1 + NODE_BUCKETS[-1]
+    assert cache_of(out).layers[0].max_cache_len == -(-slots // SLOT_MULTIPLE) * SLOT_MULTIPLE  # rounded up
     users = StaticCache(config=tiny_llama.config, max_cache_len=input_ids.shape[1] + NEW_TOKENS)
     out = greedy(tiny_llama, input_ids, draft_ids=torch.tensor([[70]]), return_dict_in_generate=True,
                  **{CACHE_KEY: users})  # fmt: skip

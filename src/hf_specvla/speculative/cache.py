@@ -106,7 +106,7 @@ def check_rollback_cache(cache: Cache, max_length: int, batch_size: int = 1, pad
                 )
 
 
-def with_draft_slots(config, cache: Cache | None, slots: int) -> Cache | None:
+def with_draft_slots(config, cache: Cache | None, slots: int, multiple: int = 1) -> Cache | None:
     """``generate``'s own static cache (``cache_implementation="static"``) rebuilt with ``slots`` more slots, so that
     a draft tree fits beside the tokens greedy decoding would store (``generate`` sizes it for those alone); the new
     cache is allocated lazily, at the prefill, like the one it replaces. A cache the user passed, a cache already
@@ -116,12 +116,15 @@ def with_draft_slots(config, cache: Cache | None, slots: int) -> Cache | None:
 
     Args:
         config: the target's config (its decoder's text config is read, as ``generate`` does).
+        multiple: the slot count is rounded up to a multiple of this (compiled graphs hold the cache's shape: prompts
+            of different lengths then share one graph per width).
     """
     if type(cache) is not StaticCache or getattr(cache, "_is_user_defined", False) or slots <= 0:
         return cache
     if any(getattr(layer, "is_initialized", False) for layer in cache.layers):
         return cache
     capacity = max(layer.max_cache_len for layer in cache.layers)
+    slots = -(-(capacity + slots) // multiple) * multiple - capacity
     windows = [layer.max_cache_len for layer in cache.layers if type(layer) is StaticSlidingWindowLayer]
     if windows:  # a sliding layer holds at most its window: grow only within it (every layer keeps one slot count)
         slots = min(slots, min(windows) - capacity)

@@ -18,6 +18,8 @@ with the prompt and the drafts it verifies), as in transformers' greedy decoding
 from __future__ import annotations
 
 import logging
+import time
+import weakref
 from collections.abc import Callable, Sequence
 
 import torch
@@ -30,6 +32,10 @@ logger = logging.getLogger(__name__)
 
 #: the node counts a compiled verification is padded to (0: a plain decoding step); one graph per bucket met
 NODE_BUCKETS: tuple[int, ...] = (0, 2, 4, 8, 16, 32)  # checked by check_buckets below
+
+#: generate's own static cache is rebuilt with room for the largest bucket, its slot count rounded up to a multiple of
+#: this: the compiled graphs hold the slot count, so prompts of different lengths share them
+SLOT_MULTIPLE = 64
 
 #: graphs transformers' own compiled decoding may hold on the same model call (greedy's decode step, assisted
 #: generation's verification lengths) beside ours: the recompile limit is raised to the buckets + this
@@ -79,8 +85,36 @@ def compiled_call(model: PreTrainedModel, generation_config: GenerationConfig, b
     """The model's compiled ``__call__`` (transformers' ``get_compiled_call``, shared with its compiled greedy
     decoding), with dynamo's recompile limit raised to hold one graph per bucket (past the limit dynamo would
     silently run eagerly)."""
-    allow_graphs(len(buckets) + _GRAPHS_BESIDE_OURS)
+    allow_graphs(2 * len(buckets) + _GRAPHS_BESIDE_OURS)  # each width with and without hidden states
     return model.get_compiled_call(generation_config.compile_config)
+
+
+#: per compiled model call, the (slots, hidden states returned) keys whose every width has been compiled
+_COMPILED_WIDTHS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def compile_every_width(compiled: Callable, model: PreTrainedModel, key: tuple, verify_width: Callable[[int], None],
+                        free_slots: int, buckets: Sequence[int] = NODE_BUCKETS) -> float:  # fmt: skip
+    """Runs one throw-away verification at every bucket width that fits ``free_slots`` the first time a compiled call
+    meets ``key`` (the cache's slot count, whether hidden states are returned: what the graphs' shapes depend on),
+    so that every graph is compiled before the first action, never in the middle of an episode.
+
+    Args:
+        verify_width: runs a filler-only verification of the given width and rolls the cache back.
+    Returns:
+        the seconds it took (0 when ``key`` was met before).
+    """
+    done = _COMPILED_WIDTHS.setdefault(model, set())
+    if (id(compiled), *key) in done:
+        return 0.0
+    start = time.perf_counter()
+    widths = [b for b in buckets if b <= free_slots]
+    for width in widths:
+        verify_width(width)
+    done.add((id(compiled), *key))
+    seconds = time.perf_counter() - start
+    logger.info("compiled verification widths %s (slots, hidden states: %s) in %.1f s", widths, key, seconds)
+    return seconds
 
 
 def allow_graphs(count: int) -> None:

@@ -47,7 +47,14 @@ from .cache import (
     with_draft_slots,
 )
 from .compat import CACHE_KEY, check_transformers_support
-from .compiled import NODE_BUCKETS, compiled_call, compiles_verification, verification_width
+from .compiled import (
+    NODE_BUCKETS,
+    SLOT_MULTIPLE,
+    compile_every_width,
+    compiled_call,
+    compiles_verification,
+    verification_width,
+)
 from .config import SpeculationConfig
 from .drafter import (
     CandidateDrafter,
@@ -63,7 +70,7 @@ from .drafters.draft_head import DraftHeadDrafter
 from .modeling_draft_head import DraftHead
 from .outputs import SpeculativeDecoderOnlyOutput
 from .stats import SpeculationStats
-from .tree import TreeBatch
+from .tree import DraftTree, TreeBatch
 from .verify import prefill_inputs, target_greedy_ids, verify_trees
 
 logger = logging.getLogger(__name__)
@@ -379,6 +386,23 @@ def _per_step(rows: list[RowState], attribute: str) -> tuple[torch.Tensor, ...]:
     return tuple(out)
 
 
+def _compile_every_width(model, compiled, state: DecodeState, output_hidden: bool) -> float:
+    """[`compile_every_width`] on this call's cache: filler-only verifications after the committed entries, each
+    rolled back (the cache's entries and counter are as they were)."""
+    cache = state.target_cache
+    length, capacity = cache_length(cache), static_capacity(cache)
+
+    def verify_width(width: int) -> None:
+        trees = TreeBatch([DraftTree.empty(state.pending_ids.device)], min_nodes=width)
+        verify_trees(model, {CACHE_KEY: cache}, state.pending_ids, state.pending_positions, trees, state.key_valid,
+                     output_hidden, position_offsets=state.position_offsets, key_length=capacity,
+                     forward=compiled)  # fmt: skip
+        truncate_cache(cache, length)
+
+    free = capacity - length - state.pending_ids.shape[1]
+    return compile_every_width(compiled, model, (capacity, output_hidden), verify_width, free)
+
+
 # ----------------------------------------------------------------------------- the loop
 @torch.no_grad()
 def check_left_padded(attention_mask: torch.Tensor | None) -> None:
@@ -488,7 +512,9 @@ def speculative_generate(
 
     padded = prompt_padding is not None
     # generate's own static cache holds the tokens greedy decoding stores; a tree needs slots beside them
-    model_kwargs[CACHE_KEY] = with_draft_slots(model.config, model_kwargs.get(CACHE_KEY), NODE_BUCKETS[-1])
+    model_kwargs[CACHE_KEY] = with_draft_slots(
+        model.config, model_kwargs.get(CACHE_KEY), NODE_BUCKETS[-1], SLOT_MULTIPLE
+    )
     if model_kwargs.get(CACHE_KEY) is not None:
         check_rollback_cache(model_kwargs[CACHE_KEY], generation_config.max_length, batch_size, padded)
     model_inputs = prefill_inputs(model, input_ids, model_kwargs)
@@ -583,6 +609,8 @@ def speculative_generate(
 
             # 5. Commit: keep each row's pending tokens and path in the cache; tell the drafters; drop finished rows.
             commits = commit_paths(state, trees, paths, output.hidden)
+            if compiled is not None and stats.num_batch_forwards == 1:  # compile every width before the next round
+                stats.compile_seconds = _compile_every_width(model, compiled, state, drafter.needs_hidden_states)
             with stopwatch.section("draft_seconds"):
                 for row, commit in zip(state.rows, commits):
                     if not row.finished:

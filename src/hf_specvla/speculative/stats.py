@@ -26,6 +26,8 @@ class SpeculationStats:
         num_batch_forwards: the target forwards actually run. For a batch of B rows the counts above are summed
             over rows (a batch forward counts once for every row that took part in it: each row's tokens per
             forward is what the batch achieves per forward for that row); at B = 1 it equals ``num_target_forwards``.
+        compile_seconds: time spent compiling every verification width before the first compiled round (the first
+            call per model, slot count and drafter kind; 0 afterwards); inside ``total_seconds``.
         compiled_widths: the node count (width bucket, filler included) of each verification that ran through the
             compiled model call (see ``speculative.compiled``); empty when every forward ran eagerly.
         rows: one [`SpeculationStats`] per batch row (B > 1 only; their times are 0: a batch forward is shared).
@@ -43,6 +45,7 @@ class SpeculationStats:
     total_seconds: float = 0.0
     num_batch_forwards: int = 0
     compiled_widths: list[int] = field(default_factory=list)
+    compile_seconds: float = 0.0
     rows: list[SpeculationStats] = field(default_factory=list)
 
     @property
@@ -104,6 +107,7 @@ class SpeculationStats:
             total_seconds=self.total_seconds + other.total_seconds,
             num_batch_forwards=self.num_batch_forwards + other.num_batch_forwards,
             compiled_widths=self.compiled_widths + other.compiled_widths,
+            compile_seconds=self.compile_seconds + other.compile_seconds,
             rows=self.rows + other.rows,
         )
 
