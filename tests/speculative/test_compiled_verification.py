@@ -167,3 +167,20 @@ def test_verification_width_pads_up_to_a_bucket_or_cuts_to_the_largest_that_fits
 def test_bad_buckets_are_refused(buckets):
     with pytest.raises(ValueError, match="node buckets"):
         check_buckets(buckets)
+
+
+def test_widths_are_compiled_once_per_model_even_when_the_compiled_call_is_wrapped():
+    """A wrapper around ``get_compiled_call`` (the benchmarks' clock returns a new closure per call) does not make the
+    engine compile the widths again: what is compiled is keyed on the model, the settings, the slots."""
+    model = _model("llama")
+    original = model.get_compiled_call
+    model.get_compiled_call = lambda config: lambda *args, **kwargs: original(config)(*args, **kwargs)
+    compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
+    input_ids = torch.tensor([[1, 7, 9, 11]])
+    seconds = [
+        greedy(
+            model, input_ids, draft_ids=torch.tensor([[70, 71]]), return_dict_in_generate=True, **compiled
+        ).speculation.compile_seconds
+        for _ in range(3)
+    ]
+    assert seconds[0] > 0 and seconds[1:] == [0.0, 0.0]

@@ -89,15 +89,15 @@ def compiled_call(model: PreTrainedModel, generation_config: GenerationConfig, b
     return model.get_compiled_call(generation_config.compile_config)
 
 
-#: per compiled model call, the (slots, hidden states returned) keys whose every width has been compiled
+#: per model, the (compile settings, slots, hidden states returned) keys whose every width has been compiled
 _COMPILED_WIDTHS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def compile_every_width(compiled: Callable, model: PreTrainedModel, key: tuple, verify_width: Callable[[int], None],
-                        free_slots: int, buckets: Sequence[int] = NODE_BUCKETS) -> float:  # fmt: skip
-    """Runs one throw-away verification at every bucket width that fits ``free_slots`` the first time a compiled call
-    meets ``key`` (the cache's slot count, whether hidden states are returned: what the graphs' shapes depend on),
-    so that every graph is compiled before the first action, never in the middle of an episode.
+def compile_every_width(model: PreTrainedModel, key: tuple, verify_width: Callable[[int], None], free_slots: int,
+                        buckets: Sequence[int] = NODE_BUCKETS) -> float:  # fmt: skip
+    """Runs one throw-away verification at every bucket width that fits ``free_slots`` the first time ``model``'s
+    compiled call meets ``key`` (the compile settings, the cache's slot count, whether hidden states are returned:
+    what the graphs depend on), so that every graph is compiled before the first action, never mid-episode.
 
     Args:
         verify_width: runs a filler-only verification of the given width and rolls the cache back.
@@ -105,15 +105,15 @@ def compile_every_width(compiled: Callable, model: PreTrainedModel, key: tuple, 
         the seconds it took (0 when ``key`` was met before).
     """
     done = _COMPILED_WIDTHS.setdefault(model, set())
-    if (id(compiled), *key) in done:
+    if key in done:
         return 0.0
     start = time.perf_counter()
     widths = [b for b in buckets if b <= free_slots]
     for width in widths:
         verify_width(width)
-    done.add((id(compiled), *key))
+    done.add(key)
     seconds = time.perf_counter() - start
-    logger.info("compiled verification widths %s (slots, hidden states: %s) in %.1f s", widths, key, seconds)
+    logger.info("compiled verification widths %s (%d slots, hidden states %s) in %.1f s", widths, *key[1:], seconds)
     return seconds
 
 

@@ -386,9 +386,10 @@ def _per_step(rows: list[RowState], attribute: str) -> tuple[torch.Tensor, ...]:
     return tuple(out)
 
 
-def _compile_every_width(model, compiled, state: DecodeState, output_hidden: bool) -> float:
+def _compile_every_width(model, compiled, compile_config, state: DecodeState, output_hidden: bool) -> float:
     """[`compile_every_width`] on this call's cache: filler-only verifications after the committed entries, each
     rolled back (the cache's entries and counter are as they were)."""
+    settings = repr(sorted(compile_config.to_dict().items())) if compile_config is not None else None
     cache = state.target_cache
     length, capacity = cache_length(cache), static_capacity(cache)
 
@@ -400,7 +401,7 @@ def _compile_every_width(model, compiled, state: DecodeState, output_hidden: boo
         truncate_cache(cache, length)
 
     free = capacity - length - state.pending_ids.shape[1]
-    return compile_every_width(compiled, model, (capacity, output_hidden), verify_width, free)
+    return compile_every_width(model, (settings, capacity, output_hidden), verify_width, free)
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -610,7 +611,9 @@ def speculative_generate(
             # 5. Commit: keep each row's pending tokens and path in the cache; tell the drafters; drop finished rows.
             commits = commit_paths(state, trees, paths, output.hidden)
             if compiled is not None and stats.num_batch_forwards == 1:  # compile every width before the next round
-                stats.compile_seconds = _compile_every_width(model, compiled, state, drafter.needs_hidden_states)
+                stats.compile_seconds = _compile_every_width(
+                    model, compiled, generation_config.compile_config, state, drafter.needs_hidden_states
+                )
             with stopwatch.section("draft_seconds"):
                 for row, commit in zip(state.rows, commits):
                     if not row.finished:
