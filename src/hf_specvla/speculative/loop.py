@@ -2,8 +2,11 @@
 
 Reads as a ladder (gpt-fast style), the same steps every round, the prefill included:
 
-    propose (drafter) -> verify_trees (one target forward) -> target_greedy_ids -> accept_trees -> emit -> commit
-    -> observe (drafter) -> repeat until every row has stopped
+    propose (drafters) -> fit_trees -> verify (one target forward) -> accept -> emit -> commit_paths -> observe
+    (drafters) -> drop finished rows -> repeat until every row has stopped
+
+each step a short function below; what every round reads is decided once, before the prefill ([`RoundPlan`]: the
+acceptance rule, the static cache's slots, the compiled model call when ``compile_config`` asks for one).
 
 Invariants kept between rounds, per batch row (each row has its own drafter session, tree, accepted path):
 
@@ -24,7 +27,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -71,7 +74,7 @@ from .modeling_draft_head import DraftHead
 from .outputs import SpeculativeDecoderOnlyOutput
 from .stats import SpeculationStats
 from .tree import DraftTree, TreeBatch
-from .verify import prefill_inputs, target_greedy_ids, verify_trees
+from .verify import TargetOutput, prefill_inputs, target_greedy_ids, verify_trees
 
 logger = logging.getLogger(__name__)
 
@@ -178,6 +181,42 @@ def draft_id_candidates(draft_ids, batch_size: int, vocab_size: int) -> list[lis
             f"{int(draft_ids.min())}..{int(draft_ids.max())}"
         )
     return draft_ids.reshape(batch_size, -1, draft_ids.shape[-1]).tolist()
+
+
+def _call_drafter(
+    model, batch_size: int, drafter, draft_head, draft_ids, settings: SpeculationConfig
+) -> tuple[Drafter, list[list[list[int]]] | None]:
+    """The call's drafter: the assistant (a bare DraftHead drafts a chain), with ``draft_ids``'s candidates first when
+    given; and those candidates (per row), or None.
+
+    Raises:
+        ValueError: both ``drafter`` and ``draft_head``, or nothing to draft with; bad ``draft_ids``.
+    """
+    if drafter is not None and draft_head is not None:
+        raise ValueError("pass drafter= or draft_head=, not both")
+    drafter = as_drafter(drafter if drafter is not None else draft_head, settings.num_draft_tokens)
+    candidates = None
+    if draft_ids is not None:
+        vocab_size = model.get_output_embeddings().weight.shape[0]
+        candidates = draft_id_candidates(draft_ids, batch_size, vocab_size)
+        known = CandidateDrafter(candidates[0]) if batch_size == 1 else PerRowDrafter(
+            [CandidateDrafter(row) for row in candidates]
+        )  # fmt: skip
+        drafter = known if drafter is None else ComposedDrafter([known, drafter])
+    if drafter is None:
+        raise ValueError(
+            "speculative_generate needs something to draft with: drafter= (or generate(assistant_model=...)) "
+            "and/or draft_ids="
+        )
+    return drafter, candidates
+
+
+def _draft_contexts(model, batch_size: int, layout, eos_ids: list[int], prompt_padding) -> list[DraftContext]:
+    """What each row's drafter session starts from (its prompt padding, ``[1, S]`` or None)."""
+    return [
+        DraftContext(model, layout, eos_ids, None if prompt_padding is None else prompt_padding[b : b + 1], row=b)
+        for b in range(batch_size)
+    ]
 
 
 def _validate_call(model, generation_config: GenerationConfig, logits_processor, batch_size: int, drafter) -> None:
@@ -386,22 +425,139 @@ def _per_step(rows: list[RowState], attribute: str) -> tuple[torch.Tensor, ...]:
     return tuple(out)
 
 
-def _compile_every_width(model, compiled, compile_config, state: DecodeState, output_hidden: bool) -> float:
+@dataclass(frozen=True)
+class RoundPlan:
+    """What every round of one call reads, decided once before the prefill."""
+
+    max_length: int  # generate's max_length: no path drafts past it
+    rule: AcceptanceRule
+    layout: ActionLayout | None
+    output_hidden: bool  # the drafters read the target's hidden states
+    window: int | None  # the target cache's smallest sliding window
+    capacity: int | None  # a static cache's slots (batch 1): trees fit in the free ones
+    compiled: Callable | None  # the compiled model call for rounds after the prefill, or None (eager)
+    prefix_attention: bool  # a prefix-LM prompt: the prefill verifies one chain
+    keep_scores: bool
+    keep_logits: bool
+
+
+def propose(state: DecodeState, plan: RoundPlan, at_prefill: bool) -> list[DraftTree]:
+    """1. Each row's drafter proposes a tree below its root; no path drafts past ``max_length`` (the bonus token takes
+    the last slot)."""
+    trees = []
+    for b, row in enumerate(state.rows):
+        draft_round = DraftRound(
+            sequence=row.sequence,
+            num_generated=row.num_generated,
+            max_depth=max(0, plan.max_length - row.sequence.shape[1] - 1),
+            at_prefill=at_prefill,
+            root_position=state.pending_positions[b : b + 1, -1:],
+        )
+        trees.append(row.session.propose(draft_round).truncate_depth(draft_round.max_depth))
+    return trees
+
+
+def fit_trees(
+    trees: list[DraftTree], state: DecodeState, plan: RoundPlan, at_prefill: bool, stats: SpeculationStats
+) -> TreeBatch:
+    """The rows' trees as one [`TreeBatch`]: a prefix-LM prefill keeps one chain; on a static cache the pending tokens
+    and the tree fit in the free slots, and a compiled round is padded (or cut) to its width bucket."""
+    if at_prefill and plan.prefix_attention:
+        trees = [tree.first_path() for tree in trees]
+    width = 0  # the node count a compiled verification is padded to
+    if plan.capacity is not None:  # batch 1
+        free = plan.capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
+        if plan.compiled is not None and not at_prefill:  # one width per bucket: padded, or cut to fit
+            free = width = verification_width(max(tree.num_nodes for tree in trees), free, NODE_BUCKETS)
+            stats.compiled_widths.append(width)
+        trees = [tree.truncate_nodes(free) for tree in trees]
+    return TreeBatch(trees, min_nodes=width)
+
+
+def verify(
+    model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: TreeBatch, prefill_inputs: dict | None
+) -> TargetOutput:
+    """2. Every row's tree in one target forward: the prefill's (with the model's prepared inputs), else a
+    verification on the cache (compiled when the plan has a compiled call)."""
+    return verify_trees(
+        model,
+        prefill_inputs if prefill_inputs is not None else {CACHE_KEY: state.target_cache},
+        state.pending_ids,
+        state.pending_positions,
+        trees,
+        state.key_valid,
+        output_hidden=plan.output_hidden,
+        sliding_window=plan.window,
+        position_offsets=state.position_offsets,
+        key_length=plan.capacity,
+        forward=None if prefill_inputs is not None else plan.compiled,
+    )
+
+
+def accept(
+    state: DecodeState, plan: RoundPlan, trees: TreeBatch, output: TargetOutput, logits_processor: LogitsProcessorList
+) -> tuple[list[AcceptedPath], torch.Tensor]:
+    """3. Per row, the longest passing path; its bonus token is the target's greedy choice after it.
+
+    Returns:
+        (the accepted paths, the processed scores ``[B, 1 + N, V]``)."""
+    target_ids, target_scores = target_greedy_ids(
+        logits_processor, [row.sequence for row in state.rows], trees, output.logits
+    )
+    action_counts = [row.num_action_tokens for row in state.rows]
+    return accept_trees(trees, target_ids, plan.rule, plan.layout, action_counts), target_scores
+
+
+def emit(
+    state: DecodeState,
+    plan: RoundPlan,
+    trees: TreeBatch,
+    paths: list[AcceptedPath],
+    output: TargetOutput,
+    target_scores: torch.Tensor,
+    stopping_criteria: StoppingCriteriaList,
+) -> None:
+    """4. Appends each row's accepted tokens and bonus token, stopping it exactly where greedy would (EOS,
+    ``max_length``, custom criteria); books statistics, scores and logits."""
+    emitted = []
+    for row, tree, path in zip(state.rows, trees.trees, paths):
+        row.stats.record_verification(tree.max_depth, tree.num_nodes, [tree.sources[n] for n in path.nodes])
+        emitted.append(tree.token_ids[path.nodes].tolist() + [path.bonus_id])
+    num_kept = emit_tokens(state.rows, emitted, stopping_criteria)
+    for b, (row, tree, path, count) in enumerate(zip(state.rows, trees.trees, paths, num_kept)):
+        parents = tree.parents.tolist()
+        logit_rows = [parents[n] + 1 for n in path.nodes] + [path.nodes[-1] + 1 if path.nodes else 0]
+        for token, logit_row, distance in zip(emitted[b][:count], logit_rows, path.distances + [0]):
+            if plan.layout is not None and plan.layout.tokenizer.is_action_token(token):
+                row.num_action_tokens += 1
+                row.stats.action_bin_distances.append(distance)
+            if plan.keep_scores:
+                row.scores.append(target_scores[b, logit_row])
+            if plan.keep_logits:
+                row.logits.append(output.logits[b, logit_row])
+        row.stats.accept_lengths.append(count)
+
+
+def observe(state: DecodeState, commits: list[Commit]) -> None:
+    """5b. Tells the drafter of every row still generating what its round kept (after [`commit_paths`], 5a)."""
+    for row, kept in zip(state.rows, commits):
+        if not row.finished:
+            row.session.observe(kept)
+
+
+def _compile_every_width(model, plan: RoundPlan, compile_config, state: DecodeState) -> float:
     """[`compile_every_width`] on this call's cache: filler-only verifications after the committed entries, each
     rolled back (the cache's entries and counter are as they were)."""
     settings = repr(sorted(compile_config.to_dict().items())) if compile_config is not None else None
     cache = state.target_cache
-    length, capacity = cache_length(cache), static_capacity(cache)
+    length = cache_length(cache)
 
     def verify_width(width: int) -> None:
-        trees = TreeBatch([DraftTree.empty(state.pending_ids.device)], min_nodes=width)
-        verify_trees(model, {CACHE_KEY: cache}, state.pending_ids, state.pending_positions, trees, state.key_valid,
-                     output_hidden, position_offsets=state.position_offsets, key_length=capacity,
-                     forward=compiled)  # fmt: skip
+        verify(model, state, plan, TreeBatch([DraftTree.empty(state.pending_ids.device)], min_nodes=width), None)
         truncate_cache(cache, length)
 
-    free = capacity - length - state.pending_ids.shape[1]
-    return compile_every_width(model, (settings, capacity, output_hidden), verify_width, free)
+    free = plan.capacity - length - state.pending_ids.shape[1]
+    return compile_every_width(model, (settings, plan.capacity, plan.output_hidden), verify_width, free)
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -465,24 +621,9 @@ def speculative_generate(
         [`SpeculationStats`] (summed over rows; ``.rows`` per row when B > 1).
     """
     check_transformers_support()
-    if drafter is not None and draft_head is not None:
-        raise ValueError("pass drafter= or draft_head=, not both")
     settings = SpeculationConfig(bin_tolerance, num_draft_tokens, action_layout, profile_speculation)
-    drafter = as_drafter(drafter if drafter is not None else draft_head, settings.num_draft_tokens)
     batch_size = input_ids.shape[0]
-    candidates = None
-    if draft_ids is not None:
-        vocab_size = model.get_output_embeddings().weight.shape[0]
-        candidates = draft_id_candidates(draft_ids, batch_size, vocab_size)
-        known = CandidateDrafter(candidates[0]) if batch_size == 1 else PerRowDrafter(
-            [CandidateDrafter(row) for row in candidates]
-        )  # fmt: skip
-        drafter = known if drafter is None else ComposedDrafter([known, drafter])
-    if drafter is None:
-        raise ValueError(
-            "speculative_generate needs something to draft with: drafter= (or generate(assistant_model=...)) "
-            "and/or draft_ids="
-        )
+    drafter, candidates = _call_drafter(model, batch_size, drafter, draft_head, draft_ids, settings)
     _validate_call(model, generation_config, logits_processor, batch_size, drafter)
     layout = settings.action_layout or drafter.action_layout
     rule = make_acceptance_rule(settings.bin_tolerance, layout)
@@ -497,11 +638,10 @@ def speculative_generate(
     check_left_padded(prompt_padding)
     if prompt_padding is not None and bool(prompt_padding.all()):
         prompt_padding = None
-    rows = []
-    for b in range(batch_size):
-        row_padding = None if prompt_padding is None else prompt_padding[b : b + 1]
-        context = DraftContext(model, layout, eos_ids, row_padding, row=b)
-        rows.append(RowState(b, input_ids[b : b + 1], drafter.start(context), SpeculationStats()))
+    rows = [
+        RowState(b, input_ids[b : b + 1], drafter.start(context), SpeculationStats())
+        for b, context in enumerate(_draft_contexts(model, batch_size, layout, eos_ids, prompt_padding))
+    ]
     all_rows = list(rows)
 
     stats = SpeculationStats()
@@ -529,96 +669,42 @@ def speculative_generate(
         key_valid=None if prompt_padding is None else prompt_padding.bool(),
         target_cache=model_inputs[CACHE_KEY],
     )
-    max_length = generation_config.max_length
-    at_prefill = True
-    window = sliding_window(state.target_cache)
-    capacity = static_capacity(state.target_cache)  # a static cache's slots: the trees must fit in them
+    cache = state.target_cache
     compiled = None  # the compiled model call verifying every round after the prefill (fixed widths), or eager
-    if compiles_verification(model, generation_config, state.target_cache):
+    if compiles_verification(model, generation_config, cache):
         compiled = compiled_call(model, generation_config, NODE_BUCKETS)
-    # A prefix-LM prompt (PaliGemma's token_type_ids: the prompt attends to itself both ways at the prefill) needs the
-    # model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies one chain.
-    prefix_attention = model_inputs.get("token_type_ids") is not None
-    with open_sliding_windows(state.target_cache):  # exact: the generation fits the window (checked)
+    plan = RoundPlan(
+        max_length=generation_config.max_length,
+        rule=rule,
+        layout=layout,
+        output_hidden=drafter.needs_hidden_states,
+        window=sliding_window(cache),
+        capacity=static_capacity(cache),
+        compiled=compiled,
+        # A prefix-LM prompt (PaliGemma's token_type_ids: the prompt attends to itself both ways at the prefill) needs
+        # the model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies a chain.
+        prefix_attention=model_inputs.get("token_type_ids") is not None,
+        keep_scores=keep_scores,
+        keep_logits=keep_logits,
+    )
+    at_prefill = True
+    with open_sliding_windows(cache):  # exact: the generation fits the window (checked)
         while state.rows:
-            # 1. Each row proposes a tree below its root; no path may draft past max_length (the bonus takes the last
-            #    slot).
-            trees = []
             with stopwatch.section("draft_seconds"):
-                for b, row in enumerate(state.rows):
-                    draft_round = DraftRound(
-                        sequence=row.sequence,
-                        num_generated=row.num_generated,
-                        max_depth=max(0, max_length - row.sequence.shape[1] - 1),
-                        at_prefill=at_prefill,
-                        root_position=state.pending_positions[b : b + 1, -1:],
-                    )
-                    trees.append(row.session.propose(draft_round).truncate_depth(draft_round.max_depth))
-            if at_prefill and prefix_attention:
-                trees = [tree.first_path() for tree in trees]
-            width = 0  # the node count a compiled verification is padded to
-            if capacity is not None:  # batch 1: the pending tokens and the tree go into the free slots
-                free = capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
-                if compiled is not None and not at_prefill:  # one width per bucket: padded, or cut to fit
-                    free = width = verification_width(max(tree.num_nodes for tree in trees), free, NODE_BUCKETS)
-                    stats.compiled_widths.append(width)
-                trees = [tree.truncate_nodes(free) for tree in trees]
-            trees = TreeBatch(trees, min_nodes=width)
-
-            # 2. Verify every row's tree in one target forward (the prefill's forward at the first round).
+                proposed = propose(state, plan, at_prefill)
+            trees = fit_trees(proposed, state, plan, at_prefill, stats)
             with stopwatch.section("target_seconds"):
-                output = verify_trees(
-                    model,
-                    model_inputs if at_prefill else {CACHE_KEY: state.target_cache},
-                    state.pending_ids,
-                    state.pending_positions,
-                    trees,
-                    state.key_valid,
-                    output_hidden=drafter.needs_hidden_states,
-                    sliding_window=window,
-                    position_offsets=state.position_offsets,
-                    key_length=capacity,
-                    forward=None if at_prefill else compiled,
-                )
+                output = verify(model, state, plan, trees, model_inputs if at_prefill else None)
             stats.num_batch_forwards += 1
-            at_prefill = False
-
-            # 3. Per row: accept the longest passing path; the bonus token is the target's greedy choice after it.
-            target_ids, target_scores = target_greedy_ids(
-                logits_processor, [row.sequence for row in state.rows], trees, output.logits
-            )  # fmt: skip
-            paths = accept_trees(trees, target_ids, rule, layout, [row.num_action_tokens for row in state.rows])
-
-            # 4. Emit; stop each row exactly where greedy would (EOS / max_length / custom criteria).
-            emitted = []
-            for row, tree, path in zip(state.rows, trees.trees, paths):
-                row.stats.record_verification(tree.max_depth, tree.num_nodes, [tree.sources[n] for n in path.nodes])
-                emitted.append(tree.token_ids[path.nodes].tolist() + [path.bonus_id])
-            num_kept = emit_tokens(state.rows, emitted, stopping_criteria)
-            for b, (row, tree, path, count) in enumerate(zip(state.rows, trees.trees, paths, num_kept)):
-                parents = tree.parents.tolist()
-                logit_rows = [parents[n] + 1 for n in path.nodes] + [path.nodes[-1] + 1 if path.nodes else 0]
-                for token, logit_row, distance in zip(emitted[b][:count], logit_rows, path.distances + [0]):
-                    if layout is not None and layout.tokenizer.is_action_token(token):
-                        row.num_action_tokens += 1
-                        row.stats.action_bin_distances.append(distance)
-                    if keep_scores:
-                        row.scores.append(target_scores[b, logit_row])
-                    if keep_logits:
-                        row.logits.append(output.logits[b, logit_row])
-                row.stats.accept_lengths.append(count)
-
-            # 5. Commit: keep each row's pending tokens and path in the cache; tell the drafters; drop finished rows.
+            paths, target_scores = accept(state, plan, trees, output, logits_processor)
+            emit(state, plan, trees, paths, output, target_scores, stopping_criteria)
             commits = commit_paths(state, trees, paths, output.hidden)
-            if compiled is not None and stats.num_batch_forwards == 1:  # compile every width before the next round
-                stats.compile_seconds = _compile_every_width(
-                    model, compiled, generation_config.compile_config, state, drafter.needs_hidden_states
-                )
             with stopwatch.section("draft_seconds"):
-                for row, commit in zip(state.rows, commits):
-                    if not row.finished:
-                        row.session.observe(commit)
+                observe(state, commits)
+            if compiled is not None and at_prefill:  # every width compiled before the first compiled round
+                stats.compile_seconds = _compile_every_width(model, plan, generation_config.compile_config, state)
             drop_finished_rows(state)
+            at_prefill = False
 
     for row in all_rows:
         row.stats.num_draft_forwards = row.session.num_forwards
