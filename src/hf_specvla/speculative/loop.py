@@ -475,13 +475,13 @@ def fit_trees(
 
 
 def verify(
-    model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: TreeBatch, prefill_inputs: dict | None
+    model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: TreeBatch, prefill_model_inputs: dict | None
 ) -> TargetOutput:
     """2. Every row's tree in one target forward: the prefill's (with the model's prepared inputs), else a
     verification on the cache (compiled when the plan has a compiled call)."""
     return verify_trees(
         model,
-        prefill_inputs if prefill_inputs is not None else {CACHE_KEY: state.target_cache},
+        prefill_model_inputs if prefill_model_inputs is not None else {CACHE_KEY: state.target_cache},
         state.pending_ids,
         state.pending_positions,
         trees,
@@ -490,7 +490,7 @@ def verify(
         sliding_window=plan.window,
         position_offsets=state.position_offsets,
         key_length=plan.capacity,
-        forward=None if prefill_inputs is not None else plan.compiled,
+        forward=None if prefill_model_inputs is not None else plan.compiled,
     )
 
 
