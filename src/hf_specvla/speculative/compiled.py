@@ -42,6 +42,7 @@ SLOT_MULTIPLE = 64
 _GRAPHS_BESIDE_OURS = 16
 
 _DEVICES_COMPILED_BY_DEFAULT = ("cuda", "xpu", "neuron", "tpu")
+_WARNED_EAGER_DEVICES: set[str] = set()  # device types already told that compile_config is ignored there
 
 
 def compiled_decoding_kwargs(device_type: str = "cpu") -> dict:
@@ -70,7 +71,8 @@ def compiles_verification(model: PreTrainedModel, generation_config: GenerationC
     compile_config = getattr(generation_config, "compile_config", None)
     all_devices = compile_config is not None and bool(getattr(compile_config, "_compile_all_devices", False))
     if model.device.type not in _DEVICES_COMPILED_BY_DEFAULT and not all_devices:
-        if compile_config is not None:
+        if compile_config is not None and model.device.type not in _WARNED_EAGER_DEVICES:  # once per device type
+            _WARNED_EAGER_DEVICES.add(model.device.type)
             logger.warning(
                 "compile_config is set but the target is on %s, which transformers compiles only with "
                 "compile_config._compile_all_devices = True: verifying eagerly",

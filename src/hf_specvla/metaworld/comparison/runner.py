@@ -102,9 +102,7 @@ def warm_up_compiled(
         kwargs = method.generate_kwargs(draft_head, policy.model.device.type)
         policy.reset()
         for _ in range(calls):
-            action, _ = policy.predict_action(obs["image"], obs["instruction"], obs["state"], return_output=True,
-                                              **kwargs)  # fmt: skip
-            policy.action_steps(action)
+            policy.predict_action(obs["image"], obs["instruction"], obs["state"], **kwargs)
     policy.reset()
 
 
