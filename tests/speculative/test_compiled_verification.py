@@ -17,7 +17,7 @@ from transformers.cache_utils import StaticCache
 from hf_specvla import DraftHead, DraftHeadDrafter, DraftTreeConfig, enable_speculation
 from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
 from hf_specvla.speculative import CACHE_KEY, NODE_BUCKETS, cache_of, verification_width
-from hf_specvla.speculative.compiled import SLOT_MULTIPLE, check_buckets
+from hf_specvla.speculative.compiled import SLOT_MULTIPLE, check_buckets, reset_compilation
 
 from ..conftest import tiny_llama_config
 from .test_backbones import TEXT, TEXT_BACKBONES
@@ -35,10 +35,10 @@ def eager_compile_config() -> CompileConfig:
 
 @pytest.fixture(autouse=True)
 def fresh_dynamo():
-    torch._dynamo.reset()
+    reset_compilation()
     torch._dynamo.utils.counters.clear()
     yield
-    torch._dynamo.reset()
+    reset_compilation()
 
 
 def _model(name: str):
@@ -95,11 +95,13 @@ def test_no_recompilation_after_warm_up():
         out = greedy(model, input_ids, return_dict_in_generate=True, **compiled, **kwargs)
         widths |= set(out.speculation.compiled_widths)
         compile_seconds.append(out.speculation.compile_seconds)
-    # the first call without and the first with hidden states compile every width; later calls none
-    assert sum(s > 0 for s in compile_seconds) == 2, compile_seconds
+    # the first call without and the first with hidden states compile every width (the latter, a head chain, also its
+    # expansion at every depth), the first tree its expansion at every depth; later calls nothing
+    assert [s > 0 for s in compile_seconds] == [True, False, False, True, True, False], compile_seconds
     graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
-    # every width compiled up front (before the first compiled round), with and without hidden states
-    assert graphs == 2 * len(NODE_BUCKETS)
+    # every width compiled up front (before the first compiled round), with and without hidden states; the chain's
+    # expansions of depth 1..3 and the tree's of depth 1..4
+    assert graphs == 2 * len(NODE_BUCKETS) + 3 + 4
     with torch._dynamo.config.patch(error_on_recompile=True):
         for input_ids, expected, kwargs in steady:
             out = greedy(model, input_ids, return_dict_in_generate=True, **compiled, **kwargs)

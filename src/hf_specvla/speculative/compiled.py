@@ -91,6 +91,51 @@ def compiled_call(model: PreTrainedModel, generation_config: GenerationConfig, b
     return model.get_compiled_call(generation_config.compile_config)
 
 
+def compile_settings(compile_config) -> str:
+    """A hashable description of a ``CompileConfig`` (what its compiled graphs depend on)."""
+    return repr(sorted(compile_config.to_dict().items()))
+
+
+#: per function and compile settings, its ``torch.compile`` wrapper (one per settings: dynamo keeps the graphs)
+_COMPILED_FUNCTIONS: dict[tuple[Callable, str], Callable] = {}
+
+
+def compiled_function(function: Callable, compile_config, graphs: int) -> Callable:
+    """``torch.compile(function)`` with a ``CompileConfig``'s settings (as transformers' ``get_compiled_call`` compiles
+    a model's call), made once per settings; dynamo's recompile limit is raised so that ``graphs`` graphs (one per
+    input shape the caller will meet) fit beside others."""
+    allow_graphs(graphs + _GRAPHS_BESIDE_OURS)
+    key = (function, compile_settings(compile_config))
+    if key not in _COMPILED_FUNCTIONS:
+        _COMPILED_FUNCTIONS[key] = torch.compile(function, **compile_config.to_dict())
+    return _COMPILED_FUNCTIONS[key]
+
+
+#: drafters' work compiled up front, by what its graphs depend on (e.g. a draft head's architecture, dtype, device,
+#: compile settings, cache slots and tree settings)
+_COMPILED_DRAFTING: set[tuple] = set()
+
+
+def compile_once(key: tuple, compile_all: Callable[[], None]) -> float:
+    """Runs ``compile_all`` (throw-away calls that compile every graph a drafter will need) the first time ``key`` is
+    met in this process; returns the seconds it took (0 when ``key`` was met before)."""
+    if key in _COMPILED_DRAFTING:
+        return 0.0
+    start = time.perf_counter()
+    compile_all()
+    _COMPILED_DRAFTING.add(key)
+    return time.perf_counter() - start
+
+
+def reset_compilation() -> None:
+    """``torch._dynamo.reset()`` and forgets what hf_specvla compiled up front (so that the next call compiles every
+    width and depth again, before its first compiled round)."""
+    torch._dynamo.reset()
+    _COMPILED_WIDTHS.clear()
+    _COMPILED_DRAFTING.clear()
+    _COMPILED_FUNCTIONS.clear()
+
+
 #: per model, the (compile settings, slots, hidden states returned) keys whose every width has been compiled
 _COMPILED_WIDTHS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
-from transformers import PreTrainedModel
+from transformers import CompileConfig, PreTrainedModel
 
 from ..actions.tokenizer import ActionLayout
 from .config import NOT_ENABLED_HINT
@@ -40,6 +40,9 @@ class DraftContext:
         eos_token_ids: the call's EOS ids.
         prompt_padding: ``[1, S]`` 2D attention mask of the row's prompt (0 = padding), or None when there is none.
         row: the batch row the session drafts for (0 .. B-1).
+        max_length: the longest sequence the call can reach (prompt + ``max_new_tokens``), or None when unknown.
+        compile_config: the target's ``CompileConfig`` when its verifications run compiled (a static cache, batch
+            1): a drafter may then compile its own work with the same settings; None when the target runs eagerly.
     """
 
     model: PreTrainedModel
@@ -47,6 +50,12 @@ class DraftContext:
     eos_token_ids: list[int]
     prompt_padding: torch.Tensor | None
     row: int = 0
+    max_length: int | None = None
+    compile_config: CompileConfig | None = None
+
+    def __post_init__(self):
+        if self.compile_config is not None and self.max_length is None:
+            raise ValueError("DraftContext.compile_config needs max_length (a compiled drafter sizes its cache by it)")
 
 
 @dataclass
@@ -91,9 +100,11 @@ class Commit:
 
 
 class DraftSession:
-    """Per-call drafting state (see module docstring). ``num_forwards`` counts the model forwards it ran."""
+    """Per-call drafting state (see module docstring). ``num_forwards`` counts the model forwards it ran;
+    ``compile_seconds`` the time it spent compiling (reported apart from drafting)."""
 
     num_forwards: int = 0
+    compile_seconds: float = 0.0
 
     def propose(self, draft_round: DraftRound) -> DraftTree:
         """A draft tree below the root (may be empty)."""
@@ -177,6 +188,10 @@ class _ComposedSession(DraftSession):
     @property
     def num_forwards(self) -> int:  # type: ignore[override]
         return sum(s.num_forwards for s in self.sessions)
+
+    @property
+    def compile_seconds(self) -> float:  # type: ignore[override]
+        return sum(s.compile_seconds for s in self.sessions)
 
     def propose(self, draft_round: DraftRound) -> DraftTree:
         tree = DraftTree.empty(draft_round.sequence.device)

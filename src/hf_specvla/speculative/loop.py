@@ -54,6 +54,7 @@ from .compiled import (
     NODE_BUCKETS,
     SLOT_MULTIPLE,
     compile_every_width,
+    compile_settings,
     compiled_call,
     compiles_verification,
     verification_width,
@@ -211,11 +212,14 @@ def _call_drafter(
     return drafter, candidates
 
 
-def _draft_contexts(model, batch_size: int, layout, eos_ids: list[int], prompt_padding) -> list[DraftContext]:
+def _draft_contexts(
+    model, batch_size: int, layout, eos_ids: list[int], prompt_padding, max_length: int, compile_config
+) -> list[DraftContext]:
     """What each row's drafter session starts from (its prompt padding, ``[1, S]`` or None)."""
+    rows = [None if prompt_padding is None else prompt_padding[b : b + 1] for b in range(batch_size)]
     return [
-        DraftContext(model, layout, eos_ids, None if prompt_padding is None else prompt_padding[b : b + 1], row=b)
-        for b in range(batch_size)
+        DraftContext(model, layout, eos_ids, padding, row=b, max_length=max_length, compile_config=compile_config)
+        for b, padding in enumerate(rows)
     ]
 
 
@@ -548,7 +552,7 @@ def observe(state: DecodeState, commits: list[Commit]) -> None:
 def _compile_every_width(model, plan: RoundPlan, compile_config, state: DecodeState) -> float:
     """[`compile_every_width`] on this call's cache: filler-only verifications after the committed entries, each
     rolled back (the cache's entries and counter are as they were)."""
-    settings = repr(sorted(compile_config.to_dict().items())) if compile_config is not None else None
+    settings = compile_settings(compile_config) if compile_config is not None else None
     cache = state.target_cache
     length = cache_length(cache)
 
@@ -638,12 +642,6 @@ def speculative_generate(
     check_left_padded(prompt_padding)
     if prompt_padding is not None and bool(prompt_padding.all()):
         prompt_padding = None
-    rows = [
-        RowState(b, input_ids[b : b + 1], drafter.start(context), SpeculationStats())
-        for b, context in enumerate(_draft_contexts(model, batch_size, layout, eos_ids, prompt_padding))
-    ]
-    all_rows = list(rows)
-
     stats = SpeculationStats()
     stopwatch = _Stopwatch(stats, input_ids.device, settings.profile_speculation)
     return_dict = generation_config.return_dict_in_generate
@@ -661,18 +659,27 @@ def speculative_generate(
     model_inputs = prefill_inputs(model, input_ids, model_kwargs)
     check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length, batch_size, padded)
     prompt_positions, position_offsets = _prompt_positions(model_inputs, input_ids, prompt_padding)
+    cache = model_inputs[CACHE_KEY]
+    compiled = None  # the compiled model call verifying every round after the prefill (fixed widths), or eager
+    if compiles_verification(model, generation_config, cache):
+        compiled = compiled_call(model, generation_config, NODE_BUCKETS)
+    contexts = _draft_contexts(
+        model, batch_size, layout, eos_ids, prompt_padding, generation_config.max_length,
+        generation_config.compile_config if compiled is not None else None,
+    )  # fmt: skip
+    rows = [
+        RowState(b, input_ids[b : b + 1], drafter.start(context), SpeculationStats())
+        for b, context in enumerate(contexts)
+    ]
+    all_rows = list(rows)
     state = DecodeState(
         rows=rows,
         pending_ids=input_ids,
         pending_positions=prompt_positions,
         position_offsets=position_offsets,
         key_valid=None if prompt_padding is None else prompt_padding.bool(),
-        target_cache=model_inputs[CACHE_KEY],
+        target_cache=cache,
     )
-    cache = state.target_cache
-    compiled = None  # the compiled model call verifying every round after the prefill (fixed widths), or eager
-    if compiles_verification(model, generation_config, cache):
-        compiled = compiled_call(model, generation_config, NODE_BUCKETS)
     plan = RoundPlan(
         max_length=generation_config.max_length,
         rule=rule,
@@ -710,6 +717,7 @@ def speculative_generate(
         row.stats.num_draft_forwards = row.session.num_forwards
         stats.rows.append(row.stats)
     stats.absorb_rows()
+    stats.compile_seconds += sum(row.session.compile_seconds for row in all_rows)
     stats.total_seconds = time.perf_counter() - total_start
     logger.debug("speculation: %s", stats)
     sequences = all_rows[0].sequence if batch_size == 1 else _padded_rows(all_rows, pad_token_id)

@@ -107,8 +107,11 @@ class DraftScorer:
 
     def token_ids(self, features: torch.Tensor) -> torch.Tensor:
         """features ``[..., H]`` -> greedy draft token ids ``[...]`` (vocabulary ids)."""
-        best = self.logits(features).argmax(dim=-1)
-        return best if self.candidate_ids is None else self.candidate_ids[best]
+        return self.vocab_ids(self.logits(features).argmax(dim=-1))
+
+    def vocab_ids(self, scored_index: torch.Tensor) -> torch.Tensor:
+        """Indices into the scored tokens (the last dimension of [`logits`]) -> vocabulary ids."""
+        return scored_index if self.candidate_ids is None else self.candidate_ids[scored_index]
 
 
 def _full_attention_rope(rope_parameters: dict | None) -> dict | None:

@@ -1,14 +1,13 @@
 """Drafting with an EAGLE-style [`DraftHead`]: a chain (EAGLE-1) or a dynamic tree (EAGLE-2).
 
 EAGLE-2's dynamic tree (Li et al. 2024, "EAGLE-2: Faster Inference of Language Models with Dynamic Draft Trees";
-``topK_genrate`` in SafeAILab/EAGLE), as Spec-VLA uses it:
+``topK_genrate`` in SafeAILab/EAGLE), as Spec-VLA uses it, expanded by [`expand_tree`] (``eagle_tree.py``):
 
 * **expand**: the root's feature gives the ``top_k`` most probable first tokens. At each further level the
-  ``top_k`` frontier nodes with the highest *cumulative* draft log-probability are fed to the head in one
-  forward (a tree mask: each sees the committed cache, its ancestors and itself); each yields its ``top_k``
-  children, scored by parent score + child log-probability. The next frontier is the best ``top_k`` children.
-* **re-rank**: of every node created, the ``total_tokens`` with the highest cumulative score form the tree
-  (a child never scores above its parent, so the kept set is closed under ancestors; ties are closed explicitly).
+  ``top_k`` frontier nodes are fed to the head in one forward (a tree mask: each sees the committed cache, its
+  ancestors and itself); each yields its ``top_k`` children, scored by parent score + child log-probability. The
+  next frontier is the best children by cumulative score.
+* **re-rank**: of every node created, the ``total_tokens`` with the highest cumulative score form the tree.
 
 Deviation from EAGLE-2: the head's own greedy path (the top-1 child at every level, i.e. the chain) is a
 *backbone*: always expanded, always kept, and the rest of the budget is filled by cumulative score. Without it
@@ -25,6 +24,12 @@ defaults are ``total_tokens=24, depth=6, top_k=4``: ``depth`` 6 covers the 6 tok
 the prefill (the loop caps every tree at the tokens still to come, so a 4-token action drafts at most 2 levels
 after the prefill), and a smaller budget because on a CPU each verified token costs measurable time.
 
+Compiled drafting: when the target verifies through its compiled call (``DraftContext.compile_config``: a static
+cache, batch 1), the head gets a static cache of its own (the call's ``max_length`` + the tree's entries, rounded up
+to ``SLOT_MULTIPLE`` slots) and each expansion runs as one compiled graph (``torch.compile`` with the target's
+``CompileConfig``), one graph per depth, all compiled at the first proposal. The catch-up forward (the pairs the
+target committed, a length that changes every round) stays eager.
+
 Per-call state (the head's KV cache, the pairs not yet fed) lives in the session, never on the model.
 Invariant: after a catch-up the head's cache holds exactly the target's committed positions, each computed from
 the target's true hidden state; tree-drafting entries are dropped at the end of every proposal.
@@ -32,16 +37,22 @@ the target's true hidden state; tree-drafting entries are dropped at the end of 
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
+from functools import partial
 
 import torch
-from transformers.cache_utils import DynamicCache
+from transformers.cache_utils import DynamicCache, StaticCache
 
 from ..cache import truncate_cache
+from ..compiled import SLOT_MULTIPLE, compile_once, compile_settings, compiled_function
 from ..drafter import Commit, DraftContext, Drafter, DraftRound, DraftSession
-from ..masks import block_allowed, causal_mask, sequence_key_padding, to_additive_mask
+from ..masks import causal_allowed, sequence_key_padding, to_additive_mask
 from ..modeling_draft_head import DraftHead, DraftScorer, TargetHandles
 from ..tree import DraftTree
+from .eagle_tree import expand_tree, num_head_entries
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -117,20 +128,34 @@ class DraftHeadDrafter(Drafter):
     def start(self, context: DraftContext) -> DraftSession:
         handles = self.draft_head.target_handles(context.model)
         scorer = self.draft_head.scorer(handles.lm_head, context.eos_token_ids)
-        return _DraftHeadSession(self, handles, scorer, context.prompt_padding)
+        return _DraftHeadSession(self, handles, scorer, context)
 
     def __repr__(self) -> str:
         return f"DraftHeadDrafter({self.name}, {self.tree_config})"
 
 
 class _DraftHeadSession(DraftSession):
-    def __init__(self, drafter: DraftHeadDrafter, handles: TargetHandles, scorer: DraftScorer, prompt_padding):
+    """One row's drafting with the head. On a compiled target (``context.compile_config``, batch 1, no padding) the
+    head's cache is static and every expansion runs as one compiled graph per depth, all compiled at the first
+    proposal; otherwise the same expansion runs eagerly on a ``DynamicCache``."""
+
+    def __init__(self, drafter: DraftHeadDrafter, handles: TargetHandles, scorer: DraftScorer, context: DraftContext):
         self.head, self.config, self.name = drafter.draft_head, drafter.tree_config, drafter.name
-        self.handles, self.scorer, self.prompt_padding = handles, scorer, prompt_padding
-        self.cache = DynamicCache()
+        self.handles, self.scorer, self.prompt_padding = handles, scorer, context.prompt_padding
+        self.embed = partial(embed_tokens, handles)
+        self.compile_config = context.compile_config if context.prompt_padding is None else None
+        self.key_length: int | None = None  # the static cache's slots (every mask spans them), None: dynamic
+        self.expand = expand_tree
+        if self.compile_config is None:
+            self.cache = DynamicCache()
+        else:
+            entries = context.max_length + num_head_entries(self.config.top_k, self.config.depth)
+            self.key_length = -(-entries // SLOT_MULTIPLE) * SLOT_MULTIPLE
+            self.cache = StaticCache(config=self.head.config.to_llama_config(), max_cache_len=self.key_length)
+            self.expand = compiled_function(expand_tree, self.compile_config, graphs=self.config.depth)
         self.cache_length = 0  # committed entries in self.cache
         self.unfed: list[Commit] = []  # commits whose (token, hidden) pairs the head has not seen yet
-        self.root_feature: torch.Tensor | None = None  # [B, 1, H] estimate of the hidden state at the root
+        self.root_feature: torch.Tensor | None = None  # [1, 1, H] estimate of the hidden state at the root
         self.num_forwards = 0
 
     def observe(self, commit: Commit) -> None:
@@ -141,18 +166,23 @@ class _DraftHeadSession(DraftSession):
 
     def _catch_up(self) -> None:
         """Feeds the pairs (token x[p+1], true hidden h[p]) of every commit not yet seen, in one forward."""
-        tokens = torch.cat([c.next_token_ids for c in self.unfed], dim=1)  # [B, q]
-        hidden = torch.cat([c.target_hidden for c in self.unfed], dim=1)  # [B, q, H]
-        positions = torch.cat([c.positions for c in self.unfed], dim=1)  # [B, q]
+        tokens = torch.cat([c.next_token_ids for c in self.unfed], dim=1)  # [1, q]
+        hidden = torch.cat([c.target_hidden for c in self.unfed], dim=1)  # [1, q, H]
+        positions = torch.cat([c.positions for c in self.unfed], dim=1)  # [1, q]
         truncate_cache(self.cache, self.cache_length)  # drop the previous proposal's tree entries
         q_len = tokens.shape[1]
         padding = sequence_key_padding(self.prompt_padding, self.cache_length + q_len)
-        mask = causal_mask(q_len, self.cache_length, hidden.dtype, hidden.device, padding)
-        features = self.head(embed_tokens(self.handles, tokens), hidden, positions, mask, self.cache)
+        allowed = causal_allowed(q_len, self.cache_length, hidden.device, padding)  # [1, q, past + q]
+        if self.key_length is not None:  # a static cache: its free slots are masked
+            free = allowed.new_zeros(1, q_len, self.key_length - allowed.shape[-1])
+            allowed = torch.cat([allowed, free], dim=-1)
+        mask = to_additive_mask(allowed, hidden.dtype)
+        features = self.head(self.embed(tokens), hidden, positions, mask, self.cache)
         self.num_forwards += 1
         self.cache_length = self.unfed[-1].cache_length
         self.unfed = []
-        self.root_feature = features[:, -1:]
+        # contiguous strides whatever q was: a compiled expansion guards on its inputs' strides
+        self.root_feature = features[:, -1:].clone(memory_format=torch.contiguous_format)
 
     def propose(self, draft_round: DraftRound) -> DraftTree:
         depth = min(self.config.depth, draft_round.max_depth)
@@ -160,94 +190,46 @@ class _DraftHeadSession(DraftSession):
             return DraftTree.empty(draft_round.sequence.device)
         if self.unfed:
             self._catch_up()
+        root_position = draft_round.root_position.reshape(1, 1).clone(memory_format=torch.contiguous_format)
+        if self.compile_config is not None:
+            self._compile_every_depth(root_position)
+        token_ids, parents = self._expand(depth, root_position)
+        return DraftTree(token_ids, parents, [self.name] * token_ids.shape[0])
+
+    def _expand(self, depth: int, root_position: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One expansion ([`expand_tree`]) below the root; the head's cache keeps only its committed entries."""
+        committed_visible = None
+        if self.key_length is not None:  # the static counter, as a tensor: the graph holds no committed length
+            committed = self.cache.layers[0].cumulative_length.clone()
+        else:
+            committed = self.cache_length
+            padding = sequence_key_padding(self.prompt_padding, self.cache_length)
+            committed_visible = None if padding is None else padding[0]
         try:
-            return self._expand(depth, draft_round.root_position)
+            self.num_forwards += depth - 1
+            return self.expand(
+                self.head, self.embed, self.scorer, self.root_feature, root_position, self.cache, committed,
+                self.key_length, committed_visible, self.config.top_k, depth, self.config.total_tokens,
+            )  # fmt: skip
         finally:
             truncate_cache(self.cache, self.cache_length)
 
-    def _expand(self, depth: int, root_position: torch.Tensor) -> DraftTree:
-        """EAGLE-2 expand + re-rank (module docstring), batch 1."""
-        top_k = self.config.top_k
-        log_probs = torch.log_softmax(self.scorer.logits(self.root_feature[0, 0]).float(), dim=-1)  # [C]
-        top_k = min(top_k, log_probs.shape[-1])
-        scores, best = log_probs.topk(top_k)
-        token_ids = self._vocab_ids(best).tolist()
-        parents = [-1] * top_k
-        node_scores = scores.tolist()
-        fed_index: dict[int, int] = {}  # node -> its entry in the head's cache, counted from cache_length
-        backbone = [0]  # the greedy path: the top-1 child at every level (topk returns the best first)
-        frontier = list(range(top_k))  # nodes to feed next
-        frontier_features = self.root_feature.expand(1, top_k, -1)  # [1, F, H] parent features of the frontier
-        device = self.root_feature.device
-        for level in range(1, depth):
-            # 1. feed the frontier (nodes at depth level-1) with their parents' features, one forward.
-            num = len(frontier)
-            if top_k == 1 and self.prompt_padding is None:  # a chain: every fed entry is an ancestor, all visible
-                mask = frontier_features.new_zeros(1, 1, 1, self.cache_length + len(fed_index) + 1)
-            else:
-                allowed = block_allowed(self._tree_block(frontier, parents, fed_index, device), self.cache_length,
-                                        sequence_key_padding(self.prompt_padding, self.cache_length))  # fmt: skip
-                mask = to_additive_mask(allowed, frontier_features.dtype)
-            tokens = torch.tensor([token_ids[n] for n in frontier], device=device)[None]  # [1, F]
-            # EAGLE's pair (token x[p+1], feature ~h[p]) sits at p: a depth-d node pairs with its parent, at root + d
-            positions = (root_position + level - 1).expand(1, num)
-            features = self.head(embed_tokens(self.handles, tokens), frontier_features, positions, mask, self.cache)
-            self.num_forwards += 1
-            for node in frontier:
-                fed_index[node] = len(fed_index)
-            # 2. each fed node's top_k children, scored by cumulative log-probability.
-            child_log_probs = torch.log_softmax(self.scorer.logits(features[0]).float(), dim=-1)  # [F, C]
-            child_scores, child_best = child_log_probs.topk(top_k, dim=-1)  # [F, k]
-            cumulative = torch.tensor([node_scores[n] for n in frontier], device=device)[:, None] + child_scores
-            first_child = len(token_ids)
-            token_ids += self._vocab_ids(child_best).flatten().tolist()
-            parents += [node for node in frontier for _ in range(top_k)]
-            node_scores += cumulative.flatten().tolist()
-            backbone.append(first_child + frontier.index(backbone[-1]) * top_k)  # its parent is always fed
-            # 3. the next frontier: the top_k children overall, and the backbone's new node.
-            if level + 1 < depth:
-                chosen = cumulative.flatten().topk(min(top_k, cumulative.numel())).indices.tolist()
-                if backbone[-1] - first_child not in chosen:
-                    chosen.append(backbone[-1] - first_child)
-                frontier = [first_child + c for c in chosen]
-                frontier_features = features[:, [c // top_k for c in chosen]]
-        return self._rerank(token_ids, parents, node_scores, backbone, device)
+    def _compile_every_depth(self, root_position: torch.Tensor) -> None:
+        """Compiles the expansion of every depth a round may ask for (1 .. ``depth``) at the first proposal, so that
+        nothing compiles mid-episode (throw-away expansions from the real root; the cache keeps its entries)."""
+        tree = (self.config.top_k, self.config.depth, self.config.total_tokens)
+        weights = self.head.fuse.weight
+        # what the graphs depend on: heads of one architecture share them (parameters are graph inputs)
+        key = ("draft-head expansion", self.head.config.to_json_string(), weights.dtype, weights.device,
+               compile_settings(self.compile_config), self.key_length, tree)  # fmt: skip
+        num_forwards = self.num_forwards
 
-    def _rerank(self, token_ids, parents, node_scores, backbone, device) -> DraftTree:
-        """Keeps the backbone and the best other nodes by cumulative score, ``total_tokens`` in all (ancestors
-        closed), parents first."""
-        keep = set(backbone)
-        for node in sorted(range(len(token_ids)), key=lambda n: -node_scores[n]):
-            if len(keep) >= self.config.total_tokens:
-                break
-            keep.add(node)
-        for node in list(keep):  # ties can leave an ancestor out: close the set
-            while parents[node] >= 0 and parents[node] not in keep:
-                node = parents[node]
-                keep.add(node)
-        nodes = sorted(keep)  # creation order is parents-first
-        new_index = {node: i for i, node in enumerate(nodes)}
-        return DraftTree(
-            torch.tensor([token_ids[n] for n in nodes], dtype=torch.long, device=device),
-            torch.tensor([new_index[parents[n]] if parents[n] >= 0 else -1 for n in nodes], dtype=torch.long,
-                         device=device),
-            [self.name] * len(nodes),
-        )  # fmt: skip
+        def expand_every_depth() -> None:
+            for depth in range(1, self.config.depth + 1):
+                self._expand(depth, root_position)
 
-    @staticmethod
-    def _tree_block(frontier, parents, fed_index, device) -> torch.Tensor:
-        """``[F, fed + F]`` bool: frontier node j sees the fed entries of its ancestors, and itself."""
-        num_fed = len(fed_index)
-        block = torch.zeros(len(frontier), num_fed + len(frontier), dtype=torch.bool)
-        for j, node in enumerate(frontier):
-            block[j, num_fed + j] = True
-            ancestor = parents[node]
-            while ancestor >= 0:
-                block[j, fed_index[ancestor]] = True
-                ancestor = parents[ancestor]
-        return block.to(device)
-
-    def _vocab_ids(self, scored_index: torch.Tensor) -> torch.Tensor:
-        """Indices into the scorer's candidates -> vocabulary ids."""
-        ids = self.scorer.candidate_ids
-        return scored_index if ids is None else ids[scored_index]
+        seconds = compile_once(key, expand_every_depth)
+        self.num_forwards = num_forwards
+        if seconds:
+            self.compile_seconds += seconds
+            logger.info("compiled the draft head's tree expansion, depths 1..%d, in %.1f s", self.config.depth, seconds)

@@ -1,0 +1,136 @@
+"""EAGLE-2 expansion in tensors (``drafters/eagle_tree.py``): the tree masks keep siblings apart, the backbone is the
+head's greedy chain, the re-ranking keeps what it says, and the compiled static-cache run drafts the same tree as the
+eager dynamic-cache run."""
+
+from __future__ import annotations
+
+import copy
+from functools import partial
+
+import pytest
+import torch
+from transformers.cache_utils import DynamicCache, StaticCache
+
+from hf_specvla.speculative.drafters.draft_head import embed_tokens
+from hf_specvla.speculative.drafters.eagle_tree import expand_tree, num_created_nodes, num_head_entries
+from hf_specvla.speculative.masks import causal_allowed, causal_mask, to_additive_mask
+from hf_specvla.speculative.tree import DraftTree
+
+COMMITTED = 5
+
+
+@pytest.fixture(scope="module")
+def head_and_target(tiny_llama, random_draft):
+    """A head whose attention matters (its value / output projections scaled up), so that a mask letting a node see
+    its siblings changes its features and, with them, the drafted tokens."""
+    head = copy.deepcopy(random_draft)
+    with torch.no_grad():
+        head.layer.self_attn.v_proj.weight.mul_(40)
+        head.layer.self_attn.o_proj.weight.mul_(40)
+    handles = head.target_handles(tiny_llama)
+    return head, handles, head.scorer(handles.lm_head)
+
+
+def committed_head(head, handles, cache, key_length=None):
+    """Feeds COMMITTED random (token, hidden) pairs; returns the root feature ``[1, 1, H]`` and position."""
+    generator = torch.Generator().manual_seed(7)
+    tokens = torch.randint(64, 320, (1, COMMITTED), generator=generator)
+    hidden = torch.randn(1, COMMITTED, head.config.hidden_size, generator=generator) * 3
+    allowed = causal_allowed(COMMITTED, 0, hidden.device)
+    if key_length is not None:
+        allowed = torch.cat([allowed, allowed.new_zeros(1, COMMITTED, key_length - COMMITTED)], dim=-1)
+    positions = torch.arange(COMMITTED)[None]
+    features = head(embed_tokens(handles, tokens), hidden, positions, to_additive_mask(allowed, hidden.dtype), cache)
+    return features[:, -1:].clone(), torch.tensor([[COMMITTED]])
+
+
+def expand(head_and_target, top_k, depth, total_tokens, function=expand_tree):
+    head, handles, scorer = head_and_target
+    cache = DynamicCache()
+    with torch.no_grad():
+        root, position = committed_head(head, handles, cache)
+        return function(head, partial(embed_tokens, handles), scorer, root, position, cache, COMMITTED, None, None,
+                        top_k, depth, total_tokens)  # fmt: skip
+
+
+def greedy_chain(head_and_target, depth) -> list[int]:
+    """The head's greedy chain, one plain causal forward per token (no tree, no expansion code)."""
+    head, handles, scorer = head_and_target
+    cache = DynamicCache()
+    with torch.no_grad():
+        feature, position = committed_head(head, handles, cache)
+        tokens = []
+        for level in range(depth):
+            token = scorer.token_ids(feature[0, -1])
+            tokens.append(int(token))
+            if level + 1 < depth:
+                mask = causal_mask(1, COMMITTED + level, feature.dtype, feature.device)
+                positions = position + level
+                feature = head(embed_tokens(handles, token.reshape(1, 1)), feature, positions, mask, cache)
+    return tokens
+
+
+@pytest.mark.parametrize("top_k, depth, total_tokens", [(1, 4, 4), (3, 4, 12), (4, 5, 24), (2, 6, 8)])
+def test_the_backbone_is_the_heads_greedy_chain(head_and_target, top_k, depth, total_tokens):
+    """Siblings fed in one forward never see each other: the greedy path's tokens are the chain's, node by node."""
+    token_ids, parents = expand(head_and_target, top_k, depth, total_tokens)
+    tree = DraftTree(token_ids, parents)
+    assert tree.num_nodes == min(total_tokens, num_created_nodes(top_k, depth))
+    chain = greedy_chain(head_and_target, depth)
+    assert any(path[:depth] == chain for path in tree.token_paths()), (chain, tree.token_paths())
+
+
+def test_a_leaking_mask_would_be_caught(head_and_target, monkeypatch):
+    """The check above is sharp: a frontier mask that lets every node see every tree entry changes the chain."""
+    import hf_specvla.speculative.drafters.eagle_tree as eagle_tree
+
+    real = eagle_tree.frontier_mask
+    monkeypatch.setattr(eagle_tree, "frontier_mask", lambda visible, *a: real(torch.ones_like(visible), *a))
+    token_ids, parents = expand(head_and_target, 4, 5, 24)
+    chain = greedy_chain(head_and_target, 5)
+    assert not any(path[:5] == chain for path in DraftTree(token_ids, parents).token_paths())
+
+
+def test_reranking_keeps_the_budget_the_backbone_and_every_ancestor(head_and_target):
+    top_k, depth = 3, 4
+    everything = DraftTree(*expand(head_and_target, top_k, depth, 10_000))
+    assert everything.num_nodes == num_created_nodes(top_k, depth)  # 3 + 3 levels x 3 frontier x 3 children
+    assert everything.max_depth == depth
+    children = torch.bincount(everything.parents + 1)
+    assert int(children[0]) == top_k and int(children.max()) == top_k  # the root and each expanded node: k children
+    assert int((children[1:] > 0).sum()) == (depth - 1) * top_k  # a frontier of k nodes per level
+    only_backbone = DraftTree(*expand(head_and_target, top_k, depth, depth))
+    assert only_backbone.is_chain and only_backbone.token_paths() == [greedy_chain(head_and_target, depth)]
+    for total in (5, 9, 17):
+        tree = DraftTree(*expand(head_and_target, top_k, depth, total))  # DraftTree checks parents come first
+        assert tree.num_nodes == total
+        kept = set(map(tuple, tree.token_paths()))
+        assert all(any(path[: len(p)] == list(p) for path in everything.token_paths()) for p in kept)
+
+
+def test_compiled_on_a_static_cache_drafts_what_the_eager_run_drafts(head_and_target):
+    """One graph per depth (dynamo, eager backend, fullgraph): no graph break, the same tree as the dynamic-cache run;
+    the committed length is a tensor, so another length reuses the graph."""
+    head, handles, scorer = head_and_target
+    torch._dynamo.reset()
+    compiled = torch.compile(expand_tree, backend="eager", fullgraph=True, dynamic=False)
+    top_k, depth, total = 3, 4, 12
+    slots = 64
+    for committed_extra in (0, 3):  # two committed lengths, one graph
+        static = StaticCache(config=head.config.to_llama_config(), max_cache_len=slots)
+        with torch.no_grad():
+            root, position = committed_head(head, handles, static, key_length=slots)
+            static.layers[0].cumulative_length.add_(committed_extra)  # more committed (zero) entries: another length
+            committed = static.layers[0].cumulative_length.clone()
+            got = compiled(head, partial(embed_tokens, handles), scorer, root, position, static, committed, slots,
+                           None, top_k, depth, total)  # fmt: skip
+        assert int(static.layers[0].cumulative_length) == COMMITTED + committed_extra + num_head_entries(top_k, depth)
+        if committed_extra == 0:
+            expected = expand(head_and_target, top_k, depth, total)
+            assert torch.equal(got[0], expected[0]) and torch.equal(got[1], expected[1])
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 1
+    with torch._dynamo.config.patch(error_on_recompile=True), torch.no_grad():
+        static.layers[0].cumulative_length.fill_(COMMITTED + 1)
+        compiled(head, partial(embed_tokens, handles), scorer, root, position, static,
+                 static.layers[0].cumulative_length.clone(), slots, None, top_k, depth, total)  # fmt: skip
+    torch._dynamo.reset()
