@@ -27,6 +27,7 @@ writes into another folder of the same name.
 from __future__ import annotations
 
 import fcntl
+import functools
 import hashlib
 import json
 import logging
@@ -66,11 +67,17 @@ def fingerprint_arrays(*arrays) -> str:
     return digest.hexdigest()[:16]
 
 
+@functools.cache
 def code_version() -> str:
-    """hf_specvla's version (recorded, compared only to warn)."""
+    """hf_specvla's version and a digest of its source files, e.g. ``0.1.0+src.1a2b3c4d5e6f`` (recorded in every
+    folder, compared only to warn: results written by different code are told apart)."""
     from . import __version__
 
-    return __version__
+    digest = hashlib.sha256()
+    package = Path(__file__).resolve().parent
+    for path in sorted(package.rglob("*.py")):
+        digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes())
+    return f"{__version__}+src.{digest.hexdigest()[:12]}"
 
 
 #: settings named first when a folder holds another run: what the results are *of* (weights, data) before how

@@ -12,7 +12,12 @@ import torch
 from transformers.cache_utils import DynamicCache, StaticCache
 
 from hf_specvla.speculative.drafters.draft_head import embed_tokens
-from hf_specvla.speculative.drafters.eagle_tree import expand_tree, num_created_nodes, num_head_entries
+from hf_specvla.speculative.drafters.eagle_tree import (
+    catch_up_and_expand,
+    expand_tree,
+    num_created_nodes,
+    num_head_entries,
+)
 from hf_specvla.speculative.masks import causal_allowed, causal_mask, to_additive_mask
 from hf_specvla.speculative.tree import DraftTree
 
@@ -31,26 +36,31 @@ def head_and_target(tiny_llama, random_draft):
     return head, handles, head.scorer(handles.lm_head)
 
 
-def committed_head(head, handles, cache, key_length=None):
-    """Feeds COMMITTED random (token, hidden) pairs; returns the root feature ``[1, 1, H]`` and position."""
+def committed_pairs(hidden_size: int):
+    """COMMITTED random (token, hidden, position) pairs, as the target commits them."""
     generator = torch.Generator().manual_seed(7)
     tokens = torch.randint(64, 320, (1, COMMITTED), generator=generator)
-    hidden = torch.randn(1, COMMITTED, head.config.hidden_size, generator=generator) * 3
-    allowed = causal_allowed(COMMITTED, 0, hidden.device)
+    hidden = torch.randn(1, COMMITTED, hidden_size, generator=generator) * 3
+    return tokens, hidden, torch.arange(COMMITTED)[None]
+
+
+def committed_head(head, handles, cache, key_length=None, count=COMMITTED):
+    """Feeds the first ``count`` committed pairs; returns the root feature ``[1, 1, H]`` and the root's position."""
+    tokens, hidden, positions = (t[:, :count] for t in committed_pairs(head.config.hidden_size))
+    allowed = causal_allowed(count, 0, hidden.device)
     if key_length is not None:
-        allowed = torch.cat([allowed, allowed.new_zeros(1, COMMITTED, key_length - COMMITTED)], dim=-1)
-    positions = torch.arange(COMMITTED)[None]
+        allowed = torch.cat([allowed, allowed.new_zeros(1, count, key_length - count)], dim=-1)
     features = head(embed_tokens(handles, tokens), hidden, positions, to_additive_mask(allowed, hidden.dtype), cache)
     return features[:, -1:].clone(), torch.tensor([[COMMITTED]])
 
 
-def expand(head_and_target, top_k, depth, total_tokens, function=expand_tree):
+def expand(head_and_target, top_k, depth, total_tokens):
     head, handles, scorer = head_and_target
     cache = DynamicCache()
     with torch.no_grad():
         root, position = committed_head(head, handles, cache)
-        return function(head, partial(embed_tokens, handles), scorer, root, position, cache, COMMITTED, None, None,
-                        top_k, depth, total_tokens)  # fmt: skip
+        return expand_tree(head, partial(embed_tokens, handles), scorer, root, position, cache, COMMITTED, None,
+                           top_k, depth, total_tokens)  # fmt: skip
 
 
 def greedy_chain(head_and_target, depth) -> list[int]:
@@ -108,29 +118,32 @@ def test_reranking_keeps_the_budget_the_backbone_and_every_ancestor(head_and_tar
         assert all(any(path[: len(p)] == list(p) for path in everything.token_paths()) for p in kept)
 
 
-def test_compiled_on_a_static_cache_drafts_what_the_eager_run_drafts(head_and_target):
-    """One graph per depth (dynamo, eager backend, fullgraph): no graph break, the same tree as the dynamic-cache run;
-    the committed length is a tensor, so another length reuses the graph."""
+def test_a_compiled_round_on_a_static_cache_drafts_what_the_eager_run_drafts(head_and_target):
+    """The catch-up (padded pairs) and the expansion in one graph (dynamo, eager backend, fullgraph: no graph break)
+    draft the eager dynamic-cache run's tree, whatever the number of real pairs; the counts and the committed length
+    are tensors, so they reuse the graph."""
     head, handles, scorer = head_and_target
     torch._dynamo.reset()
-    compiled = torch.compile(expand_tree, backend="eager", fullgraph=True, dynamic=False)
-    top_k, depth, total = 3, 4, 12
-    slots = 64
-    for committed_extra in (0, 3):  # two committed lengths, one graph
+    compiled = torch.compile(catch_up_and_expand, backend="eager", fullgraph=True, dynamic=False)
+    top_k, depth, total, slots, padded = 3, 4, 12, 64, 5
+    expected = expand(head_and_target, top_k, depth, total)
+    pairs = committed_pairs(head.config.hidden_size)
+    for num_new in (1, 3, 4):  # the last num_new pairs fed in the round, padded to 5 (the first fed eagerly)
         static = StaticCache(config=head.config.to_llama_config(), max_cache_len=slots)
-        with torch.no_grad():
-            root, position = committed_head(head, handles, static, key_length=slots)
-            static.layers[0].cumulative_length.add_(committed_extra)  # more committed (zero) entries: another length
-            committed = static.layers[0].cumulative_length.clone()
-            got = compiled(head, partial(embed_tokens, handles), scorer, root, position, static, committed, slots,
-                           None, top_k, depth, total)  # fmt: skip
-        assert int(static.layers[0].cumulative_length) == COMMITTED + committed_extra + num_head_entries(top_k, depth)
-        if committed_extra == 0:
-            expected = expand(head_and_target, top_k, depth, total)
-            assert torch.equal(got[0], expected[0]) and torch.equal(got[1], expected[1])
+        with torch.no_grad(), torch._dynamo.config.patch(error_on_recompile=num_new != 1):
+            committed_head(head, handles, static, key_length=slots, count=COMMITTED - num_new)
+            new = [t[:, COMMITTED - num_new :] for t in pairs]
+            fill = padded - num_new
+            round_pairs = (
+                torch.cat([new[0], new[0].new_zeros(1, fill)], 1),
+                torch.cat([new[1], torch.randn(1, fill, new[1].shape[-1])], 1),  # padding: any values
+                torch.cat([new[2], new[2][:, -1:].expand(1, fill)], 1),
+            )
+            got = compiled(head, partial(embed_tokens, handles), scorer, *round_pairs, torch.tensor(num_new),
+                           torch.tensor([[COMMITTED]]), static, static.layers[0].cumulative_length.clone(), slots,
+                           top_k, depth, total)  # fmt: skip
+        assert torch.equal(got[0], expected[0]) and torch.equal(got[1], expected[1]), num_new
+        written = COMMITTED - num_new + padded + num_head_entries(top_k, depth)
+        assert int(static.layers[0].cumulative_length) == written
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 1
-    with torch._dynamo.config.patch(error_on_recompile=True), torch.no_grad():
-        static.layers[0].cumulative_length.fill_(COMMITTED + 1)
-        compiled(head, partial(embed_tokens, handles), scorer, root, position, static,
-                 static.layers[0].cumulative_length.clone(), slots, None, top_k, depth, total)  # fmt: skip
     torch._dynamo.reset()

@@ -26,9 +26,10 @@ after the prefill), and a smaller budget because on a CPU each verified token co
 
 Compiled drafting: when the target verifies through its compiled call (``DraftContext.compile_config``: a static
 cache, batch 1), the head gets a static cache of its own (the call's ``max_length`` + the tree's entries, rounded up
-to ``SLOT_MULTIPLE`` slots) and each expansion runs as one compiled graph (``torch.compile`` with the target's
-``CompileConfig``), one graph per depth, all compiled at the first proposal. The catch-up forward (the pairs the
-target committed, a length that changes every round) stays eager.
+to ``SLOT_MULTIPLE`` slots) and each round runs as one compiled graph (``torch.compile`` with the target's
+``CompileConfig``), one graph per depth, all compiled at the first proposal; the round's catch-up forward (the pairs
+the target committed, as many as were accepted) is in the same graph, padded to ``depth + 1`` pairs (the prompt's
+pairs after the prefill are fed eagerly, but for the last ones).
 
 Per-call state (the head's KV cache, the pairs not yet fed) lives in the session, never on the model.
 Invariant: after a catch-up the head's cache holds exactly the target's committed positions, each computed from
@@ -50,7 +51,7 @@ from ..drafter import Commit, DraftContext, Drafter, DraftRound, DraftSession
 from ..masks import causal_allowed, sequence_key_padding, to_additive_mask
 from ..modeling_draft_head import DraftHead, DraftScorer, TargetHandles
 from ..tree import DraftTree
-from .eagle_tree import expand_tree, num_head_entries
+from .eagle_tree import catch_up_and_expand, expand_tree, num_head_entries
 
 logger = logging.getLogger(__name__)
 
@@ -136,8 +137,8 @@ class DraftHeadDrafter(Drafter):
 
 class _DraftHeadSession(DraftSession):
     """One row's drafting with the head. On a compiled target (``context.compile_config``, batch 1, no padding) the
-    head's cache is static and every expansion runs as one compiled graph per depth, all compiled at the first
-    proposal; otherwise the same expansion runs eagerly on a ``DynamicCache``."""
+    head's cache is static and each round (catch-up + expansion) runs as one compiled graph per depth, all compiled
+    at the first proposal; otherwise the same expansion runs eagerly on a ``DynamicCache``."""
 
     def __init__(self, drafter: DraftHeadDrafter, handles: TargetHandles, scorer: DraftScorer, context: DraftContext):
         self.head, self.config, self.name = drafter.draft_head, drafter.tree_config, drafter.name
@@ -145,18 +146,23 @@ class _DraftHeadSession(DraftSession):
         self.embed = partial(embed_tokens, handles)
         self.compile_config = context.compile_config if context.prompt_padding is None else None
         self.key_length: int | None = None  # the static cache's slots (every mask spans them), None: dynamic
-        self.expand = expand_tree
         if self.compile_config is None:
             self.cache = DynamicCache()
         else:
-            entries = context.max_length + num_head_entries(self.config.top_k, self.config.depth)
+            tree_entries = num_head_entries(self.config.top_k, self.config.depth)
+            entries = context.max_length + self.num_padded_pairs + tree_entries
             self.key_length = -(-entries // SLOT_MULTIPLE) * SLOT_MULTIPLE
             self.cache = StaticCache(config=self.head.config.to_llama_config(), max_cache_len=self.key_length)
-            self.expand = compiled_function(expand_tree, self.compile_config, graphs=self.config.depth)
+            self.compiled_round = compiled_function(catch_up_and_expand, self.compile_config, graphs=self.config.depth)
         self.cache_length = 0  # committed entries in self.cache
         self.unfed: list[Commit] = []  # commits whose (token, hidden) pairs the head has not seen yet
         self.root_feature: torch.Tensor | None = None  # [1, 1, H] estimate of the hidden state at the root
         self.num_forwards = 0
+
+    @property
+    def num_padded_pairs(self) -> int:
+        """The pairs a compiled round's catch-up feeds (padded): the pending token and the longest accepted path."""
+        return self.config.depth + 1
 
     def observe(self, commit: Commit) -> None:
         if commit.target_hidden is None:
@@ -164,72 +170,114 @@ class _DraftHeadSession(DraftSession):
         self.unfed.append(commit)
         self.root_feature = None
 
-    def _catch_up(self) -> None:
-        """Feeds the pairs (token x[p+1], true hidden h[p]) of every commit not yet seen, in one forward."""
-        tokens = torch.cat([c.next_token_ids for c in self.unfed], dim=1)  # [1, q]
-        hidden = torch.cat([c.target_hidden for c in self.unfed], dim=1)  # [1, q, H]
-        positions = torch.cat([c.positions for c in self.unfed], dim=1)  # [1, q]
-        truncate_cache(self.cache, self.cache_length)  # drop the previous proposal's tree entries
+    def _take_unfed(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+        """The pairs (token x[p+1], true hidden h[p]) at positions p of every commit not yet seen (``[1, q]``,
+        ``[1, q, H]``, ``[1, q]``), and the committed entries once they are fed."""
+        tokens = torch.cat([c.next_token_ids for c in self.unfed], dim=1)
+        hidden = torch.cat([c.target_hidden for c in self.unfed], dim=1)
+        positions = torch.cat([c.positions for c in self.unfed], dim=1)
+        committed = self.unfed[-1].cache_length
+        self.unfed = []
+        return tokens, hidden, positions, committed
+
+    def _feed(self, tokens: torch.Tensor, hidden: torch.Tensor, positions: torch.Tensor) -> None:
+        """Feeds pairs after the committed entries in one eager forward (the previous proposal's entries dropped)."""
+        truncate_cache(self.cache, self.cache_length)
         q_len = tokens.shape[1]
         padding = sequence_key_padding(self.prompt_padding, self.cache_length + q_len)
         allowed = causal_allowed(q_len, self.cache_length, hidden.device, padding)  # [1, q, past + q]
         if self.key_length is not None:  # a static cache: its free slots are masked
             free = allowed.new_zeros(1, q_len, self.key_length - allowed.shape[-1])
             allowed = torch.cat([allowed, free], dim=-1)
-        mask = to_additive_mask(allowed, hidden.dtype)
-        features = self.head(self.embed(tokens), hidden, positions, mask, self.cache)
+        features = self.head(self.embed(tokens), hidden, positions, to_additive_mask(allowed, hidden.dtype), self.cache)
         self.num_forwards += 1
-        self.cache_length = self.unfed[-1].cache_length
-        self.unfed = []
-        # contiguous strides whatever q was: a compiled expansion guards on its inputs' strides
-        self.root_feature = features[:, -1:].clone(memory_format=torch.contiguous_format)
+        self.cache_length += q_len
+        self.root_feature = features[:, -1:]
 
     def propose(self, draft_round: DraftRound) -> DraftTree:
         depth = min(self.config.depth, draft_round.max_depth)
         if draft_round.at_prefill or depth < 1:
             return DraftTree.empty(draft_round.sequence.device)
-        if self.unfed:
-            self._catch_up()
         root_position = draft_round.root_position.reshape(1, 1).clone(memory_format=torch.contiguous_format)
-        if self.compile_config is not None:
-            self._compile_every_depth(root_position)
-        token_ids, parents = self._expand(depth, root_position)
+        if self.key_length is not None and self.unfed:
+            token_ids, parents = self._compiled_round(depth, root_position)
+        else:
+            if self.unfed:
+                tokens, hidden, positions, committed = self._take_unfed()
+                self._feed(tokens, hidden, positions)
+                if self.cache_length != committed:
+                    raise RuntimeError(f"draft head cache out of step: {self.cache_length} entries, {committed} kept")
+            if self.root_feature is None:  # proposed twice without a new commit after a compiled round
+                return DraftTree.empty(draft_round.sequence.device)
+            token_ids, parents = self._expand(depth, root_position)
         return DraftTree(token_ids, parents, [self.name] * token_ids.shape[0])
 
     def _expand(self, depth: int, root_position: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """One expansion ([`expand_tree`]) below the root; the head's cache keeps only its committed entries."""
-        committed_visible = None
-        if self.key_length is not None:  # the static counter, as a tensor: the graph holds no committed length
-            committed = self.cache.layers[0].cumulative_length.clone()
-        else:
-            committed = self.cache_length
-            padding = sequence_key_padding(self.prompt_padding, self.cache_length)
-            committed_visible = None if padding is None else padding[0]
+        """One eager expansion ([`expand_tree`]) below the root; the head's cache keeps only its committed entries."""
+        padding = sequence_key_padding(self.prompt_padding, self.cache_length)
         try:
             self.num_forwards += depth - 1
-            return self.expand(
-                self.head, self.embed, self.scorer, self.root_feature, root_position, self.cache, committed,
-                self.key_length, committed_visible, self.config.top_k, depth, self.config.total_tokens,
+            return expand_tree(
+                self.head, self.embed, self.scorer, self.root_feature, root_position, self.cache, self.cache_length,
+                None if padding is None else padding[0], self.config.top_k, depth, self.config.total_tokens,
+                key_length=self.key_length,
             )  # fmt: skip
         finally:
             truncate_cache(self.cache, self.cache_length)
 
-    def _compile_every_depth(self, root_position: torch.Tensor) -> None:
-        """Compiles the expansion of every depth a round may ask for (1 .. ``depth``) at the first proposal, so that
-        nothing compiles mid-episode (throw-away expansions from the real root; the cache keeps its entries)."""
+    def _compiled_round(self, depth: int, root_position: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Catch-up and expansion in one compiled graph ([`catch_up_and_expand`]): the unfed pairs padded to
+        ``num_padded_pairs`` (more, the prompt's after the prefill: all but the last ones fed eagerly first)."""
+        tokens, hidden, positions, committed = self._take_unfed()
+        padded = self.num_padded_pairs
+        # an unwritten static cache allocates its buffers at its first write: never inside a graph
+        initialized = getattr(self.cache.layers[0], "is_initialized", False)
+        split = max(tokens.shape[1] - padded, 0 if initialized else 1)
+        if split:
+            self._feed(tokens[:, :split], hidden[:, :split], positions[:, :split])
+            if split == tokens.shape[1]:  # nothing left for the graph (a one-token prompt): an eager round
+                return self._expand(depth, root_position)
+            tokens, hidden, positions = tokens[:, split:], hidden[:, split:], positions[:, split:]
+        truncate_cache(self.cache, self.cache_length)
+        num_new, pad = tokens.shape[1], padded - tokens.shape[1]
+        pairs = (
+            torch.cat([tokens, tokens.new_zeros(1, pad)], dim=1),
+            torch.cat([hidden, hidden.new_zeros(1, pad, hidden.shape[-1])], dim=1),
+            torch.cat([positions, positions[:, -1:].expand(1, pad)], dim=1),
+            torch.tensor(num_new, device=tokens.device),
+        )
+
+        def run(round_depth: int) -> tuple[torch.Tensor, torch.Tensor]:
+            try:
+                return self.compiled_round(
+                    self.head, self.embed, self.scorer, *pairs, root_position, self.cache,
+                    self.cache.layers[0].cumulative_length.clone(), self.key_length, self.config.top_k, round_depth,
+                    self.config.total_tokens,
+                )  # fmt: skip
+            finally:
+                truncate_cache(self.cache, self.cache_length)
+
+        self._compile_every_depth(run)
+        result = run(depth)
+        self.num_forwards += depth
+        self.cache_length, self.root_feature = committed, None
+        truncate_cache(self.cache, committed)  # the real pairs' entries stay; padding and the tree's are dropped
+        return result
+
+    def _compile_every_depth(self, run) -> None:
+        """Compiles the round of every depth one may ask for (1 .. ``depth``) at the first proposal, so that nothing
+        compiles mid-episode (throw-away rounds on the real inputs; the cache keeps its entries)."""
         tree = (self.config.top_k, self.config.depth, self.config.total_tokens)
         weights = self.head.fuse.weight
         # what the graphs depend on: heads of one architecture share them (parameters are graph inputs)
-        key = ("draft-head expansion", self.head.config.to_json_string(), weights.dtype, weights.device,
+        key = ("draft-head round", self.head.config.to_json_string(), weights.dtype, weights.device,
                compile_settings(self.compile_config), self.key_length, tree)  # fmt: skip
-        num_forwards = self.num_forwards
 
-        def expand_every_depth() -> None:
+        def every_depth() -> None:
             for depth in range(1, self.config.depth + 1):
-                self._expand(depth, root_position)
+                run(depth)
 
-        seconds = compile_once(key, expand_every_depth)
-        self.num_forwards = num_forwards
+        seconds = compile_once(key, every_depth)
         if seconds:
             self.compile_seconds += seconds
-            logger.info("compiled the draft head's tree expansion, depths 1..%d, in %.1f s", self.config.depth, seconds)
+            logger.info("compiled the draft head's rounds, depths 1..%d, in %.1f s", self.config.depth, seconds)

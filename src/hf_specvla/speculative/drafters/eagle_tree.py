@@ -1,8 +1,9 @@
 """EAGLE-2's dynamic draft tree, expanded with fixed-shape tensor operations and no host reads.
 
-One function, [`expand_tree`], runs eagerly on the head's ``DynamicCache`` and, compiled by ``torch.compile``, as one
-graph per depth on the head's static cache (see [`DraftHeadDrafter`]): every shape depends only on ``top_k``,
-``depth`` and ``total_tokens``, never on the drafted tokens or their scores.
+One function, [`expand_tree`], runs eagerly on the head's ``DynamicCache``; on the head's static cache
+[`catch_up_and_expand`] (the round's catch-up forward, padded to a fixed count, then the expansion) is compiled by
+``torch.compile`` as one graph per depth (see [`DraftHeadDrafter`]): every shape depends only on ``top_k``,
+``depth`` and ``total_tokens``, never on the drafted tokens, their scores or how many were accepted.
 
 The procedure (EAGLE-2, Li et al. 2024, ``topK_genrate`` in SafeAILab/EAGLE), with the backbone rule of
 [`DraftHeadDrafter`] (the head's greedy path is always expanded and always kept):
@@ -12,7 +13,7 @@ The procedure (EAGLE-2, Li et al. 2024, ``topK_genrate`` in SafeAILab/EAGLE), wi
   committed entries, its ancestors' entries and itself); each yields its ``k`` best children, scored by cumulative
   log-probability (parent score + child log-probability). The next frontier: the backbone's greedy child (always in
   position 0) and the ``k - 1`` best other children. Level l's frontier is written at the head's entries
-  ``committed + (l - 1) k .. committed + l k - 1``.
+  ``tree_start + (l - 1) k .. tree_start + l k - 1``.
 * **re-rank**: the backbone and the best other nodes by cumulative score, ``total_tokens`` in all, returned in
   creation order (parents first). A child never scores above its parent and ties go to the node created first, so
   the kept set is closed under ancestors by construction.
@@ -40,7 +41,8 @@ def num_head_entries(top_k: int, depth: int) -> int:
 
 def frontier_mask(
     visible: torch.Tensor,
-    committed: int | torch.Tensor,
+    past: int | torch.Tensor,
+    tree_start: int | torch.Tensor,
     key_length: int | None,
     committed_visible: torch.Tensor | None,
     dtype: torch.dtype,
@@ -48,26 +50,68 @@ def frontier_mask(
     """The attention mask of one frontier forward of the head.
 
     Args:
-        visible: ``[F, E]`` bool, which of the tree's ``E`` head entries (after the committed ones; the last ``F``
-            are the frontier's own) each frontier node sees: its ancestors' and its own.
-        committed: the head's committed entries (an int, or a 0-dim int64 tensor so that a compiled graph does not
-            depend on its value).
-        key_length: the keys attended over: None for a dynamic cache (``committed + E``), the slot count of a static
+        visible: ``[F, E]`` bool, which of the tree's ``E`` head entries (from slot ``tree_start`` on; the last
+            ``F`` are the frontier's own) each frontier node sees: its ancestors' and its own.
+        past: the committed entries every node sees (slots ``0 .. past - 1``): an int, or a 0-dim int64 tensor so
+            that a compiled graph does not depend on its value.
+        tree_start: the slot of the tree's first entry (``past``, or later when slots between hold padding).
+        key_length: the keys attended over: None for a dynamic cache (``tree_start + E``), the slot count of a static
             cache (slots past the tree are masked).
-        committed_visible: ``[committed]`` bool, False at prompt padding (dynamic cache only), or None.
+        committed_visible: ``[past]`` bool, False at prompt padding (dynamic cache only), or None.
     Returns:
         ``[1, 1, F, key_length]`` additive float mask.
     """
     num_tree = visible.shape[1]
-    length = committed + num_tree if key_length is None else key_length
+    length = tree_start + num_tree if key_length is None else key_length
     slots = torch.arange(length, device=visible.device)
-    offset = slots - committed  # [L] the slot's index among the tree's entries (negative: a committed entry)
+    offset = slots - tree_start  # [L] the slot's index among the tree's entries (negative: before the tree)
     in_tree = (offset >= 0) & (offset < num_tree)
     allowed = visible[:, offset.clamp(0, num_tree - 1)] & in_tree  # [F, L]
-    past = slots < committed
+    seen = slots < past
     if committed_visible is not None:
-        past = past & torch.cat([committed_visible.bool(), committed_visible.new_zeros(length - committed).bool()])
-    return to_additive_mask((allowed | past)[None], dtype)
+        seen = seen & torch.cat([committed_visible.bool(), committed_visible.new_zeros(length - past).bool()])
+    return to_additive_mask((allowed | seen)[None], dtype)
+
+
+def catch_up_and_expand(
+    head,
+    embed,
+    scorer,
+    token_ids: torch.Tensor,
+    hidden: torch.Tensor,
+    positions: torch.Tensor,
+    num_new: torch.Tensor,
+    root_position: torch.Tensor,
+    cache,
+    committed: torch.Tensor,
+    key_length: int,
+    top_k: int,
+    depth: int,
+    total_tokens: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One drafting round on a static cache in one graph: feeds the pairs the target committed (padded to a fixed
+    count), then [`expand_tree`] from the last one's feature.
+
+    Args:
+        token_ids / hidden / positions: ``[1, Q]`` / ``[1, Q, H]`` / ``[1, Q]`` the pairs (token x[p+1], hidden h[p])
+            at positions p; the first ``num_new`` are real, the rest padding (written, never seen, then overwritten).
+        num_new: 0-dim int64, the real pairs (1 .. Q).
+        committed: 0-dim int64, the head's committed entries before these pairs (its static counter).
+        the rest: as in [`expand_tree`].
+    Returns:
+        as [`expand_tree`]; the cache then holds ``committed + num_new`` real entries (and padding and the tree's
+        entries after them, for the caller to drop).
+    """
+    q_len = token_ids.shape[1]
+    slots = torch.arange(key_length, device=token_ids.device)[None]  # [1, L]
+    query = torch.arange(q_len, device=token_ids.device)[:, None]  # [Q, 1]
+    own_slot = committed + query
+    real = query < num_new
+    allowed = ((slots <= own_slot) & real) | (slots == own_slot)  # padding sees itself only
+    features = head(embed(token_ids), hidden, positions, to_additive_mask(allowed[None], hidden.dtype), cache)
+    root_feature = features.index_select(1, (num_new - 1).reshape(1))  # [1, 1, H]
+    return expand_tree(head, embed, scorer, root_feature, root_position, cache, committed + num_new, None,
+                       top_k, depth, total_tokens, tree_start=committed + q_len, key_length=key_length)  # fmt: skip
 
 
 def expand_tree(
@@ -77,12 +121,13 @@ def expand_tree(
     root_feature: torch.Tensor,
     root_position: torch.Tensor,
     cache,
-    committed: int | torch.Tensor,
-    key_length: int | None,
+    past: int | torch.Tensor,
     committed_visible: torch.Tensor | None,
     top_k: int,
     depth: int,
     total_tokens: int,
+    tree_start: int | torch.Tensor | None = None,
+    key_length: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Expands and re-ranks one EAGLE-2 tree below the root (module docstring). Batch 1.
 
@@ -92,15 +137,17 @@ def expand_tree(
         root_feature: ``[1, 1, H]`` the head's estimate of the root's hidden state.
         root_position: the root's position id (``[1, 1]`` or 0-dim int64); a level-l frontier is fed at
             ``root_position + l - 1`` (EAGLE pairs a node's token with its parent's feature at the parent's position).
-        cache: the head's cache holding ``committed`` entries; the tree's entries are written after them (the caller
-            drops them afterwards).
-        committed / key_length / committed_visible: as in [`frontier_mask`].
+        cache: the head's cache; the tree's entries are written at its end (a static cache: at its counter, which must
+            be ``tree_start``); the caller drops them afterwards.
+        past / committed_visible / tree_start (default ``past``) / key_length (default: a dynamic cache): as in
+            [`frontier_mask`].
         top_k / depth / total_tokens: the tree's settings (``top_k`` is capped at the scored candidates).
     Returns:
         ``(token_ids, parents)``, each ``[T]`` int64, T = ``min(total_tokens, num_created_nodes(k, depth))``:
         vocabulary ids, and each node's parent index (-1 for the root's children), parents first.
     """
     device = root_feature.device
+    tree_start = past if tree_start is None else tree_start
     log_probs = torch.log_softmax(scorer.logits(root_feature[0, 0]).float(), dim=-1)  # [C]
     k = min(top_k, log_probs.shape[-1])
     frontier_scores, best = log_probs.topk(k)  # [k], best first: position 0 is the backbone
@@ -113,7 +160,7 @@ def expand_tree(
     eye = torch.eye(k, dtype=torch.bool, device=device)
     for level in range(1, depth):
         visible = torch.cat([ancestors, eye], dim=1)  # [F, fed + F]
-        mask = frontier_mask(visible, committed, key_length, committed_visible, root_feature.dtype)
+        mask = frontier_mask(visible, past, tree_start, key_length, committed_visible, root_feature.dtype)
         positions = (root_position.reshape(1, 1) + (level - 1)).expand(1, k)
         features = head(embed(frontier_tokens[None]), frontier_features, positions, mask, cache)  # [1, F, H]
         child_log_probs = torch.log_softmax(scorer.logits(features[0]).float(), dim=-1)  # [F, C]
