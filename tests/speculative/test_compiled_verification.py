@@ -18,6 +18,7 @@ from hf_specvla import DraftHead, DraftHeadDrafter, DraftTreeConfig, enable_spec
 from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
 from hf_specvla.speculative import CACHE_KEY, NODE_BUCKETS, cache_of, verification_width
 from hf_specvla.speculative.compiled import SLOT_MULTIPLE, check_buckets, reset_compilation
+from hf_specvla.speculative.drafter import Drafter, DraftSession
 
 from ..conftest import tiny_llama_config
 from .test_backbones import TEXT, TEXT_BACKBONES
@@ -78,6 +79,49 @@ def test_compiled_verification_gives_greedys_tokens_for_every_drafter(name):
         widths = out.speculation.compiled_widths
         assert len(widths) == out.speculation.num_batch_forwards - 1  # every round after the (eager) prefill
         assert set(widths) <= set(NODE_BUCKETS), widths
+
+
+class RecordingDrafter(Drafter):
+    """Proposes what ``inner`` proposes and records every tree (tokens, parents)."""
+
+    def __init__(self, inner: Drafter):
+        self.inner, self.name, self.trees = inner, inner.name, []
+        self.needs_hidden_states, self.action_layout = inner.needs_hidden_states, inner.action_layout
+
+    def start(self, context):
+        session, trees = self.inner.start(context), self.trees
+
+        class Recording(DraftSession):
+            def propose(self, draft_round):
+                tree = session.propose(draft_round)
+                trees.append((tree.token_ids.tolist(), tree.parents.tolist()))
+                return tree
+
+            def observe(self, commit):
+                session.observe(commit)
+
+        return Recording()
+
+
+@pytest.mark.parametrize("tree", [None, DraftTreeConfig(top_k=3, depth=4, total_tokens=12)], ids=["chain", "tree"])
+def test_the_compiled_head_drafts_the_eager_heads_trees_round_after_round(tree):
+    """The head's compiled rounds (static cache, catch-up + expansion in one graph, the prompt's pairs fed eagerly but
+    for the last ones) propose exactly the eager head's trees at every round, so it accepts what it would eagerly."""
+    model = _model("llama")
+    torch.manual_seed(1)
+    head = DraftHead.from_target(model, num_draft_tokens=3).eval()
+    compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
+    for seed in range(3):
+        input_ids = torch.randint(6, 64, (1, 6 + 3 * seed), generator=torch.Generator().manual_seed(seed))
+        runs = []
+        for kwargs in ({}, compiled):
+            drafter = RecordingDrafter(DraftHeadDrafter(head, tree=tree))
+            out = greedy(model, input_ids, assistant_model=drafter, return_dict_in_generate=True, **kwargs)
+            runs.append((drafter.trees, out.sequences))
+        (eager_trees, eager_tokens), (compiled_trees, compiled_tokens) = runs
+        assert len(eager_trees) >= 3  # several rounds after the prefill: the catch-up and its padding are exercised
+        assert compiled_trees == eager_trees, seed
+        assert torch.equal(compiled_tokens, eager_tokens)
 
 
 def test_no_recompilation_after_warm_up():

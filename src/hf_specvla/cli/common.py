@@ -29,7 +29,13 @@ POSITIVE, NON_NEGATIVE = at_least(1), at_least(0)
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    """Keeps the examples' line breaks and shows every option's default."""
+    """Keeps the examples' line breaks and shows every option's default (but a flag's: ``--no-compile`` does not
+    default to True)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        if isinstance(action, argparse._StoreConstAction):  # store_true / store_false / store_const flags
+            return action.help or ""
+        return super()._get_help_string(action)
 
 
 @contextmanager

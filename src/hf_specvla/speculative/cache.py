@@ -209,6 +209,17 @@ def _set_static_length(layer, length: int) -> None:
         layer.cumulative_length_int = length
 
 
+def set_static_length(cache: Cache, length: int) -> None:
+    """Moves every static layer's counter to ``length``, forward or back, in place (a forward move keeps entries that
+    were written past the counter, e.g. by a compiled round that wrote them and was rolled back to replay)."""
+    for layer in _stored_layers(cache):
+        if type(layer) not in STATIC_LAYER_TYPES:
+            raise TypeError(f"set_static_length needs static cache layers, got {type(layer).__name__}")
+        if not 0 <= length <= layer.max_cache_len:
+            raise ValueError(f"a static layer of {layer.max_cache_len} slots cannot hold {length} entries")
+        _set_static_length(layer, length)
+
+
 def truncate_cache(cache: Cache, length: int) -> None:
     """Keeps the first ``length`` positions of every layer, in place (a static layer: its counter moves back)."""
     for layer in _stored_layers(cache):

@@ -45,7 +45,7 @@ from functools import partial
 import torch
 from transformers.cache_utils import DynamicCache, StaticCache
 
-from ..cache import truncate_cache
+from ..cache import set_static_length, truncate_cache
 from ..compiled import SLOT_MULTIPLE, compile_once, compile_settings, compiled_function
 from ..drafter import Commit, DraftContext, Drafter, DraftRound, DraftSession
 from ..masks import causal_allowed, sequence_key_padding, to_additive_mask
@@ -200,7 +200,7 @@ class _DraftHeadSession(DraftSession):
             return DraftTree.empty(draft_round.sequence.device)
         root_position = draft_round.root_position.reshape(1, 1).clone(memory_format=torch.contiguous_format)
         if self.key_length is not None and self.unfed:
-            token_ids, parents = self._compiled_round(depth, root_position)
+            token_ids, parents = self._compiled_round(depth, draft_round.max_depth, root_position)
         else:
             if self.unfed:
                 tokens, hidden, positions, committed = self._take_unfed()
@@ -225,7 +225,9 @@ class _DraftHeadSession(DraftSession):
         finally:
             truncate_cache(self.cache, self.cache_length)
 
-    def _compiled_round(self, depth: int, root_position: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _compiled_round(
+        self, depth: int, max_depth: int, root_position: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Catch-up and expansion in one compiled graph ([`catch_up_and_expand`]): the unfed pairs padded to
         ``num_padded_pairs`` (more, the prompt's after the prefill: all but the last ones fed eagerly first)."""
         tokens, hidden, positions, committed = self._take_unfed()
@@ -257,27 +259,25 @@ class _DraftHeadSession(DraftSession):
             finally:
                 truncate_cache(self.cache, self.cache_length)
 
-        self._compile_every_depth(run)
+        self._compile_every_depth(run, max_depth)
         result = run(depth)
         self.num_forwards += depth
         self.cache_length, self.root_feature = committed, None
-        truncate_cache(self.cache, committed)  # the real pairs' entries stay; padding and the tree's are dropped
+        set_static_length(self.cache, committed)  # the real pairs' entries, written by the round, are kept
         return result
 
-    def _compile_every_depth(self, run) -> None:
-        """Compiles the round of every depth one may ask for (1 .. ``depth``) at the first proposal, so that nothing
-        compiles mid-episode (throw-away rounds on the real inputs; the cache keeps its entries)."""
+    def _compile_every_depth(self, run, max_depth: int) -> None:
+        """Compiles the round of every depth this call may ask for (1 .. ``max_depth``: the first round's cap, the
+        largest of the call) before its first compiled round, so that nothing compiles mid-call (throw-away rounds on
+        the real inputs; the cache keeps its entries)."""
         tree = (self.config.top_k, self.config.depth, self.config.total_tokens)
         weights = self.head.fuse.weight
         # what the graphs depend on: heads of one architecture share them (parameters are graph inputs)
         key = ("draft-head round", self.head.config.to_json_string(), weights.dtype, weights.device,
                compile_settings(self.compile_config), self.key_length, tree)  # fmt: skip
-
-        def every_depth() -> None:
-            for depth in range(1, self.config.depth + 1):
-                run(depth)
-
-        seconds = compile_once(key, every_depth)
+        seconds = 0.0
+        for depth in range(1, min(max_depth, self.config.depth) + 1):
+            seconds += compile_once((*key, depth), partial(run, depth))
         if seconds:
             self.compile_seconds += seconds
-            logger.info("compiled the draft head's rounds, depths 1..%d, in %.1f s", self.config.depth, seconds)
+            logger.info("compiled the draft head's rounds up to depth %d in %.1f s", max_depth, seconds)
