@@ -100,6 +100,10 @@ ADDED_SETTINGS = {
     "max_grad_norm": 1.0,
     "lr_schedule": "cosine",
     "mixed_precision": "no",
+    # compare's EAGLE-2 tree, DraftTreeConfig() until it became settings
+    "tree.top_k": 4,
+    "tree.depth": 6,
+    "tree.total_tokens": 24,
 }
 
 

@@ -138,6 +138,8 @@ def test_compare_splits_seeds_between_workers(policy_dir, tmp_path):
         (["--tasks", "bogus"], "bogus"),
         (["--methods", "prior:r=999"], "methods ['prior:r=999']: r is wider than the action range"),
         (["--methods", "prior:r=-1"], "r must be an integer >= 0"),
+        (["--tree-depth", "9", "--tree-total-tokens", "4"], "total_tokens=4 cannot hold a path of depth=9"),
+        (["--tree-top-k", "0"], "--tree-top-k: must be >= 1, got 0"),
     ],
 )
 def test_compare_bad_input_is_a_usage_error(policy_dir, tmp_path, capsys, flags, message):
@@ -203,3 +205,16 @@ def test_seeds_run_seed_major_so_a_partial_run_covers_every_task():
     pairs = config.pairs()
     assert pairs[:3] == [("reach-v3", 100000), ("push-v3", 100000), ("door-open-v3", 100000)]
     assert sorted(pairs) == sorted((t, 100000 + i) for t in ("reach-v3", "push-v3", "door-open-v3") for i in range(2))
+
+
+def test_the_tree_settings_reach_the_tree_methods_drafter(random_draft):
+    from hf_specvla import DraftTreeConfig
+    from hf_specvla.metaworld.comparison.methods import CompareConfig, DecodingMethod
+
+    config = CompareConfig("reach", 1, ["tree:compile", "prior+tree:r=4"], tree_top_k=2, tree_total_tokens=8)
+    assert config.tree_config() == DraftTreeConfig(top_k=2, depth=DraftTreeConfig.depth, total_tokens=8)
+    for name in config.methods[1:]:
+        drafter = DecodingMethod.parse(name).generate_kwargs(random_draft, "cpu", config.tree_config())
+        assert drafter["assistant_model"].tree_config == config.tree_config(), name
+    default = DecodingMethod.parse("tree").generate_kwargs(random_draft)["assistant_model"]
+    assert default.tree_config == DraftTreeConfig()

@@ -9,6 +9,7 @@ from .benchmark import load_pipeline
 from .common import (
     NON_NEGATIVE,
     POSITIVE,
+    add_tree_arguments,
     check_draft_head_flag,
     check_tasks,
     load_draft_head_for,
@@ -44,13 +45,7 @@ def add_arguments(parser) -> None:
                         help="a DraftHead folder (default: an untrained head, seeded; toy: its own)")  # fmt: skip
     parser.add_argument("--chain-length", type=POSITIVE, default=None,
                         help="draft-head chain length k (default: tokens per call - 1)")  # fmt: skip
-    parser.add_argument(
-        "--tree-top-k", type=POSITIVE, default=None, help="EAGLE-2 tree top_k (default: DraftTreeConfig's)"
-    )
-    parser.add_argument(
-        "--tree-depth", type=POSITIVE, default=None, help="EAGLE-2 tree depth (default: DraftTreeConfig's)"
-    )
-    parser.add_argument("--tree-total-tokens", type=POSITIVE, default=None, help="EAGLE-2 tree nodes kept")
+    add_tree_arguments(parser)
     parser.add_argument("--no-compile", dest="compile", action="store_false",
                         help="skip the compiled rows (transformers' greedy:compile and every method :compile, on a "
                              "static cache; they compile on first use, off the clock)")  # fmt: skip

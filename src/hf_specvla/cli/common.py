@@ -119,3 +119,13 @@ def configure_logging(verbose: bool = False) -> None:
     root.setLevel(logging.WARNING)
     logging.getLogger("hf_specvla").setLevel(logging.DEBUG if verbose else logging.INFO)
     transformers_logging.disable_progress_bar()
+
+
+def add_tree_arguments(parser: argparse.ArgumentParser) -> None:
+    """--tree-top-k, --tree-depth, --tree-total-tokens: the EAGLE-2 tree of the head's tree methods."""
+    parser.add_argument("--tree-top-k", type=POSITIVE, default=None,
+                        help="EAGLE-2 tree top_k (default: DraftTreeConfig's)")  # fmt: skip
+    parser.add_argument("--tree-depth", type=POSITIVE, default=None,
+                        help="EAGLE-2 tree depth (default: DraftTreeConfig's)")  # fmt: skip
+    parser.add_argument("--tree-total-tokens", type=POSITIVE, default=None,
+                        help="EAGLE-2 tree nodes kept (default: DraftTreeConfig's)")  # fmt: skip

@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 
 from ..metaworld.comparison.methods import DRAFTER_CHOICES, CompareConfig
-from .common import NON_NEGATIVE, POSITIVE, check_draft_head_flag, load_policy, usage_errors
+from .common import NON_NEGATIVE, POSITIVE, add_tree_arguments, check_draft_head_flag, load_policy, usage_errors
 
 logger = logging.getLogger(__name__)
 
@@ -39,6 +39,7 @@ def add_arguments(parser) -> None:
                         help="processes the seeds are split between (timings compared within a worker)")  # fmt: skip
     parser.add_argument("--threads", type=POSITIVE, default=CompareConfig.threads, help="torch CPU threads per worker")
     parser.add_argument("--seed", type=int, default=CompareConfig.order_seed, help="seeds the method order per seed")
+    add_tree_arguments(parser)
     parser.add_argument("--output-dir", required=True, help="logs, summary.json, compare.md, plots (resumes)")
     parser.add_argument(
         "--overwrite-output-dir", action="store_true", help="move a folder holding another run aside, start over"
@@ -51,7 +52,8 @@ def run(args, parser) -> int:
 
     with usage_errors(parser, errors=(ValueError,)):
         config = CompareConfig(args.tasks, args.episodes, args.methods, args.seed_start, args.max_episode_steps,
-                               args.workers, args.threads, args.seed)  # fmt: skip
+                               args.workers, args.threads, args.seed, args.tree_top_k, args.tree_depth,
+                               args.tree_total_tokens)  # fmt: skip
         config.check_draft_head_given(args.draft_head is not None)
     if args.draft_head and not config.draft_head_methods():
         logger.warning("--draft-head %s is not used: none of the methods %s drafts with a head (head, tree, "

@@ -16,7 +16,7 @@ from ..env import EnvConfig, resolve_tasks
 from ..seeds import EVAL_SEED_START
 
 if TYPE_CHECKING:
-    from ...speculative import DraftHead
+    from ...speculative import DraftHead, DraftTreeConfig
 
 DRAFTER_CHOICES = ("greedy", "head", "tree", "prior", "prior+head", "prior+tree")
 METHOD_KEYS = {"r": "bin tolerance (relaxed acceptance; 0 = lossless)", "k": "draft-head chain length (head only)"}
@@ -90,8 +90,11 @@ class DecodingMethod:
     def lossless(self) -> bool:
         return self.bin_tolerance == 0
 
-    def generate_kwargs(self, draft_head: DraftHead | None, device_type: str = "cpu") -> dict:
-        """``predict_action`` options for this method (``device_type``: the policy's, for ``:compile``)."""
+    def generate_kwargs(
+        self, draft_head: DraftHead | None, device_type: str = "cpu", tree: DraftTreeConfig | None = None
+    ) -> dict:
+        """``predict_action`` options for this method (``device_type``: the policy's, for ``:compile``; ``tree``: the
+        EAGLE-2 tree of ``tree`` methods, default ``DraftTreeConfig()``)."""
         from ...speculative import DraftHeadDrafter, DraftTreeConfig, compiled_decoding_kwargs
 
         parts = self.drafters.split("+")
@@ -100,7 +103,7 @@ class DecodingMethod:
             if draft_head is None:
                 raise ValueError(f"decoding method {self.name!r} needs a draft head (--draft-head)")
             if "tree" in parts:
-                kwargs["assistant_model"] = DraftHeadDrafter(draft_head, tree=DraftTreeConfig())
+                kwargs["assistant_model"] = DraftHeadDrafter(draft_head, tree=tree or DraftTreeConfig())
             else:
                 kwargs["assistant_model"] = draft_head
                 if self.num_draft_tokens is not None:
@@ -140,6 +143,8 @@ class CompareConfig:
         workers: processes the seeds are split between.
         threads: torch CPU threads per worker.
         order_seed: seeds the random method order of every seed.
+        tree_top_k / tree_depth / tree_total_tokens: the EAGLE-2 tree of the ``tree`` methods (None:
+            ``DraftTreeConfig``'s default).
     """
 
     tasks: str | list[str] = "MT10"
@@ -150,12 +155,23 @@ class CompareConfig:
     workers: int = 1
     threads: int = 1
     order_seed: int = 0
+    tree_top_k: int | None = None
+    tree_depth: int | None = None
+    tree_total_tokens: int | None = None
 
     def __post_init__(self):
         self.tasks = resolve_tasks(self.tasks)
         names = ("episodes_per_task", "workers", "threads", "seed_start", "max_episode_steps")
         check_ranges(self, at_least_one=names[:3] + names[4:], non_negative=names[3:4], integers=names)
         self.methods = [m.name for m in parse_methods(list(self.methods))]
+        self.tree_config()  # refuses bad tree settings now
+
+    def tree_config(self) -> DraftTreeConfig:
+        """The EAGLE-2 tree of the ``tree`` methods (raises ValueError naming a bad setting)."""
+        from ...speculative import DraftTreeConfig
+
+        settings = {"top_k": self.tree_top_k, "depth": self.tree_depth, "total_tokens": self.tree_total_tokens}
+        return DraftTreeConfig(**{name: value for name, value in settings.items() if value is not None})
 
     def decoding_methods(self) -> list[DecodingMethod]:
         return [DecodingMethod.parse(name) for name in self.methods]

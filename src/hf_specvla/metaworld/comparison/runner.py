@@ -22,7 +22,7 @@ import torch
 from ...policies import VLAPolicy
 from ...progress import progress_bar
 from ...run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
-from ...speculative import DraftHead, check_bin_tolerance_range
+from ...speculative import DraftHead, DraftTreeConfig, check_bin_tolerance_range
 from ..env import EnvConfig, MetaWorldEnv
 from ..rollout import rollout
 from ..seeds import BENCH_SEED_START
@@ -46,10 +46,16 @@ def _greedy_action_ids(policy: VLAPolicy, obs: dict) -> list[int]:
 
 
 def run_method_episode(
-    policy: VLAPolicy, env: MetaWorldEnv, seed: int, method: DecodingMethod, draft_head: DraftHead | None
+    policy: VLAPolicy,
+    env: MetaWorldEnv,
+    seed: int,
+    method: DecodingMethod,
+    draft_head: DraftHead | None,
+    tree: DraftTreeConfig | None = None,
 ) -> dict:
-    """One episode of ``method`` from ``env.reset(seed)``: the record a comparison log holds."""
-    kwargs = method.generate_kwargs(draft_head, policy.model.device.type)
+    """One episode of ``method`` from ``env.reset(seed)``: the record a comparison log holds (``tree``: the EAGLE-2
+    tree of ``tree`` methods, default ``DraftTreeConfig()``)."""
+    kwargs = method.generate_kwargs(draft_head, policy.model.device.type, tree)
     action_dim = policy.config.action_tokens  # tokens per call (a chunk's, for a chunked policy)
     policy.reset()
     latencies, accept_counts, digest = [], Counter(), hashlib.sha256()
@@ -89,7 +95,12 @@ def run_method_episode(
 
 
 def warm_up_compiled(
-    policy: VLAPolicy, env: MetaWorldEnv, methods: list[DecodingMethod], draft_head: DraftHead | None, calls: int = 3
+    policy: VLAPolicy,
+    env: MetaWorldEnv,
+    methods: list[DecodingMethod],
+    draft_head: DraftHead | None,
+    calls: int = 3,
+    tree: DraftTreeConfig | None = None,
 ) -> None:
     """Runs every ``:compile`` method ``calls`` times on the first observation of ``env``'s task (off the clock, not
     logged), so that compilation (one graph per prompt length and verification width) never lands in a timed
@@ -99,7 +110,7 @@ def warm_up_compiled(
         return
     obs = env.reset(BENCH_SEED_START)  # a seed of the timing range, never one a comparison evaluates
     for method in compiled:
-        kwargs = method.generate_kwargs(draft_head, policy.model.device.type)
+        kwargs = method.generate_kwargs(draft_head, policy.model.device.type, tree)
         policy.reset()
         for _ in range(calls):
             policy.predict_action(obs["image"], obs["instruction"], obs["state"], **kwargs)
@@ -118,7 +129,7 @@ def _run_shard(
     """Runs every method not yet ``done`` on each (task, seed) of ``pairs``, seed by seed, appending to
     ``log_path``."""
     env_config = EnvConfig(policy.config.image_size, policy.config.camera, config.max_episode_steps)
-    methods = config.decoding_methods()
+    methods, tree = config.decoding_methods(), config.tree_config()
     env = None
     try:
         for task, seed in pairs:  # in order (seed-major): an env is made when the task changes
@@ -129,10 +140,10 @@ def _run_shard(
                 if env is not None:
                     env.close()
                 env = MetaWorldEnv(task, env_config)
-                warm_up_compiled(policy, env, methods, draft_head)
+                warm_up_compiled(policy, env, methods, draft_head, tree=tree)
             random.Random(f"{config.order_seed}:{task}:{seed}").shuffle(todo)
             for method in todo:
-                record = run_method_episode(policy, env, seed, method, draft_head)
+                record = run_method_episode(policy, env, seed, method, draft_head, tree)
                 with log_path.open("a") as log:
                     log.write(json.dumps(record) + "\n")
                 if bar is not None:
@@ -215,6 +226,8 @@ def run_comparison(
         "env": asdict(env_config), "seed_start": config.seed_start, "methods": sorted(config.methods),
         "order_seed": config.order_seed,
     }  # fmt: skip
+    if any("tree" in m.drafters.split("+") for m in methods):
+        settings["tree"] = asdict(config.tree_config())  # what the tree methods drafted with
     with claim_run_folder(output_dir, RunRecord("compare", settings), overwrite) as run:
         output_dir = run.bound  # writes stay in the claimed folder, renamed or not
         done = {(r["task"], r["seed"], r["method"]) for r in read_episode_logs(output_dir)}
