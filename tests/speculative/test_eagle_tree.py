@@ -118,6 +118,23 @@ def test_reranking_keeps_the_budget_the_backbone_and_every_ancestor(head_and_tar
         assert all(any(path[: len(p)] == list(p) for path in everything.token_paths()) for p in kept)
 
 
+@pytest.mark.parametrize("total_tokens", [3, 8, 30])
+def test_a_depth_limit_gives_the_shallower_expansions_tree(head_and_target, total_tokens):
+    """One graph expanded to depth 5 serves a round that may draft only 2 or 3 levels: with ``depth_limit`` the
+    nodes above the limit are ranked exactly as the shallower expansion ranks its own, the deeper ones last."""
+    head, handles, scorer = head_and_target
+    for limit in (1, 2, 3):
+        shallow = DraftTree(*expand(head_and_target, 3, limit, total_tokens))
+        cache = DynamicCache()
+        with torch.no_grad():
+            root, position = committed_head(head, handles, cache)
+            deep = expand_tree(head, partial(embed_tokens, handles), scorer, root, position, cache, COMMITTED, None,
+                               3, 5, total_tokens, depth_limit=torch.tensor(limit))  # fmt: skip
+        limited = DraftTree(*deep).truncate_depth(limit)
+        assert limited.token_paths() == shallow.token_paths(), limit
+        assert torch.equal(limited.parents, shallow.parents), limit
+
+
 def test_a_compiled_round_on_a_static_cache_drafts_what_the_eager_run_drafts(head_and_target):
     """The catch-up (padded pairs) and the expansion in one graph (dynamo, eager backend, fullgraph: no graph break)
     draft the eager dynamic-cache run's tree, whatever the number of real pairs; the counts and the committed length

@@ -27,9 +27,10 @@ after the prefill), and a smaller budget because on a CPU each verified token co
 Compiled drafting: when the target verifies through its compiled call (``DraftContext.compile_config``: a static
 cache, batch 1), the head gets a static cache of its own (the call's ``max_length`` + the tree's entries, rounded up
 to ``SLOT_MULTIPLE`` slots) and each round runs as one compiled graph (``torch.compile`` with the target's
-``CompileConfig``), one graph per depth, all compiled at the first proposal; the round's catch-up forward (the pairs
-the target committed, as many as were accepted) is in the same graph, padded to ``depth + 1`` pairs (the prompt's
-pairs after the prefill are fed eagerly, but for the last ones).
+``CompileConfig``), compiled before the call's first compiled round: one graph, expanded to that round's depth (the
+deepest of the call); a shallower round passes its depth as data and gets the shallower expansion's tree. The round's
+catch-up forward (the pairs the target committed, as many as were accepted) is in the same graph, padded to
+``depth + 1`` pairs (the prompt's pairs after the prefill are fed eagerly, but for the last ones).
 
 Per-call state (the head's KV cache, the pairs not yet fed) lives in the session, never on the model.
 Invariant: after a catch-up the head's cache holds exactly the target's committed positions, each computed from
@@ -137,8 +138,8 @@ class DraftHeadDrafter(Drafter):
 
 class _DraftHeadSession(DraftSession):
     """One row's drafting with the head. On a compiled target (``context.compile_config``, batch 1, no padding) the
-    head's cache is static and each round (catch-up + expansion) runs as one compiled graph per depth, all compiled
-    at the first proposal; otherwise the same expansion runs eagerly on a ``DynamicCache``."""
+    head's cache is static and each round (catch-up + expansion) runs as one compiled graph, compiled at the call's
+    first compiled round; otherwise the same expansion runs eagerly on a ``DynamicCache``."""
 
     def __init__(self, drafter: DraftHeadDrafter, handles: TargetHandles, scorer: DraftScorer, context: DraftContext):
         self.head, self.config, self.name = drafter.draft_head, drafter.tree_config, drafter.name
@@ -154,6 +155,7 @@ class _DraftHeadSession(DraftSession):
             self.key_length = -(-entries // SLOT_MULTIPLE) * SLOT_MULTIPLE
             self.cache = StaticCache(config=self.head.config.to_llama_config(), max_cache_len=self.key_length)
             self.compiled_round = compiled_function(catch_up_and_expand, self.compile_config, graphs=self.config.depth)
+        self.graph_depth: int | None = None  # the depth this call's compiled rounds expand to (its first round's)
         self.cache_length = 0  # committed entries in self.cache
         self.unfed: list[Commit] = []  # commits whose (token, hidden) pairs the head has not seen yet
         self.root_feature: torch.Tensor | None = None  # [1, 1, H] estimate of the hidden state at the root
@@ -200,7 +202,9 @@ class _DraftHeadSession(DraftSession):
             return DraftTree.empty(draft_round.sequence.device)
         root_position = draft_round.root_position.reshape(1, 1).clone(memory_format=torch.contiguous_format)
         if self.key_length is not None and self.unfed:
-            token_ids, parents = self._compiled_round(depth, draft_round.max_depth, root_position)
+            # the deepest round of the call: after a prefill that emitted one token (whatever the prefill accepted)
+            deepest = draft_round.max_depth + draft_round.num_generated - 1
+            token_ids, parents = self._compiled_round(depth, deepest, root_position)
         else:
             if self.unfed:
                 tokens, hidden, positions, committed = self._take_unfed()
@@ -229,7 +233,11 @@ class _DraftHeadSession(DraftSession):
         self, depth: int, max_depth: int, root_position: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Catch-up and expansion in one compiled graph ([`catch_up_and_expand`]): the unfed pairs padded to
-        ``num_padded_pairs`` (more, the prompt's after the prefill: all but the last ones fed eagerly first)."""
+        ``num_padded_pairs`` (more, the prompt's after the prefill: all but the last ones fed eagerly first).
+
+        One graph per call: expanded to the deepest any of its rounds can go (``max_depth``: after a prefill that
+        emitted one token; so the same for every call of a prompt length, whatever the prefill accepted), a shallower
+        round passes its depth as data (``depth_limit``) and gets the shallower expansion's tree."""
         tokens, hidden, positions, committed = self._take_unfed()
         padded = self.num_padded_pairs
         # an unwritten static cache allocates its buffers at its first write: never inside a graph
@@ -242,42 +250,45 @@ class _DraftHeadSession(DraftSession):
             tokens, hidden, positions = tokens[:, split:], hidden[:, split:], positions[:, split:]
         truncate_cache(self.cache, self.cache_length)
         num_new, pad = tokens.shape[1], padded - tokens.shape[1]
+        device = tokens.device
         pairs = (
             torch.cat([tokens, tokens.new_zeros(1, pad)], dim=1),
             torch.cat([hidden, hidden.new_zeros(1, pad, hidden.shape[-1])], dim=1),
             torch.cat([positions, positions[:, -1:].expand(1, pad)], dim=1),
-            torch.tensor(num_new, device=tokens.device),
+            torch.tensor(num_new, device=device),
         )
 
-        def run(round_depth: int) -> tuple[torch.Tensor, torch.Tensor]:
+        def run(depth_limit: int) -> tuple[torch.Tensor, torch.Tensor]:
             try:
                 return self.compiled_round(
                     self.head, self.embed, self.scorer, *pairs, root_position, self.cache,
-                    self.cache.layers[0].cumulative_length.clone(), self.key_length, self.config.top_k, round_depth,
-                    self.config.total_tokens,
+                    self.cache.layers[0].cumulative_length.clone(), self.key_length, self.config.top_k,
+                    self.graph_depth, self.config.total_tokens, torch.tensor(depth_limit, device=device),
                 )  # fmt: skip
             finally:
                 truncate_cache(self.cache, self.cache_length)
 
-        self._compile_every_depth(run, max_depth)
-        result = run(depth)
-        self.num_forwards += depth
+        if self.graph_depth is None:  # the call's first compiled round
+            self.graph_depth = min(self.config.depth, max_depth)
+            self._compile_round(run)
+        token_ids, parents = run(depth)
+        self.num_forwards += self.graph_depth
         self.cache_length, self.root_feature = committed, None
         set_static_length(self.cache, committed)  # the real pairs' entries, written by the round, are kept
-        return result
+        if depth < self.graph_depth:  # the nodes below the limit outranked the deeper ones: drop those
+            tree = DraftTree(token_ids, parents).truncate_depth(depth)
+            token_ids, parents = tree.token_ids, tree.parents
+        return token_ids, parents
 
-    def _compile_every_depth(self, run, max_depth: int) -> None:
-        """Compiles the round of every depth this call may ask for (1 .. ``max_depth``: the first round's cap, the
-        largest of the call) before its first compiled round, so that nothing compiles mid-call (throw-away rounds on
-        the real inputs; the cache keeps its entries)."""
+    def _compile_round(self, run) -> None:
+        """Compiles this call's round graph (``graph_depth``) before its first compiled round, so that nothing compiles
+        mid-call (a throw-away round on the real inputs; the cache keeps its entries)."""
         tree = (self.config.top_k, self.config.depth, self.config.total_tokens)
         weights = self.head.fuse.weight
-        # what the graphs depend on: heads of one architecture share them (parameters are graph inputs)
+        # what the graph depends on: heads of one architecture share it (parameters are graph inputs)
         key = ("draft-head round", self.head.config.to_json_string(), weights.dtype, weights.device,
-               compile_settings(self.compile_config), self.key_length, tree)  # fmt: skip
-        seconds = 0.0
-        for depth in range(1, min(max_depth, self.config.depth) + 1):
-            seconds += compile_once((*key, depth), partial(run, depth))
+               compile_settings(self.compile_config), self.key_length, tree, self.graph_depth)  # fmt: skip
+        seconds = compile_once(key, partial(run, self.graph_depth))
         if seconds:
             self.compile_seconds += seconds
-            logger.info("compiled the draft head's rounds up to depth %d in %.1f s", max_depth, seconds)
+            logger.info("compiled the draft head's round (depth %d) in %.1f s", self.graph_depth, seconds)

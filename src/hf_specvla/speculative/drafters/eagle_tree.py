@@ -2,8 +2,9 @@
 
 One function, [`expand_tree`], runs eagerly on the head's ``DynamicCache``; on the head's static cache
 [`catch_up_and_expand`] (the round's catch-up forward, padded to a fixed count, then the expansion) is compiled by
-``torch.compile`` as one graph per depth (see [`DraftHeadDrafter`]): every shape depends only on ``top_k``,
-``depth`` and ``total_tokens``, never on the drafted tokens, their scores or how many were accepted.
+``torch.compile`` as one graph (see [`DraftHeadDrafter`]): every shape depends only on ``top_k``, ``depth`` and
+``total_tokens``, never on the drafted tokens, their scores, how many were accepted or how deep a round may draft
+(``depth_limit``, data).
 
 The procedure (EAGLE-2, Li et al. 2024, ``topK_genrate`` in SafeAILab/EAGLE), with the backbone rule of
 [`DraftHeadDrafter`] (the head's greedy path is always expanded and always kept):
@@ -88,6 +89,7 @@ def catch_up_and_expand(
     top_k: int,
     depth: int,
     total_tokens: int,
+    depth_limit: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """One drafting round on a static cache in one graph: feeds the pairs the target committed (padded to a fixed
     count), then [`expand_tree`] from the last one's feature.
@@ -111,7 +113,8 @@ def catch_up_and_expand(
     features = head(embed(token_ids), hidden, positions, to_additive_mask(allowed[None], hidden.dtype), cache)
     root_feature = features.index_select(1, (num_new - 1).reshape(1))  # [1, 1, H]
     return expand_tree(head, embed, scorer, root_feature, root_position, cache, committed + num_new, None,
-                       top_k, depth, total_tokens, tree_start=committed + q_len, key_length=key_length)  # fmt: skip
+                       top_k, depth, total_tokens, tree_start=committed + q_len, key_length=key_length,
+                       depth_limit=depth_limit)  # fmt: skip
 
 
 def expand_tree(
@@ -128,6 +131,7 @@ def expand_tree(
     total_tokens: int,
     tree_start: int | torch.Tensor | None = None,
     key_length: int | None = None,
+    depth_limit: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Expands and re-ranks one EAGLE-2 tree below the root (module docstring). Batch 1.
 
@@ -142,6 +146,9 @@ def expand_tree(
         past / committed_visible / tree_start (default ``past``) / key_length (default: a dynamic cache): as in
             [`frontier_mask`].
         top_k / depth / total_tokens: the tree's settings (``top_k`` is capped at the scored candidates).
+        depth_limit: 0-dim int64, or None: only nodes of depth < ``depth_limit`` (0 = the root's children) compete
+            for the budget, so that one graph expanded to ``depth`` serves every shallower round (its nodes below
+            the limit are the shallower expansion's, in the same order: the same tree); the deeper ones rank last.
     Returns:
         ``(token_ids, parents)``, each ``[T]`` int64, T = ``min(total_tokens, num_created_nodes(k, depth))``:
         vocabulary ids, and each node's parent index (-1 for the root's children), parents first.
@@ -180,18 +187,27 @@ def expand_tree(
             frontier_features = features[:, parent_slot]
             ancestors = visible[parent_slot]
         num_created += k * k
-    return _rerank(torch.cat(token_ids), torch.cat(parents), torch.cat(scores), backbone, total_tokens)
+    node_depths = torch.cat([torch.full_like(level_ids, level) for level, level_ids in enumerate(token_ids)])
+    too_deep = None if depth_limit is None else node_depths >= depth_limit
+    return _rerank(torch.cat(token_ids), torch.cat(parents), torch.cat(scores), backbone, total_tokens, too_deep)
 
 
 def _rerank(
-    token_ids: torch.Tensor, parents: torch.Tensor, scores: torch.Tensor, backbone: list[int], total_tokens: int
+    token_ids: torch.Tensor,
+    parents: torch.Tensor,
+    scores: torch.Tensor,
+    backbone: list[int],
+    total_tokens: int,
+    too_deep: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The backbone and the best other created nodes (``[N]`` each), ``total_tokens`` in all, in creation order,
-    their parents renumbered."""
+    their parents renumbered; nodes marked ``too_deep`` (``[N]`` bool) rank last."""
     num_created = token_ids.shape[0]
     kept_count = min(total_tokens, num_created)
     backbone_index = torch.tensor(backbone, device=scores.device)
     ranked = scores.index_fill(0, backbone_index, float("inf"))
+    if too_deep is not None:  # a too-deep node's descendants are too deep: the kept set stays closed
+        ranked = ranked.masked_fill(too_deep, float("-inf"))
     # stable: among equal scores the node created first (a parent before its children) ranks first
     kept = torch.sort(ranked, descending=True, stable=True).indices[:kept_count].sort().values  # [T]
     new_index = torch.full_like(parents, -1).index_copy(0, kept, torch.arange(kept_count, device=kept.device))
