@@ -46,22 +46,6 @@ def causal_mask(
     return to_additive_mask(causal_allowed(q_len, past_len, device, key_padding), dtype)
 
 
-def block_allowed(block: torch.Tensor, past_len: int, key_padding: torch.Tensor | None = None) -> torch.Tensor:
-    """Bool mask ``[B, q, past_len + k]``: every query sees all ``past_len`` cached keys (except padding) and the new
-    keys where ``block`` ``[q, k]`` is True.
-
-    Args:
-        key_padding: optional ``[B, >= past_len]`` bool, False where a cached key is padding.
-    """
-    q_len = block.shape[0]
-    past = torch.ones(q_len, past_len, dtype=torch.bool, device=block.device)
-    allowed = torch.cat([past, block.bool()], dim=1)[None]  # [1, q, past + k]
-    if key_padding is not None and past_len:
-        allowed = allowed.repeat(key_padding.shape[0], 1, 1)
-        allowed[:, :, :past_len] &= key_padding[:, None, :past_len].bool()
-    return allowed
-
-
 def tree_verification_allowed(
     past_len: int,
     num_pending: int,

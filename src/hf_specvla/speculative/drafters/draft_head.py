@@ -143,7 +143,7 @@ class _DraftHeadSession(DraftSession):
 
     def __init__(self, drafter: DraftHeadDrafter, handles: TargetHandles, scorer: DraftScorer, context: DraftContext):
         self.head, self.config, self.name = drafter.draft_head, drafter.tree_config, drafter.name
-        self.handles, self.scorer, self.prompt_padding = handles, scorer, context.prompt_padding
+        self.scorer, self.prompt_padding = scorer, context.prompt_padding
         self.embed = partial(embed_tokens, handles)
         self.compile_config = context.compile_config if context.prompt_padding is None else None
         self.key_length: int | None = None  # the static cache's slots (every mask spans them), None: dynamic
@@ -154,7 +154,7 @@ class _DraftHeadSession(DraftSession):
             entries = context.max_length + self.num_padded_pairs + tree_entries
             self.key_length = -(-entries // SLOT_MULTIPLE) * SLOT_MULTIPLE
             self.cache = StaticCache(config=self.head.config.to_llama_config(), max_cache_len=self.key_length)
-            self.compiled_round = compiled_function(catch_up_and_expand, self.compile_config, graphs=self.config.depth)
+            self.compiled_round = compiled_function(catch_up_and_expand, self.compile_config, graphs=1)
         self.graph_depth: int | None = None  # the depth this call's compiled rounds expand to (its first round's)
         self.cache_length = 0  # committed entries in self.cache
         self.unfed: list[Commit] = []  # commits whose (token, hidden) pairs the head has not seen yet
