@@ -195,6 +195,12 @@ def test_generates_own_static_cache_gets_slots_for_the_trees_a_users_cache_is_ke
     # rounds up (prompts of other lengths share the compiled graphs)
     slots = input_ids.shape[1] + NEW_TOKENS - 1 + NODE_BUCKETS[-1]
     assert cache_of(out).layers[0].max_cache_len == -(-slots // SLOT_MULTIPLE) * SLOT_MULTIPLE  # rounded up
+    # the next call reuses that cache, emptied (its buffers keep their addresses), and decodes the same
+    keys = cache_of(out).layers[0].keys
+    again = greedy(tiny_llama, input_ids, draft_ids=torch.tensor([[70]]), cache_implementation="static",
+                   return_dict_in_generate=True)  # fmt: skip
+    assert cache_of(again) is cache_of(out) and cache_of(again).layers[0].keys is keys
+    assert torch.equal(again.sequences, out.sequences) and torch.equal(out.sequences, greedy(tiny_llama, input_ids))
     users = StaticCache(config=tiny_llama.config, max_cache_len=input_ids.shape[1] + NEW_TOKENS)
     out = greedy(tiny_llama, input_ids, draft_ids=torch.tensor([[70]]), return_dict_in_generate=True,
                  **{CACHE_KEY: users})  # fmt: skip

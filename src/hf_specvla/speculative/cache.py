@@ -25,6 +25,7 @@ here and is refused before the first forward.
 
 from __future__ import annotations
 
+import weakref
 from contextlib import contextmanager
 
 import torch
@@ -106,16 +107,21 @@ def check_rollback_cache(cache: Cache, max_length: int, batch_size: int = 1, pad
                 )
 
 
-def with_draft_slots(config, cache: Cache | None, slots: int, multiple: int = 1) -> Cache | None:
-    """``generate``'s own static cache (``cache_implementation="static"``) rebuilt with ``slots`` more slots, so that
-    a draft tree fits beside the tokens greedy decoding would store (``generate`` sizes it for those alone); the new
-    cache is allocated lazily, at the prefill, like the one it replaces. A cache the user passed, a cache already
-    holding entries, or any other cache is returned as it is (a user's static cache: trees are cut to its free slots).
-    With sliding-window layers (which hold at most their window) it grows only up to the window, so that every layer
-    keeps the same number of slots (one explicit mask serves them all).
+#: per model, the static caches [`with_draft_slots`] built, by (slots, offloading, dtype, device): reused by later calls
+_DRAFT_SLOT_CACHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def with_draft_slots(model, cache: Cache | None, slots: int, multiple: int = 1) -> Cache | None:
+    """``generate``'s own static cache (``cache_implementation="static"``) replaced by one with ``slots`` more slots, so
+    that a draft tree fits beside the tokens greedy decoding would store (``generate`` sizes it for those alone). The
+    larger cache is kept per model and size and reused, emptied, by later calls (its buffers keep their addresses, as
+    compiled graphs want); a new one is allocated lazily, at the prefill, like the one it replaces. A cache the user
+    passed, a cache already holding entries, or any other cache is returned as it is (a user's static cache: trees
+    are cut to its free slots). With sliding-window layers (which hold at most their window) it grows only up to the
+    window, so that every layer keeps the same number of slots (one explicit mask serves them all).
 
     Args:
-        config: the target's config (its decoder's text config is read, as ``generate`` does).
+        model: the target (its decoder's text config is read, as ``generate`` does; its dtype and device key reuse).
         multiple: the slot count is rounded up to a multiple of this (compiled graphs hold the cache's shape: prompts
             of different lengths then share one graph per width).
     """
@@ -131,8 +137,15 @@ def with_draft_slots(config, cache: Cache | None, slots: int, multiple: int = 1)
         if slots <= 0 or any(w != capacity for w in windows):
             return cache
     offloading = bool(getattr(cache, "offloading", False))
-    text_config = config.get_text_config(decoder=True)
-    return StaticCache(config=text_config, max_cache_len=capacity + slots, offloading=offloading)
+    key = (capacity + slots, offloading, model.dtype, model.device)
+    built = _DRAFT_SLOT_CACHES.setdefault(model, {})
+    larger = built.get(key)
+    if larger is not None and [type(layer) for layer in larger.layers] == [type(layer) for layer in cache.layers]:
+        larger.reset()
+        return larger
+    text_config = model.config.get_text_config(decoder=True)
+    larger = built[key] = StaticCache(config=text_config, max_cache_len=capacity + slots, offloading=offloading)
+    return larger
 
 
 def static_capacity(cache: Cache) -> int | None:
@@ -245,6 +258,28 @@ def select_cache_positions(cache: Cache, positions: torch.Tensor) -> None:
             heads, dim = layer.keys.shape[1], layer.keys.shape[-1]
             index = positions[:, None, :, None].expand(-1, heads, -1, dim)  # [B, H_kv, K, D]
             _stored(layer, layer.keys.gather(2, index), layer.values.gather(2, index))
+
+
+def keep_cache_path(cache: Cache, base: int, path: torch.Tensor) -> None:
+    """Keeps the first ``base`` entries of every layer followed by the entries at ``base + path`` (a tree's accepted
+    path), in place: only the path's entries move (a static layer: copied into the slots after ``base``).
+
+    Args:
+        base: the entries before the tree's (all kept).
+        path: ``[B, A]`` int64 offsets of the kept nodes within the tree (row b keeps ``path[b]``).
+    """
+    length = path.shape[1]
+    for layer in _stored_layers(cache):
+        heads, dim = layer.keys.shape[1], layer.keys.shape[-1]
+        index = (base + path)[:, None, :, None].expand(-1, heads, -1, dim)  # [B, H_kv, A, D]
+        keys, values = layer.keys.gather(2, index), layer.values.gather(2, index)  # copies: no overlap with the slots
+        if type(layer) in STATIC_LAYER_TYPES:
+            layer.keys[..., base : base + length, :].copy_(keys)
+            layer.values[..., base : base + length, :].copy_(values)
+            _set_static_length(layer, base + length)
+        else:
+            prefix_keys, prefix_values = layer.keys[..., :base, :], layer.values[..., :base, :]
+            _stored(layer, torch.cat([prefix_keys, keys], dim=-2), torch.cat([prefix_values, values], dim=-2))
 
 
 def select_cache_rows(cache: Cache, rows: torch.Tensor) -> None:

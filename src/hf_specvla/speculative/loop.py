@@ -41,6 +41,7 @@ from .acceptance import AcceptanceRule, AcceptedPath, accept_trees, make_accepta
 from .cache import (
     cache_length,
     check_rollback_cache,
+    keep_cache_path,
     open_sliding_windows,
     select_cache_positions,
     select_cache_rows,
@@ -317,8 +318,7 @@ def commit_paths(
     if all(p.nodes == list(range(len(p.nodes))) for p in paths):  # leftmost paths (chains): a prefix, truncate
         truncate_cache(state.target_cache, base + longest)  # a shorter row's extra entries become invalid keys
     else:
-        keep = torch.cat([torch.arange(base, device=device).expand(batch_size, -1), base + node_index], dim=1)
-        select_cache_positions(state.target_cache, keep)
+        keep_cache_path(state.target_cache, base, node_index)
     valid_before = state.key_valid
     if valid_before is None:
         valid_before = torch.ones(batch_size, base, dtype=torch.bool, device=device)
@@ -651,9 +651,7 @@ def speculative_generate(
 
     padded = prompt_padding is not None
     # generate's own static cache holds the tokens greedy decoding stores; a tree needs slots beside them
-    model_kwargs[CACHE_KEY] = with_draft_slots(
-        model.config, model_kwargs.get(CACHE_KEY), NODE_BUCKETS[-1], SLOT_MULTIPLE
-    )
+    model_kwargs[CACHE_KEY] = with_draft_slots(model, model_kwargs.get(CACHE_KEY), NODE_BUCKETS[-1], SLOT_MULTIPLE)
     if model_kwargs.get(CACHE_KEY) is not None:
         check_rollback_cache(model_kwargs[CACHE_KEY], generation_config.max_length, batch_size, padded)
     model_inputs = prefill_inputs(model, input_ids, model_kwargs)

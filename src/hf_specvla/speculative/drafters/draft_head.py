@@ -126,6 +126,34 @@ class DraftHeadDrafter(Drafter):
             self.name = "head-tree"
         self.tree_config = tree
         self.action_layout = draft_head.config.action_layout()
+        # reused across calls, like generate's own static cache (one compiled call at a time per drafter)
+        self._static_caches: dict[tuple, StaticCache] = {}
+        self._llama_config = None  # the head's config as transformers' caches read it (built at first use)
+        self._architecture: str | None = None  # the head's config as JSON: what its compiled round depends on
+
+    def static_cache(self, key_length: int) -> StaticCache:
+        """The head's static cache of ``key_length`` slots, emptied: allocated once per size and reused by every later
+        compiled call (as ``generate`` reuses its own; its buffers keep their addresses for compiled graphs)."""
+        weights = self.draft_head.fuse.weight
+        key = (key_length, weights.dtype, weights.device)
+        cache = self._static_caches.get(key)
+        if cache is None:
+            if self._llama_config is None:
+                self._llama_config = self.draft_head.config.to_llama_config()
+            cache = self._static_caches[key] = StaticCache(config=self._llama_config, max_cache_len=key_length)
+        else:
+            cache.reset()
+        return cache
+
+    def round_graph_key(self, compile_config, key_length: int, graph_depth: int) -> tuple:
+        """What a compiled round's graph depends on: heads of one architecture share it (parameters are graph
+        inputs), whatever their weights."""
+        if self._architecture is None:
+            self._architecture = self.draft_head.config.to_json_string()
+        tree = (self.tree_config.top_k, self.tree_config.depth, self.tree_config.total_tokens)
+        weights = self.draft_head.fuse.weight
+        return ("draft-head round", self._architecture, weights.dtype, weights.device,
+                compile_settings(compile_config), key_length, tree, graph_depth)  # fmt: skip
 
     def start(self, context: DraftContext) -> DraftSession:
         handles = self.draft_head.target_handles(context.model)
@@ -142,6 +170,7 @@ class _DraftHeadSession(DraftSession):
     first compiled round; otherwise the same expansion runs eagerly on a ``DynamicCache``."""
 
     def __init__(self, drafter: DraftHeadDrafter, handles: TargetHandles, scorer: DraftScorer, context: DraftContext):
+        self.drafter = drafter
         self.head, self.config, self.name = drafter.draft_head, drafter.tree_config, drafter.name
         self.scorer, self.prompt_padding = scorer, context.prompt_padding
         self.embed = partial(embed_tokens, handles)
@@ -153,7 +182,7 @@ class _DraftHeadSession(DraftSession):
             tree_entries = num_head_entries(self.config.top_k, self.config.depth)
             entries = context.max_length + self.num_padded_pairs + tree_entries
             self.key_length = -(-entries // SLOT_MULTIPLE) * SLOT_MULTIPLE
-            self.cache = StaticCache(config=self.head.config.to_llama_config(), max_cache_len=self.key_length)
+            self.cache = drafter.static_cache(self.key_length)
             self.compiled_round = compiled_function(catch_up_and_expand, self.compile_config, graphs=1)
         self.graph_depth: int | None = None  # the depth this call's compiled rounds expand to (its first round's)
         self.cache_length = 0  # committed entries in self.cache
@@ -283,11 +312,7 @@ class _DraftHeadSession(DraftSession):
     def _compile_round(self, run) -> None:
         """Compiles this call's round graph (``graph_depth``) before its first compiled round, so that nothing compiles
         mid-call (a throw-away round on the real inputs; the cache keeps its entries)."""
-        tree = (self.config.top_k, self.config.depth, self.config.total_tokens)
-        weights = self.head.fuse.weight
-        # what the graph depends on: heads of one architecture share it (parameters are graph inputs)
-        key = ("draft-head round", self.head.config.to_json_string(), weights.dtype, weights.device,
-               compile_settings(self.compile_config), self.key_length, tree, self.graph_depth)  # fmt: skip
+        key = self.drafter.round_graph_key(self.compile_config, self.key_length, self.graph_depth)
         seconds = compile_once(key, partial(run, self.graph_depth))
         if seconds:
             self.compile_seconds += seconds
