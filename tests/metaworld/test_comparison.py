@@ -28,6 +28,24 @@ def test_paired_difference_known_answers():
         paired_difference([True], [True, False])
 
 
+def test_jacobi_methods_build_their_drafters(random_draft):
+    from hf_specvla import ComposedDrafter, DraftHeadDrafter, JacobiDrafter
+
+    assert DecodingMethod.parse("prior+jacobi+tree:r=4:compile").name == "prior+jacobi+tree:r=4:compile"
+    alone = DecodingMethod.parse("jacobi").generate_kwargs(None)["assistant_model"]
+    assert isinstance(alone, JacobiDrafter) and alone.fill  # it fills the rounds nothing else drafts
+    kwargs = DecodingMethod.parse("prior+jacobi").generate_kwargs(None)
+    assert kwargs["action_prior"] and isinstance(kwargs["assistant_model"], JacobiDrafter)
+    kwargs = DecodingMethod.parse("prior+jacobi+tree:r=2").generate_kwargs(random_draft)
+    composed = kwargs["assistant_model"]
+    assert isinstance(composed, ComposedDrafter) and kwargs["action_prior"] and kwargs["bin_tolerance"] == 2
+    jacobi, tree = composed.drafters
+    assert isinstance(jacobi, JacobiDrafter) and not jacobi.fill  # beside a tree, the tree drafts every round
+    assert isinstance(tree, DraftHeadDrafter) and tree.tree_config is not None
+    with pytest.raises(ValueError, match="needs a draft head"):
+        DecodingMethod.parse("jacobi+tree").generate_kwargs(None)
+
+
 def test_method_names():
     assert DecodingMethod.parse("prior+tree:r=4") == DecodingMethod("prior+tree", 4)
     assert DecodingMethod.parse("head:k=3").name == "head:k=3"
@@ -45,6 +63,8 @@ def test_method_names():
     assert "compile_config" not in DecodingMethod.parse("prior").generate_kwargs(None)
     with pytest.raises(ValueError, match=re.escape("valid: " + ", ".join(DRAFTER_CHOICES))):
         DecodingMethod.parse("eagle")
+    with pytest.raises(ValueError, match=re.escape("'jacobi+head' is not a drafter; valid: greedy, head")):
+        DecodingMethod.parse("jacobi+head")
     for bad, message in [("prior:k=3", "needs the head chain"), ("greedy:r=2", "takes no r or k"),
                          ("prior:x=1", "bad option 'x=1'"), ("head:k=0", "k must be >= 1"),
                          ("prior:r=-1", "r must be an integer >= 0"), ("prior:r=x", "bad option 'r=x'"),

@@ -5,7 +5,16 @@ import numpy as np
 import pytest
 import torch
 
-from hf_specvla import ActionLayout, ActionNormalizer, ActionPriorDrafter, DraftHead, DraftHeadDrafter, DraftTreeConfig
+from hf_specvla import (
+    ActionLayout,
+    ActionNormalizer,
+    ActionPriorDrafter,
+    ComposedDrafter,
+    DraftHead,
+    DraftHeadDrafter,
+    DraftTreeConfig,
+    JacobiDrafter,
+)
 from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
 from hf_specvla.training.behaviour_cloning import action_chunk_indices, decoder_layer_map, grow_from
 
@@ -90,12 +99,18 @@ def drafters(policy: VLAPolicy) -> dict:
     torch.manual_seed(1)
     head = DraftHead.from_target(policy.model, policy.action_tokenizer, action_dim=4, num_draft_tokens=3).eval()
     tree = DraftHeadDrafter(head, tree=DraftTreeConfig(top_k=3, depth=4, total_tokens=10))
+    jacobi_tree = ComposedDrafter([JacobiDrafter(fill=False), tree])
     return {"head": dict(assistant_model=head), "tree": dict(assistant_model=tree), "prior": dict(action_prior=True),
-            "prior+tree": dict(action_prior=True, assistant_model=tree)}  # fmt: skip
+            "prior+tree": dict(action_prior=True, assistant_model=tree),
+            "jacobi": dict(assistant_model=JacobiDrafter()),
+            "prior+jacobi": dict(action_prior=True, assistant_model=JacobiDrafter()),
+            "prior+jacobi+tree": dict(action_prior=True, assistant_model=jacobi_tree)}  # fmt: skip
 
 
 @pytest.mark.parametrize("cache", ["dynamic", "static"])
-@pytest.mark.parametrize("method", ["head", "tree", "prior", "prior+tree"])
+@pytest.mark.parametrize(
+    "method", ["head", "tree", "prior", "prior+tree", "jacobi", "prior+jacobi", "prior+jacobi+tree"]
+)
 def test_r0_gives_greedys_chunk_for_every_drafter(chunked, method, cache):
     """Against plain greedy on the default cache; ``predict_action`` passes ``cache_implementation`` through."""
     kwargs = dict(drafters(chunked)[method])

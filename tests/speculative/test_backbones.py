@@ -35,7 +35,16 @@ from transformers import (
 )
 from transformers.cache_utils import DynamicIndexedLayer, DynamicSlidingWindowLayer, StaticCache
 
-from hf_specvla import ActionLayout, ActionTokenizer, DraftHead, DraftHeadDrafter, DraftTreeConfig, enable_speculation
+from hf_specvla import (
+    ActionLayout,
+    ActionTokenizer,
+    ComposedDrafter,
+    DraftHead,
+    DraftHeadDrafter,
+    DraftTreeConfig,
+    JacobiDrafter,
+    enable_speculation,
+)
 from hf_specvla.speculative import CACHE_KEY, cache_of
 
 VOCAB = 320  # ids 64..319 are the 256 action bins
@@ -208,6 +217,20 @@ def test_untrained_head_chain_and_tree_decode_exactly(backbone):
         assert torch.equal(greedy(backbone.model, inputs, assistant_model=assistant), expected)
 
 
+def test_jacobi_drafts_decode_exactly(backbone):
+    """The target's own guesses past a rejection: alone (from a fill chain), after wrong drafts in the prefill, and
+    beside the head's tree."""
+    inputs = backbone.inputs([4], seed=4)
+    expected = greedy(backbone.model, inputs)
+    wrong = expected[:, inputs["input_ids"].shape[1] : -1].clone()
+    wrong[:, 1] = (wrong[:, 1] + 1) % VOCAB
+    tree = DraftHeadDrafter(untrained_head(backbone.model), tree=DraftTreeConfig(top_k=3, depth=4, total_tokens=12))
+    jacobi_tree = ComposedDrafter([JacobiDrafter(fill=False), tree])
+    for kwargs in (dict(assistant_model=JacobiDrafter()), dict(draft_ids=wrong, assistant_model=JacobiDrafter()),
+                   dict(draft_ids=wrong, assistant_model=jacobi_tree)):  # fmt: skip
+        assert torch.equal(greedy(backbone.model, inputs, **kwargs), expected), kwargs
+
+
 def test_left_padded_batch_decodes_like_batched_greedy(backbone):
     inputs = backbone.inputs([3, 7, 5], seed=1)
     expected = greedy(backbone.model, inputs)
@@ -215,7 +238,8 @@ def test_left_padded_batch_decodes_like_batched_greedy(backbone):
     tree = DraftHeadDrafter(head, tree=DraftTreeConfig(top_k=3, depth=4, total_tokens=12))
     drafts = expected[:, inputs["input_ids"].shape[1] : -1].clone()
     drafts[1, 1] = (drafts[1, 1] + 1) % VOCAB  # row 1 rejects early, rows 0 and 2 pass: ragged acceptance
-    for kwargs in (dict(assistant_model=head), dict(assistant_model=tree), dict(draft_ids=drafts)):
+    for kwargs in (dict(assistant_model=head), dict(assistant_model=tree), dict(draft_ids=drafts),
+                   dict(draft_ids=drafts, assistant_model=JacobiDrafter())):  # fmt: skip
         assert torch.equal(greedy(backbone.model, inputs, **kwargs), expected), kwargs
 
 
@@ -244,7 +268,8 @@ def test_static_cache_decodes_exactly(backbone):
     tree = DraftHeadDrafter(head, tree=DraftTreeConfig(top_k=3, depth=4, total_tokens=12))
     candidates = torch.stack([wrong, (right + 7) % VOCAB, right[:, [0, 0, 0, 0, 0, 0]]], dim=1)
     calls = [dict(draft_ids=right), dict(draft_ids=wrong), dict(draft_ids=candidates), dict(assistant_model=head),
-             dict(assistant_model=tree), dict(draft_ids=wrong, assistant_model=tree)]  # fmt: skip
+             dict(assistant_model=tree), dict(draft_ids=wrong, assistant_model=tree),
+             dict(draft_ids=wrong, assistant_model=JacobiDrafter())]  # fmt: skip
     buffers = BufferAddresses(backbone.model)
     for kwargs in calls:
         buffers.seen = set()

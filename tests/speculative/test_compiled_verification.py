@@ -14,7 +14,7 @@ import torch
 from transformers import AutoConfig, AutoModelForCausalLM, CompileConfig, LlamaForCausalLM
 from transformers.cache_utils import StaticCache
 
-from hf_specvla import DraftHead, DraftHeadDrafter, DraftTreeConfig, enable_speculation
+from hf_specvla import DraftHead, DraftHeadDrafter, DraftTreeConfig, JacobiDrafter, enable_speculation
 from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
 from hf_specvla.speculative import CACHE_KEY, NODE_BUCKETS, cache_of, verification_width
 from hf_specvla.speculative.compiled import SLOT_MULTIPLE, check_buckets, reset_compilation
@@ -64,7 +64,8 @@ def calls_for(model, input_ids, expected):
     wrong[:, 2] = (wrong[:, 2] + 1) % VOCAB
     candidates = torch.stack([wrong, (right + 7) % VOCAB], dim=1)
     return [dict(draft_ids=right), dict(draft_ids=wrong), dict(draft_ids=candidates), dict(assistant_model=head),
-            dict(assistant_model=tree), dict(draft_ids=wrong, assistant_model=tree)]  # fmt: skip
+            dict(assistant_model=tree), dict(draft_ids=wrong, assistant_model=tree),
+            dict(assistant_model=JacobiDrafter()), dict(draft_ids=wrong, assistant_model=JacobiDrafter())]  # fmt: skip
 
 
 @pytest.mark.parametrize("name", ["llama", "gemma2"])
@@ -170,7 +171,7 @@ def test_compiled_verification_in_a_chunked_policy():
         image, state = chunk_observation(seed)
         policy.previous_action_ids = list(history)
         _, plain = policy.predict_action(image, "reach the goal", state, return_output=True)
-        for name in ("tree", "prior", "prior+tree"):
+        for name in ("tree", "prior", "prior+tree", "prior+jacobi", "prior+jacobi+tree"):
             policy.previous_action_ids = list(history)
             _, out = policy.predict_action(image, "reach the goal", state, return_output=True, **compiled,
                                            **methods[name])  # fmt: skip

@@ -18,6 +18,7 @@ import torch
 from ..actions.tokenizer import ActionTokenizer
 from ..progress import progress_bar
 from ..speculative import ActionPriorDrafter, SpeculationStats
+from ..speculative.stats import add_counts
 
 
 @dataclass
@@ -166,6 +167,8 @@ class EpisodeMethodResult:
     draft_seconds: float = 0.0
     total_seconds: float = 0.0
     split_seconds: dict[str, float] = field(default_factory=dict)  # where the time goes, summed over calls
+    jacobi_guesses: list[int] = field(default_factory=list)  # [j] Jacobi guesses of the j-th token after a bonus
+    jacobi_right: list[int] = field(default_factory=list)  # [j] of them, right
 
     @property
     def median_latency(self) -> float:
@@ -305,6 +308,8 @@ def run_episode_benchmark(
                         result.draft_forwards.append(spec.num_draft_forwards if spec else 0)
                         result.new_tokens.append(spec.num_new_tokens if spec else action_dim)
                         if spec is not None:
+                            result.jacobi_guesses = add_counts(result.jacobi_guesses, spec.jacobi_guesses_per_position)
+                            result.jacobi_right = add_counts(result.jacobi_right, spec.jacobi_right_per_position)
                             result.target_seconds += spec.target_seconds
                             result.draft_seconds += spec.draft_seconds
                             result.total_seconds += spec.total_seconds
@@ -318,6 +323,23 @@ def run_episode_benchmark(
                         results[name].bin_distances.extend(abs(a - b) for a, b in zip(ids, reference))
                     bar.update(1)
     return [results[m.name] for m in methods]
+
+
+def format_jacobi_report(results: list[EpisodeMethodResult]) -> str:
+    """Markdown table: how often the methods' Jacobi guesses were right, by position after the bonus token (empty
+    when no method drafted Jacobi tails)."""
+    rows = [r for r in results if r.jacobi_guesses]
+    if not rows:
+        return ""
+    width = max(len(r.jacobi_guesses) for r in rows)
+    lines = ["Jacobi guesses right (the target's argmax past a rejection, by position after the bonus token; "
+             "right / checked):", "", "| method | " + " | ".join(f"+{j + 1}" for j in range(width)) + " |",
+             "|---|" + "---:|" * width]  # fmt: skip
+    for r in rows:
+        cells = [f"{right / guesses:.0%} ({guesses})" if guesses else "-"
+                 for right, guesses in zip(r.jacobi_right + [0] * width, r.jacobi_guesses + [0] * width)]  # fmt: skip
+        lines.append(f"| {r.name} | " + " | ".join(cells[:width]) + " |")
+    return "\n".join(lines)
 
 
 def format_episode_report(results: list[EpisodeMethodResult]) -> str:
@@ -354,7 +376,8 @@ def format_episode_report(results: list[EpisodeMethodResult]) -> str:
             calls = len(r.latencies)
             cells = [f"{1000 * r.split_seconds[part] / calls:.1f}" for part in TIME_SPLIT]
             lines.append(f"| {r.name} | " + " | ".join(cells) + f" | {1000 * sum(r.latencies) / calls:.1f} |")
-    return "\n".join(lines)
+    jacobi = format_jacobi_report(results)
+    return "\n".join(lines + (["", jacobi] if jacobi else []))
 
 
 def episode_methods(
@@ -379,24 +402,28 @@ def episode_methods(
 
 
 def _episode_methods(draft_head, bin_tolerances, tree, chain_length: int) -> list[EpisodeMethod]:
-    from ..speculative import DraftHeadDrafter
+    from ..speculative import ComposedDrafter, DraftHeadDrafter, JacobiDrafter
 
     methods = [EpisodeMethod("greedy")]
     for r in bin_tolerances:
         methods.append(EpisodeMethod(f"prior r={r}", dict(bin_tolerance=r), action_prior=True))
+    relaxed = max([r for r in bin_tolerances if 0 < r <= 4], default=None)
+    tolerances = [0] + ([relaxed] if relaxed else [])
+    jacobi = JacobiDrafter()
+    methods.append(EpisodeMethod("jacobi r=0", dict(assistant_model=jacobi)))
+    for r in tolerances:
+        methods.append(EpisodeMethod(f"prior+jacobi r={r}", dict(assistant_model=jacobi, bin_tolerance=r), True))
     if draft_head is None:
         return methods
     chain = DraftHeadDrafter(draft_head, num_draft_tokens=chain_length)
     tree_drafter = DraftHeadDrafter(draft_head, tree=tree) if tree is not None else None
-    relaxed = max([r for r in bin_tolerances if 0 < r <= 4], default=None)
     methods.append(EpisodeMethod(f"head chain k={chain_length} r=0", dict(assistant_model=chain)))
     if tree_drafter is not None:
-        for r in [0] + ([relaxed] if relaxed else []):
-            methods.append(EpisodeMethod(f"head tree r={r}", dict(assistant_model=tree_drafter, bin_tolerance=r)))
-        for r in [0] + ([relaxed] if relaxed else []):
-            methods.append(
-                EpisodeMethod(f"prior+tree r={r}", dict(assistant_model=tree_drafter, bin_tolerance=r), True)
-            )
+        jacobi_tree = ComposedDrafter([JacobiDrafter(fill=False), tree_drafter])
+        for name, drafter, prior in (("head tree", tree_drafter, False), ("prior+tree", tree_drafter, True),
+                                     ("prior+jacobi+tree", jacobi_tree, True)):  # fmt: skip
+            for r in tolerances:
+                methods.append(EpisodeMethod(f"{name} r={r}", dict(assistant_model=drafter, bin_tolerance=r), prior))
     return methods
 
 

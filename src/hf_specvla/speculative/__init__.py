@@ -34,7 +34,15 @@ from .drafter import (
     DraftSession,
     PerRowDrafter,
 )
-from .drafters import ActionPriorDrafter, DraftHeadDrafter, DraftTreeConfig, with_action_prior, with_action_priors
+from .drafters import (
+    ActionPriorDrafter,
+    DraftHeadDrafter,
+    DraftTreeConfig,
+    JacobiDrafter,
+    jacobi_tail,
+    with_action_prior,
+    with_action_priors,
+)
 from .drafters.draft_head import embed_tokens
 from .generation import SPECULATION_KWARGS, SpeculativeGenerationMixin, disable_speculation, enable_speculation
 from .loop import as_drafter, speculative_generate
@@ -66,6 +74,7 @@ __all__ = [
     "softcap_logits",
     "with_action_prior",
     "with_action_priors",
+    "jacobi_tail",
     "AcceptanceRule",
     "AcceptedPath",
     "ActionPriorDrafter",
@@ -77,6 +86,7 @@ __all__ = [
     "DraftHead",
     "DraftHeadConfig",
     "DraftHeadDrafter",
+    "JacobiDrafter",
     "DraftRound",
     "DraftSession",
     "DraftTree",

@@ -12,21 +12,22 @@ transformers has the same split (``CandidateGenerator.get_candidates`` / ``updat
 proposal is a tree, and drafts known before the target has run are verified inside the prefill itself.
 
 Built in: [`DraftHeadDrafter`] (EAGLE chain and EAGLE-2 dynamic tree), [`ActionPriorDrafter`] (previous actions, no
-model), [`CandidateDrafter`] (``generate(draft_ids=...)``), and [`ComposedDrafter`] (several at once: their trees
-are merged, so drafts known up front are verified at the prefill and a draft head continues from wherever they
-stop being accepted).
+model), [`JacobiDrafter`] (the target's own guesses past a rejection, no model), [`CandidateDrafter`]
+(``generate(draft_ids=...)``), and [`ComposedDrafter`] (several at once: their trees are merged, so drafts known up
+front are verified at the prefill and a draft head continues from wherever they stop being accepted).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import torch
 from transformers import CompileConfig, PreTrainedModel
 
 from ..actions.tokenizer import ActionLayout
 from .config import NOT_ENABLED_HINT
+from .stats import SpeculationStats
 from .tree import DraftTree
 
 
@@ -68,6 +69,8 @@ class DraftRound:
         max_depth: the deepest path the loop will verify (so that path + bonus token fit ``max_length``).
         at_prefill: True before the target's first forward (no hidden states exist yet).
         root_position: ``[1, 1]`` position id of the root; a node at depth d is fed at ``root_position + 1 + d``.
+        proposed: what the drafters before this one in a [`ComposedDrafter`] proposed this round (None: none did, or
+            the drafter drafts alone).
     """
 
     sequence: torch.Tensor
@@ -75,6 +78,7 @@ class DraftRound:
     max_depth: int
     at_prefill: bool
     root_position: torch.Tensor
+    proposed: DraftTree | None = None
 
 
 @dataclass
@@ -91,12 +95,20 @@ class Commit:
             asked for hidden states (``Drafter.needs_hidden_states``).
         cache_length: the entries the row has kept so far (its prompt, padding included, and its emitted tokens
             but the last): the length a drafter's own cache of the row has once it has seen this commit.
+        tree: the row's verified tree (N nodes; the prompt's tree at the prefill).
+        tree_target_ids: ``[1 + N]`` the target's greedy token after the root (0) and after each node (1 + i), each
+            given that node's own path: past the accepted path these are the target's guesses on rejected prefixes
+            (what [`JacobiDrafter`] drafts next).
+        path_nodes: the accepted path's node indices in ``tree`` (root's child first).
     """
 
     next_token_ids: torch.Tensor
     positions: torch.Tensor
     target_hidden: torch.Tensor | None
     cache_length: int
+    tree: DraftTree | None = None
+    tree_target_ids: torch.Tensor | None = None
+    path_nodes: list[int] = field(default_factory=list)
 
 
 class DraftSession:
@@ -112,6 +124,10 @@ class DraftSession:
 
     def observe(self, commit: Commit) -> None:
         """Told what the verification kept. Default: nothing to update."""
+
+    def report(self, stats: SpeculationStats, sequence: torch.Tensor) -> None:
+        """Adds what the session alone knows to the row's statistics, once the call has ended (``sequence``
+        ``[1, L]``: the row's final tokens). Default: nothing to add."""
 
 
 class Drafter:
@@ -196,12 +212,16 @@ class _ComposedSession(DraftSession):
     def propose(self, draft_round: DraftRound) -> DraftTree:
         tree = DraftTree.empty(draft_round.sequence.device)
         for session in self.sessions:
-            tree = tree.merge(session.propose(draft_round))
+            tree = tree.merge(session.propose(replace(draft_round, proposed=tree)))
         return tree
 
     def observe(self, commit: Commit) -> None:
         for session in self.sessions:
             session.observe(commit)
+
+    def report(self, stats: SpeculationStats, sequence: torch.Tensor) -> None:
+        for session in self.sessions:
+            session.report(stats, sequence)
 
 
 class ComposedDrafter(Drafter):

@@ -3,7 +3,7 @@
 Reads as a ladder (gpt-fast style), the same steps every round, the prefill included:
 
     propose (drafters) -> fit_trees -> verify (one target forward) -> accept -> emit -> commit_paths -> observe
-    (drafters) -> drop finished rows -> repeat until every row has stopped
+    (drafters) -> drop finished rows -> repeat until every row has stopped -> report (drafters' statistics)
 
 each step a short function below; what every round reads is decided once, before the prefill ([`RoundPlan`]: the
 acceptance rule, the static cache's slots, the compiled model call when ``compile_config`` asks for one).
@@ -294,6 +294,7 @@ def commit_paths(
     trees: TreeBatch,
     paths: list[AcceptedPath],
     hidden: torch.Tensor | None,
+    target_ids: torch.Tensor | None = None,
 ) -> list[Commit]:
     """Keeps, for every row, its pending tokens and its accepted path in the target cache; says so to drafters.
 
@@ -304,8 +305,10 @@ def commit_paths(
 
     Args:
         hidden: ``[B, P + N, H]`` the target's hidden states of the verification, or None.
+        target_ids: ``[B, 1 + N]`` the target's greedy token after each row's root and each node, or None.
     Returns:
-        one [`Commit`] per row: kept inputs = pending tokens + path nodes; the token after each; hidden states.
+        one [`Commit`] per row: kept inputs = pending tokens + path nodes; the token after each; hidden states; the
+        verified tree, the target's tokens on it and the accepted path.
     """
     batch_size, num_pending = state.pending_ids.shape
     base = cache_length(state.target_cache) - trees.num_nodes  # cache entries before the tree's
@@ -340,6 +343,9 @@ def commit_paths(
                 positions=torch.cat([state.pending_positions[b : b + 1], path_positions], dim=1),
                 target_hidden=kept_hidden,
                 cache_length=row.committed_length,
+                tree=trees.trees[b],
+                tree_target_ids=None if target_ids is None else target_ids[b, : 1 + trees.trees[b].num_nodes],
+                path_nodes=path.nodes,
             )
         )
     state.pending_ids = torch.cat([c.next_token_ids[:, -1:] for c in commits])  # [B, 1] the bonus tokens
@@ -500,16 +506,16 @@ def verify(
 
 def accept(
     state: DecodeState, plan: RoundPlan, trees: TreeBatch, output: TargetOutput, logits_processor: LogitsProcessorList
-) -> tuple[list[AcceptedPath], torch.Tensor]:
+) -> tuple[list[AcceptedPath], torch.Tensor, torch.Tensor]:
     """3. Per row, the longest passing path; its bonus token is the target's greedy choice after it.
 
     Returns:
-        (the accepted paths, the processed scores ``[B, 1 + N, V]``)."""
+        (the accepted paths, the target's greedy ids ``[B, 1 + N]``, the processed scores ``[B, 1 + N, V]``)."""
     target_ids, target_scores = target_greedy_ids(
         logits_processor, [row.sequence for row in state.rows], trees, output.logits
     )
     action_counts = [row.num_action_tokens for row in state.rows]
-    return accept_trees(trees, target_ids, plan.rule, plan.layout, action_counts), target_scores
+    return accept_trees(trees, target_ids, plan.rule, plan.layout, action_counts), target_ids, target_scores
 
 
 def emit(
@@ -701,9 +707,9 @@ def speculative_generate(
             with stopwatch.section("target_seconds"):
                 output = verify(model, state, plan, trees, model_inputs if at_prefill else None)
             stats.num_batch_forwards += 1
-            paths, target_scores = accept(state, plan, trees, output, logits_processor)
+            paths, target_ids, target_scores = accept(state, plan, trees, output, logits_processor)
             emit(state, plan, trees, paths, output, target_scores, stopping_criteria)
-            commits = commit_paths(state, trees, paths, output.hidden)
+            commits = commit_paths(state, trees, paths, output.hidden, target_ids)
             with stopwatch.section("draft_seconds"):
                 observe(state, commits)
             if compiled is not None and at_prefill:  # every width compiled before the first compiled round
@@ -713,6 +719,7 @@ def speculative_generate(
 
     for row in all_rows:
         row.stats.num_draft_forwards = row.session.num_forwards
+        row.session.report(row.stats, row.sequence)
         stats.rows.append(row.stats)
     stats.absorb_rows()
     stats.compile_seconds += sum(row.session.compile_seconds for row in all_rows)

@@ -32,6 +32,9 @@ class SpeculationStats:
             inside ``draft_seconds``).
         compiled_widths: the node count (width bucket, filler included) of each verification that ran through the
             compiled model call (see ``speculative.compiled``); empty when every forward ran eagerly.
+        jacobi_guesses_per_position / jacobi_right_per_position: ``[j]`` = how many of the target's guesses of the
+            j-th token after a bonus token ([`JacobiDrafter`]'s tails, j = 0 first) reached a position the row emitted /
+            equalled the token emitted there (whether or not they were verified).
         rows: one [`SpeculationStats`] per batch row (B > 1 only; their times are 0: a batch forward is shared).
     """
 
@@ -48,6 +51,8 @@ class SpeculationStats:
     num_batch_forwards: int = 0
     compiled_widths: list[int] = field(default_factory=list)
     compile_seconds: float = 0.0
+    jacobi_guesses_per_position: list[int] = field(default_factory=list)
+    jacobi_right_per_position: list[int] = field(default_factory=list)
     rows: list[SpeculationStats] = field(default_factory=list)
 
     @property
@@ -70,6 +75,16 @@ class SpeculationStats:
         """Fraction of verifications that accepted a drafted token at each depth, among those that drafted one."""
         return [a / d if d else 0.0 for a, d in zip(self.accepted_per_position, self.drafted_per_position)]
 
+    @property
+    def jacobi_right_rate_per_position(self) -> list[float]:
+        """Fraction of the Jacobi guesses of the j-th token after a bonus token that were right."""
+        return [r / g if g else 0.0 for r, g in zip(self.jacobi_right_per_position, self.jacobi_guesses_per_position)]
+
+    def record_guesses(self, right: list[bool]) -> None:
+        """Books one tail of guesses checked against the emitted tokens (``right[j]``: the j-th guess was right)."""
+        self.jacobi_guesses_per_position = add_counts(self.jacobi_guesses_per_position, [1] * len(right))
+        self.jacobi_right_per_position = add_counts(self.jacobi_right_per_position, [int(r) for r in right])
+
     def record_verification(self, tree_depth: int, tree_size: int, accepted_sources: list[str]) -> None:
         """Books one target forward that verified a tree of ``tree_size`` nodes and ``tree_depth`` levels and
         accepted a path whose nodes came from ``accepted_sources`` (one name per accepted token)."""
@@ -89,10 +104,14 @@ class SpeculationStats:
             self.accept_lengths += row.accept_lengths
             self.tree_sizes += row.tree_sizes
             self.num_draft_forwards += row.num_draft_forwards
-            self.drafted_per_position = _add_padded(self.drafted_per_position, row.drafted_per_position)
-            self.accepted_per_position = _add_padded(self.accepted_per_position, row.accepted_per_position)
+            self.drafted_per_position = add_counts(self.drafted_per_position, row.drafted_per_position)
+            self.accepted_per_position = add_counts(self.accepted_per_position, row.accepted_per_position)
             self.accepted_by_drafter += row.accepted_by_drafter
             self.action_bin_distances += row.action_bin_distances
+            self.jacobi_guesses_per_position = add_counts(
+                self.jacobi_guesses_per_position, row.jacobi_guesses_per_position
+            )
+            self.jacobi_right_per_position = add_counts(self.jacobi_right_per_position, row.jacobi_right_per_position)
 
     def merge(self, other: SpeculationStats) -> SpeculationStats:
         """Sum of two runs' statistics (e.g. over a benchmark); ``rows`` are concatenated."""
@@ -100,8 +119,8 @@ class SpeculationStats:
             accept_lengths=self.accept_lengths + other.accept_lengths,
             tree_sizes=self.tree_sizes + other.tree_sizes,
             num_draft_forwards=self.num_draft_forwards + other.num_draft_forwards,
-            drafted_per_position=_add_padded(self.drafted_per_position, other.drafted_per_position),
-            accepted_per_position=_add_padded(self.accepted_per_position, other.accepted_per_position),
+            drafted_per_position=add_counts(self.drafted_per_position, other.drafted_per_position),
+            accepted_per_position=add_counts(self.accepted_per_position, other.accepted_per_position),
             accepted_by_drafter=self.accepted_by_drafter + other.accepted_by_drafter,
             action_bin_distances=self.action_bin_distances + other.action_bin_distances,
             target_seconds=self.target_seconds + other.target_seconds,
@@ -110,11 +129,13 @@ class SpeculationStats:
             num_batch_forwards=self.num_batch_forwards + other.num_batch_forwards,
             compiled_widths=self.compiled_widths + other.compiled_widths,
             compile_seconds=self.compile_seconds + other.compile_seconds,
+            jacobi_guesses_per_position=add_counts(self.jacobi_guesses_per_position, other.jacobi_guesses_per_position),
+            jacobi_right_per_position=add_counts(self.jacobi_right_per_position, other.jacobi_right_per_position),
             rows=self.rows + other.rows,
         )
 
 
-def _add_padded(a: list[int], b: list[int]) -> list[int]:
+def add_counts(a: list[int], b: list[int]) -> list[int]:
     """Element-wise sum of two count lists, the shorter one padded with zeros."""
     width = max(len(a), len(b))
     return [x + y for x, y in zip(a + [0] * (width - len(a)), b + [0] * (width - len(b)))]

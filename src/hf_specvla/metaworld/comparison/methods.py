@@ -1,6 +1,9 @@
 """Decoding methods of a comparison: ``<drafters>[:r=<bin tolerance>][,k=<chain length>][:compile]`` parsed, named
-and turned into ``predict_action`` options, and [`CompareConfig`], what a comparison runs. No torch at import: the CLI
-reads the choices and defaults here.
+and turned into ``predict_action`` options, and [`CompareConfig`], what a comparison runs. No torch at import: the
+CLI reads the choices and defaults here.
+
+Drafters, joined by ``+``: ``head`` (the draft head's chain), ``tree`` (its EAGLE-2 tree), ``prior`` (the episode's
+previous actions), ``jacobi`` (the target's own guesses past a rejection, [`JacobiDrafter`]).
 
 ``:compile`` decodes on a static cache with transformers' ``CompileConfig``: ``greedy:compile`` is transformers' own
 compiled greedy decoding (the baseline a user who wants speed has), ``tree:compile`` / ``prior+tree:r=4:compile``
@@ -18,7 +21,8 @@ from ..seeds import EVAL_SEED_START
 if TYPE_CHECKING:
     from ...speculative import DraftHead, DraftTreeConfig
 
-DRAFTER_CHOICES = ("greedy", "head", "tree", "prior", "prior+head", "prior+tree")
+DRAFTER_CHOICES = ("greedy", "head", "tree", "prior", "prior+head", "prior+tree", "jacobi", "prior+jacobi",
+                   "jacobi+tree", "prior+jacobi+tree")  # fmt: skip
 METHOD_KEYS = {"r": "bin tolerance (relaxed acceptance; 0 = lossless)", "k": "draft-head chain length (head only)"}
 #: the option word that compiles a method (static cache + transformers' CompileConfig)
 COMPILE = "compile"
@@ -95,15 +99,26 @@ class DecodingMethod:
     ) -> dict:
         """``predict_action`` options for this method (``device_type``: the policy's, for ``:compile``; ``tree``: the
         EAGLE-2 tree of ``tree`` methods, default ``DraftTreeConfig()``)."""
-        from ...speculative import DraftHeadDrafter, DraftTreeConfig, compiled_decoding_kwargs
+        from ...speculative import (
+            ComposedDrafter,
+            DraftHeadDrafter,
+            DraftTreeConfig,
+            JacobiDrafter,
+            compiled_decoding_kwargs,
+        )
 
         parts = self.drafters.split("+")
         kwargs: dict = compiled_decoding_kwargs(device_type) if self.compiled else {}
+        # Jacobi drafts fill a round that nothing else drafts (the first); beside a tree, the tree drafts every round
+        jacobi = [JacobiDrafter(fill="tree" not in parts)] if "jacobi" in parts else []
+        if jacobi and not self.uses_draft_head:
+            kwargs["assistant_model"] = jacobi[0]
         if self.uses_draft_head:
             if draft_head is None:
                 raise ValueError(f"decoding method {self.name!r} needs a draft head (--draft-head)")
             if "tree" in parts:
-                kwargs["assistant_model"] = DraftHeadDrafter(draft_head, tree=tree or DraftTreeConfig())
+                head_tree = DraftHeadDrafter(draft_head, tree=tree or DraftTreeConfig())
+                kwargs["assistant_model"] = ComposedDrafter(jacobi + [head_tree]) if jacobi else head_tree
             else:
                 kwargs["assistant_model"] = draft_head
                 if self.num_draft_tokens is not None:

@@ -1,6 +1,15 @@
-"""Built-in drafters: the draft head (chain / EAGLE-2 tree) and the action prior (no model)."""
+"""Built-in drafters: the draft head (chain / EAGLE-2 tree), the action prior and Jacobi drafts (no model)."""
 
 from .action_prior import ActionPriorDrafter, with_action_prior, with_action_priors
 from .draft_head import DraftHeadDrafter, DraftTreeConfig
+from .jacobi import JacobiDrafter, jacobi_tail
 
-__all__ = ["with_action_prior", "with_action_priors", "ActionPriorDrafter", "DraftHeadDrafter", "DraftTreeConfig"]
+__all__ = [
+    "with_action_prior",
+    "with_action_priors",
+    "jacobi_tail",
+    "ActionPriorDrafter",
+    "DraftHeadDrafter",
+    "DraftTreeConfig",
+    "JacobiDrafter",
+]
