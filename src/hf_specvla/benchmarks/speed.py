@@ -44,12 +44,16 @@ class MethodResult:
 def speculative_methods(
     draft_head, chain_lengths=(2, 4, 6), bin_tolerances=(1, 2, 4), relaxed_chain=6, compiled_on: str | None = None
 ) -> list[Method]:
-    """Greedy, strict chains of several lengths k, and relaxed acceptance at several r (chain ``relaxed_chain``).
-    With ``compiled_on`` (a device type) also transformers' compiled greedy (``greedy:compile``) and the strict
-    chains compiled (``:compile``: a static cache, compiled verification)."""
+    """Greedy, strict chains of several lengths k, Jacobi drafts (the target's own guesses, no model), and relaxed
+    acceptance at several r (chain ``relaxed_chain``). With ``compiled_on`` (a device type) also transformers'
+    compiled greedy (``greedy:compile``) and the strict methods compiled (``:compile``: a static cache, compiled
+    verification)."""
+    from ..speculative import JacobiDrafter
+
     methods = [Method("greedy")]
     for k in chain_lengths:
         methods.append(Method(f"spec k={k} r=0", dict(assistant_model=draft_head, num_draft_tokens=k)))
+    methods.append(Method("jacobi r=0", dict(assistant_model=JacobiDrafter())))
     for r in bin_tolerances:
         kwargs = dict(assistant_model=draft_head, num_draft_tokens=relaxed_chain, bin_tolerance=r)
         methods.append(Method(f"spec k={relaxed_chain} r={r}", kwargs))
@@ -62,6 +66,7 @@ def speculative_methods(
     for k in chain_lengths:
         methods.append(Method(f"spec k={k} r=0:compile", dict(assistant_model=draft_head, num_draft_tokens=k,
                                                                **compiled)))  # fmt: skip
+    methods.append(Method("jacobi r=0:compile", dict(assistant_model=JacobiDrafter(), **compiled)))
     return methods
 
 

@@ -21,6 +21,9 @@ EXAMPLES = """
         --output-dir runs/compare_mt10
     hf-specvla compare --policy policies/mt10_vla --tasks reach --episodes 2 --methods greedy prior prior:r=4 \\
         --output-dir runs/compare_smoke
+    # Jacobi drafts (the target's own guesses past a rejection) against transformers' compiled greedy
+    hf-specvla compare --policy policies/mt10_vla2 --tasks reach --episodes 1 \\
+        --methods greedy greedy:compile prior+jacobi prior+jacobi:compile --output-dir runs/compare_jacobi_smoke
 """
 
 
@@ -28,8 +31,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
     parser.add_argument("--draft-head", default=None, help="the DraftHead folder the head / tree methods use")
     parser.add_argument("--methods", nargs="+", default=list(CompareConfig.methods),
-                        help="<drafters>[:r=<int>][,k=<int>], drafters one of " + ", ".join(DRAFTER_CHOICES)
-                             + " (greedy always runs: the baseline)")  # fmt: skip
+                        help="<drafters>[:r=<int>][,k=<int>][:compile], drafters one of " + ", ".join(DRAFTER_CHOICES)
+                             + " (greedy always runs: the baseline; :compile = static cache + compiled "
+                             "verification, greedy:compile = transformers' compiled greedy)")  # fmt: skip
     parser.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
     parser.add_argument("--episodes", type=POSITIVE, default=CompareConfig.episodes_per_task, help="seeds per task")
     parser.add_argument("--seed-start", type=NON_NEGATIVE, default=CompareConfig.seed_start, help="first seed")
