@@ -16,6 +16,7 @@ from hf_specvla import (
     JacobiDrafter,
 )
 from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
+from hf_specvla.speculative import DraftContext, DraftRound, with_action_prior
 from hf_specvla.training.behaviour_cloning import action_chunk_indices, decoder_layer_map, grow_from
 
 INSTRUCTIONS = ["reach the goal", "push the puck to the goal"]
@@ -151,6 +152,24 @@ def test_prior_candidates_span_the_chunk():
     assert paths[2] == older * 3
     one = ActionPriorDrafter([older, last], layout, neighbour_bins=0).candidate_paths()
     assert [p[:4] for p in paths] == one  # the chunk's first action: exactly the one-action prior's candidates
+
+
+def test_the_prior_drafts_later_rounds_alone_and_only_the_prefill_before_another_drafter(chunked):
+    """Alone, the prior proposes its candidates' remaining parts after a partial acceptance; composed
+    (``with_action_prior``) it drafts in the prefill only and the other drafter continues."""
+    layout = ActionLayout(chunked.action_tokenizer, 4)
+    history = [[100, 110, 120, 130], [102, 110, 118, 130]]
+    alone = with_action_prior(None, history, layout, chunk_length=CHUNK)
+    composed = with_action_prior(JacobiDrafter(), history, layout, chunk_length=CHUNK)
+    assert alone.later_rounds and not composed.drafters[0].later_rounds
+    context = DraftContext(chunked.model, layout, [], None)
+    sequence, position = torch.tensor([[5, 6, 100, 110]]), torch.tensor([[3]])
+    for at_prefill, drafted_alone, drafted_composed in ((True, True, True), (False, True, False)):
+        draft_round = DraftRound(sequence, 2, 6, at_prefill, position)
+        assert (alone.start(context).propose(draft_round).num_nodes > 0) == drafted_alone
+        assert (composed.drafters[0].start(context).propose(draft_round).num_nodes > 0) == drafted_composed
+    with pytest.raises(TypeError, match="later_rounds must be True or False, got 'no'"):
+        ActionPriorDrafter(history, layout, later_rounds="no")
 
 
 @pytest.mark.parametrize("bin_tolerance", [2, 30])

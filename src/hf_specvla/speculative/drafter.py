@@ -159,13 +159,24 @@ class Drafter:
 # ----------------------------------------------------------------------------- drafts known up front
 class PathSession(DraftSession):
     """Proposes fixed token paths, aligned with the first generated token: after m tokens were emitted, each
-    path's remaining part ``path[m:]`` is proposed (a guess for the tokens still to come). Paths are taken in
-    order while the tree stays within ``max_nodes`` nodes (shared prefixes count once)."""
+    path's remaining part ``path[m:]`` is proposed (a guess for the tokens still to come), or with
+    ``prefill_only`` nothing after the prefill. Paths are taken in order while the tree stays within ``max_nodes``
+    nodes (shared prefixes count once)."""
 
-    def __init__(self, paths: list[list[int]], source: str, device: torch.device, max_nodes: int | None = None):
+    def __init__(
+        self,
+        paths: list[list[int]],
+        source: str,
+        device: torch.device,
+        max_nodes: int | None = None,
+        prefill_only: bool = False,
+    ):
         self.paths, self.source, self.device, self.max_nodes = paths, source, device, max_nodes
+        self.prefill_only = prefill_only
 
     def propose(self, draft_round: DraftRound) -> DraftTree:
+        if self.prefill_only and not draft_round.at_prefill:
+            return DraftTree.empty(self.device)
         m = draft_round.num_generated
         kept, prefixes = [], set()
         for path in self.paths:

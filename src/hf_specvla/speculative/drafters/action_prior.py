@@ -13,9 +13,12 @@ For a policy that predicts a chunk of H actions per call (``chunk_length=H``), e
 actions the way it began: a held action is held (``[last] * H``), constant velocity keeps its velocity
 (``last + v, last + 2v, ...``), an alternative is held.
 
-Paths are added in that order until the tree holds ``max_nodes`` nodes (shared prefixes cost nothing). After a
-partial acceptance the remaining dimensions of the same candidates are proposed again (see
-[`CandidateDrafter`]): verifying a few more tokens in a forward that runs anyway is almost free.
+Paths are added in that order until the tree holds ``max_nodes`` nodes (shared prefixes cost nothing). Drafting
+alone, after a partial acceptance the prior proposes the remaining dimensions of the same candidates again (see
+[`CandidateDrafter`]). Composed with another drafter ([`with_action_prior`]) it drafts in the prefill only: its
+remaining parts widen every later verification for few accepted tokens once Jacobi guesses or a draft head follow
+(policy v2, compiled, r=0: prior+jacobi 1.29x -> 1.47x against transformers' compiled greedy, 2.71 -> 2.77 target
+forwards per call; prior+tree 1.08x -> 1.23x).
 This is transformers' prompt-lookup idea (drafts from what is already known) applied to actions.
 """
 
@@ -37,6 +40,8 @@ class ActionPriorDrafter(Drafter):
         neighbour_bins: per-dimension alternatives reach this many bins either side of the previous action.
         max_nodes: the tree's node budget.
         chunk_length: actions the target generates per call (H); every candidate drafts H actions.
+        later_rounds: after a partial acceptance, propose the candidates' remaining parts again (False: draft in
+            the prefill only, as when another drafter continues).
     """
 
     name = "prior"
@@ -50,6 +55,7 @@ class ActionPriorDrafter(Drafter):
         neighbour_bins: int = 1,
         max_nodes: int = 16,
         chunk_length: int = 1,
+        later_rounds: bool = True,
     ):
         if not isinstance(action_layout, ActionLayout):
             raise TypeError(f"action_layout must be an ActionLayout, got {type(action_layout).__name__}")
@@ -57,6 +63,8 @@ class ActionPriorDrafter(Drafter):
         for name, value, low in checks:
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"ActionPriorDrafter {name} must be an int >= {low}, got {value!r}")
+        if not isinstance(later_rounds, bool):
+            raise TypeError(f"ActionPriorDrafter later_rounds must be True or False, got {later_rounds!r}")
         history = [[int(t) for t in action] for action in previous_actions]
         tokenizer = action_layout.tokenizer
         for action in history:
@@ -70,6 +78,7 @@ class ActionPriorDrafter(Drafter):
         self.neighbour_bins = neighbour_bins
         self.max_nodes = max_nodes
         self.chunk_length = chunk_length
+        self.later_rounds = later_rounds
 
     def candidate_paths(self) -> list[list[int]]:
         """The candidate action-token sequences (``chunk_length * action_dim`` tokens each), most likely first
@@ -100,12 +109,14 @@ class ActionPriorDrafter(Drafter):
         return paths
 
     def start(self, context: DraftContext) -> DraftSession:
-        return PathSession(self.candidate_paths(), self.name, context.model.device, self.max_nodes)
+        device = context.model.device
+        return PathSession(self.candidate_paths(), self.name, device, self.max_nodes, not self.later_rounds)
 
     def __repr__(self) -> str:
         return (
             f"ActionPriorDrafter(previous_actions={len(self.previous_actions)}, "
-            f"neighbour_bins={self.neighbour_bins}, max_nodes={self.max_nodes}, chunk_length={self.chunk_length})"
+            f"neighbour_bins={self.neighbour_bins}, max_nodes={self.max_nodes}, chunk_length={self.chunk_length}, "
+            f"later_rounds={self.later_rounds})"
         )
 
 
@@ -116,13 +127,15 @@ def with_action_prior(
     chunk_length: int = 1,
 ) -> Drafter | None:
     """``drafter`` preceded by an [`ActionPriorDrafter`] over ``previous_actions`` (the prior's candidates are
-    verified inside the prefill, ``drafter`` continues where they stop being accepted); ``drafter`` unchanged
-    when there is no previous action yet. ``chunk_length``: actions per call (see [`ActionPriorDrafter`])."""
+    verified inside the prefill, ``drafter`` continues where they stop being accepted: the prior drafts in the
+    prefill only); ``drafter`` unchanged when there is no previous action yet. ``chunk_length``: actions per call
+    (see [`ActionPriorDrafter`])."""
     from ..drafter import ComposedDrafter
 
     if not previous_actions:
         return drafter
-    prior = ActionPriorDrafter(previous_actions, action_layout, chunk_length=chunk_length)
+    prior = ActionPriorDrafter(previous_actions, action_layout, chunk_length=chunk_length,
+                               later_rounds=drafter is None)  # fmt: skip
     return prior if drafter is None else ComposedDrafter([prior, drafter])
 
 
