@@ -162,6 +162,7 @@ def test_the_prior_drafts_later_rounds_alone_and_only_the_prefill_before_another
     alone = with_action_prior(None, history, layout, chunk_length=CHUNK)
     composed = with_action_prior(JacobiDrafter(), history, layout, chunk_length=CHUNK)
     assert alone.later_rounds and not composed.drafters[0].later_rounds
+    assert composed.drafters[0].max_nodes == CHUNK * 4  # the held action alone: a chain
     context = DraftContext(chunked.model, layout, [], None)
     sequence, position = torch.tensor([[5, 6, 100, 110]]), torch.tensor([[3]])
     for at_prefill, drafted_alone, drafted_composed in ((True, True, True), (False, True, False)):
