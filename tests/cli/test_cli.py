@@ -54,14 +54,17 @@ def test_bench_episodes_on_the_toy(toy_pipeline, capsys, monkeypatch):
     out = capsys.readouterr().out
     for row in ("| greedy |", "| prior r=0 |", "| prior r=2 |", "| head chain k=2 r=0 |", "| head tree r=2 |",
                 "| prior+tree r=0 |", "| greedy:compile |", "| prior r=0:compile |", "| head tree r=0:compile |",
-                "| prior+tree r=0:compile |"):  # fmt: skip
+                "| prior+tree r=0:compile |", "| jacobi r=0 |", "| prior+jacobi r=2 |",
+                "| prior+jacobi+tree r=0:compile |"):  # fmt: skip
         assert row in out
     assert "speed-up vs greedy" in out and "| vs greedy |" in out
     # r=0 is lossless, eager or compiled: its actions never move from greedy's
-    for row in ("| prior r=0 |", "| prior+tree r=0:compile |", "| greedy:compile |"):
+    for row in ("| prior r=0 |", "| prior+tree r=0:compile |", "| greedy:compile |", "| prior+jacobi r=0:compile |",
+                "| prior+jacobi+tree r=0 |"):  # fmt: skip
         assert out.split(row)[1].split("\n")[0].endswith("0.00 / 0 |"), row
     # where the time goes: the parts add up to the call; greedy drafts nothing and decodes after its prefill
-    split = out.split("Where the time goes")[1]
+    split, jacobi = out.split("Where the time goes")[1].split("Jacobi guesses right")
+    assert "| jacobi r=0 | " in jacobi and "| +1 |" in jacobi  # how often the guesses were right, by position
     assert "| method | vision | prefill | later forwards | drafting | rest | total |" in split
     for line in [row for row in split.splitlines() if row.startswith("| ") and "method" not in row]:
         *parts, total = [float(cell) for cell in line.strip("|").split("|")[1:]]

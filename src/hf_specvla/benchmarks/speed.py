@@ -18,7 +18,6 @@ import torch
 from ..actions.tokenizer import ActionTokenizer
 from ..progress import progress_bar
 from ..speculative import ActionPriorDrafter, SpeculationStats
-from ..speculative.stats import add_counts
 
 
 @dataclass
@@ -172,8 +171,7 @@ class EpisodeMethodResult:
     draft_seconds: float = 0.0
     total_seconds: float = 0.0
     split_seconds: dict[str, float] = field(default_factory=dict)  # where the time goes, summed over calls
-    jacobi_guesses: list[int] = field(default_factory=list)  # [j] Jacobi guesses of the j-th token after a bonus
-    jacobi_right: list[int] = field(default_factory=list)  # [j] of them, right
+    guesses: SpeculationStats = field(default_factory=SpeculationStats)  # the Jacobi guesses' counts, summed
 
     @property
     def median_latency(self) -> float:
@@ -313,8 +311,7 @@ def run_episode_benchmark(
                         result.draft_forwards.append(spec.num_draft_forwards if spec else 0)
                         result.new_tokens.append(spec.num_new_tokens if spec else action_dim)
                         if spec is not None:
-                            result.jacobi_guesses = add_counts(result.jacobi_guesses, spec.jacobi_guesses_per_position)
-                            result.jacobi_right = add_counts(result.jacobi_right, spec.jacobi_right_per_position)
+                            result.guesses.add_guesses(spec)
                             result.target_seconds += spec.target_seconds
                             result.draft_seconds += spec.draft_seconds
                             result.total_seconds += spec.total_seconds
@@ -333,16 +330,17 @@ def run_episode_benchmark(
 def format_jacobi_report(results: list[EpisodeMethodResult]) -> str:
     """Markdown table: how often the methods' Jacobi guesses were right, by position after the bonus token (empty
     when no method drafted Jacobi tails)."""
-    rows = [r for r in results if r.jacobi_guesses]
+    rows = [r for r in results if r.guesses.jacobi_guesses_per_position]
     if not rows:
         return ""
-    width = max(len(r.jacobi_guesses) for r in rows)
+    width = max(len(r.guesses.jacobi_guesses_per_position) for r in rows)
     lines = ["Jacobi guesses right (the target's argmax past a rejection, by position after the bonus token; "
              "right / checked):", "", "| method | " + " | ".join(f"+{j + 1}" for j in range(width)) + " |",
              "|---|" + "---:|" * width]  # fmt: skip
     for r in rows:
+        rights, guessed = r.guesses.jacobi_right_per_position, r.guesses.jacobi_guesses_per_position
         cells = [f"{right / guesses:.0%} ({guesses})" if guesses else "-"
-                 for right, guesses in zip(r.jacobi_right + [0] * width, r.jacobi_guesses + [0] * width)]  # fmt: skip
+                 for right, guesses in zip(rights + [0] * width, guessed + [0] * width)]  # fmt: skip
         lines.append(f"| {r.name} | " + " | ".join(cells[:width]) + " |")
     return "\n".join(lines)
 

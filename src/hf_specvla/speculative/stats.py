@@ -82,8 +82,15 @@ class SpeculationStats:
 
     def record_guesses(self, right: list[bool]) -> None:
         """Books one tail of guesses checked against the emitted tokens (``right[j]``: the j-th guess was right)."""
-        self.jacobi_guesses_per_position = add_counts(self.jacobi_guesses_per_position, [1] * len(right))
-        self.jacobi_right_per_position = add_counts(self.jacobi_right_per_position, [int(r) for r in right])
+        self.jacobi_guesses_per_position = _add_padded(self.jacobi_guesses_per_position, [1] * len(right))
+        self.jacobi_right_per_position = _add_padded(self.jacobi_right_per_position, [int(r) for r in right])
+
+    def add_guesses(self, other: SpeculationStats) -> None:
+        """Adds ``other``'s Jacobi guess counts to this object's (e.g. over the calls of a benchmark)."""
+        self.jacobi_guesses_per_position = _add_padded(
+            self.jacobi_guesses_per_position, other.jacobi_guesses_per_position
+        )
+        self.jacobi_right_per_position = _add_padded(self.jacobi_right_per_position, other.jacobi_right_per_position)
 
     def record_verification(self, tree_depth: int, tree_size: int, accepted_sources: list[str]) -> None:
         """Books one target forward that verified a tree of ``tree_size`` nodes and ``tree_depth`` levels and
@@ -104,23 +111,20 @@ class SpeculationStats:
             self.accept_lengths += row.accept_lengths
             self.tree_sizes += row.tree_sizes
             self.num_draft_forwards += row.num_draft_forwards
-            self.drafted_per_position = add_counts(self.drafted_per_position, row.drafted_per_position)
-            self.accepted_per_position = add_counts(self.accepted_per_position, row.accepted_per_position)
+            self.drafted_per_position = _add_padded(self.drafted_per_position, row.drafted_per_position)
+            self.accepted_per_position = _add_padded(self.accepted_per_position, row.accepted_per_position)
             self.accepted_by_drafter += row.accepted_by_drafter
             self.action_bin_distances += row.action_bin_distances
-            self.jacobi_guesses_per_position = add_counts(
-                self.jacobi_guesses_per_position, row.jacobi_guesses_per_position
-            )
-            self.jacobi_right_per_position = add_counts(self.jacobi_right_per_position, row.jacobi_right_per_position)
+            self.add_guesses(row)
 
     def merge(self, other: SpeculationStats) -> SpeculationStats:
         """Sum of two runs' statistics (e.g. over a benchmark); ``rows`` are concatenated."""
-        return SpeculationStats(
+        merged = SpeculationStats(
             accept_lengths=self.accept_lengths + other.accept_lengths,
             tree_sizes=self.tree_sizes + other.tree_sizes,
             num_draft_forwards=self.num_draft_forwards + other.num_draft_forwards,
-            drafted_per_position=add_counts(self.drafted_per_position, other.drafted_per_position),
-            accepted_per_position=add_counts(self.accepted_per_position, other.accepted_per_position),
+            drafted_per_position=_add_padded(self.drafted_per_position, other.drafted_per_position),
+            accepted_per_position=_add_padded(self.accepted_per_position, other.accepted_per_position),
             accepted_by_drafter=self.accepted_by_drafter + other.accepted_by_drafter,
             action_bin_distances=self.action_bin_distances + other.action_bin_distances,
             target_seconds=self.target_seconds + other.target_seconds,
@@ -129,13 +133,14 @@ class SpeculationStats:
             num_batch_forwards=self.num_batch_forwards + other.num_batch_forwards,
             compiled_widths=self.compiled_widths + other.compiled_widths,
             compile_seconds=self.compile_seconds + other.compile_seconds,
-            jacobi_guesses_per_position=add_counts(self.jacobi_guesses_per_position, other.jacobi_guesses_per_position),
-            jacobi_right_per_position=add_counts(self.jacobi_right_per_position, other.jacobi_right_per_position),
             rows=self.rows + other.rows,
         )
+        merged.add_guesses(self)
+        merged.add_guesses(other)
+        return merged
 
 
-def add_counts(a: list[int], b: list[int]) -> list[int]:
+def _add_padded(a: list[int], b: list[int]) -> list[int]:
     """Element-wise sum of two count lists, the shorter one padded with zeros."""
     width = max(len(a), len(b))
     return [x + y for x, y in zip(a + [0] * (width - len(a)), b + [0] * (width - len(b)))]
