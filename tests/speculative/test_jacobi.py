@@ -101,6 +101,9 @@ def test_guesses_are_counted_by_position(tiny_llama):
     assert all(r <= g for r, g in zip(stats.jacobi_right_per_position, stats.jacobi_guesses_per_position))
     # each verification but the last leaves a tail; every guess of position +1 reaches an emitted token
     assert stats.jacobi_guesses_per_position[0] >= stats.num_target_forwards - 1
+    twice = stats.merge(stats)  # sums over calls, as the benchmarks do
+    assert twice.jacobi_guesses_per_position == [2 * g for g in stats.jacobi_guesses_per_position]
+    assert twice.jacobi_right_per_position == [2 * r for r in stats.jacobi_right_per_position]
 
 
 def test_relaxed_tokens_stay_within_r_bins_of_greedy_given_their_prefix(tiny_llama, action_tokenizer):
