@@ -17,7 +17,7 @@ from transformers.cache_utils import StaticCache
 from hf_specvla import DraftHead, DraftHeadDrafter, DraftTreeConfig, JacobiDrafter, enable_speculation
 from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
 from hf_specvla.speculative import CACHE_KEY, NODE_BUCKETS, cache_of, verification_width
-from hf_specvla.speculative.compiled import SLOT_MULTIPLE, check_buckets, reset_compilation
+from hf_specvla.speculative.compiled import SLOT_MULTIPLE, buckets_up_to, check_buckets, reset_compilation
 from hf_specvla.speculative.drafter import Drafter, DraftSession
 
 from ..conftest import tiny_llama_config
@@ -140,13 +140,13 @@ def test_no_recompilation_after_warm_up():
         out = greedy(model, input_ids, return_dict_in_generate=True, **compiled, **kwargs)
         widths |= set(out.speculation.compiled_widths)
         compile_seconds.append(out.speculation.compile_seconds)
-    # the first call without and the first with hidden states compile every width (the latter, a head chain, also its
-    # round), the first tree its round; later calls nothing
-    assert [s > 0 for s in compile_seconds] == [True, False, False, True, True, False], compile_seconds
+    # every width up to the drafter's largest tree is compiled up front, before the first compiled round: the right
+    # drafts (6 nodes) widths 0-8 without hidden states, the candidates (12) width 16 too, the head chain (3) widths
+    # 0-4 with hidden states and its round, the tree (12) width 8-16 and its round, drafts + tree (18) width 32
+    assert [s > 0 for s in compile_seconds] == [True, False, True, True, True, True], compile_seconds
     graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
-    # every width compiled up front (before the first compiled round), with and without hidden states; one round graph
-    # for the chain and one for the tree (shallower rounds pass their depth as data)
-    assert graphs == 2 * len(NODE_BUCKETS) + 1 + 1
+    # one round graph for the chain and one for the tree (shallower rounds pass their depth as data)
+    assert graphs == (len(NODE_BUCKETS) - 1) + len(NODE_BUCKETS) + 1 + 1
     with torch._dynamo.config.patch(error_on_recompile=True):
         for input_ids, expected, kwargs in steady:
             out = greedy(model, input_ids, return_dict_in_generate=True, **compiled, **kwargs)
@@ -155,6 +155,20 @@ def test_no_recompilation_after_warm_up():
             assert out.speculation.compile_seconds == 0
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs  # nothing compiled after the warm-up
     assert len(widths) > 1  # several buckets were met (the test is not vacuous)
+
+
+def test_only_the_widths_a_drafter_can_fill_are_compiled():
+    """A drafter's largest tree bounds the widths compiled up front (and met): Jacobi tails of at most 3 nodes need
+    widths 0, 2 and 4, and nothing else compiles."""
+    model = _model("llama")
+    input_ids = torch.randint(6, 64, (1, 6), generator=torch.Generator().manual_seed(3))
+    compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
+    assert JacobiDrafter(max_tokens=3).max_tree_nodes(NEW_TOKENS - 1) == 3
+    out = greedy(model, input_ids, assistant_model=JacobiDrafter(max_tokens=3), return_dict_in_generate=True,
+                 **compiled)  # fmt: skip
+    assert torch.equal(out.sequences, greedy(model, input_ids))
+    assert set(out.speculation.compiled_widths) <= {0, 2, 4} and out.speculation.compile_seconds > 0
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 3
 
 
 def test_compiled_verification_in_a_chunked_policy():
@@ -206,6 +220,26 @@ def test_generates_own_static_cache_gets_slots_for_the_trees_a_users_cache_is_ke
     out = greedy(tiny_llama, input_ids, draft_ids=torch.tensor([[70]]), return_dict_in_generate=True,
                  **{CACHE_KEY: users})  # fmt: skip
     assert cache_of(out) is users and users.layers[0].max_cache_len == input_ids.shape[1] + NEW_TOKENS
+
+
+def test_each_drafter_bounds_its_trees_and_the_buckets_follow(tiny_llama):
+    from hf_specvla import ActionLayout, ActionPriorDrafter, ActionTokenizer, CandidateDrafter, ComposedDrafter
+
+    torch.manual_seed(1)
+    head = DraftHead.from_target(tiny_llama, num_draft_tokens=3).eval()
+    layout = ActionLayout(ActionTokenizer(VOCAB), 2)
+    prior = ActionPriorDrafter([[100, 101]], layout, max_nodes=12, chunk_length=3)
+    held = ActionPriorDrafter([[100, 101]], layout, later_rounds=False)
+    tree = DraftHeadDrafter(head, tree=DraftTreeConfig(top_k=3, depth=4, total_tokens=12))
+    bounds = {"chain": (DraftHeadDrafter(head), 3), "tree": (tree, 12), "prior": (prior, 12), "held": (held, 0),
+              "jacobi": (JacobiDrafter(), 6), "jacobi k=2": (JacobiDrafter(max_tokens=2), 2),
+              "draft_ids": (CandidateDrafter([[1, 2, 3], [4] * 9]), 3 + 6),
+              "held+jacobi+tree": (ComposedDrafter([held, JacobiDrafter(), tree]), 18)}  # fmt: skip
+    for name, (drafter, bound) in bounds.items():
+        assert drafter.max_tree_nodes(6) == bound, name
+    assert Drafter().max_tree_nodes(6) is None  # unknown: every width
+    assert buckets_up_to(None) == NODE_BUCKETS and buckets_up_to(0) == (0,) and buckets_up_to(6) == (0, 2, 4, 8)
+    assert buckets_up_to(18) == NODE_BUCKETS and buckets_up_to(99) == NODE_BUCKETS  # past the largest: all of them
 
 
 @pytest.mark.parametrize(

@@ -143,8 +143,9 @@ _COMPILED_WIDTHS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 def compile_every_width(model: PreTrainedModel, key: tuple, verify_width: Callable[[int], None], free_slots: int,
                         buckets: Sequence[int] = NODE_BUCKETS) -> float:  # fmt: skip
     """Runs one throw-away verification at every bucket width that fits ``free_slots`` the first time ``model``'s
-    compiled call meets ``key`` (the compile settings, the cache's slot count, whether hidden states are returned:
-    what the graphs depend on), so that every graph is compiled before the first action, never mid-episode.
+    compiled call meets ``key`` (the compile settings, the cache's slot count, whether hidden states are returned,
+    the buckets: what the graphs depend on), so that every graph is compiled before the first action, never
+    mid-episode. ``buckets``: the widths the call can meet ([`buckets_up_to`] its drafter's largest tree).
 
     Args:
         verify_width: runs a filler-only verification of the given width and rolls the cache back.
@@ -160,7 +161,7 @@ def compile_every_width(model: PreTrainedModel, key: tuple, verify_width: Callab
         verify_width(width)
     done.add(key)
     seconds = time.perf_counter() - start
-    logger.info("compiled verification widths %s (%d slots, hidden states %s) in %.1f s", widths, *key[1:], seconds)
+    logger.info("compiled verification widths %s (%d slots, hidden states %s) in %.1f s", widths, *key[1:3], seconds)
     return seconds
 
 
@@ -171,6 +172,15 @@ def allow_graphs(count: int) -> None:
     if getattr(config, name) < count:
         logger.info("raising torch._dynamo.config.%s from %d to %d", name, getattr(config, name), count)
         setattr(config, name, count)
+
+
+def buckets_up_to(max_nodes: int | None, buckets: Sequence[int] = NODE_BUCKETS) -> tuple[int, ...]:
+    """The buckets a call whose trees never exceed ``max_nodes`` nodes can meet: up to the smallest that holds
+    ``max_nodes`` (every bucket when None, unknown), so that no other width is compiled for it."""
+    values = tuple(buckets)
+    if max_nodes is None:
+        return values
+    return values[: next((i for i, b in enumerate(values) if b >= max_nodes), len(values) - 1) + 1]
 
 
 def verification_width(num_nodes: int, free_slots: int, buckets: Sequence[int] = NODE_BUCKETS) -> int:

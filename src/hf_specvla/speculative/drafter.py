@@ -148,6 +148,13 @@ class Drafter:
     def start(self, context: DraftContext) -> DraftSession:
         raise NotImplementedError
 
+    def max_tree_nodes(self, max_depth: int) -> int | None:
+        """The most nodes a session proposes in one round after the prefill when no path may be deeper than
+        ``max_depth``, or None when unknown (compiled verification then compiles every width; see
+        ``speculative.compiled``). A larger tree is cut to the widest compiled width, so a bound is a promise of
+        speed, not of correctness."""
+        return None
+
     def __getattr__(self, name: str):
         # Only reached for missing attributes: e.g. transformers' assisted generation probing ``.config`` because
         # the target's generate was never speculation-enabled. Say how to fix it.
@@ -206,6 +213,9 @@ class CandidateDrafter(Drafter):
     def start(self, context: DraftContext) -> DraftSession:
         return PathSession(self.candidates, self.name, context.model.device)
 
+    def max_tree_nodes(self, max_depth: int) -> int | None:
+        return sum(min(len(c), max_depth) for c in self.candidates)  # their remaining parts, shared prefixes merged
+
 
 # ----------------------------------------------------------------------------- composition
 class _ComposedSession(DraftSession):
@@ -258,6 +268,10 @@ class ComposedDrafter(Drafter):
     def start(self, context: DraftContext) -> DraftSession:
         return _ComposedSession([d.start(context) for d in self.drafters])
 
+    def max_tree_nodes(self, max_depth: int) -> int | None:
+        bounds = [d.max_tree_nodes(max_depth) for d in self.drafters]
+        return None if None in bounds else sum(bounds)
+
 
 class PerRowDrafter(Drafter):
     """A different drafter for each batch row (e.g. each robot's own previous actions): row b drafts with
@@ -285,6 +299,10 @@ class PerRowDrafter(Drafter):
 
     def start(self, context: DraftContext) -> DraftSession:
         return self.drafters[context.row].start(context)
+
+    def max_tree_nodes(self, max_depth: int) -> int | None:
+        bounds = [d.max_tree_nodes(max_depth) for d in self.drafters]
+        return None if None in bounds else max(bounds)
 
 
 def _common_batch_size(drafters: Sequence[Drafter]) -> int | None:

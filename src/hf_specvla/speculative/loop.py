@@ -54,6 +54,7 @@ from .compat import CACHE_KEY, check_transformers_support
 from .compiled import (
     NODE_BUCKETS,
     SLOT_MULTIPLE,
+    buckets_up_to,
     compile_every_width,
     compile_settings,
     compiled_call,
@@ -446,6 +447,7 @@ class RoundPlan:
     window: int | None  # the target cache's smallest sliding window
     capacity: int | None  # a static cache's slots (batch 1): trees fit in the free ones
     compiled: Callable | None  # the compiled model call for rounds after the prefill, or None (eager)
+    buckets: tuple[int, ...]  # the widths a compiled verification is padded to (up to the drafter's largest tree)
     prefix_attention: bool  # a prefix-LM prompt: the prefill verifies one chain
     keep_scores: bool
     keep_logits: bool
@@ -478,7 +480,7 @@ def fit_trees(
     if plan.capacity is not None:  # batch 1
         free = plan.capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
         if plan.compiled is not None and not at_prefill:  # one width per bucket: padded, or cut to fit
-            free = width = verification_width(max(tree.num_nodes for tree in trees), free, NODE_BUCKETS)
+            free = width = verification_width(max(tree.num_nodes for tree in trees), free, plan.buckets)
             stats.compiled_widths.append(width)
         trees = [tree.truncate_nodes(free) for tree in trees]
     return TreeBatch(trees, min_nodes=width)
@@ -567,7 +569,8 @@ def _compile_every_width(model, plan: RoundPlan, compile_config, state: DecodeSt
         truncate_cache(cache, length)
 
     free = plan.capacity - length - state.pending_ids.shape[1]
-    return compile_every_width(model, (settings, plan.capacity, plan.output_hidden), verify_width, free)
+    key = (settings, plan.capacity, plan.output_hidden, plan.buckets)
+    return compile_every_width(model, key, verify_width, free, plan.buckets)
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -692,6 +695,8 @@ def speculative_generate(
         window=sliding_window(cache),
         capacity=static_capacity(cache),
         compiled=compiled,
+        # the deepest a round after the prefill can draft: max_new_tokens - 1 (the bonus token takes the last slot)
+        buckets=buckets_up_to(drafter.max_tree_nodes(max(0, generation_config.max_length - input_ids.shape[1] - 1))),
         # A prefix-LM prompt (PaliGemma's token_type_ids: the prompt attends to itself both ways at the prefill) needs
         # the model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies a chain.
         prefix_attention=model_inputs.get("token_type_ids") is not None,

@@ -107,6 +107,9 @@ class ActionPriorDrafter(Drafter):
                     paths.append((last[:dim] + [alternative] + last[dim + 1 :]) * chunk)
         return paths
 
+    def max_tree_nodes(self, max_depth: int) -> int | None:
+        return self.max_nodes if self.later_rounds else 0
+
     def start(self, context: DraftContext) -> DraftSession:
         device = context.model.device
         return PathSession(self.candidate_paths(), self.name, device, self.max_nodes, not self.later_rounds)

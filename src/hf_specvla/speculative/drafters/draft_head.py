@@ -155,6 +155,9 @@ class DraftHeadDrafter(Drafter):
         return ("draft-head round", self._architecture, weights.dtype, weights.device,
                 compile_settings(compile_config), key_length, tree, graph_depth)  # fmt: skip
 
+    def max_tree_nodes(self, max_depth: int) -> int | None:
+        return self.tree_config.total_tokens
+
     def start(self, context: DraftContext) -> DraftSession:
         handles = self.draft_head.target_handles(context.model)
         scorer = self.draft_head.scorer(handles.lm_head, context.eos_token_ids)

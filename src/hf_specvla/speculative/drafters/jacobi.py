@@ -115,6 +115,9 @@ class JacobiDrafter(Drafter):
     def start(self, context: DraftContext) -> DraftSession:
         return _JacobiSession(self, context)
 
+    def max_tree_nodes(self, max_depth: int) -> int | None:
+        return max_depth if self.max_tokens is None else min(max_depth, self.max_tokens)  # one chain
+
     def __repr__(self) -> str:
         return f"JacobiDrafter(max_tokens={self.max_tokens}, initial_ids={self.initial_ids}, fill={self.fill})"
 
