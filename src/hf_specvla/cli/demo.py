@@ -11,7 +11,8 @@ NAME = "demo"
 HELP = "train a toy VLA target + draft head on the spot and benchmark them"
 EXAMPLES = """
     # The main job: build and train a toy OpenVLA-style target and a draft head on the spot, then benchmark
-    # plain greedy vs speculative decoding (strict and relaxed). About 2 minutes on 2 CPU cores.
+    # plain greedy (eager and compiled) vs speculative decoding (strict and relaxed). About 5 minutes on 2 CPU cores,
+    # half of it compiling the compiled rows (--no-compile skips them).
     hf-specvla demo
 
     # The same, with a bigger (slower, more VLA-like) target, more timing repeats, kept in ./runs/toy-medium
