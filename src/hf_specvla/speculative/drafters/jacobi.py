@@ -59,9 +59,9 @@ def jacobi_tail(
     if not rejected:
         return []
     bonus = target_ids[end + 1]
-    node, shift, period = rejected[0], 0, 0
-    if action_layout is not None and action_layout.tokenizer.is_action_token(bonus):
-        is_action = action_layout.tokenizer.is_action_token
+    node, shift, period = rejected[0], 0, 0  # period 0: no guess is moved
+    is_action = action_layout.tokenizer.is_action_token if action_layout is not None else None
+    if is_action is not None and is_action(bonus):
         actions = [c for c in rejected if is_action(token_ids[c])]
         if actions:  # ids are bins (reversed); min keeps the first of equals
             node = min(actions, key=lambda c: abs(token_ids[c] - bonus))
