@@ -145,14 +145,16 @@ def test_no_recompilation_after_warm_up():
     # 0-4 with hidden states and its round, the tree (12) width 8-16 and its round, drafts + tree (18) width 32
     assert [s > 0 for s in compile_seconds] == [True, False, True, True, True, True], compile_seconds
     graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
-    # one round graph for the chain and one for the tree (shallower rounds pass their depth as data)
-    assert graphs == (len(NODE_BUCKETS) - 1) + len(NODE_BUCKETS) + 1 + 1
+    # one round graph for the chain and one for the tree (shallower rounds pass their depth as data), and one prefill
+    # graph for every prompt length and draft count, without hidden states and with them
+    assert graphs == (len(NODE_BUCKETS) - 1) + len(NODE_BUCKETS) + 1 + 1 + 2
     with torch._dynamo.config.patch(error_on_recompile=True):
         for input_ids, expected, kwargs in steady:
             out = greedy(model, input_ids, return_dict_in_generate=True, **compiled, **kwargs)
             assert torch.equal(out.sequences, expected), kwargs
             assert set(out.speculation.compiled_widths) <= widths  # only widths the warm-up met
             assert out.speculation.compile_seconds == 0
+            assert out.speculation.compiled_prefills == 1  # other prompt lengths, other drafts: the same graph
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs  # nothing compiled after the warm-up
     assert len(widths) > 1  # several buckets were met (the test is not vacuous)
 
@@ -168,7 +170,81 @@ def test_only_the_widths_a_drafter_can_fill_are_compiled():
                  **compiled)  # fmt: skip
     assert torch.equal(out.sequences, greedy(model, input_ids))
     assert set(out.speculation.compiled_widths) <= {0, 2, 4} and out.speculation.compile_seconds > 0
-    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 3
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 3 + 1  # and the prefill's
+
+
+def test_one_compiled_prefill_serves_every_prompt_length_and_draft_count():
+    """A call site's first prefill runs eagerly and compiles the prefill graph; every later prefill (other prompt
+    lengths, with or without drafts verified inside it) runs through that one graph and gives greedy's tokens."""
+    model = _model("llama")
+    compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
+
+    def calls(length: int, seed: int):
+        input_ids = torch.randint(6, 64, (1, length), generator=torch.Generator().manual_seed(seed))
+        expected = greedy(model, input_ids)
+        right = expected[:, length:-1]
+        wrong = torch.cat([right[:, :2], (right[:, 2:] + 1) % VOCAB], dim=1)
+        return [(input_ids, expected, kwargs) for kwargs in (dict(), dict(draft_ids=right), dict(draft_ids=wrong))]
+
+    prefills = []
+    for input_ids, expected, kwargs in calls(6, 0):  # the warm-up: one prompt length, each kind of call
+        out = greedy(model, input_ids, assistant_model=JacobiDrafter(), return_dict_in_generate=True, **compiled,
+                     **kwargs)  # fmt: skip
+        assert torch.equal(out.sequences, expected), kwargs
+        prefills.append(out.speculation.compiled_prefills)
+    assert prefills == [0, 1, 1]  # the first prefill eagerly (it compiles the graph), then compiled
+    graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
+    with torch._dynamo.config.patch(error_on_recompile=True):
+        for seed, length in enumerate((4, 9, 13), start=1):
+            for input_ids, expected, kwargs in calls(length, seed):
+                out = greedy(model, input_ids, assistant_model=JacobiDrafter(), return_dict_in_generate=True,
+                             **compiled, **kwargs)  # fmt: skip
+                assert torch.equal(out.sequences, expected), (length, kwargs)
+                assert out.speculation.compiled_prefills == 1, (length, kwargs)
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
+
+
+def test_a_forward_that_does_not_compile_over_the_prompt_keeps_an_eager_prefill(caplog):
+    """A model whose forward breaks the graph over the prompt (here: whenever kept logits are chosen by an index
+    tensor, as only the compiled prefill does) is told once and keeps an eager prefill; decoding stays exact."""
+    model = _model("llama")
+    forward = model.forward
+
+    def breaking_forward(*args, **kwargs):
+        if isinstance(kwargs.get("logits_to_keep"), torch.Tensor):
+            torch._dynamo.graph_break()
+        return forward(*args, **kwargs)
+
+    model.forward = breaking_forward
+    compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
+    input_ids = torch.randint(6, 64, (1, 6), generator=torch.Generator().manual_seed(0))
+    expected = greedy(model, input_ids)
+    with caplog.at_level("WARNING", logger="hf_specvla.speculative.compiled"):
+        runs = [greedy(model, input_ids, draft_ids=expected[:, 6:9], return_dict_in_generate=True, **compiled)
+                for _ in range(3)]  # fmt: skip
+    assert [r.speculation.compiled_prefills for r in runs] == [0, 0, 0]
+    assert all(torch.equal(r.sequences, expected) for r in runs)
+    assert sum("stays eager" in record.getMessage() for record in caplog.records) == 1
+
+
+def test_preserved_entries_empties_the_cache_for_the_block_and_puts_every_entry_back():
+    from hf_specvla.speculative.cache import cache_length, preserved_entries
+
+    model = _model("llama")
+    cache = StaticCache(config=model.config, max_cache_len=32)
+    with torch.no_grad():
+        model(input_ids=torch.tensor([[1, 7, 9, 11, 13]]), use_cache=True, **{CACHE_KEY: cache})
+    keys = [layer.keys for layer in cache.layers]
+    before = [(layer.keys[..., :5, :].clone(), layer.values[..., :5, :].clone()) for layer in cache.layers]
+    with preserved_entries(cache):
+        assert cache_length(cache) == 0
+        with torch.no_grad():  # a throw-away forward over other tokens, written from slot 0
+            model(input_ids=torch.tensor([[3, 4, 5, 6, 8, 10, 12]]), use_cache=True, **{CACHE_KEY: cache})
+        assert cache_length(cache) == 7
+    assert cache_length(cache) == 5
+    for layer, key_buffer, (saved_keys, saved_values) in zip(cache.layers, keys, before):
+        assert layer.keys is key_buffer  # in place: compiled graphs hold the buffers' addresses
+        assert torch.equal(layer.keys[..., :5, :], saved_keys) and torch.equal(layer.values[..., :5, :], saved_values)
 
 
 def test_compiled_verification_in_a_chunked_policy():

@@ -233,6 +233,21 @@ def set_static_length(cache: Cache, length: int) -> None:
         _set_static_length(layer, length)
 
 
+@contextmanager
+def preserved_entries(cache: Cache):
+    """Empties ``cache`` for the block (e.g. a throw-away forward writing from slot 0) and puts its entries back
+    afterwards, in place (a static layer's buffers keep their addresses)."""
+    length = cache_length(cache)
+    saved = [(layer, layer.keys[..., :length, :].clone(), layer.values[..., :length, :].clone())
+             for layer in _stored_layers(cache)]  # fmt: skip
+    truncate_cache(cache, 0)
+    try:
+        yield
+    finally:
+        for layer, keys, values in saved:
+            _stored(layer, keys, values)
+
+
 def truncate_cache(cache: Cache, length: int) -> None:
     """Keeps the first ``length`` positions of every layer, in place (a static layer: its counter moves back)."""
     for layer in _stored_layers(cache):

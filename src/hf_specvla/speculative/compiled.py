@@ -11,8 +11,14 @@ new width.
 Compilation is transformers' own: ``model.get_compiled_call(generation_config.compile_config)``, under the criteria
 of its compiled greedy decoding (a static cache; a CUDA / XPU device, or ``CompileConfig._compile_all_devices``; not
 ``disable_compile``; no quantizer that refuses it). So ``cache_implementation="static"`` speeds up speculative and
-plain greedy decoding alike, and the two share the compiled model call. The prefill stays eager (its shape changes
-with the prompt and the drafts it verifies), as in transformers' greedy decoding.
+plain greedy decoding alike, and the two share the compiled model call.
+
+The prefill (the prompt, images included, and the drafts verified inside it) runs through the same compiled call
+as **one graph for every prompt length and draft count**: its sequence dimensions are marked dynamic
+([`mark_length_dynamic`]). That graph is compiled at the end of a call site's first prefill, which runs eagerly
+(some models install hooks on their first forward, which dynamo cannot trace), by a throw-away prefill over the
+same inputs, the cache's entries saved and put back; later calls' prefills are compiled. A model whose forward over
+the prompt does not trace into one graph keeps an eager prefill (logged once).
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ import torch
 from transformers import GenerationConfig, PreTrainedModel
 from transformers.cache_utils import Cache
 
-from .cache import STATIC_LAYER_TYPES
+from .cache import STATIC_LAYER_TYPES, preserved_entries
 
 logger = logging.getLogger(__name__)
 
@@ -132,6 +138,8 @@ def reset_compilation() -> None:
     width and depth again, before its first compiled round)."""
     torch._dynamo.reset()
     _COMPILED_WIDTHS.clear()
+    _COMPILED_PREFILLS.clear()
+    _EAGER_PREFILLS.clear()
     _COMPILED_DRAFTING.clear()
     _COMPILED_FUNCTIONS.clear()
 
@@ -162,6 +170,66 @@ def compile_every_width(model: PreTrainedModel, key: tuple, verify_width: Callab
     done.add(key)
     seconds = time.perf_counter() - start
     logger.info("compiled verification widths %s (%d slots, hidden states %s) in %.1f s", widths, *key[1:3], seconds)
+    return seconds
+
+
+#: the model inputs with a sequence dimension in a prefill, and that dimension ([`mark_length_dynamic`])
+_SEQUENCE_DIMS = {"input_ids": -1, "inputs_embeds": 1, "position_ids": -1, "attention_mask": 2, "logits_to_keep": 0}
+
+
+def mark_length_dynamic(inputs: dict) -> None:
+    """Marks the sequence dimension of a prefill's inputs dynamic (``torch._dynamo.mark_dynamic``): ``input_ids`` /
+    ``inputs_embeds`` ``[B, P + N]``, ``position_ids`` ``[B, P + N]``, the 4D mask ``[B, 1, P + N, slots]``, and the
+    index tensor ``logits_to_keep`` ``[2 + N]``, so that one graph serves every prompt length and node count."""
+    for name, dim in _SEQUENCE_DIMS.items():
+        value = inputs.get(name)
+        if isinstance(value, torch.Tensor) and value.ndim > (dim if dim >= 0 else -dim - 1):
+            torch._dynamo.mark_dynamic(value, dim if dim >= 0 else value.ndim + dim)
+
+
+#: per model, the (compile settings, slots, hidden states returned) keys whose prefill graph is compiled
+_COMPILED_PREFILLS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+#: per model, the same keys whose forward over the prompt did not compile into one graph (the prefill stays eager)
+_EAGER_PREFILLS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def prefill_is_compiled(model: PreTrainedModel, key: tuple) -> bool:
+    """Whether ``model``'s prefill graph for ``key`` was compiled by an earlier call ([`compile_prefill`])."""
+    return key in _COMPILED_PREFILLS.get(model, ())
+
+
+def prefill_stays_eager(model: PreTrainedModel, key: tuple) -> bool:
+    """Whether compiling ``model``'s prefill for ``key`` was tried and failed (its prefill stays eager)."""
+    return key in _EAGER_PREFILLS.get(model, ())
+
+
+def compile_prefill(model: PreTrainedModel, key: tuple, cache: Cache, run_prefill: Callable[[], None]) -> float:
+    """Compiles ``model``'s prefill graph for ``key`` (compile settings, slots, hidden states returned) with a
+    throw-away compiled prefill, the cache's entries saved and put back ([`preserved_entries`]). A model whose
+    forward does not compile into one graph is remembered and keeps an eager prefill (a warning, once per key).
+
+    Args:
+        run_prefill: runs the compiled prefill on the call's own prefill inputs (writing from slot 0).
+    Returns:
+        the seconds it took.
+    """
+    from torch._dynamo.exc import TorchDynamoException
+    from torch._inductor.exc import InductorError
+
+    start = time.perf_counter()
+    try:
+        with preserved_entries(cache):
+            run_prefill()
+    except (TorchDynamoException, InductorError) as error:  # dynamo / inductor refusing the model's forward
+        _EAGER_PREFILLS.setdefault(model, set()).add(key)
+        logger.warning(
+            "the prefill of %s stays eager: its forward over the prompt does not compile into one graph (%s: %s)",
+            type(model).__name__, type(error).__name__, str(error).splitlines()[0] if str(error) else "",
+        )  # fmt: skip
+        return time.perf_counter() - start
+    _COMPILED_PREFILLS.setdefault(model, set()).add(key)
+    seconds = time.perf_counter() - start
+    logger.info("compiled the prefill (every prompt length, %d slots, hidden states %s) in %.1f s", *key[1:3], seconds)
     return seconds
 
 

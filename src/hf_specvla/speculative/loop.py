@@ -56,9 +56,12 @@ from .compiled import (
     SLOT_MULTIPLE,
     buckets_up_to,
     compile_every_width,
+    compile_prefill,
     compile_settings,
     compiled_call,
     compiles_verification,
+    prefill_is_compiled,
+    prefill_stays_eager,
     verification_width,
 )
 from .config import SpeculationConfig
@@ -447,6 +450,7 @@ class RoundPlan:
     window: int | None  # the target cache's smallest sliding window
     capacity: int | None  # a static cache's slots (batch 1): trees fit in the free ones
     compiled: Callable | None  # the compiled model call for rounds after the prefill, or None (eager)
+    compiled_prefill: Callable | None  # the compiled call for the prefill (its graph compiled by an earlier call)
     buckets: tuple[int, ...]  # the widths a compiled verification is padded to (up to the drafter's largest tree)
     prefix_attention: bool  # a prefix-LM prompt: the prefill verifies one chain
     keep_scores: bool
@@ -502,7 +506,8 @@ def verify(
         sliding_window=plan.window,
         position_offsets=state.position_offsets,
         key_length=plan.capacity,
-        forward=None if prefill_model_inputs is not None else plan.compiled,
+        forward=plan.compiled_prefill if prefill_model_inputs is not None else plan.compiled,
+        dynamic_length=prefill_model_inputs is not None and plan.compiled_prefill is not None,
     )
 
 
@@ -571,6 +576,20 @@ def _compile_every_width(model, plan: RoundPlan, compile_config, state: DecodeSt
     free = plan.capacity - length - state.pending_ids.shape[1]
     key = (settings, plan.capacity, plan.output_hidden, plan.buckets)
     return compile_every_width(model, key, verify_width, free, plan.buckets)
+
+
+def _compile_prefill(model, plan: RoundPlan, key: tuple, model_inputs: dict, prompt, trees: TreeBatch) -> float:
+    """[`compile_prefill`]: the call's own prefill (``prompt``: its ids and positions ``[1, P]`` each, the prepared
+    ``model_inputs`` with its images, its ``trees``) once more through the compiled call, from slot 0, the cache's
+    entries saved and put back."""
+
+    def run_prefill() -> None:
+        verify_trees(
+            model, model_inputs, *prompt, trees, None, plan.output_hidden, sliding_window=plan.window,
+            key_length=plan.capacity, forward=plan.compiled, dynamic_length=True,
+        )  # fmt: skip
+
+    return compile_prefill(model, key, model_inputs[CACHE_KEY], run_prefill)
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -687,22 +706,33 @@ def speculative_generate(
         key_valid=None if prompt_padding is None else prompt_padding.bool(),
         target_cache=cache,
     )
+    capacity, output_hidden = static_capacity(cache), drafter.needs_hidden_states
+    # A prefix-LM prompt (PaliGemma's token_type_ids: the prompt attends to itself both ways at the prefill) needs
+    # the model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies a chain.
+    prefix_attention = model_inputs.get("token_type_ids") is not None
+    # the prefill through the compiled call: batch 1 (a static cache), 2D positions, a causal prompt of >= 2 tokens;
+    # its graph depends on the compile settings, the cache's slots and whether hidden states are returned
+    prefill_key = None
+    if compiled is not None and not prefix_attention and position_offsets is None and input_ids.shape[1] >= 2:
+        prefill_key = (compile_settings(generation_config.compile_config), capacity, output_hidden)
+        if prefill_stays_eager(model, prefill_key):
+            prefill_key = None
     plan = RoundPlan(
         max_length=generation_config.max_length,
         rule=rule,
         layout=layout,
-        output_hidden=drafter.needs_hidden_states,
+        output_hidden=output_hidden,
         window=sliding_window(cache),
-        capacity=static_capacity(cache),
+        capacity=capacity,
         compiled=compiled,
+        compiled_prefill=compiled if prefill_key is not None and prefill_is_compiled(model, prefill_key) else None,
         # the deepest a round after the prefill can draft: max_new_tokens - 1 (the bonus token takes the last slot)
         buckets=buckets_up_to(drafter.max_tree_nodes(max(0, generation_config.max_length - input_ids.shape[1] - 1))),
-        # A prefix-LM prompt (PaliGemma's token_type_ids: the prompt attends to itself both ways at the prefill) needs
-        # the model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies a chain.
-        prefix_attention=model_inputs.get("token_type_ids") is not None,
+        prefix_attention=prefix_attention,
         keep_scores=keep_scores,
         keep_logits=keep_logits,
     )
+    prompt = (input_ids, prompt_positions)  # the prefill's pending tokens
     at_prefill = True
     with open_sliding_windows(cache):  # exact: the generation fits the window (checked)
         while state.rows:
@@ -712,6 +742,7 @@ def speculative_generate(
             with stopwatch.section("target_seconds"):
                 output = verify(model, state, plan, trees, model_inputs if at_prefill else None)
             stats.num_batch_forwards += 1
+            stats.compiled_prefills += at_prefill and plan.compiled_prefill is not None
             paths, target_ids, target_scores = accept(state, plan, trees, output, logits_processor)
             emit(state, plan, trees, paths, output, target_scores, stopping_criteria)
             commits = commit_paths(state, trees, paths, output.hidden, target_ids)
@@ -719,6 +750,8 @@ def speculative_generate(
                 observe(state, commits)
             if compiled is not None and at_prefill:  # every width compiled before the first compiled round
                 stats.compile_seconds = _compile_every_width(model, plan, generation_config.compile_config, state)
+                if prefill_key is not None and plan.compiled_prefill is None:  # the next call's prefill, compiled
+                    stats.compile_seconds += _compile_prefill(model, plan, prefill_key, model_inputs, prompt, trees)
             drop_finished_rows(state)
             at_prefill = False
 

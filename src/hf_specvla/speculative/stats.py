@@ -26,12 +26,14 @@ class SpeculationStats:
         num_batch_forwards: the target forwards actually run. For a batch of B rows the counts above are summed
             over rows (a batch forward counts once for every row that took part in it: each row's tokens per
             forward is what the batch achieves per forward for that row); at B = 1 it equals ``num_target_forwards``.
-        compile_seconds: time spent compiling every verification width before the first compiled round and the
-            drafters' compiled work (a draft head's expansion graphs) at their first proposal (the first call per
+        compile_seconds: time spent compiling every verification width before the first compiled round, the prefill
+            graph after the first prefill (which runs eagerly), and the drafters' compiled work (a draft head's expansion graphs) at their first proposal (the first call per
             model, slot count and drafter kind; 0 afterwards); inside ``total_seconds`` (and the draft head's part
             inside ``draft_seconds``).
         compiled_widths: the node count (width bucket, filler included) of each verification that ran through the
             compiled model call (see ``speculative.compiled``); empty when every forward ran eagerly.
+        compiled_prefills: prefills that ran through the compiled model call (one graph for every prompt length; a
+            call site's first prefill runs eagerly and compiles it).
         jacobi_guesses_per_position / jacobi_right_per_position: ``[j]`` = how many of the target's guesses of the
             j-th token after a bonus token ([`JacobiDrafter`]'s tails, j = 0 first) reached a position the row emitted /
             equalled the token emitted there (whether or not they were verified).
@@ -51,6 +53,7 @@ class SpeculationStats:
     num_batch_forwards: int = 0
     compiled_widths: list[int] = field(default_factory=list)
     compile_seconds: float = 0.0
+    compiled_prefills: int = 0
     jacobi_guesses_per_position: list[int] = field(default_factory=list)
     jacobi_right_per_position: list[int] = field(default_factory=list)
     rows: list[SpeculationStats] = field(default_factory=list)
@@ -133,6 +136,7 @@ class SpeculationStats:
             num_batch_forwards=self.num_batch_forwards + other.num_batch_forwards,
             compiled_widths=self.compiled_widths + other.compiled_widths,
             compile_seconds=self.compile_seconds + other.compile_seconds,
+            compiled_prefills=self.compiled_prefills + other.compiled_prefills,
             rows=self.rows + other.rows,
         )
         merged.add_guesses(self)

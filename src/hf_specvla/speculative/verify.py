@@ -22,6 +22,7 @@ from transformers.generation.logits_process import (
 
 from .cache import cache_length
 from .compat import CACHE_KEY
+from .compiled import mark_length_dynamic
 from .masks import to_additive_mask, tree_verification_allowed
 from .tree import TreeBatch
 
@@ -56,6 +57,7 @@ def verify_trees(
     position_offsets: torch.Tensor | None = None,
     key_length: int | None = None,
     forward: Callable | None = None,
+    dynamic_length: bool = False,
 ) -> TargetOutput:
     """One target forward over ``[pending tokens ; each row's tree nodes]`` on top of the target cache.
 
@@ -78,6 +80,9 @@ def verify_trees(
         forward: the model call to run (a compiled one, see ``speculative.compiled``); None: ``model`` itself. A
             compiled call always gets the explicit tree mask (one mask kind, one shape per width) and its outputs are
             copied (a CUDA graph's outputs are overwritten by its next replay).
+        dynamic_length: the compiled prefill: one graph for every prompt length and node count (their dimensions are
+            marked dynamic, see [`mark_length_dynamic`]); the logits kept are chosen by an index tensor (an int would
+            be a constant of the graph). Needs ``P >= 2``.
     Returns:
         [`TargetOutput`] with logits ``[B, 1 + N, V]`` and hidden states ``[B, P + N, H]``.
     """
@@ -110,9 +115,15 @@ def verify_trees(
             allowed = torch.nn.functional.pad(allowed, (0, key_length - allowed.shape[-1]), value=False)
         inputs["attention_mask"] = to_additive_mask(allowed, model.dtype)
     inputs["logits_to_keep"] = num_nodes + 1
+    if dynamic_length:  # 2 + N rows (a dimension of size 1 would be specialised), the first dropped below
+        total = num_pending + num_nodes
+        inputs["logits_to_keep"] = torch.arange(total - num_nodes - 2, total, device=pending_ids.device)
+        mark_length_dynamic(inputs)
     inputs["use_cache"] = True
     outputs = (forward or model)(**inputs, output_hidden_states=output_hidden, return_dict=True)
     logits, hidden = outputs.logits.float(), outputs.hidden_states[-1] if output_hidden else None
+    if dynamic_length:
+        logits = logits[:, 1:]
     if forward is not None:
         logits, hidden = logits.clone(), None if hidden is None else hidden.clone()
     return TargetOutput(logits, hidden)
