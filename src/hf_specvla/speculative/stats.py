@@ -27,9 +27,9 @@ class SpeculationStats:
             over rows (a batch forward counts once for every row that took part in it: each row's tokens per
             forward is what the batch achieves per forward for that row); at B = 1 it equals ``num_target_forwards``.
         compile_seconds: time spent compiling every verification width before the first compiled round, the prefill
-            graph after the first prefill (which runs eagerly), and the drafters' compiled work (a draft head's expansion graphs) at their first proposal (the first call per
-            model, slot count and drafter kind; 0 afterwards); inside ``total_seconds`` (and the draft head's part
-            inside ``draft_seconds``).
+            graph after the first prefill (which runs eagerly), and the drafters' compiled work (a draft head's
+            expansion graphs) at their first proposal (the first call per model, slot count and drafter kind; 0
+            afterwards); inside ``total_seconds`` (and the draft head's part inside ``draft_seconds``).
         compiled_widths: the node count (width bucket, filler included) of each verification that ran through the
             compiled model call (see ``speculative.compiled``); empty when every forward ran eagerly.
         compiled_prefills: prefills that ran through the compiled model call (one graph for every prompt length; a
