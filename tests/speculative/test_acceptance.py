@@ -3,7 +3,16 @@
 import pytest
 import torch
 
-from hf_specvla import ActionLayout, DraftTree, ExactMatch, RelaxedBinMatch, make_acceptance_rule
+from hf_specvla import (
+    ActionLayout,
+    ConfidenceGate,
+    DraftTree,
+    ExactMatch,
+    RelaxedBinMatch,
+    RelaxedBudget,
+    SpeculationConfig,
+    make_acceptance_rule,
+)
 from hf_specvla.speculative import accept_tree
 
 
@@ -142,3 +151,78 @@ def test_a_chain_is_known_as_one_so_that_it_verifies_under_the_causal_mask():
     assert DraftTree.from_paths([[5, 6, 7]], "x").is_chain
     assert not DraftTree.from_paths([[5, 6], [5, 7]], "x").is_chain  # siblings: a real tree mask is needed
     assert DraftTree.empty().is_chain
+
+
+# ------------------------------------------------------------------------------- rules beyond a global r
+def test_per_chunk_step_tolerance_the_last_row_serves_later_actions(layout):
+    rule = RelaxedBinMatch(layout, bin_tolerance=[[1] * 6 + [0], [4] * 6 + [0]])  # the first action tight
+    draft, target = torch.tensor([[100, 100, 100, 100]]), torch.tensor([[103, 103, 103, 101]])
+    dims, steps = torch.tensor([[0, 0, 0, 6]]), torch.tensor([[0, 1, 5, 3]])  # step 5: the last row
+    assert rule(draft, target, dims, steps).tolist() == [[False, True, True, False]]  # the gripper strict throughout
+    assert not rule.is_lossless and "[[1, 1, 1, 1, 1, 1, 0], 4" not in repr(rule)
+
+
+def test_confidence_gate_relaxes_only_where_the_target_is_unsure(layout):
+    rule = make_acceptance_rule(3, layout, confidence_gate=0.6)
+    assert isinstance(rule, ConfidenceGate) and rule.needs_probabilities and not rule.is_lossless
+    draft, target = torch.tensor([[100, 100, 100, 100]]), torch.tensor([[102, 102, 100, 110]])
+    top1 = torch.tensor([[0.3, 0.9, 0.99, 0.1]])  # unsure, sure, sure (but exact), unsure (but too far)
+    assert rule(draft, target, torch.zeros_like(draft), None, top1).tolist() == [[True, False, True, False]]
+    with pytest.raises(ValueError, match="top-1 probabilities"):
+        rule(draft, target)
+
+
+def test_relaxed_budget_counts_along_the_path_within_each_action(action_tokenizer):
+    layout = ActionLayout(action_tokenizer, 2)  # 2 tokens per action: a chain of 4 drafts spans 2 actions
+    rule = make_acceptance_rule(5, layout, max_relaxed_per_action=1)
+    assert isinstance(rule, RelaxedBudget) and rule.max_relaxed_per_action == 1
+    chain = DraftTree.from_paths([[100, 101, 102, 103]], "test")
+    # every draft 1 bin off: one relaxed token per action -> drafts 0 (action 0) and 2 (action 1), each followed by a
+    # rejection: the path stops at the first over-budget node
+    path = accept_tree(chain, targets(101, [102, 103, 104, 105]), rule, layout)
+    assert path.nodes == [0] and path.bonus_id == 102
+    # exact drafts do not count: relaxed, exact | relaxed, exact -> all four
+    path = accept_tree(chain, targets(101, [101, 103, 103, 7]), rule, layout)
+    assert path.nodes == [0, 1, 2, 3] and path.distances == [1, 0, 1, 0]
+    # a relaxed token emitted by an earlier round of the same action counts: the first draft is then over budget
+    path = accept_tree(chain, targets(101, [101, 103, 103, 7]), rule, layout, 1, relaxed_in_action=1)
+    assert path.nodes == [] and path.bonus_id == 101
+    # the earlier count belongs to the root's action only: the next action starts from 0 (node 2 relaxed, accepted)
+    path = accept_tree(chain, targets(100, [101, 103, 103, 7]), rule, layout, 1, relaxed_in_action=1)
+    assert path.nodes == [0, 1, 2, 3] and path.distances == [0, 0, 1, 0]
+
+
+def test_a_tree_keeps_the_branch_within_budget(action_tokenizer):
+    layout = ActionLayout(action_tokenizer, 4)
+    rule = make_acceptance_rule(5, layout, max_relaxed_per_action=1)
+    # two branches: relaxed twice (over budget at its second node) or relaxed once then exact
+    tree = DraftTree.from_paths([[100, 110, 120], [101, 111, 121]], "test")
+    path = accept_tree(tree, targets(101, [112, 121, 7, 111, 121, 8]), rule, layout)
+    assert path.nodes == [3, 4, 5] and path.bonus_id == 8
+
+
+def test_r0_is_exact_whatever_the_gate_and_budget(layout):
+    for gate, budget in ((None, None), (0.5, None), (None, 2), (0.9, 0)):
+        assert isinstance(make_acceptance_rule(0, layout, gate, budget), ExactMatch)
+        assert isinstance(make_acceptance_rule([[0] * 7, [0] * 7], layout, gate, budget), ExactMatch)
+    assert isinstance(make_acceptance_rule(4, layout, None, 0), ExactMatch)  # a budget of 0: nothing relaxed
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [(dict(confidence_gate=0), ValueError, r"confidence_gate=0: .* in \(0, 1\]"),
+     (dict(confidence_gate=1.5), ValueError, r"confidence_gate=1.5"),
+     (dict(confidence_gate="high"), TypeError, r"'high'"),
+     (dict(max_relaxed_per_action=-1), ValueError, r"max_relaxed_per_action=-1: .* >= 0"),
+     (dict(max_relaxed_per_action=1.5), TypeError, r"1.5"),
+     (dict(bin_tolerance=[[1] * 7, 2]), TypeError, "mixes numbers and lists"),
+     (dict(bin_tolerance=[[1] * 7, [1] * 3]), ValueError, "7 dimensions"),
+     (dict(bin_tolerance=[]), ValueError, "empty")],
+)  # fmt: skip
+def test_bad_rule_settings_are_named(layout, kwargs, error, match):
+    kwargs = {"bin_tolerance": 2, **kwargs}
+    with pytest.raises(error, match=match):
+        make_acceptance_rule(kwargs.pop("bin_tolerance"), layout, **kwargs)
+    if "bin_tolerance" not in kwargs and kwargs:  # the generate arguments are checked before any forward
+        with pytest.raises(error, match=match):
+            SpeculationConfig(**kwargs)

@@ -11,8 +11,16 @@ then the one proposed first (lowest node index): the output stays as close to gr
   token is also accepted when its bin is within ``bin_tolerance`` (the paper's r) bins of the target's greedy
   token, because neighbouring bins are neighbouring actions. Non-action tokens still need an exact match.
   The accepted token is the *drafted* one. Deviation from the paper: the tolerance may differ per action
-  dimension (e.g. 0 for a binary gripper), and both tokens must be action tokens (the official code compares
-  raw id differences at every position, so it could accept a text token near the action range).
+  dimension (e.g. 0 for a binary gripper) and per action of a chunk (later actions looser), and both tokens must be
+  action tokens (the official code compares raw id differences at every position, so it could accept a text token
+  near the action range).
+* [`ConfidenceGate`] (after Medusa's typical acceptance): a relaxed acceptance counts only where the target is
+  unsure, its greedy token's probability below a threshold; where it is confident the draft must match exactly.
+* [`RelaxedBudget`]: at most m relaxed tokens per action, counted along the path and over the call's earlier rounds;
+  past the budget acceptance is exact. A relaxed token changes the prefix of every later token, so this bounds how
+  far one action can drift from greedy's, not only each token.
+
+Every rule is exact where its tolerance is 0: ``bin_tolerance=0`` is greedy decoding whatever the gate or budget.
 """
 
 from __future__ import annotations
@@ -30,8 +38,19 @@ from .tree import DraftTree, TreeBatch
 class AcceptanceRule:
     """Decides, per drafted token, whether it is acceptable in place of the target's greedy token."""
 
+    #: whether ``__call__`` reads ``top1_probs`` (acceptance then computes the target's probabilities)
+    needs_probabilities: bool = False
+    #: at most this many relaxed tokens (accepted, not equal to the target's) per action, along the accepted path and
+    #: over the call's earlier rounds ([`accept_trees`] applies it); None: no budget
+    max_relaxed_per_action: int | None = None
+
     def __call__(
-        self, draft_ids: torch.Tensor, target_ids: torch.Tensor, action_dims: torch.Tensor | None = None
+        self,
+        draft_ids: torch.Tensor,
+        target_ids: torch.Tensor,
+        action_dims: torch.Tensor | None = None,
+        action_steps: torch.Tensor | None = None,
+        top1_probs: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """
         Args:
@@ -39,6 +58,10 @@ class AcceptanceRule:
             target_ids: ``[B, k]`` the target's greedy token at the same positions (given the drafted prefix).
             action_dims: ``[B, k]`` action dimension of each drafted token (the number of action tokens generated
                 before it in this call, modulo ``action_dim``).
+            action_steps: ``[B, k]`` which action of the call (of a chunk) each drafted token belongs to (the same
+                count, divided by ``action_dim``).
+            top1_probs: ``[B, k]`` the target's probability of its greedy token at each position (only passed to
+                rules that declare ``needs_probabilities``).
         Returns:
             ``[B, k]`` bool, True where the drafted token is acceptable on its own.
         """
@@ -53,7 +76,7 @@ class AcceptanceRule:
 class ExactMatch(AcceptanceRule):
     """Accept a drafted token iff it equals the target's greedy token."""
 
-    def __call__(self, draft_ids, target_ids, action_dims=None):
+    def __call__(self, draft_ids, target_ids, action_dims=None, action_steps=None, top1_probs=None):
         return draft_ids == target_ids
 
     @property
@@ -94,39 +117,158 @@ def validate_bin_tolerance(bin_tolerance, action_dim: int) -> tuple[int, ...]:
     return (check(bin_tolerance, ""),) * action_dim
 
 
+def _is_sequence(value) -> bool:
+    return isinstance(value, (Sequence, np.ndarray)) and not isinstance(value, str)
+
+
+def validate_tolerance_table(bin_tolerance, action_dim: int) -> tuple[tuple[int, ...], ...]:
+    """Normalises ``bin_tolerance`` to one row of ``action_dim`` ints per action of a chunk: an int (every dimension
+    of every action), one int per dimension (every action), or a list of such rows, one per action of the chunk (the
+    last row serves the later actions), e.g. ``[[2, 2, 2, 0], [4, 4, 4, 0]]``.
+
+    Raises:
+        ValueError / TypeError naming the bad value and what would be valid.
+    """
+    if isinstance(bin_tolerance, torch.Tensor):
+        bin_tolerance = bin_tolerance.tolist()
+    if _is_sequence(bin_tolerance) and len(bin_tolerance) and all(_is_sequence(row) for row in bin_tolerance):
+        return tuple(validate_bin_tolerance(list(row), action_dim) for row in bin_tolerance)
+    if _is_sequence(bin_tolerance) and any(_is_sequence(row) for row in bin_tolerance):
+        raise TypeError(
+            f"bin_tolerance={list(bin_tolerance)!r} mixes numbers and lists: give an int, one int per action "
+            f"dimension, or one such list per action of a chunk"
+        )
+    if _is_sequence(bin_tolerance) and not len(bin_tolerance):
+        raise ValueError("bin_tolerance=[] is empty: give an int, one int per action dimension, or one list per action")
+    return (validate_bin_tolerance(bin_tolerance, action_dim),)
+
+
 class RelaxedBinMatch(AcceptanceRule):
     """Spec-VLA relaxed acceptance: action tokens within ``bin_tolerance`` bins of the target's are accepted.
 
     Args:
         action_layout: the action-token range and the tokens per action.
-        bin_tolerance: the paper's r; an int, or one int per action dimension.
+        bin_tolerance: the paper's r; an int, one int per action dimension, or one such list per action of a chunk
+            (the last one serving the later actions; [`validate_tolerance_table`]).
     """
 
-    def __init__(self, action_layout: ActionLayout, bin_tolerance: int | Sequence[int]):
+    def __init__(self, action_layout: ActionLayout, bin_tolerance: int | Sequence[int] | Sequence[Sequence[int]]):
         self.action_layout = action_layout
         self.action_tokenizer = action_layout.tokenizer
-        self.bin_tolerance = validate_bin_tolerance(bin_tolerance, action_layout.action_dim)
+        self.tolerance_table = validate_tolerance_table(bin_tolerance, action_layout.action_dim)  # [S][D]
+        #: one row (every action alike) as a tuple of ints, else the table
+        self.bin_tolerance = self.tolerance_table[0] if len(self.tolerance_table) == 1 else self.tolerance_table
 
-    def __call__(self, draft_ids, target_ids, action_dims=None):
+    def __call__(self, draft_ids, target_ids, action_dims=None, action_steps=None, top1_probs=None):
         exact = draft_ids == target_ids
         both_actions = self.action_tokenizer.is_action_token(draft_ids) & self.action_tokenizer.is_action_token(
             target_ids
         )
         if action_dims is None:
             action_dims = torch.zeros_like(draft_ids)
-        tolerance = torch.tensor(self.bin_tolerance, device=draft_ids.device)[action_dims]  # [B, k]
+        table = torch.tensor(self.tolerance_table, device=draft_ids.device)  # [S, D]
+        steps = torch.zeros_like(draft_ids) if action_steps is None else action_steps.clamp(max=len(table) - 1)
+        tolerance = table[steps, action_dims]  # [B, k]
         within = self.action_tokenizer.bin_distance(draft_ids, target_ids) <= tolerance
         return exact | (both_actions & within)
 
     @property
     def is_lossless(self) -> bool:
-        return all(t == 0 for t in self.bin_tolerance)
+        return all(t == 0 for row in self.tolerance_table for t in row)
 
     def __repr__(self) -> str:
-        tol = self.bin_tolerance[0] if len(set(self.bin_tolerance)) == 1 else list(self.bin_tolerance)
+        rows = [row[0] if len(set(row)) == 1 else list(row) for row in self.tolerance_table]
+        tol = rows[0] if len(rows) == 1 else rows
         return (
             f"RelaxedBinMatch(bin_tolerance={tol}, {self.action_tokenizer}, action_dim={self.action_layout.action_dim})"
         )
+
+
+def check_confidence_gate(confidence_gate) -> float | None:
+    """Validates a confidence gate: None (no gate) or a probability in (0, 1].
+
+    Raises:
+        ValueError / TypeError naming the value and what would be valid.
+    """
+    if confidence_gate is None:
+        return None
+    if isinstance(confidence_gate, bool) or not isinstance(confidence_gate, (int, float, np.floating, np.integer)):
+        raise TypeError(f"confidence_gate must be a probability in (0, 1] or None, got {confidence_gate!r}")
+    if not 0 < confidence_gate <= 1:
+        raise ValueError(
+            f"confidence_gate={confidence_gate!r}: a relaxed token counts only where the target's greedy token has a "
+            f"probability below the gate, so it must be in (0, 1] (1 = no gate; e.g. 0.5)"
+        )
+    return float(confidence_gate)
+
+
+def check_relaxed_budget(max_relaxed_per_action) -> int | None:
+    """Validates a relaxed-token budget: None (no budget) or an int >= 0.
+
+    Raises:
+        ValueError / TypeError naming the value and what would be valid.
+    """
+    if max_relaxed_per_action is None:
+        return None
+    if isinstance(max_relaxed_per_action, bool) or not isinstance(max_relaxed_per_action, (int, np.integer)):
+        raise TypeError(f"max_relaxed_per_action must be an int >= 0 or None, got {max_relaxed_per_action!r}")
+    if max_relaxed_per_action < 0:
+        raise ValueError(
+            f"max_relaxed_per_action={max_relaxed_per_action}: the relaxed tokens allowed per action must be >= 0 "
+            f"(0 = exact acceptance, None = no budget)"
+        )
+    return int(max_relaxed_per_action)
+
+
+class ConfidenceGate(AcceptanceRule):
+    """``rule``'s relaxed acceptances, kept only where the target is unsure: its greedy token's probability is below
+    ``threshold`` (a draft equal to the target's token always passes).
+
+    Guarantee: wherever the target's top-1 probability is >= ``threshold``, the emitted token is the target's own.
+    """
+
+    needs_probabilities = True
+
+    def __init__(self, rule: AcceptanceRule, threshold: float):
+        self.rule, self.threshold = rule, check_confidence_gate(threshold)
+        self.max_relaxed_per_action = rule.max_relaxed_per_action
+
+    def __call__(self, draft_ids, target_ids, action_dims=None, action_steps=None, top1_probs=None):
+        if top1_probs is None:
+            raise ValueError("ConfidenceGate needs the target's top-1 probabilities (top1_probs)")
+        relaxed = self.rule(draft_ids, target_ids, action_dims, action_steps, top1_probs)
+        return (draft_ids == target_ids) | (relaxed & (top1_probs < self.threshold))
+
+    @property
+    def is_lossless(self) -> bool:
+        return self.rule.is_lossless
+
+    def __repr__(self) -> str:
+        return f"ConfidenceGate({self.rule!r}, threshold={self.threshold})"
+
+
+class RelaxedBudget(AcceptanceRule):
+    """``rule`` with at most ``max_relaxed_per_action`` relaxed tokens per action (counted along each path and over the
+    call's earlier rounds by [`accept_trees`]); past it, acceptance is exact.
+
+    Guarantee: every action the call emits differs from the target's greedy tokens (given its prefix) in at most
+    ``max_relaxed_per_action`` tokens, each within ``rule``'s tolerance.
+    """
+
+    def __init__(self, rule: AcceptanceRule, max_relaxed_per_action: int):
+        self.rule = rule
+        self.max_relaxed_per_action = check_relaxed_budget(max_relaxed_per_action)
+        self.needs_probabilities = rule.needs_probabilities
+
+    def __call__(self, draft_ids, target_ids, action_dims=None, action_steps=None, top1_probs=None):
+        return self.rule(draft_ids, target_ids, action_dims, action_steps, top1_probs)
+
+    @property
+    def is_lossless(self) -> bool:
+        return self.rule.is_lossless or self.max_relaxed_per_action == 0
+
+    def __repr__(self) -> str:
+        return f"RelaxedBudget({self.rule!r}, max_relaxed_per_action={self.max_relaxed_per_action})"
 
 
 def check_bin_tolerance_range(tolerances: Sequence[int], n_bins: int, given: str) -> None:
@@ -144,27 +286,42 @@ def check_bin_tolerance_range(tolerances: Sequence[int], n_bins: int, given: str
         )
 
 
-def make_acceptance_rule(bin_tolerance: int | Sequence[int], action_layout: ActionLayout | None) -> AcceptanceRule:
-    """[`ExactMatch`] when every tolerance is 0, else [`RelaxedBinMatch`] (which needs the action layout).
+def make_acceptance_rule(
+    bin_tolerance: int | Sequence[int] | Sequence[Sequence[int]],
+    action_layout: ActionLayout | None,
+    confidence_gate: float | None = None,
+    max_relaxed_per_action: int | None = None,
+) -> AcceptanceRule:
+    """[`ExactMatch`] when every tolerance is 0 (whatever the gate and budget), else [`RelaxedBinMatch`] (which needs
+    the action layout), inside a [`ConfidenceGate`] when ``confidence_gate`` is given and a [`RelaxedBudget`] when
+    ``max_relaxed_per_action`` is.
 
     Raises:
         ValueError: a relaxed tolerance without an action layout, naming where one can come from.
     """
+    confidence_gate = check_confidence_gate(confidence_gate)
+    max_relaxed_per_action = check_relaxed_budget(max_relaxed_per_action)
     if action_layout is None:
         values = bin_tolerance.tolist() if isinstance(bin_tolerance, torch.Tensor) else bin_tolerance
-        count = len(values) if isinstance(values, (Sequence, np.ndarray)) and not isinstance(values, str) else 1
-        if all(t == 0 for t in validate_bin_tolerance(values, count)):
+        rows = values if _is_sequence(values) and len(values) and all(_is_sequence(r) for r in values) else [values]
+        if all(t == 0 for row in rows for t in validate_bin_tolerance(row, len(row) if _is_sequence(row) else 1)):
             return ExactMatch()
         raise ValueError(
             f"bin_tolerance={bin_tolerance!r} relaxes acceptance of action tokens, but nothing says which tokens are "
             "actions: pass action_layout=ActionLayout(ActionTokenizer(vocab_end, n_bins), action_dim) to generate, "
             "or use a DraftHead (its config records the layout)"
         )
-    tolerance = validate_bin_tolerance(bin_tolerance, action_layout.action_dim)
-    check_bin_tolerance_range(tolerance, action_layout.tokenizer.n_bins, f"bin_tolerance={bin_tolerance!r}")
-    if all(t == 0 for t in tolerance):
+    table = validate_tolerance_table(bin_tolerance, action_layout.action_dim)
+    given = f"bin_tolerance={bin_tolerance!r}"
+    check_bin_tolerance_range([t for row in table for t in row], action_layout.tokenizer.n_bins, given)
+    if all(t == 0 for row in table for t in row) or max_relaxed_per_action == 0:
         return ExactMatch()
-    return RelaxedBinMatch(action_layout, tolerance)
+    rule: AcceptanceRule = RelaxedBinMatch(action_layout, table)
+    if confidence_gate is not None and confidence_gate < 1:
+        rule = ConfidenceGate(rule, confidence_gate)
+    if max_relaxed_per_action is not None:
+        rule = RelaxedBudget(rule, max_relaxed_per_action)
+    return rule
 
 
 # ----------------------------------------------------------------------------- choosing the path of a tree
@@ -189,6 +346,8 @@ def accept_tree(
     rule: AcceptanceRule,
     action_layout: ActionLayout | None,
     num_prior_action_tokens: int = 0,
+    top1_probs: torch.Tensor | None = None,
+    relaxed_in_action: int = 0,
 ) -> AcceptedPath:
     """The longest root-to-leaf path of ``tree`` whose every drafted token passes ``rule`` ([`accept_trees`] for
     one tree).
@@ -198,8 +357,13 @@ def accept_tree(
         target_ids: ``[1 + N]`` the target's greedy token after the root (index 0) and after each node (1 + i),
             each given that node's own path as prefix (the tree mask guarantees it).
         num_prior_action_tokens: action tokens generated in this call before the root (for action dimensions).
+        top1_probs: ``[1 + N]`` the target's probability of each of those tokens (rules that need it).
+        relaxed_in_action: relaxed tokens already emitted in the action the root's next token belongs to.
     """
-    return accept_trees(TreeBatch([tree]), target_ids[None], rule, action_layout, [num_prior_action_tokens])[0]
+    probs = None if top1_probs is None else top1_probs[None]
+    return accept_trees(
+        TreeBatch([tree]), target_ids[None], rule, action_layout, [num_prior_action_tokens], probs, [relaxed_in_action]
+    )[0]
 
 
 def accept_trees(
@@ -208,16 +372,22 @@ def accept_trees(
     rule: AcceptanceRule,
     action_layout: ActionLayout | None,
     num_prior_action_tokens: Sequence[int],
+    top1_probs: torch.Tensor | None = None,
+    relaxed_in_action: Sequence[int] | None = None,
 ) -> list[AcceptedPath]:
     """Per row, the longest root-to-leaf path of its tree whose every drafted token passes ``rule`` (all rows at
-    once).
+    once), within the rule's relaxed-token budget per action.
 
     Args:
         trees: the verified trees, padded to N nodes.
         target_ids: ``[B, 1 + N]`` each row's greedy token after its root (column 0) and after each node (1 + i),
             each given that node's own path as prefix (the tree mask guarantees it).
         num_prior_action_tokens: per row, action tokens generated in this call before the root (for action
-            dimensions).
+            dimensions and the action of the chunk each token belongs to).
+        top1_probs: ``[B, 1 + N]`` the target's probability of each of those greedy tokens; needed by rules that
+            declare ``needs_probabilities``.
+        relaxed_in_action: per row, relaxed tokens (accepted, not the target's) already emitted in the action the
+            root's next token belongs to (earlier rounds of the call); counted against ``rule.max_relaxed_per_action``.
     Returns:
         one [`AcceptedPath`] per row; ties between equally long passing paths go to the smallest total bin
         distance, then to the lowest node index.
@@ -236,12 +406,27 @@ def accept_trees(
             strict_ancestors.long() * is_action.long()[:, None, :]
         ).sum(-1)  # [B, N]
         action_dims = before % action_layout.action_dim
+        action_steps = before // action_layout.action_dim  # [B, N] which action of the call (chunk step)
         both_actions = is_action & tokenizer.is_action_token(parent_targets)
         distances = torch.where(both_actions, tokenizer.bin_distance(tokens, parent_targets), 0)
     else:
-        action_dims = torch.zeros_like(tokens)
+        action_dims = action_steps = torch.zeros_like(tokens)
         distances = torch.zeros_like(tokens)
-    passes = rule(tokens, parent_targets, action_dims) & trees.is_real  # [B, N] the node alone
+    parent_probs = None if top1_probs is None else top1_probs.gather(1, trees.parents + 1)  # [B, N]
+    if rule.needs_probabilities and parent_probs is None:
+        raise ValueError(f"{rule!r} needs the target's top-1 probabilities: pass top1_probs")
+    passes = rule(tokens, parent_targets, action_dims, action_steps, parent_probs) & trees.is_real  # [B, N] alone
+    budget = rule.max_relaxed_per_action
+    if budget is not None and action_layout is not None:
+        # relaxed tokens on each node's path within its own action (and, for the action the root continues, those
+        # emitted by earlier rounds): a node over the budget fails, and with it every path through it
+        relaxed = passes & (tokens != parent_targets)  # [B, N]
+        same_action = action_steps[:, :, None] == action_steps[:, None, :]  # [B, N, N]
+        count = (ancestor_or_self & same_action & relaxed[:, None, :]).long().sum(-1)  # [B, N]
+        first_step = torch.tensor(num_prior_action_tokens, device=tokens.device)[:, None] // action_layout.action_dim
+        earlier = torch.tensor(relaxed_in_action or [0] * batch_size, device=tokens.device)[:, None]  # [B, 1]
+        count = count + torch.where(action_steps == first_step, earlier, 0)
+        passes = passes & (count <= budget)
     path_passes = ~(ancestor_or_self & ~passes[:, None, :]).any(dim=-1)  # [B, N] the node and all its ancestors
     total_distance = (ancestor_or_self.long() * distances[:, None, :]).sum(-1)  # [B, N] summed along the path
     # deepest, then closest, then first: argmax returns the first of equal maxima

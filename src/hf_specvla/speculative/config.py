@@ -6,6 +6,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from ..actions.tokenizer import ActionLayout
+from .acceptance import check_confidence_gate, check_relaxed_budget
 
 #: Appended to the AttributeError transformers' own assisted generation raises when it is handed a hf_specvla
 #: assistant because the target's ``generate`` was never speculation-enabled (it is not enabled automatically).
@@ -22,22 +23,31 @@ class SpeculationConfig:
 
     Args:
         bin_tolerance: the paper's r: accept a drafted action token within this many bins of the target's greedy
-            token. An int, or one int per action dimension. 0 = lossless (identical to greedy decoding).
+            token. An int, one int per action dimension, or one such list per action of a chunk (the last one serving
+            the later actions). 0 = lossless (identical to greedy decoding).
         num_draft_tokens: chain length k when the assistant is a bare ``DraftHead``; None = the head's
             ``config.num_draft_tokens``. (For a tree, pass ``assistant_model=DraftHeadDrafter(head, tree=...)``.)
         action_layout: which tokens are actions and how many make an action; None = the drafter's (a draft head's
             config), needed only for relaxed acceptance and bin-distance statistics.
         profile_speculation: synchronise the device around timed sections so the time split is exact.
+        confidence_gate: a relaxed token counts only where the target's greedy token has a probability below this
+            (the target is unsure); None = no gate.
+        max_relaxed_per_action: at most this many relaxed tokens per action (past it acceptance is exact); None = no
+            budget.
     """
 
-    bin_tolerance: int | Sequence[int] = 0
+    bin_tolerance: int | Sequence[int] | Sequence[Sequence[int]] = 0
     num_draft_tokens: int | None = None
     action_layout: ActionLayout | None = None
     profile_speculation: bool = False
+    confidence_gate: float | None = None
+    max_relaxed_per_action: int | None = None
 
     def __post_init__(self):
         k = self.num_draft_tokens
         if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
             raise ValueError(f"num_draft_tokens must be an int >= 1 (tokens drafted per verification), got {k!r}")
+        check_confidence_gate(self.confidence_gate)
+        check_relaxed_budget(self.max_relaxed_per_action)
         if self.action_layout is not None and not isinstance(self.action_layout, ActionLayout):
             raise TypeError(f"action_layout must be a hf_specvla.ActionLayout, got {type(self.action_layout).__name__}")

@@ -522,7 +522,18 @@ def accept(
         logits_processor, [row.sequence for row in state.rows], trees, output.logits
     )
     action_counts = [row.num_action_tokens for row in state.rows]
-    return accept_trees(trees, target_ids, plan.rule, plan.layout, action_counts), target_ids, target_scores
+    top1_probs = target_scores.softmax(dim=-1).amax(dim=-1) if plan.rule.needs_probabilities else None  # [B, 1 + N]
+    relaxed = [_relaxed_in_action(row, plan.layout) for row in state.rows]
+    paths = accept_trees(trees, target_ids, plan.rule, plan.layout, action_counts, top1_probs, relaxed)
+    return paths, target_ids, target_scores
+
+
+def _relaxed_in_action(row: RowState, layout: ActionLayout | None) -> int:
+    """Relaxed tokens (accepted at a bin distance > 0) the row emitted in the action it is generating now."""
+    if layout is None:
+        return 0
+    emitted = row.num_action_tokens % layout.action_dim  # tokens of the current action already emitted
+    return sum(d > 0 for d in row.stats.action_bin_distances[len(row.stats.action_bin_distances) - emitted :])
 
 
 def emit(
@@ -629,6 +640,8 @@ def speculative_generate(
     num_draft_tokens: int | None = SpeculationConfig.num_draft_tokens,
     action_layout: ActionLayout | None = SpeculationConfig.action_layout,
     profile_speculation: bool = SpeculationConfig.profile_speculation,
+    confidence_gate: float | None = SpeculationConfig.confidence_gate,
+    max_relaxed_per_action: int | None = SpeculationConfig.max_relaxed_per_action,
     **model_kwargs,
 ) -> SpeculativeDecoderOnlyOutput | torch.LongTensor:
     """Greedy speculative decoding of a batch; a ``custom_generate`` callable for ``model.generate``.
@@ -653,12 +666,16 @@ def speculative_generate(
         [`SpeculationStats`] (summed over rows; ``.rows`` per row when B > 1).
     """
     check_transformers_support()
-    settings = SpeculationConfig(bin_tolerance, num_draft_tokens, action_layout, profile_speculation)
+    settings = SpeculationConfig(
+        bin_tolerance, num_draft_tokens, action_layout, profile_speculation, confidence_gate, max_relaxed_per_action
+    )
     batch_size = input_ids.shape[0]
     drafter, candidates = _call_drafter(model, batch_size, drafter, draft_head, draft_ids, settings)
     _validate_call(model, generation_config, logits_processor, batch_size, drafter)
     layout = settings.action_layout or drafter.action_layout
-    rule = make_acceptance_rule(settings.bin_tolerance, layout)
+    rule = make_acceptance_rule(
+        settings.bin_tolerance, layout, settings.confidence_gate, settings.max_relaxed_per_action
+    )
     if candidates is not None:
         _check_draft_ids_are_actions(candidates, rule, layout)
     eos_ids = generation_config.eos_token_id
