@@ -211,6 +211,29 @@ def test_a_grown_policy_computes_its_sources_function():
         grow_from(wider, source)
 
 
+def test_a_policy_grown_to_a_finer_image_computes_its_sources_function_on_the_upsampled_image():
+    """64 px in 16 px patches -> 128 px in 32 px patches (here 32 -> 64): the same token grid; on an image upsampled
+    by 2 (nearest), the grown policy computes its source's function."""
+    torch.manual_seed(0)
+    source = action_only(VLAPolicy.build(INSTRUCTIONS, ACTIONS, STATES, VLAPolicyConfig(**SMALL)))
+    finer_config = VLAPolicyConfig(**{**SMALL, "image_size": 64, "patch_size": 32, "text_layers": 3})
+    finer = VLAPolicy.build(INSTRUCTIONS, ACTIONS, STATES, finer_config)
+    grow_from(finer, source)
+    image, state = observation()
+    upsampled = image.repeat(2, axis=0).repeat(2, axis=1)  # [64, 64, 3]
+    input_ids = torch.tensor([source.prompt_ids("reach the goal", state)])
+    with torch.no_grad():
+        torch.testing.assert_close(
+            finer.model(input_ids=input_ids, pixel_values=finer.preprocess_images(upsampled)).logits,
+            source.model(input_ids=input_ids, pixel_values=source.preprocess_images(image)).logits,
+            atol=2e-5,
+            rtol=1e-4,
+        )
+    other_grid = VLAPolicy.build(INSTRUCTIONS, ACTIONS, STATES, VLAPolicyConfig(**{**SMALL, "image_size": 64}))
+    with pytest.raises(ValueError, match="32 px images in 16 px patches, the new one 64 px in 16 px patches"):
+        grow_from(other_grid, source)  # 16 image tokens, not 4: a finer image needs larger patches
+
+
 def test_the_episode_benchmark_replays_a_chunked_policy_with_the_prior(chunked):
     """bench-episodes remembers whole calls; the prior reads them back as actions: r=0 never moves from greedy, and
     after the first call the prior drafts (fewer forwards than greedy's 8 per call on a repeated observation)."""

@@ -169,11 +169,28 @@ def grow_from(policy: VLAPolicy, source: VLAPolicy) -> dict[int, int]:
     the identity: its attention output and MLP down projections are zero, so its residual branches add nothing
     and the grown model computes exactly the source's function (until training moves them). Returns the layer map.
 
+    A finer image with the same token grid (e.g. 128 px in 32 px patches from 64 px in 16 px patches) is allowed: the
+    patch embedding's kernel is spread over the f x f pixels each source pixel became (repeated, divided by f^2), so
+    on an image upsampled by f (nearest) the grown model computes the source's function; the finer image's extra
+    detail is for training to use.
+
     Raises:
-        ValueError: the two policies differ in anything but decoder depth (widths, vocabulary, image layout).
+        ValueError: the two policies differ in anything but decoder depth and image resolution at the same token
+            grid (widths, vocabulary, token grid).
     """
-    keys = ("image_size", "patch_size", "action_dim", "state_dim", "use_state", "vision_hidden_size",
-            "vision_layers", "text_hidden_size", "text_heads")  # fmt: skip
+    keys = ("action_dim", "state_dim", "use_state", "vision_hidden_size", "vision_layers", "text_hidden_size",
+            "text_heads")  # fmt: skip
+    new, old = policy.config, source.config
+    scale = new.image_size // old.image_size
+    finer = new.num_image_tokens == old.num_image_tokens and scale >= 1 and new.patch_size == scale * old.patch_size
+    if (new.image_size, new.patch_size) != (old.image_size, old.patch_size) and not finer:
+        raise ValueError(
+            f"--init-from: the source policy sees {source.config.image_size} px images in "
+            f"{source.config.patch_size} px patches, the new one {policy.config.image_size} px in "
+            f"{policy.config.patch_size} px patches; the image may only be finer by an integer factor f with patches "
+            f"f times larger (the same token grid), e.g. {source.config.image_size * 2} px in "
+            f"{source.config.patch_size * 2} px patches"
+        )
     for key in keys:
         if getattr(policy.config, key) != getattr(source.config, key):
             raise ValueError(
@@ -193,7 +210,10 @@ def grow_from(policy: VLAPolicy, source: VLAPolicy) -> dict[int, int]:
         renamed[name] = tensor
     target_state = policy.model.state_dict()
     for name, tensor in target_state.items():
-        if name in renamed:
+        if name in renamed and name.endswith("patch_embedding.weight") and scale > 1:  # [H, C, p, p] -> [H, C, fp, fp]
+            source_kernel = renamed[name].repeat_interleave(scale, dim=-1).repeat_interleave(scale, dim=-2)
+            tensor.copy_(source_kernel / scale**2)
+        elif name in renamed:
             if renamed[name].shape != tensor.shape:
                 raise ValueError(f"--init-from: {name} has shape {tuple(renamed[name].shape)} in the source, "
                                  f"{tuple(tensor.shape)} here")  # fmt: skip
