@@ -5,7 +5,7 @@ import re
 
 import pytest
 
-from hf_specvla.metaworld.comparison import DRAFTER_CHOICES, DecodingMethod, paired_difference, parse_methods
+from hf_specvla.metaworld.comparison import DRAFTER_CHOICES, PRESETS, DecodingMethod, paired_difference, parse_methods
 
 
 def test_paired_difference_known_answers():
@@ -65,11 +65,37 @@ def test_method_names():
         DecodingMethod.parse("eagle")
     with pytest.raises(ValueError, match=re.escape("'jacobi+head' is not a drafter; valid: greedy, head")):
         DecodingMethod.parse("jacobi+head")
-    for bad, message in [("prior:k=3", "needs the head chain"), ("greedy:r=2", "takes no r or k"),
+    for bad, message in [("prior:k=3", "needs the head chain"), ("greedy:r=2", "takes no r, rl, m, gate or k"),
                          ("prior:x=1", "bad option 'x=1'"), ("head:k=0", "k must be >= 1"),
                          ("prior:r=-1", "r must be an integer >= 0"), ("prior:r=x", "bad option 'r=x'"),
                          ("greedy:compile:compile", "'compile' given twice"),
                          ("prior:compiled", "bad option 'compiled'")]:  # fmt: skip
+        with pytest.raises(ValueError, match=message):
+            DecodingMethod.parse(bad)
+
+
+def test_relaxed_rule_options_and_presets():
+    method = DecodingMethod.parse("prior+jacobi:m=1,r=4/4/4/0,gate=0.50:compile")
+    assert method.name == "prior+jacobi:r=4/4/4/0,m=1,gate=0.5:compile"  # one canonical order
+    assert DecodingMethod.parse(method.name) == method and not method.lossless and method.widest_tolerance == 4
+    assert method.rule_kwargs(4) == {"bin_tolerance": [4, 4, 4, 0], "max_relaxed_per_action": 1,
+                                     "confidence_gate": 0.5}  # fmt: skip
+    chunked = DecodingMethod.parse("prior:r=2,rl=6/6/6/0")
+    assert chunked.rule_kwargs(4)["bin_tolerance"] == [[2, 2, 2, 2], [6, 6, 6, 0]]  # the first action, then the later
+    assert chunked.generate_kwargs(None, action_dim=4)["bin_tolerance"] == [[2, 2, 2, 2], [6, 6, 6, 0]]
+    assert chunked.tolerances() == [2, 6, 6, 6, 0]
+    assert DecodingMethod.parse("prior:r=4,m=0").lossless  # a budget of 0 relaxes nothing
+    # presets resolve to full method strings, with or without a draft head
+    for preset, (alone, with_head) in PRESETS.items():
+        assert DecodingMethod.parse(preset) == DecodingMethod.parse(alone)
+        assert DecodingMethod.parse(preset, draft_head_given=True) == DecodingMethod.parse(with_head)
+    assert DecodingMethod.parse("exact").lossless and not DecodingMethod.parse("fast").lossless
+    assert [m.name for m in parse_methods(["exact", "prior+jacobi:compile"])] == ["greedy", PRESETS["exact"][0]]
+    for bad, message in [("prior:gate=0.5", "give r"), ("prior:r=4,gate=2", r"gate must be a probability in \(0, 1\]"),
+                         ("prior:r=4,gate=x", "gate must be a probability"), ("prior:r=4/x", "bad option 'r=4/x'"),
+                         ("prior:r=4/-1", "r must be an integer >= 0"), ("prior:r=4,m=-1", "m must be an integer"),
+                         ("prior:r=4,r=2", "r given twice"), ("greedy:m=1", "takes no r, rl, m, gate or k"),
+                         ("prior:rl=", "bad option 'rl='"), ("quick", "or a preset: exact, fast")]:  # fmt: skip
         with pytest.raises(ValueError, match=message):
             DecodingMethod.parse(bad)
 
@@ -112,10 +138,17 @@ def test_compare_pairs_seeds_keeps_r0_identical_and_resumes(policy_dir, tmp_path
         assert [prior[k] for k in ("length", "success", "actions_digest")] == [
             greedy[k] for k in ("length", "success", "actions_digest")
         ]
-        assert by_key[seed, "prior:r=8"]["bin_distance_count"] == 4 * by_key[seed, "prior:r=8"]["length"]
+        relaxed = by_key[seed, "prior:r=8"]
+        assert relaxed["bin_distance_count"] == 4 * relaxed["length"]
+        # the deviation per action dimension adds up to the total, each dimension's maximum to the overall one
+        assert sum(relaxed["bin_distance_sum_per_dim"]) == relaxed["bin_distance_sum"]
+        assert max(relaxed["bin_distance_max_per_dim"]) == relaxed["bin_distance_max"]
     summary = json.loads((out / "summary.json").read_text())
     for name, row in summary["methods"].items():
         assert COLUMNS <= set(row), name
+    relaxed_row = summary["methods"]["prior:r=8"]
+    per_dim = relaxed_row["mean_bin_deviation_per_dim"]
+    assert len(per_dim) == 4 and sum(per_dim) / 4 == pytest.approx(relaxed_row["mean_bin_deviation"])
     assert summary["methods"]["prior"]["identical_to_greedy"] == 2
     assert summary["methods"]["greedy"]["target_forwards_per_action"] == 4.0
     assert summary["methods"]["greedy"]["target_forwards_per_call"] == 4.0

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import logging
 
-from ..metaworld.comparison.methods import DRAFTER_CHOICES, CompareConfig
+from ..metaworld.comparison.methods import DRAFTER_CHOICES, METHOD_KEYS, PRESETS, CompareConfig
 from .common import NON_NEGATIVE, POSITIVE, add_tree_arguments, check_draft_head_flag, load_policy, usage_errors
 
 logger = logging.getLogger(__name__)
@@ -24,6 +24,10 @@ EXAMPLES = """
     # Jacobi drafts (the target's own guesses past a rejection) against transformers' compiled greedy
     hf-specvla compare --policy policies/mt10_vla2 --tasks reach --episodes 1 \\
         --methods greedy greedy:compile prior+jacobi prior+jacobi:compile --output-dir runs/compare_jacobi_smoke
+    # The presets (exact: the fastest setting identical to greedy; fast: the recommended relaxed one) and a relaxed
+    # rule spelled out: r per dimension (a strict gripper), at most 1 relaxed token per action, a confidence gate
+    hf-specvla compare --policy policies/mt10_vla2 --tasks reach --episodes 1 \\
+        --methods greedy exact fast prior+jacobi:r=4/4/4/0,m=1,gate=0.5 --output-dir runs/compare_rules_smoke
 """
 
 
@@ -31,9 +35,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
     parser.add_argument("--draft-head", default=None, help="the DraftHead folder the head / tree methods use")
     parser.add_argument("--methods", nargs="+", default=list(CompareConfig.methods),
-                        help="<drafters>[:r=<int>][,k=<int>][:compile], drafters one of " + ", ".join(DRAFTER_CHOICES)
-                             + " (greedy always runs: the baseline; :compile = static cache + compiled "
-                             "verification, greedy:compile = transformers' compiled greedy)")  # fmt: skip
+                        help="<drafters>[:<option>,...][:compile], drafters one of " + ", ".join(DRAFTER_CHOICES)
+                             + "; options: " + "; ".join(f"{k}= {v}" for k, v in METHOD_KEYS.items())
+                             + "; or a preset: " + ", ".join(PRESETS) + " (greedy always runs: the baseline; "
+                             ":compile = static cache + compiled verification, greedy:compile = transformers' "
+                             "compiled greedy)")  # fmt: skip
     parser.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
     parser.add_argument("--episodes", type=POSITIVE, default=CompareConfig.episodes_per_task, help="seeds per task")
     parser.add_argument("--seed-start", type=NON_NEGATIVE, default=CompareConfig.seed_start, help="first seed")
@@ -57,7 +63,7 @@ def run(args, parser) -> int:
     with usage_errors(parser, errors=(ValueError,)):
         config = CompareConfig(args.tasks, args.episodes, args.methods, args.seed_start, args.max_episode_steps,
                                args.workers, args.threads, args.seed, args.tree_top_k, args.tree_depth,
-                               args.tree_total_tokens)  # fmt: skip
+                               args.tree_total_tokens, draft_head_given=args.draft_head is not None)  # fmt: skip
         config.check_draft_head_given(args.draft_head is not None)
     if args.draft_head and not config.draft_head_methods():
         logger.warning("--draft-head %s is not used: none of the methods %s drafts with a head (head, tree, "

@@ -47,7 +47,8 @@ def add_arguments(parser) -> None:
         "--overwrite-output-dir", action="store_true", help="move a folder holding another run aside, start over"
     )
     parser.add_argument("--method", default=None,
-                        help="a decoding method as `compare` names it (e.g. prior+tree:r=4, head:k=3), instead of "
+                        help="a decoding method as `compare` names it (e.g. prior+tree:r=4, head:k=3, "
+                             "prior+jacobi:r=4/4/4/0,m=1:compile) or a preset (exact, fast), instead of "
                              "--action-prior / --draft-tree / --num-draft-tokens / --bin-tolerance")  # fmt: skip
     parser.add_argument("--draft-head", default=None, help="speculative decoding with this DraftHead folder")
     parser.add_argument("--bin-tolerance", type=NON_NEGATIVE, nargs="+", default=None,
@@ -74,7 +75,9 @@ def decoding_method(args, parser):
         if flags:
             parser.error(f"--method {args.method} already says how to decode; drop {' / '.join(flags)}")
         with usage_errors(parser, "--method", (ValueError,)):
-            method = DecodingMethod.parse(args.method)
+            method = DecodingMethod.parse(args.method, draft_head_given=bool(args.draft_head))
+        if method.name != args.method.strip():
+            logger.info("--method %s = %s", args.method.strip(), method.name)
         if method.uses_draft_head and not args.draft_head:
             parser.error(f"--method {method.name} drafts with the draft head: give --draft-head")
         return method
@@ -92,11 +95,15 @@ def decoding_method(args, parser):
 
 
 def _check_tolerances(policy, method, args, parser) -> None:
-    tolerances = args.bin_tolerance or [method.bin_tolerance]
+    from ..metaworld.comparison.runner import check_method_rule
+
+    tolerances = args.bin_tolerance or method.tolerances() or [0]
     given = f"--method {method.name}" if args.method else f"--bin-tolerance {' '.join(map(str, tolerances))}"
     try:
         check_bin_tolerance_range(tolerances, policy.action_tokenizer.n_bins, given)
-    except ValueError as error:
+        if args.method:
+            check_method_rule(method, policy)
+    except (ValueError, TypeError) as error:
         parser.error(str(error))
 
 
@@ -116,7 +123,7 @@ def run(args, parser) -> int:
     if args.draft_head and not method.uses_draft_head:
         logger.warning("--method %s drafts without a head: --draft-head %s is not used", method.name, args.draft_head)
     draft_head = load_draft_head_for(policy, args.draft_head, parser) if method.uses_draft_head else None
-    generate_kwargs = method.generate_kwargs(draft_head, policy.model.device.type)
+    generate_kwargs = method.generate_kwargs(draft_head, policy.model.device.type, action_dim=policy.config.action_dim)
     if args.bin_tolerance is not None:  # as given (one r, or one per action dimension), as eval folders record it
         tolerance = args.bin_tolerance
         generate_kwargs["bin_tolerance"] = tolerance[0] if len(tolerance) == 1 else tolerance

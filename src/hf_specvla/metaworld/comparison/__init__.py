@@ -6,17 +6,20 @@ greedy's under the same load, and success is compared on identical starts. With 
 split between processes (one CPU thread each by default); a seed's methods always run in one worker, so every
 timing ratio is taken within a worker.
 
-**Methods** are named ``<drafters>[:r=<bin tolerance>][,k=<chain length>]`` with drafters one of
+**Methods** are named ``<drafters>[:<option>,...][:compile]`` (see ``methods``) with drafters such as
 ``greedy``, ``head`` (the draft head's chain), ``tree`` (its EAGLE-2 tree), ``prior`` (the episode's previous
-actions), ``prior+head``, ``prior+tree``: e.g. ``greedy``, ``head:k=3``, ``tree:r=4``, ``prior:r=2``,
-``prior+tree:r=4``. Greedy is always run: it is the baseline every figure is paired with.
+actions), ``jacobi`` (the target's own guesses) and their ``+`` compositions, options the relaxed acceptance rule
+(``r``, ``rl``, ``m``, ``gate``) and the chain length ``k``: e.g. ``greedy``, ``head:k=3``, ``tree:r=4``,
+``prior+jacobi:r=4/4/4/0,m=1:compile``; or the presets ``exact`` and ``fast``. Greedy is always run: it is the
+baseline every figure is paired with.
 
 **Per method** (see [`summarize_comparison`]): success rate; the paired difference to greedy with a 95% bootstrap
 interval over seeds and the discordant counts; mean episode length; median ms per policy call (one action, or one
 chunk of actions for a chunked policy) and the speed-up vs greedy (median over seeds of the ratio of the two
 episodes' median ms per call); target forwards per call and per action (env step);
 tokens per target forward; for relaxed methods the bin deviation from greedy's action *on the same observation*
-(greedy decoded off the clock at every step); for lossless methods how many episodes were identical to greedy's.
+(greedy decoded off the clock at every step), overall and per action dimension; for lossless methods how many
+episodes were identical to greedy's.
 
 **Folder**: ``run.json`` (policy and draft-head weights, env, seeds, methods), one ``episodes.worker-<i>.jsonl``
 log per worker (a finished (task, seed, method) episode is never run again: resumable, and more tasks or episodes
@@ -28,9 +31,9 @@ from ..._lazy import lazy_exports
 __getattr__, __dir__ = lazy_exports(
     __name__,
     {
-        ".methods": ("COMPILED_GREEDY", "DEFAULT_METHODS", "DRAFTER_CHOICES", "GREEDY", "METHOD_KEYS", "CompareConfig",
-                     "DecodingMethod", "parse_methods"),
-        ".runner": ("LOG_PATTERN", "read_episode_logs", "run_comparison", "run_method_episode"),
+        ".methods": ("COMPILED_GREEDY", "DEFAULT_METHODS", "DRAFTER_CHOICES", "GREEDY", "METHOD_KEYS", "PRESETS",
+                     "CompareConfig", "DecodingMethod", "parse_methods", "resolve_preset"),
+        ".runner": ("LOG_PATTERN", "check_method_rule", "read_episode_logs", "run_comparison", "run_method_episode"),
         ".statistics": ("BOOTSTRAP_RESAMPLES", "PLOTS", "format_comparison", "paired_difference", "plot_comparison",
                         "summarize_comparison"),
     },

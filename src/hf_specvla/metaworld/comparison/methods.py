@@ -1,9 +1,18 @@
-"""Decoding methods of a comparison: ``<drafters>[:r=<bin tolerance>][,k=<chain length>][:compile]`` parsed, named
-and turned into ``predict_action`` options, and [`CompareConfig`], what a comparison runs. No torch at import: the
-CLI reads the choices and defaults here.
+"""Decoding methods of a comparison: ``<drafters>[:<option>,...][:compile]`` parsed, named and turned into
+``predict_action`` options, the presets ``exact`` and ``fast``, and [`CompareConfig`], what a comparison runs. No
+torch at import: the CLI reads the choices and defaults here.
 
 Drafters, joined by ``+``: ``head`` (the draft head's chain), ``tree`` (its EAGLE-2 tree), ``prior`` (the episode's
 previous actions), ``jacobi`` (the target's own guesses past a rejection, [`JacobiDrafter`]).
+
+Options (relaxed acceptance, see ``speculative.acceptance``): ``r=<r>`` the bin tolerance, one int or one per action
+dimension joined by ``/`` (``r=4/4/4/0``: a strict gripper); ``rl=<r>`` the tolerance of a chunk's later actions
+(default: ``r``); ``m=<int>`` at most m relaxed tokens per action; ``gate=<p>`` relax only where the target's top-1
+probability is below p; ``k=<int>`` the head chain's length. E.g. ``prior+jacobi:r=4/4/4/0,m=1:compile``.
+
+Presets: ``exact`` (the fastest setting identical to greedy decoding) and ``fast`` (the recommended relaxed setting),
+resolved per policy, with or without a draft head ([`PRESETS`], chosen by the evidence in docs/metaworld.md); every
+place that takes a method string takes them and names what they resolved to.
 
 ``:compile`` decodes on a static cache with transformers' ``CompileConfig``: ``greedy:compile`` is transformers' own
 compiled greedy decoding (the baseline a user who wants speed has), ``tree:compile`` / ``prior+tree:r=4:compile``
@@ -11,6 +20,7 @@ verify drafts through the same compiled model call (``speculative.compiled``).""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -21,9 +31,20 @@ from ..seeds import EVAL_SEED_START
 if TYPE_CHECKING:
     from ...speculative import DraftHead, DraftTreeConfig
 
+logger = logging.getLogger(__name__)
+
 DRAFTER_CHOICES = ("greedy", "head", "tree", "prior", "prior+head", "prior+tree", "jacobi", "prior+jacobi",
                    "jacobi+tree", "prior+jacobi+tree")  # fmt: skip
-METHOD_KEYS = {"r": "bin tolerance (relaxed acceptance; 0 = lossless)", "k": "draft-head chain length (head only)"}
+METHOD_KEYS = {"r": "bin tolerance: an int, or one per action dimension joined by / (0 = lossless)",
+               "rl": "bin tolerance of a chunk's later actions (default: r)",
+               "m": "at most this many relaxed tokens per action",
+               "gate": "relax only where the target's top-1 probability is below this (0 < p <= 1)",
+               "k": "draft-head chain length (head only)"}  # fmt: skip
+#: preset -> (its method without a draft head, with one): chosen by the paired comparisons in docs/metaworld.md
+PRESETS = {
+    "exact": ("prior+jacobi:compile", "prior+jacobi:compile"),
+    "fast": ("prior+jacobi:r=4/4/4/0,m=1:compile", "prior+jacobi:r=4/4/4/0,m=1:compile"),
+}
 #: the option word that compiles a method (static cache + transformers' CompileConfig)
 COMPILE = "compile"
 DEFAULT_METHODS = ("greedy", "head", "tree", "tree:r=4", "prior", "prior:r=2", "prior:r=4", "prior:r=8",
@@ -31,60 +52,126 @@ DEFAULT_METHODS = ("greedy", "head", "tree", "tree:r=4", "prior", "prior:r=2", "
 
 
 # ----------------------------------------------------------------------------- methods
+Tolerance = int | tuple[int, ...]  # one r, or one per action dimension
+
+
+def _parse_tolerance(text: str, value: str, key: str) -> Tolerance:
+    parts = value.split("/")
+    if not all(p.strip().lstrip("-").isdigit() for p in parts):
+        raise ValueError(f"decoding method {text!r}: bad option '{key}={value}'; {key} is {METHOD_KEYS[key]}")
+    numbers = [int(p) for p in parts]
+    if any(n < 0 for n in numbers):
+        raise ValueError(f"decoding method {text!r}: {key} must be an integer >= 0 ({METHOD_KEYS[key]}), got {value}")
+    return numbers[0] if len(numbers) == 1 else tuple(numbers)
+
+
+def _format_tolerance(tolerance: Tolerance) -> str:
+    return str(tolerance) if isinstance(tolerance, int) else "/".join(map(str, tolerance))
+
+
+def _widest(tolerance: Tolerance | None) -> int:
+    if tolerance is None:
+        return 0
+    return tolerance if isinstance(tolerance, int) else max(tolerance)
+
+
 @dataclass(frozen=True)
 class DecodingMethod:
-    """One decoding method of a comparison (see module docstring for the names)."""
+    """One decoding method of a comparison (see module docstring for the names and options)."""
 
     drafters: str = "greedy"
-    bin_tolerance: int = 0
+    bin_tolerance: Tolerance = 0
     num_draft_tokens: int | None = None
     compiled: bool = False
+    later_tolerance: Tolerance | None = None  # a chunk's later actions (None: bin_tolerance)
+    max_relaxed_per_action: int | None = None
+    confidence_gate: float | None = None
 
     @classmethod
-    def parse(cls, text: str) -> DecodingMethod:
-        """``"prior+tree:r=4"`` -> DecodingMethod("prior+tree", 4).
+    def parse(cls, text: str, draft_head_given: bool = False) -> DecodingMethod:
+        """``"prior+tree:r=4"`` -> DecodingMethod("prior+tree", 4); a preset (``exact``, ``fast``) -> the method it
+        names for a policy with (``draft_head_given``) or without a draft head.
 
         Raises:
             ValueError: naming the bad part and listing what is valid.
         """
-        valid = (f"valid: {', '.join(DRAFTER_CHOICES)}, optionally followed by :r=<int>[,k=<int>] and/or :compile "
-                 f"(e.g. prior+tree:r=4, greedy:compile, prior+tree:r=4:compile)")  # fmt: skip
+        if text.strip() in PRESETS:
+            return cls.parse(PRESETS[text.strip()][int(bool(draft_head_given))])
+        valid = (f"valid: {', '.join(DRAFTER_CHOICES)}, optionally followed by :<option>=<value>,... and/or :compile "
+                 f"(e.g. prior+tree:r=4, greedy:compile, prior+jacobi:r=4/4/4/0,m=1:compile), or a preset: "
+                 f"{', '.join(PRESETS)}")  # fmt: skip
         drafters, _, options = text.strip().partition(":")
         if drafters not in DRAFTER_CHOICES:
             raise ValueError(f"unknown decoding method {text!r}: {drafters!r} is not a drafter; {valid}")
-        values: dict[str, int] = {}
+        values: dict = {}
         parts = options.replace(":", ",").split(",")
         compiled = COMPILE in parts
         if parts.count(COMPILE) > 1:
             raise ValueError(f"decoding method {text!r}: {COMPILE!r} given twice; {valid}")
         for option in filter(None, (p for p in parts if p != COMPILE)):
             key, _, value = option.partition("=")
-            if key in METHOD_KEYS and value.strip().lstrip("-").isdigit() and int(value) < 0:
-                raise ValueError(f"decoding method {text!r}: {key} must be an integer >= 0 ({METHOD_KEYS[key]}), "
-                                 f"got {int(value)}")  # fmt: skip
-            if key not in METHOD_KEYS or not value.strip().isdigit():
+            if key not in METHOD_KEYS or not value.strip():
                 raise ValueError(
                     f"decoding method {text!r}: bad option {option!r}; options are "
-                    + ", ".join(f"{k}=<int> ({v})" for k, v in METHOD_KEYS.items())
+                    + ", ".join(f"{k}=<value> ({v})" for k, v in METHOD_KEYS.items())
                 )
-            values[key] = int(value)
+            if key in values:
+                raise ValueError(f"decoding method {text!r}: {key} given twice")
+            values[key] = _parse_option(text, key, value.strip())
         if options and not values and not compiled:
             raise ValueError(f"decoding method {text!r}: empty options after ':'; {valid}")
-        method = cls(drafters, values.get("r", 0), values.get("k"), compiled)
-        if method.drafters == "greedy" and (method.bin_tolerance or method.num_draft_tokens):
-            raise ValueError(f"decoding method {text!r}: greedy drafts nothing, so it takes no r or k")
+        method = cls(drafters, values.get("r", 0), values.get("k"), compiled, values.get("rl"), values.get("m"),
+                     values.get("gate"))  # fmt: skip
+        relaxing = method.widest_tolerance or "rl" in values or "m" in values or "gate" in values
+        if method.drafters == "greedy" and (relaxing or method.num_draft_tokens):
+            raise ValueError(f"decoding method {text!r}: greedy drafts nothing, so it takes no r, rl, m, gate or k")
         if method.num_draft_tokens is not None and "head" not in method.drafters.split("+"):
             raise ValueError(f"decoding method {text!r}: k (a chain length) needs the head chain (head, prior+head)")
         if method.num_draft_tokens == 0:
             raise ValueError(f"decoding method {text!r}: k must be >= 1")
+        if not method.widest_tolerance and ("m" in values or "gate" in values):
+            raise ValueError(f"decoding method {text!r}: m and gate restrict relaxed acceptance; give r (or rl) > 0")
         return method
 
     @property
     def name(self) -> str:
-        """Canonical name (``prior+tree:r=4``, ``prior+tree:r=4:compile``; ``r=0`` is left out)."""
-        options = [f"r={self.bin_tolerance}"] if self.bin_tolerance else []
+        """Canonical name (``prior+tree:r=4``, ``prior+jacobi:r=4/4/4/0,m=1:compile``; ``r=0`` is left out)."""
+        options = [f"r={_format_tolerance(self.bin_tolerance)}"] if _widest(self.bin_tolerance) else []
+        if self.later_tolerance is not None:
+            options += [f"rl={_format_tolerance(self.later_tolerance)}"]
+        options += [f"m={self.max_relaxed_per_action}"] if self.max_relaxed_per_action is not None else []
+        options += [f"gate={self.confidence_gate:g}"] if self.confidence_gate is not None else []
         options += [f"k={self.num_draft_tokens}"] if self.num_draft_tokens is not None else []
         return self.drafters + (":" + ",".join(options) if options else "") + (f":{COMPILE}" if self.compiled else "")
+
+    @property
+    def widest_tolerance(self) -> int:
+        """The largest r of any action dimension or chunk step (0: lossless)."""
+        return max(_widest(self.bin_tolerance), _widest(self.later_tolerance))
+
+    def tolerances(self) -> list[int]:
+        """Every r the method names (for range checks)."""
+        values = []
+        for tolerance in (self.bin_tolerance, self.later_tolerance):
+            if tolerance is not None:
+                values += [tolerance] if isinstance(tolerance, int) else list(tolerance)
+        return values
+
+    def rule_kwargs(self, action_dim: int) -> dict:
+        """The ``generate`` arguments of its acceptance rule (empty when lossless)."""
+        if self.lossless:
+            return {}
+        tolerance = self.bin_tolerance
+        if self.later_tolerance is not None:  # one row per action of the chunk: the first, then the later ones
+            tolerance = [_row(self.bin_tolerance, action_dim), _row(self.later_tolerance, action_dim)]
+        elif not isinstance(tolerance, int):
+            tolerance = list(tolerance)
+        kwargs: dict = {"bin_tolerance": tolerance}
+        if self.max_relaxed_per_action is not None:
+            kwargs["max_relaxed_per_action"] = self.max_relaxed_per_action
+        if self.confidence_gate is not None:
+            kwargs["confidence_gate"] = self.confidence_gate
+        return kwargs
 
     @property
     def uses_draft_head(self) -> bool:
@@ -92,13 +179,18 @@ class DecodingMethod:
 
     @property
     def lossless(self) -> bool:
-        return self.bin_tolerance == 0
+        return self.widest_tolerance == 0 or self.max_relaxed_per_action == 0
 
     def generate_kwargs(
-        self, draft_head: DraftHead | None, device_type: str = "cpu", tree: DraftTreeConfig | None = None
+        self,
+        draft_head: DraftHead | None,
+        device_type: str = "cpu",
+        tree: DraftTreeConfig | None = None,
+        action_dim: int | None = None,
     ) -> dict:
         """``predict_action`` options for this method (``device_type``: the policy's, for ``:compile``; ``tree``: the
-        EAGLE-2 tree of ``tree`` methods, default ``DraftTreeConfig()``)."""
+        EAGLE-2 tree of ``tree`` methods, default ``DraftTreeConfig()``; ``action_dim``: the policy's, needed when a
+        chunk's later actions have their own tolerance)."""
         from ...speculative import (
             ComposedDrafter,
             DraftHeadDrafter,
@@ -125,9 +217,42 @@ class DecodingMethod:
                     kwargs["num_draft_tokens"] = self.num_draft_tokens
         if "prior" in parts:
             kwargs["action_prior"] = True
-        if self.bin_tolerance:
-            kwargs["bin_tolerance"] = self.bin_tolerance
+        if self.later_tolerance is not None and action_dim is None and not self.lossless:
+            raise ValueError(f"decoding method {self.name!r}: rl (a chunk's later actions) needs the action_dim")
+        kwargs.update(self.rule_kwargs(action_dim or 1))
         return kwargs
+
+
+def _parse_option(text: str, key: str, value: str):
+    """One option's value: a tolerance (r, rl), an int (m, k) or a probability (gate)."""
+    if key in ("r", "rl"):
+        return _parse_tolerance(text, value, key)
+    if key == "gate":
+        try:
+            gate = float(value)
+        except ValueError:
+            gate = -1.0
+        if not 0 < gate <= 1:
+            raise ValueError(f"decoding method {text!r}: gate must be a probability in (0, 1] ({METHOD_KEYS[key]}), "
+                             f"got {value}")  # fmt: skip
+        return gate
+    if not value.lstrip("-").isdigit():
+        raise ValueError(f"decoding method {text!r}: bad option '{key}={value}'; {key} is {METHOD_KEYS[key]}")
+    if int(value) < 0:
+        raise ValueError(f"decoding method {text!r}: {key} must be an integer >= 0 ({METHOD_KEYS[key]}), got {value}")
+    return int(value)
+
+
+def _row(tolerance: Tolerance, action_dim: int) -> list[int]:
+    """A tolerance as one int per action dimension."""
+    return [tolerance] * action_dim if isinstance(tolerance, int) else list(tolerance)
+
+
+def resolve_preset(name: str, draft_head_given: bool) -> str | None:
+    """The method a preset names (``exact``, ``fast``) for a policy with or without a draft head; None for a method
+    string that is not a preset."""
+    choice = PRESETS.get(name.strip())
+    return None if choice is None else choice[int(bool(draft_head_given))]
 
 
 GREEDY = DecodingMethod()
@@ -135,11 +260,11 @@ GREEDY = DecodingMethod()
 COMPILED_GREEDY = DecodingMethod(compiled=True)
 
 
-def parse_methods(names: list[str]) -> list[DecodingMethod]:
-    """Parsed, de-duplicated methods, greedy first (added when missing: it is the baseline)."""
+def parse_methods(names: list[str], draft_head_given: bool = False) -> list[DecodingMethod]:
+    """Parsed, de-duplicated methods (presets resolved), greedy first (added when missing: it is the baseline)."""
     methods = [GREEDY]
     for name in names:
-        method = DecodingMethod.parse(name)
+        method = DecodingMethod.parse(name, draft_head_given)
         if method not in methods:
             methods.append(method)
     return methods
@@ -160,6 +285,8 @@ class CompareConfig:
         order_seed: seeds the random method order of every seed.
         tree_top_k / tree_depth / tree_total_tokens: the EAGLE-2 tree of the ``tree`` methods (None:
             ``DraftTreeConfig``'s default).
+        draft_head_given: whether a draft head comes with the policy (the presets ``exact`` / ``fast`` resolve to
+            its methods).
     """
 
     tasks: str | list[str] = "MT10"
@@ -173,12 +300,17 @@ class CompareConfig:
     tree_top_k: int | None = None
     tree_depth: int | None = None
     tree_total_tokens: int | None = None
+    draft_head_given: bool = False  # presets resolve to the methods of a policy with a draft head
 
     def __post_init__(self):
         self.tasks = resolve_tasks(self.tasks)
         names = ("episodes_per_task", "workers", "threads", "seed_start", "max_episode_steps")
         check_ranges(self, at_least_one=names[:3] + names[4:], non_negative=names[3:4], integers=names)
-        self.methods = [m.name for m in parse_methods(list(self.methods))]
+        for name in self.methods:
+            resolved = resolve_preset(name, self.draft_head_given)
+            if resolved is not None:
+                logger.info("preset %s = %s", name.strip(), resolved)
+        self.methods = [m.name for m in parse_methods(list(self.methods), self.draft_head_given)]
         self.tree_config()  # refuses bad tree settings now
 
     def tree_config(self) -> DraftTreeConfig:

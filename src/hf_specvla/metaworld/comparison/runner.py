@@ -19,10 +19,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ...actions.tokenizer import ActionLayout
 from ...policies import VLAPolicy
 from ...progress import progress_bar
 from ...run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
-from ...speculative import DraftHead, DraftTreeConfig, check_bin_tolerance_range
+from ...speculative import DraftHead, DraftTreeConfig, check_bin_tolerance_range, make_acceptance_rule
 from ..env import EnvConfig, MetaWorldEnv
 from ..rollout import rollout
 from ..seeds import BENCH_SEED_START
@@ -45,6 +46,24 @@ def _greedy_action_ids(policy: VLAPolicy, obs: dict) -> list[int]:
     return output.sequences[0, -policy.config.action_tokens :].tolist()
 
 
+def check_method_rule(method: DecodingMethod, policy: VLAPolicy) -> None:
+    """Builds ``method``'s acceptance rule for ``policy``'s actions, so that a tolerance with the wrong number of
+    dimensions (``r=4/4/0`` for 4-dimensional actions) is refused before anything runs.
+
+    Raises:
+        ValueError / TypeError naming the method.
+    """
+    if method.lossless:
+        return
+    kwargs = method.rule_kwargs(policy.config.action_dim)
+    layout = ActionLayout(policy.action_tokenizer, policy.config.action_dim)
+    try:
+        make_acceptance_rule(kwargs["bin_tolerance"], layout, kwargs.get("confidence_gate"),
+                             kwargs.get("max_relaxed_per_action"))  # fmt: skip
+    except (ValueError, TypeError) as error:
+        raise type(error)(f"decoding method {method.name!r}: {error}") from None
+
+
 def run_method_episode(
     policy: VLAPolicy,
     env: MetaWorldEnv,
@@ -55,8 +74,9 @@ def run_method_episode(
 ) -> dict:
     """One episode of ``method`` from ``env.reset(seed)``: the record a comparison log holds (``tree``: the EAGLE-2
     tree of ``tree`` methods, default ``DraftTreeConfig()``)."""
-    kwargs = method.generate_kwargs(draft_head, policy.model.device.type, tree)
+    kwargs = method.generate_kwargs(draft_head, policy.model.device.type, tree, policy.config.action_dim)
     action_dim = policy.config.action_tokens  # tokens per call (a chunk's, for a chunked policy)
+    dims = policy.config.action_dim
     policy.reset()
     latencies, accept_counts, digest = [], Counter(), hashlib.sha256()
     target_forwards = new_tokens = 0
@@ -80,7 +100,7 @@ def run_method_episode(
             accept_counts.update(stats.accept_lengths)
         if not method.lossless:  # off the clock: how far is this from greedy's action on the same observation?
             reference = _greedy_action_ids(policy, obs)
-            distances.extend(abs(a - b) for a, b in zip(action_ids, reference))
+            distances.extend(abs(a - b) for a, b in zip(action_ids, reference))  # every token of the call, in order
         digest.update(np.asarray(action_ids, np.int64).tobytes())
         return [policy.action_steps(action)]
 
@@ -91,6 +111,9 @@ def run_method_episode(
         "new_tokens": new_tokens, "accept_length_counts": {str(k): v for k, v in sorted(accept_counts.items())},
         "bin_distance_sum": sum(distances), "bin_distance_count": len(distances),
         "bin_distance_max": max(distances, default=0), "actions_digest": digest.hexdigest()[:16],
+        # per action dimension (token i of a call is dimension i % action_dim)
+        "bin_distance_sum_per_dim": [sum(distances[d::dims]) for d in range(dims)],
+        "bin_distance_max_per_dim": [max(distances[d::dims], default=0) for d in range(dims)],
     }  # fmt: skip
 
 
@@ -110,7 +133,7 @@ def warm_up_compiled(
         return
     obs = env.reset(BENCH_SEED_START)  # a seed of the timing range, never one a comparison evaluates
     for method in compiled:
-        kwargs = method.generate_kwargs(draft_head, policy.model.device.type, tree)
+        kwargs = method.generate_kwargs(draft_head, policy.model.device.type, tree, policy.config.action_dim)
         policy.reset()
         for _ in range(calls):
             policy.predict_action(obs["image"], obs["instruction"], obs["state"], **kwargs)
@@ -216,8 +239,10 @@ def run_comparison(
     if config.workers > 1 and policy_dir is None:
         raise ValueError("workers > 1 load the policy in each process: pass policy_dir (and draft_head_dir)")
     n_bins = policy.action_tokenizer.n_bins
-    too_wide = [m.name for m in methods if m.bin_tolerance > n_bins - 1]
-    check_bin_tolerance_range([m.bin_tolerance for m in methods], n_bins, f"methods {too_wide}")
+    too_wide = [m.name for m in methods if m.widest_tolerance > n_bins - 1]
+    check_bin_tolerance_range([m.widest_tolerance for m in methods], n_bins, f"methods {too_wide}")
+    for method in methods:
+        check_method_rule(method, policy)
     output_dir = Path(output_dir)
     env_config = EnvConfig(policy.config.image_size, policy.config.camera, config.max_episode_steps)
     settings = {

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import statistics
 from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -80,7 +81,9 @@ def summarize_comparison(records: list[dict], methods: list[str]) -> dict:
         tasks = sorted({task for task, _ in episodes})
         row = {
             "drafters": method.drafters,
-            "bin_tolerance": method.bin_tolerance,
+            "bin_tolerance": method.widest_tolerance,  # the largest r (per dimension or chunk step)
+            # the method but its r: the curves of the plots (prior+jacobi, prior+jacobi:m=1, ...)
+            "family": replace(method, bin_tolerance=0, later_tolerance=None).name,
             "episodes": len(episodes),
             "success_rate": statistics.mean(r["success"] for r in episodes.values()),
             "task_success_rates": {
@@ -99,6 +102,8 @@ def summarize_comparison(records: list[dict], methods: list[str]) -> dict:
                 sum(r["bin_distance_sum"] for r in episodes.values()) / distance_count if distance_count else 0.0
             ),  # fmt: skip
             "max_bin_deviation": max(r["bin_distance_max"] for r in episodes.values()),
+            # the executed action's distance from greedy's on the same observation, per action dimension
+            **_deviation_per_dim(list(episodes.values())),
             "identical_to_greedy": sum(episodes[k]["actions_digest"] == greedy[k]["actions_digest"] for k in paired),
         }
         if paired:
@@ -109,13 +114,29 @@ def summarize_comparison(records: list[dict], methods: list[str]) -> dict:
     return summary
 
 
+def _deviation_per_dim(records: list[dict]) -> dict:
+    """Mean and max bin deviation per action dimension over relaxed episodes' records (logs written before the
+    per-dimension fields existed give none)."""
+    records = [r for r in records if "bin_distance_sum_per_dim" in r]
+    count = sum(r["bin_distance_count"] for r in records)
+    if not count:
+        return {}
+    dims = len(records[0]["bin_distance_sum_per_dim"])
+    per_dim = count / dims  # every dimension has the same number of tokens
+    return {
+        "mean_bin_deviation_per_dim": [sum(r["bin_distance_sum_per_dim"][d] for r in records) / per_dim
+                                       for d in range(dims)],
+        "max_bin_deviation_per_dim": [max(r["bin_distance_max_per_dim"][d] for r in records) for d in range(dims)],
+    }  # fmt: skip
+
+
 def format_comparison(summary: dict) -> str:
     """The markdown table of a comparison summary."""
     lines = [
         "| method | episodes | success | vs greedy (95% CI) | greedy-only / method-only | mean length "
         "| median ms/call | speed-up | vs greedy:compile | target fwd/call | tokens/target fwd | bin dev. mean / max "
-        "| identical to greedy |",
-        "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---:|",
+        "| deviation per dim. (mean) | identical to greedy |",
+        "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---|---:|",
     ]
     for name, row in summary["methods"].items():
         paired = row.get("vs_greedy")
@@ -129,11 +150,13 @@ def format_comparison(summary: dict) -> str:
         versus_compiled = "-" if compiled is None else f"{compiled:.2f}x"
         deviation = "-" if not row["bin_tolerance"] else f"{row['mean_bin_deviation']:.2f} / {row['max_bin_deviation']}"
         identical = f"{row['identical_to_greedy']}/{paired['pairs'] if paired else 0}"
+        per_dim = row.get("mean_bin_deviation_per_dim")
+        per_dim = "-" if not row["bin_tolerance"] or not per_dim else " / ".join(f"{d:.2f}" for d in per_dim)
         lines.append(
             f"| {name} | {row['episodes']} | {row['success_rate']:.1%} | {versus} | {discordant} "
             f"| {row['mean_episode_length']:.0f} | {row['median_ms_per_call']:.2f} | {speedup} | {versus_compiled} "
             f"| {row['target_forwards_per_call']:.2f} | {row['tokens_per_target_forward']:.2f} | {deviation} "
-            f"| {identical} |"
+            f"| {per_dim} | {identical} |"
         )
     return "\n".join(lines)
 
@@ -161,7 +184,7 @@ def plot_comparison(summary: dict, output_dir: str | Path) -> list[Path]:
     rows = summary["methods"]
     families: dict[str, list[tuple[int, dict]]] = {}
     for row in rows.values():
-        families.setdefault(row["drafters"], []).append((row["bin_tolerance"], row))
+        families.setdefault(row.get("family", row["drafters"]), []).append((row["bin_tolerance"], row))
     paths = [output_dir / name for name in PLOTS]
 
     figure, axis = plt.subplots(figsize=(6, 4))
