@@ -52,3 +52,17 @@ def test_toy_head_per_backbone_script_refuses_an_unknown_family(tmp_path):
     )  # fmt: skip
     assert result.returncode == 2 and "unknown model_type(s) ['lama']" in result.stderr
     assert not (tmp_path / "x").exists()  # refused before any folder was written
+
+
+def test_compile_strategies_script_times_every_strategy_at_every_width(tmp_path):
+    output = tmp_path / "strategies.json"
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "examples/benchmarks/compile_strategies.py"), "--tiny", "--backend", "eager",
+         "--repeats", "2", "--output", str(output)],
+        capture_output=True, text=True, timeout=300, check=True,
+    )  # fmt: skip
+    assert "| width (pending + nodes) | eager | regional | whole model |" in result.stdout
+    figures = json.loads(output.read_text())
+    assert figures["layers"] == 2 and len(figures["rows"]) == 4
+    for row in figures["rows"]:
+        assert all(math.isfinite(row[s]) and row[s] > 0 for s in ("eager", "regional", "whole")), row
