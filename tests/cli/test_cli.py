@@ -18,6 +18,20 @@ def test_benchmark_on_saved_pipeline(toy_pipeline, capsys):
     assert main(["benchmark", "--pipeline-dir", toy_pipeline.output_dir, *args]) == 0
     out = capsys.readouterr().out
     assert "| greedy |" in out and "| spec k=6 r=2 |" in out and ":compile" not in out
+    # transformers' own assisted generation (a 1-layer early exit of the target drafting) is timed beside ours: lossless
+    assisted = next(line for line in out.splitlines() if line.startswith("| assisted (transformers) |"))
+    assert assisted.endswith("| 0.00 / 0 |")
+
+
+def test_benchmark_times_transformers_assisted_generation_compiled_where_it_can(toy_pipeline, capsys, monkeypatch):
+    from hf_specvla.benchmarks.speed import assisted_generation_compiles
+
+    monkeypatch.setattr("hf_specvla.speculative.compiled_decoding_kwargs", eager_backend_compiled_kwargs)
+    args = ["--prompts", "1", "--repeats", "1", "--chain-lengths", "2", "--bin-tolerances", "2"]
+    assert main(["benchmark", "--pipeline-dir", toy_pipeline.output_dir, *args]) == 0
+    out = capsys.readouterr().out
+    assert "| greedy:compile |" in out and "| assisted (transformers) |" in out
+    assert ("| assisted (transformers):compile |" in out) == assisted_generation_compiles()  # transformers >= 5.24
 
 
 def eager_backend_compiled_kwargs(device_type="cpu"):

@@ -40,16 +40,37 @@ class MethodResult:
         return statistics.median(self.latencies)
 
 
+#: the first transformers release whose own assisted generation runs on a static cache (its compiled peer)
+ASSISTED_STATIC_SINCE = "5.24"
+
+
+def assisted_generation_compiles() -> bool:
+    """Whether the installed transformers runs its own assisted generation on a static cache (>= 5.24)."""
+    import transformers
+    from packaging.version import Version
+
+    return Version(transformers.__version__).release >= Version(ASSISTED_STATIC_SINCE).release
+
+
 def speculative_methods(
-    draft_head, chain_lengths=(2, 4, 6), bin_tolerances=(1, 2, 4), relaxed_chain=6, compiled_on: str | None = None
+    draft_head,
+    chain_lengths=(2, 4, 6),
+    bin_tolerances=(1, 2, 4),
+    relaxed_chain=6,
+    compiled_on: str | None = None,
+    assistant_model=None,
 ) -> list[Method]:
     """Greedy, strict chains of several lengths k, Jacobi drafts (the target's own guesses, no model), and relaxed
     acceptance at several r (chain ``relaxed_chain``). With ``compiled_on`` (a device type) also transformers'
     compiled greedy (``greedy:compile``) and the strict methods compiled (``:compile``: a static cache, compiled
-    verification)."""
+    verification). With ``assistant_model`` (a small transformers model sharing the target's vocabulary) also
+    transformers' own assisted generation, the peer: eagerly, and compiled on a static cache where the installed
+    release supports it ([`assisted_generation_compiles`])."""
     from ..speculative import JacobiDrafter
 
     methods = [Method("greedy")]
+    if assistant_model is not None:
+        methods.append(Method("assisted (transformers)", dict(assistant_model=assistant_model)))
     for k in chain_lengths:
         methods.append(Method(f"spec k={k} r=0", dict(assistant_model=draft_head, num_draft_tokens=k)))
     methods.append(Method("jacobi r=0", dict(assistant_model=JacobiDrafter())))
@@ -66,6 +87,8 @@ def speculative_methods(
         methods.append(Method(f"spec k={k} r=0:compile", dict(assistant_model=draft_head, num_draft_tokens=k,
                                                                **compiled)))  # fmt: skip
     methods.append(Method("jacobi r=0:compile", dict(assistant_model=JacobiDrafter(), **compiled)))
+    if assistant_model is not None and assisted_generation_compiles():
+        methods.append(Method("assisted (transformers):compile", dict(assistant_model=assistant_model, **compiled)))
     return methods
 
 

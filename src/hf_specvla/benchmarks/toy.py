@@ -11,6 +11,7 @@ Everything is built locally and trains in well under a minute on 2 CPU cores (se
 
 from __future__ import annotations
 
+import copy
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -274,6 +275,27 @@ def _build_or_load(root, size: ToyTargetSize, target_steps: int, draft_steps: in
         )  # fmt: skip
         draft_head = train_draft_head(draft_head, target, dataset, config, progress=progress)
     return target, tokenizer, action_tokenizer, draft_head
+
+
+def early_exit_assistant(target, num_layers: int = 1):
+    """A small draft model for transformers' assisted generation made from ``target`` itself: the same Llava-style
+    model with only its first ``num_layers`` decoder layers (vision tower, projector, embeddings, final norm and
+    lm_head shared by value), so it shares the vocabulary and needs no training (LayerSkip's early exit, without its
+    training). The peer's baseline in the toy benchmark.
+
+    Raises:
+        ValueError: ``num_layers`` is not in 1 .. the target's depth - 1.
+    """
+    config = copy.deepcopy(target.config)
+    depth = config.text_config.num_hidden_layers
+    if not 1 <= num_layers < depth:
+        raise ValueError(
+            f"an early-exit assistant keeps 1 .. {depth - 1} of the target's {depth} layers, got {num_layers}"
+        )
+    config.text_config.num_hidden_layers = num_layers
+    assistant = type(target)(config).to(target.device, target.dtype).eval()
+    assistant.load_state_dict(target.state_dict(), strict=False)  # the deeper layers' weights are left out
+    return assistant
 
 
 def load_toy_pipeline(output_dir: str) -> ToyPipeline:

@@ -47,13 +47,16 @@ def time_pipeline(pipeline, args) -> None:
     import torch
 
     from ..benchmarks.speed import format_report, run_benchmark, speculative_methods
-    from ..benchmarks.toy import ACTION_DIM, split_scenes, toy_inputs
+    from ..benchmarks.toy import ACTION_DIM, early_exit_assistant, split_scenes, toy_inputs
 
     scenes = split_scenes()[1]  # never seen by the target's or the draft head's training
     step = max(1, len(scenes) // args.prompts)
     prompts = [toy_inputs([s], pipeline.tokenizer) for s in scenes[step // 2 :: step][: args.prompts]]
     compiled_on = pipeline.target.device.type if args.compile else None
-    methods = speculative_methods(pipeline.draft_head, args.chain_lengths, args.bin_tolerances, compiled_on=compiled_on)
+    # transformers' own assisted generation beside ours, with a 1-layer early exit of the target as its small model
+    assistant = early_exit_assistant(pipeline.target)
+    methods = speculative_methods(pipeline.draft_head, args.chain_lengths, args.bin_tolerances, compiled_on=compiled_on,
+                                  assistant_model=assistant)  # fmt: skip
     results = run_benchmark(
         pipeline.target, prompts, methods, ACTION_DIM, pipeline.action_tokenizer, repeats=args.repeats, seed=args.seed
     )
