@@ -1,0 +1,119 @@
+"""How often r=0 speculative decoding departs from plain greedy decoding in reduced precision, per drafter, and at
+what margins: the CPU test bed of the bf16 question (on a GPU in bf16, a multi-token verification forward rounds
+differently from a one-token decode step, so near-tied argmaxes can flip).
+
+    python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft \\
+        --tasks MT10 --episodes 1 --steps 20 --threads 1
+    python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla2 --dtype float32   # the control: 0
+
+Observations come from fp32 greedy rollouts of the policy (so they are real); then, in the chosen dtype, at every
+observation plain greedy decoding and every method decode from the same episode memory (greedy's previous actions),
+and each method's action tokens are compared with greedy's. A departure's margin is greedy's top-1 minus top-2
+logit at the first token where they part.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+
+import torch
+
+DEFAULT_METHODS = ("prior", "jacobi", "prior+jacobi", "tree", "prior+tree", "prior+jacobi:compile")
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--policy", required=True, help="a VLAPolicy folder")
+    parser.add_argument("--draft-head", default=None, help="a DraftHead folder (for head / tree methods)")
+    parser.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
+    parser.add_argument("--episodes", type=int, default=1, help="seeds per task (from 300000)")
+    parser.add_argument("--steps", type=int, default=20, help="policy calls per episode")
+    parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), help="r=0 methods (compare's names)")
+    parser.add_argument("--dtype", default="bfloat16", choices=("bfloat16", "float16", "float32"))
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--output", default=None, help="also write the figures as JSON here")
+    args = parser.parse_args(argv)
+    if min(args.episodes, args.steps, args.threads) < 1:
+        parser.error("--episodes, --steps and --threads must be >= 1")
+    from hf_specvla.metaworld.comparison.methods import DecodingMethod
+
+    try:
+        args.methods = [DecodingMethod.parse(m, draft_head_given=args.draft_head is not None) for m in args.methods]
+    except ValueError as error:
+        parser.error(str(error))
+    relaxed = [m.name for m in args.methods if not m.lossless]
+    if relaxed:
+        parser.error(f"departures are measured for r=0 methods; {relaxed} relax acceptance")
+    if any(m.uses_draft_head for m in args.methods) and args.draft_head is None:
+        parser.error("head / tree methods need --draft-head")
+    return args
+
+
+def margins(scores: tuple[torch.Tensor, ...]) -> list[float]:
+    """Per generated token, the top-1 minus top-2 score (greedy's ``output_scores``)."""
+    values = []
+    for step in scores:
+        top = step[0].float().topk(2).values
+        values.append(float(top[0] - top[1]))
+    return values
+
+
+def main(argv=None) -> dict:
+    args = parse_args(argv)
+    torch.set_num_threads(args.threads)
+    from hf_specvla.metaworld.evaluation import record_observations
+    from hf_specvla.metaworld.seeds import BENCH_SEED_START
+    from hf_specvla.policies import VLAPolicy
+    from hf_specvla.speculative import DraftHead
+
+    policy = VLAPolicy.from_pretrained(args.policy)
+    seeds = [BENCH_SEED_START + i for i in range(args.episodes)]
+    episodes = record_observations(policy, args.tasks, seeds, args.steps)  # fp32 greedy: real observations
+    dtype = getattr(torch, args.dtype)
+    policy.model.to(dtype)
+    head = DraftHead.from_pretrained(args.draft_head).to(dtype).eval() if args.draft_head else None
+    device = policy.model.device.type
+    kwargs = {m.name: m.generate_kwargs(head, device, action_dim=policy.config.action_dim) for m in args.methods}
+    departed = {m.name: [] for m in args.methods}  # per call: None (same) or greedy's margin where they part
+    for episode in episodes:
+        history: list[list[int]] = []
+        for obs in episode:
+            policy.previous_action_ids = list(history)
+            _, greedy = policy.predict_action(obs["image"], obs["instruction"], obs["state"], return_output=True,
+                                              output_scores=True)  # fmt: skip
+            tokens = policy.config.action_tokens
+            greedy_ids = greedy.sequences[0, -tokens:].tolist()
+            greedy_margins = margins(greedy.scores)
+            for method in args.methods:
+                policy.previous_action_ids = list(history)
+                _, out = policy.predict_action(obs["image"], obs["instruction"], obs["state"], return_output=True,
+                                               **kwargs[method.name])  # fmt: skip
+                ids = out.sequences[0, -tokens:].tolist()
+                first = next((i for i, (a, b) in enumerate(zip(ids, greedy_ids)) if a != b), None)
+                departed[method.name].append(None if first is None else greedy_margins[first])
+            dim = policy.config.action_dim
+            history = [*history, *(greedy_ids[i : i + dim] for i in range(0, tokens, dim))][-policy.HISTORY_LENGTH :]
+    rows = []
+    for name, calls in departed.items():
+        parted = [m for m in calls if m is not None]
+        rows.append({"method": name, "calls": len(calls), "departed": len(parted),
+                     "margin_median": statistics.median(parted) if parted else None,
+                     "margin_max": max(parted) if parted else None})  # fmt: skip
+    print(f"{args.dtype}, {sum(len(e) for e in episodes)} calls, r=0, each method from greedy's episode memory")
+    print("| method | calls departed from greedy | margin where they part (median / max) |")
+    print("|---|---:|---|")
+    for row in rows:
+        margin = "-" if not row["departed"] else f"{row['margin_median']:.3f} / {row['margin_max']:.3f}"
+        share = f"{row['departed']}/{row['calls']} ({row['departed'] / row['calls']:.1%})"
+        print(f"| {row['method']} | {share} | {margin} |")
+    result = {"dtype": args.dtype, "rows": rows}
+    if args.output:
+        with open(args.output, "w") as f:
+            json.dump(result, f, indent=2)
+    return result
+
+
+if __name__ == "__main__":
+    main()
