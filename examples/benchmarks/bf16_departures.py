@@ -15,10 +15,11 @@ logit at the first token where they part.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 
 import torch
+
+from hf_specvla.run_folder import write_json_atomic
 
 DEFAULT_METHODS = ("prior", "jacobi", "prior+jacobi", "tree", "prior+tree", "prior+jacobi:compile")
 
@@ -110,8 +111,7 @@ def main(argv=None) -> dict:
         print(f"| {row['method']} | {share} | {margin} |")
     result = {"dtype": args.dtype, "rows": rows}
     if args.output:
-        with open(args.output, "w") as f:
-            json.dump(result, f, indent=2)
+        write_json_atomic(args.output, result)
     return result
 
 

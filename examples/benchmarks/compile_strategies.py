@@ -12,11 +12,12 @@ nodes padded to the width, the explicit tree mask), rolled back after each call,
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 
 import torch
+
+from hf_specvla.run_folder import write_json_atomic
 
 #: (drafted nodes, pending tokens) per measured forward: a decode step, two verifications, a prefill-sized forward
 SHAPES = ((0, 1), (2, 1), (8, 1), (8, 41))
@@ -129,8 +130,7 @@ def main(argv=None) -> dict:
           f"{compile_seconds['regional']:.1f} s (warm or cold as the inductor cache is)")  # fmt: skip
     result = {"rows": rows, "compile_seconds": compile_seconds, "layers": len(layers), "threads": args.threads}
     if args.output:
-        with open(args.output, "w") as f:
-            json.dump(result, f, indent=2)
+        write_json_atomic(args.output, result)
     return result
 
 
