@@ -22,6 +22,7 @@ import torch
 from hf_specvla.run_folder import write_json_atomic
 
 DEFAULT_METHODS = ("prior", "jacobi", "prior+jacobi", "tree", "prior+tree", "prior+jacobi:compile")
+MARGIN_THRESHOLDS = (0.0625, 0.125, 0.25, 0.5)
 
 
 def parse_args(argv=None):
@@ -78,6 +79,7 @@ def main(argv=None) -> dict:
     device = policy.model.device.type
     kwargs = {m.name: m.generate_kwargs(head, device, action_dim=policy.config.action_dim) for m in args.methods}
     departed = {m.name: [] for m in args.methods}  # per call: None (same) or greedy's margin where they part
+    all_margins: list[float] = []  # greedy's margin at every token: what a near-tie fallback would re-decide
     for episode in episodes:
         history: list[list[int]] = []
         for obs in episode:
@@ -87,6 +89,7 @@ def main(argv=None) -> dict:
             tokens = policy.config.action_tokens
             greedy_ids = greedy.sequences[0, -tokens:].tolist()
             greedy_margins = margins(greedy.scores)
+            all_margins += greedy_margins
             for method in args.methods:
                 policy.previous_action_ids = list(history)
                 _, out = policy.predict_action(obs["image"], obs["instruction"], obs["state"], return_output=True,
@@ -109,7 +112,10 @@ def main(argv=None) -> dict:
         margin = "-" if not row["departed"] else f"{row['margin_median']:.3f} / {row['margin_max']:.3f}"
         share = f"{row['departed']}/{row['calls']} ({row['departed'] / row['calls']:.1%})"
         print(f"| {row['method']} | {share} | {margin} |")
-    result = {"dtype": args.dtype, "rows": rows}
+    below = {delta: sum(m < delta for m in all_margins) / len(all_margins) for delta in MARGIN_THRESHOLDS}
+    print("greedy's tokens with a top-1 - top-2 margin below d (a fallback at margin d would re-decide them): "
+          + ", ".join(f"d={d:g}: {share:.1%}" for d, share in below.items()))  # fmt: skip
+    result = {"dtype": args.dtype, "rows": rows, "share_of_tokens_below_margin": below}
     if args.output:
         write_json_atomic(args.output, result)
     return result
