@@ -292,6 +292,32 @@ def test_speculation_at_r0_equals_greedy(tiny_openvla):
         )
 
 
+def test_compiled_speculation_on_the_port_equals_greedy(tiny_openvla, caplog):
+    """A static cache and a CompileConfig (dynamo's eager backend): every verification runs through the compiled call
+    and r=0 stays greedy's action. The port's prefill stays eager (its forward picks the image layout from the
+    tokens' values, which one graph cannot), told once."""
+    from hf_specvla.speculative.compiled import reset_compilation
+    from tests.speculative.test_compiled_verification import eager_compile_config
+
+    model, ids, pixels = tiny_openvla, prompt_ids(), pixel_values()
+    greedy = model.generate(ids, pixel_values=pixels, max_new_tokens=ACTION_DIM, do_sample=False)
+    greedy_tokens = greedy[0, -ACTION_DIM:].tolist()
+    half_right = greedy_tokens[:3] + [31744 + (t - 31744 + 50) % 256 for t in greedy_tokens[3:]]
+    compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
+    reset_compilation()
+    try:
+        with caplog.at_level("WARNING", logger="hf_specvla.speculative.compiled"):
+            for _ in range(2):
+                output = model.generate(ids, pixel_values=pixels, max_new_tokens=ACTION_DIM, do_sample=False,
+                                        draft_ids=torch.tensor([half_right]), return_dict_in_generate=True,
+                                        **compiled)  # fmt: skip
+                assert torch.equal(output.sequences, greedy)
+                assert output.speculation.compiled_widths and output.speculation.compiled_prefills == 0
+        assert sum("stays eager" in record.getMessage() for record in caplog.records) == 1
+    finally:
+        reset_compilation()
+
+
 @torch.no_grad()
 def test_relaxed_tokens_stay_within_r_bins_of_greedy_given_their_prefix(tiny_openvla):
     model, ids, pixels, tolerance = tiny_openvla, prompt_ids(), pixel_values(), 6

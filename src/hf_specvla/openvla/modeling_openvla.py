@@ -285,7 +285,8 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
                     f"(config.image_token_id={self.config.image_token_id}); got {counts.tolist()}"
                 )
             input_ids = None
-        elif input_ids is not None and bool((input_ids == self.config.image_token_id).any()) and cache is None:
+        # (the cache first: a decoding step or verification never reads its ids' values here: one graph compiles)
+        elif cache is None and input_ids is not None and bool((input_ids == self.config.image_token_id).any()):
             raise ValueError(
                 f"input_ids hold image tokens (config.image_token_id={self.config.image_token_id}) but no pixel_values "
                 f"were given"

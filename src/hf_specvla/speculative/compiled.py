@@ -215,12 +215,15 @@ def compile_prefill(model: PreTrainedModel, key: tuple, cache: Cache, run_prefil
     """
     from torch._dynamo.exc import TorchDynamoException
     from torch._inductor.exc import InductorError
+    from torch.fx.experimental.symbolic_shapes import ConstraintViolationError
 
     start = time.perf_counter()
     try:
         with preserved_entries(cache):
             run_prefill()
-    except (TorchDynamoException, InductorError) as error:  # dynamo / inductor refusing the model's forward
+    # dynamo / inductor refusing the model's forward, or the model's code fixing the prompt's length (a Python branch
+    # on it specialises the dimension marked dynamic)
+    except (TorchDynamoException, InductorError, ConstraintViolationError) as error:
         _EAGER_PREFILLS.setdefault(model, set()).add(key)
         logger.warning(
             "the prefill of %s stays eager: its forward over the prompt does not compile into one graph (%s: %s)",
