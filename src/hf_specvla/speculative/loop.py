@@ -603,6 +603,15 @@ def _compile_prefill(model, plan: RoundPlan, key: tuple, model_inputs: dict, pro
     return compile_prefill(model, key, model_inputs[CACHE_KEY], run_prefill)
 
 
+def _compiled_prefill_key(model, generation_config, capacity: int, output_hidden: bool, prompt_length: int):
+    """What a compiled prefill graph depends on (the compile settings, the cache's slots, whether hidden states are
+    returned), or None when this call's prefill stays eager: a prompt of one token (a size-1 dimension would be
+    specialised), or a model whose forward did not compile over the prompt. The caller checks the rest: a compiled
+    call (batch 1, a static cache), 2D positions, a causal prompt."""
+    key = (compile_settings(generation_config.compile_config), capacity, output_hidden)
+    return None if prompt_length < 2 or prefill_stays_eager(model, key) else key
+
+
 # ----------------------------------------------------------------------------- the loop
 @torch.no_grad()
 def check_left_padded(attention_mask: torch.Tensor | None) -> None:
@@ -727,13 +736,9 @@ def speculative_generate(
     # A prefix-LM prompt (PaliGemma's token_type_ids: the prompt attends to itself both ways at the prefill) needs
     # the model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies a chain.
     prefix_attention = model_inputs.get("token_type_ids") is not None
-    # the prefill through the compiled call: batch 1 (a static cache), 2D positions, a causal prompt of >= 2 tokens;
-    # its graph depends on the compile settings, the cache's slots and whether hidden states are returned
-    prefill_key = None
-    if compiled is not None and not prefix_attention and position_offsets is None and input_ids.shape[1] >= 2:
-        prefill_key = (compile_settings(generation_config.compile_config), capacity, output_hidden)
-        if prefill_stays_eager(model, prefill_key):
-            prefill_key = None
+    prefill_key = None  # the compiled prefill graph this call can use, or None (an eager prefill)
+    if compiled is not None and not prefix_attention and position_offsets is None:
+        prefill_key = _compiled_prefill_key(model, generation_config, capacity, output_hidden, input_ids.shape[1])
     plan = RoundPlan(
         max_length=generation_config.max_length,
         rule=rule,
