@@ -402,9 +402,8 @@ def accept_trees(
         is_action = tokenizer.is_action_token(tokens)
         strict_ancestors = ancestor_or_self & ~torch.eye(num_nodes, dtype=torch.bool, device=tokens.device)
         # (integer products as masked sums: CUDA has no integer matmul)
-        before = torch.tensor(num_prior_action_tokens, device=tokens.device)[:, None] + (
-            strict_ancestors.long() * is_action.long()[:, None, :]
-        ).sum(-1)  # [B, N]
+        prior = torch.tensor(num_prior_action_tokens, device=tokens.device)[:, None]  # [B, 1]
+        before = prior + (strict_ancestors.long() * is_action.long()[:, None, :]).sum(-1)  # [B, N]
         action_dims = before % action_layout.action_dim
         action_steps = before // action_layout.action_dim  # [B, N] which action of the call (chunk step)
         both_actions = is_action & tokenizer.is_action_token(parent_targets)
@@ -423,7 +422,7 @@ def accept_trees(
         relaxed = passes & (tokens != parent_targets)  # [B, N]
         same_action = action_steps[:, :, None] == action_steps[:, None, :]  # [B, N, N]
         count = (ancestor_or_self & same_action & relaxed[:, None, :]).long().sum(-1)  # [B, N]
-        first_step = torch.tensor(num_prior_action_tokens, device=tokens.device)[:, None] // action_layout.action_dim
+        first_step = prior // action_layout.action_dim  # [B, 1] the action the root's next token belongs to
         earlier = torch.tensor(relaxed_in_action or [0] * batch_size, device=tokens.device)[:, None]  # [B, 1]
         count = count + torch.where(action_steps == first_step, earlier, 0)
         passes = passes & (count <= budget)

@@ -173,8 +173,8 @@ def compile_every_width(model: PreTrainedModel, key: tuple, verify_width: Callab
     return seconds
 
 
-#: the model inputs with a sequence dimension in a prefill, and that dimension ([`mark_length_dynamic`])
-_SEQUENCE_DIMS = {"input_ids": -1, "inputs_embeds": 1, "position_ids": -1, "attention_mask": 2, "logits_to_keep": 0}
+#: the model inputs with a sequence dimension in a prefill, and that dimension, from the end ([`mark_length_dynamic`])
+_SEQUENCE_DIMS = {"input_ids": -1, "inputs_embeds": -2, "position_ids": -1, "attention_mask": -2, "logits_to_keep": -1}
 
 
 def mark_length_dynamic(inputs: dict) -> None:
@@ -183,8 +183,8 @@ def mark_length_dynamic(inputs: dict) -> None:
     index tensor ``logits_to_keep`` ``[2 + N]``, so that one graph serves every prompt length and node count."""
     for name, dim in _SEQUENCE_DIMS.items():
         value = inputs.get(name)
-        if isinstance(value, torch.Tensor) and value.ndim > (dim if dim >= 0 else -dim - 1):
-            torch._dynamo.mark_dynamic(value, dim if dim >= 0 else value.ndim + dim)
+        if isinstance(value, torch.Tensor):
+            torch._dynamo.mark_dynamic(value, value.ndim + dim)
 
 
 #: per model, the (compile settings, slots, hidden states returned) keys whose prefill graph is compiled

@@ -523,7 +523,8 @@ def accept(
     )
     action_counts = [row.num_action_tokens for row in state.rows]
     top1_probs = target_scores.softmax(dim=-1).amax(dim=-1) if plan.rule.needs_probabilities else None  # [B, 1 + N]
-    relaxed = [_relaxed_in_action(row, plan.layout) for row in state.rows]
+    budgeted = plan.rule.max_relaxed_per_action is not None  # the rule counts relaxed tokens per action
+    relaxed = [_relaxed_in_action(row, plan.layout) for row in state.rows] if budgeted else None
     paths = accept_trees(trees, target_ids, plan.rule, plan.layout, action_counts, top1_probs, relaxed)
     return paths, target_ids, target_scores
 

@@ -114,11 +114,12 @@ def verify_trees(
         if key_length is not None:  # [B, q, key_length]: the free slots after the new entries are hidden
             allowed = torch.nn.functional.pad(allowed, (0, key_length - allowed.shape[-1]), value=False)
         inputs["attention_mask"] = to_additive_mask(allowed, model.dtype)
-    inputs["logits_to_keep"] = num_nodes + 1
     if dynamic_length:  # 2 + N rows (a dimension of size 1 would be specialised), the first dropped below
         total = num_pending + num_nodes
-        inputs["logits_to_keep"] = torch.arange(total - num_nodes - 2, total, device=pending_ids.device)
+        inputs["logits_to_keep"] = torch.arange(num_pending - 2, total, device=pending_ids.device)
         mark_length_dynamic(inputs)
+    else:
+        inputs["logits_to_keep"] = num_nodes + 1
     inputs["use_cache"] = True
     outputs = (forward or model)(**inputs, output_hidden_states=output_hidden, return_dict=True)
     logits, hidden = outputs.logits.float(), outputs.hidden_states[-1] if output_hidden else None

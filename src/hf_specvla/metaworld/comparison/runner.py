@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ...actions.tokenizer import ActionLayout
 from ...policies import VLAPolicy
 from ...progress import progress_bar
 from ...run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
@@ -55,11 +54,8 @@ def check_method_rule(method: DecodingMethod, policy: VLAPolicy) -> None:
     """
     if method.lossless:
         return
-    kwargs = method.rule_kwargs(policy.config.action_dim)
-    layout = ActionLayout(policy.action_tokenizer, policy.config.action_dim)
     try:
-        make_acceptance_rule(kwargs["bin_tolerance"], layout, kwargs.get("confidence_gate"),
-                             kwargs.get("max_relaxed_per_action"))  # fmt: skip
+        make_acceptance_rule(action_layout=policy.action_layout, **method.rule_kwargs(policy.config.action_dim))
     except (ValueError, TypeError) as error:
         raise type(error)(f"decoding method {method.name!r}: {error}") from None
 
