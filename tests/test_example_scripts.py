@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -66,3 +68,51 @@ def test_compile_strategies_script_times_every_strategy_at_every_width(tmp_path)
     assert figures["layers"] == 2 and len(figures["rows"]) == 4
     for row in figures["rows"]:
         assert all(math.isfinite(row[s]) and row[s] > 0 for s in ("eager", "regional", "whole")), row
+
+
+def test_attention_cost_script_times_both_attentions_in_both_dtypes(tmp_path):
+    pytest.importorskip("metaworld")
+    output = tmp_path / "attention.json"
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "examples/benchmarks/attention_cost.py"), "--tiny", "--output", str(output)],
+        capture_output=True, text=True, timeout=600, check=True,
+    )  # fmt: skip
+    assert "| dtype | method | sdpa | eager | eager / sdpa |" in result.stdout
+    rows = json.loads(output.read_text())["rows"]
+    assert [(row["dtype"], row["method"]) for row in rows] == [
+        ("float32", "greedy"),
+        ("float32", "prior+jacobi"),
+        ("bfloat16", "greedy"),
+        ("bfloat16", "prior+jacobi"),
+    ]
+    assert all(math.isfinite(row["eager_over_sdpa"]) for row in rows)
+
+
+def test_bf16_departures_script_runs_with_and_without_the_option(tmp_path):
+    """The script runs end to end, its option reaches the policy (eager attention on, sdpa kept off), and with it on no
+    r=0 method departs from bf16 greedy (the invariant itself is tested on a deeper model in
+    tests/speculative/test_reduced_precision.py, which fails with the option off)."""
+    pytest.importorskip("metaworld")
+    from hf_specvla import ActionNormalizer
+    from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
+
+    config = VLAPolicyConfig(image_size=32, patch_size=16, vision_hidden_size=32, vision_layers=1,
+                             text_hidden_size=64, text_layers=2, text_heads=4)  # fmt: skip
+    actions = ActionNormalizer(q01=[-1.0] * 4, q99=[1.0] * 4)
+    states = ActionNormalizer(q01=[-0.5, 0.3, 0.0, 0.0], q99=[0.5, 1.0, 0.4, 1.0])
+    VLAPolicy.build(["reach the goal"], actions, states, config, seed=3).save_pretrained(tmp_path / "policy")
+    for option, attention in (("on", "eager"), ("off", "sdpa")):
+        output = tmp_path / f"departures-{option}.json"
+        result = subprocess.run(
+            [sys.executable, str(ROOT / "examples/benchmarks/bf16_departures.py"), "--policy",
+             str(tmp_path / "policy"), "--tasks", "reach-v3", "--steps", "4", "--methods", "prior", "jacobi",
+             "prior+jacobi", "--exact-reduced-precision", option, "--output", str(output)],
+            capture_output=True, text=True, timeout=600, check=True,
+        )  # fmt: skip
+        assert f"bfloat16, {attention} attention, 4 calls" in result.stdout
+        figures = json.loads(output.read_text())
+        assert figures["attn_implementation"] == attention
+        assert [row["method"] for row in figures["rows"]] == ["prior", "jacobi", "prior+jacobi"]
+        assert all(row["calls"] == 4 for row in figures["rows"])
+        if option == "on":
+            assert all(row["departed"] == 0 for row in figures["rows"]), figures["rows"]

@@ -4,12 +4,18 @@ differently from a one-token decode step, so near-tied argmaxes can flip).
 
     python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft \\
         --tasks MT10 --episodes 1 --steps 20 --threads 1
+    python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft \
+        --tasks MT10 --episodes 1 --steps 20 --threads 1 --exact-reduced-precision off   # sdpa attention
     python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla2 --dtype float32   # the control: 0
+    python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla2 --reference greedy:compile \
+        --methods prior+jacobi:compile   # against transformers' compiled greedy
 
 Observations come from fp32 greedy rollouts of the policy (so they are real); then, in the chosen dtype, at every
 observation plain greedy decoding and every method decode from the same episode memory (greedy's previous actions),
 and each method's action tokens are compared with greedy's. A departure's margin is greedy's top-1 minus top-2
-logit at the first token where they part.
+logit at the first token where they part. ``--exact-reduced-precision`` is ``enable_speculation``'s option (on: in
+reduced precision the policy runs eager attention, for greedy and speculation alike; off: it keeps sdpa);
+``--reference`` the greedy decoding the methods are compared with (eager greedy, or transformers' compiled greedy).
 """
 
 from __future__ import annotations
@@ -34,6 +40,10 @@ def parse_args(argv=None):
     parser.add_argument("--steps", type=int, default=20, help="policy calls per episode")
     parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), help="r=0 methods (compare's names)")
     parser.add_argument("--dtype", default="bfloat16", choices=("bfloat16", "float16", "float32"))
+    parser.add_argument("--exact-reduced-precision", default="on", choices=("on", "off"),
+                        help="enable_speculation's option: on = eager attention in bf16, off = keep sdpa")  # fmt: skip
+    parser.add_argument("--reference", default="greedy", choices=("greedy", "greedy:compile"),
+                        help="the greedy decoding every method is compared with")  # fmt: skip
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("--output", default=None, help="also write the figures as JSON here")
     args = parser.parse_args(argv)
@@ -65,12 +75,14 @@ def margins(scores: tuple[torch.Tensor, ...]) -> list[float]:
 def main(argv=None) -> dict:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
+    from hf_specvla.metaworld.comparison.methods import DecodingMethod
     from hf_specvla.metaworld.evaluation import record_observations
     from hf_specvla.metaworld.seeds import BENCH_SEED_START
     from hf_specvla.policies import VLAPolicy
-    from hf_specvla.speculative import DraftHead
+    from hf_specvla.speculative import DraftHead, enable_speculation
 
     policy = VLAPolicy.from_pretrained(args.policy)
+    enable_speculation(policy.model, exact_reduced_precision=args.exact_reduced_precision == "on")
     seeds = [BENCH_SEED_START + i for i in range(args.episodes)]
     episodes = record_observations(policy, args.tasks, seeds, args.steps)  # fp32 greedy: real observations
     dtype = getattr(torch, args.dtype)
@@ -78,6 +90,8 @@ def main(argv=None) -> dict:
     head = DraftHead.from_pretrained(args.draft_head).to(dtype).eval() if args.draft_head else None
     device = policy.model.device.type
     kwargs = {m.name: m.generate_kwargs(head, device, action_dim=policy.config.action_dim) for m in args.methods}
+    reference = DecodingMethod.parse(args.reference).generate_kwargs(None, device)
+    forwards = {m.name: 0 for m in args.methods}
     departed = {m.name: [] for m in args.methods}  # per call: None (same) or greedy's margin where they part
     all_margins: list[float] = []  # greedy's margin at every token: what a near-tie fallback would re-decide
     for episode in episodes:
@@ -85,7 +99,7 @@ def main(argv=None) -> dict:
         for obs in episode:
             policy.previous_action_ids = list(history)
             _, greedy = policy.predict_action(obs["image"], obs["instruction"], obs["state"], return_output=True,
-                                              output_scores=True)  # fmt: skip
+                                              output_scores=True, **reference)  # fmt: skip
             tokens = policy.config.action_tokens
             greedy_ids = greedy.sequences[0, -tokens:].tolist()
             greedy_margins = margins(greedy.scores)
@@ -97,6 +111,8 @@ def main(argv=None) -> dict:
                 ids = out.sequences[0, -tokens:].tolist()
                 first = next((i for i, (a, b) in enumerate(zip(ids, greedy_ids)) if a != b), None)
                 departed[method.name].append(None if first is None else greedy_margins[first])
+                stats = getattr(out, "speculation", None)  # None for plain greedy (and a prior's first step)
+                forwards[method.name] += tokens if stats is None else stats.num_batch_forwards
             dim = policy.config.action_dim
             history = [*history, *(greedy_ids[i : i + dim] for i in range(0, tokens, dim))][-policy.HISTORY_LENGTH :]
     rows = []
@@ -104,18 +120,23 @@ def main(argv=None) -> dict:
         parted = [m for m in calls if m is not None]
         rows.append({"method": name, "calls": len(calls), "departed": len(parted),
                      "margin_median": statistics.median(parted) if parted else None,
-                     "margin_max": max(parted) if parted else None})  # fmt: skip
-    print(f"{args.dtype}, {sum(len(e) for e in episodes)} calls, r=0, each method from greedy's episode memory")
-    print("| method | calls departed from greedy | margin where they part (median / max) |")
-    print("|---|---:|---|")
+                     "margin_max": max(parted) if parted else None,
+                     "target_forwards_per_call": forwards[name] / len(calls)})  # fmt: skip
+    attention = policy.model.config._attn_implementation
+    print(f"{args.dtype}, {attention} attention, {sum(len(e) for e in episodes)} calls, r=0, each method from the "
+          f"reference's episode memory")  # fmt: skip
+    print(f"| method | calls departed from {args.reference} | margin where they part (median / max) | "
+          f"target fwd/call |")  # fmt: skip
+    print("|---|---:|---|---:|")
     for row in rows:
         margin = "-" if not row["departed"] else f"{row['margin_median']:.3f} / {row['margin_max']:.3f}"
         share = f"{row['departed']}/{row['calls']} ({row['departed'] / row['calls']:.1%})"
-        print(f"| {row['method']} | {share} | {margin} |")
+        print(f"| {row['method']} | {share} | {margin} | {row['target_forwards_per_call']:.2f} |")
     below = {delta: sum(m < delta for m in all_margins) / len(all_margins) for delta in MARGIN_THRESHOLDS}
     print("greedy's tokens with a top-1 - top-2 margin below d (a fallback at margin d would re-decide them): "
           + ", ".join(f"d={d:g}: {share:.1%}" for d, share in below.items()))  # fmt: skip
-    result = {"dtype": args.dtype, "rows": rows, "share_of_tokens_below_margin": below}
+    result = {"dtype": args.dtype, "attn_implementation": attention, "reference": args.reference, "rows": rows,
+              "share_of_tokens_below_margin": below}  # fmt: skip
     if args.output:
         write_json_atomic(args.output, result)
     return result

@@ -25,7 +25,7 @@ import time
 import torch
 from transformers.cache_utils import DynamicCache
 
-from hf_specvla import ActionPriorDrafter, DraftHead, DraftHeadDrafter, DraftTree, DraftTreeConfig
+from hf_specvla import ActionPriorDrafter, DraftHead, DraftHeadDrafter, DraftTree, DraftTreeConfig, enable_speculation
 from hf_specvla.openvla import OpenVLAConfig, OpenVLAForActionPrediction, VisionTowerSpec, register_vision_tower
 from hf_specvla.speculative import CACHE_KEY
 from hf_specvla.speculative.cache import truncate_cache
@@ -119,6 +119,8 @@ def main() -> None:
     parser.add_argument("--json", default=None, help="also write the results here")
     parser.add_argument("--device", default="cuda", help="cuda (the point), or cpu to check the script")
     parser.add_argument("--check", action="store_true", help="small towers and 2 Llama layers (a CPU check)")
+    parser.add_argument("--exact-reduced-precision", default="on", choices=("on", "off"),
+                        help="enable_speculation option: on = eager attention in bf16, off = sdpa")  # fmt: skip
     args = parser.parse_args()
     device = torch.device(args.device)
     dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
@@ -129,6 +131,7 @@ def main() -> None:
 
     torch.manual_seed(0)
     model = build_model(args.config, device, dtype, args.check)
+    enable_speculation(model, exact_reduced_precision=args.exact_reduced_precision == "on")
     draft_head = DraftHead.from_target(model, action_dim=ACTION_DIM).eval()
     handles = draft_head.target_handles(model)
     generator = torch.Generator().manual_seed(0)
@@ -275,7 +278,8 @@ def main() -> None:
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"median_ms": median, "per_action_ms": ideal, "samples_ms": times, "check": stats_box,
-                       "device": device_name, "rounds": args.rounds}, f, indent=2)  # fmt: skip
+                       "device": device_name, "rounds": args.rounds,
+                       "attn_implementation": model.config.text_config._attn_implementation}, f, indent=2)  # fmt: skip
 
 
 if __name__ == "__main__":

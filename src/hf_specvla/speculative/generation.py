@@ -18,6 +18,7 @@ from .config import SpeculationConfig
 from .drafter import Drafter
 from .loop import speculative_generate
 from .modeling_draft_head import DraftHead
+from .precision import EXACT_ATTRIBUTE, keep_greedy_exact
 
 #: generate() keyword arguments that only mean something with speculative decoding.
 SPECULATION_KWARGS = tuple(
@@ -31,10 +32,13 @@ class SpeculativeGenerationMixin:
     """Mix in before a transformers model class to make ``generate`` speculate.
 
     ``generate(..., assistant_model=draft_head_or_drafter, draft_ids=..., bin_tolerance=r)`` runs speculative
-    decoding (see [`speculative_generate`]); every other call behaves exactly as the base class's ``generate``.
+    decoding (see [`speculative_generate`]); every other call behaves exactly as the base class's ``generate``. In
+    bf16 / fp16 every call first makes sure the model runs shape-invariant attention (``speculative.precision``), so
+    that greedy and r=0 speculative calls give the same tokens.
     """
 
     def generate(self, *args, assistant_model=None, draft_ids=None, **kwargs):
+        keep_greedy_exact(self)
         ours = isinstance(assistant_model, (DraftHead, Drafter))
         if ours or draft_ids is not None:
             check_transformers_support()
@@ -83,8 +87,16 @@ def speculative_class(model_class: type[PreTrainedModel]) -> type[PreTrainedMode
     return _SPECULATIVE_CLASSES[model_class]
 
 
-def enable_speculation(model: PreTrainedModel) -> PreTrainedModel:
+def enable_speculation(model: PreTrainedModel, exact_reduced_precision: bool = True) -> PreTrainedModel:
     """Makes ``model.generate`` accept ``assistant_model=<DraftHead | Drafter>`` and ``draft_ids=`` (in place).
+
+    Args:
+        exact_reduced_precision: when the model runs in bf16 / fp16, switch its attention to transformers' ``eager``
+            implementation at its next ``generate`` (greedy and speculative calls alike, logged), whose result per
+            token depends far less on how many tokens a forward holds than sdpa's: r=0 speculative decoding then
+            departs from greedy decoding only at rare rounding flips instead of at near-ties (measured on the CPU;
+            see ``speculative.precision``). False keeps the model's attention (e.g. sdpa). No effect in fp32, where
+            r=0 is exact with any attention.
 
     Example:
         ```python
@@ -95,12 +107,17 @@ def enable_speculation(model: PreTrainedModel) -> PreTrainedModel:
     """
     if not isinstance(model, PreTrainedModel):
         raise TypeError(f"enable_speculation expects a transformers PreTrainedModel, got {type(model).__name__}")
+    if not isinstance(exact_reduced_precision, bool):
+        raise TypeError(f"exact_reduced_precision must be True or False, got {exact_reduced_precision!r}")
     model.__class__ = speculative_class(type(model))
+    setattr(model, EXACT_ATTRIBUTE, exact_reduced_precision)
     return model
 
 
 def disable_speculation(model: PreTrainedModel) -> PreTrainedModel:
-    """Undoes [`enable_speculation`] (in place; returns the model)."""
+    """Undoes [`enable_speculation`] (in place; returns the model). An attention switched for reduced precision
+    stays switched (``model.set_attn_implementation`` sets it back)."""
     if isinstance(model, SpeculativeGenerationMixin):
         model.__class__ = type(model).__mro__[2]
+        model.__dict__.pop(EXACT_ATTRIBUTE, None)
     return model

@@ -1,0 +1,65 @@
+"""Reduced precision: keeping r=0 speculative decoding with greedy decoding in bf16 / fp16.
+
+A verification feeds the root and its drafts in one forward, greedy decoding one token per forward. In fp32 each
+token's argmax comes out the same either way. In bf16 / fp16 it does only where every kernel computes a token's row
+the same whatever the number of tokens in the forward. Measured on the CPU (docs/benchmarks.md, "r=0 in bf16 on the
+CPU"): the linear layers of policy v2 do, and PyTorch's fused ``scaled_dot_product_attention`` does not (a prompt's
+keys differ in the last layers when drafts are appended to it, a chain's from one-token steps), so r=0 departed from
+greedy at near-ties in 3.5-10.5% of policy v2's actions; with transformers' ``eager`` attention (matmul, fp32
+softmax, matmul) none of 1000 did. Not bit for bit in general: a matmul's accumulation order can still depend on the
+forward's token count, and where it flips a rounding at a near-tie the tokens part (a random 4-layer Llama: 6 of 1056
+generations, against 137 with sdpa).
+
+So a reduced-precision target whose generate is speculation-enabled runs ``eager`` attention, for greedy and
+speculative calls alike (both go through the mixin's ``generate``): logged once, turned off with
+``enable_speculation(model, exact_reduced_precision=False)``. Not covered: compiled forwards (inductor's fused kernels
+are compiled per width: ``:compile`` departs from eager greedy as transformers' own compiled greedy does), and GPU
+matmuls (cuBLAS may choose kernels by the number of rows; unmeasured here).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+from transformers import PreTrainedModel
+
+logger = logging.getLogger(__name__)
+
+#: dtypes whose rounding makes a forward's shape matter
+REDUCED_PRECISION = (torch.bfloat16, torch.float16)
+#: the attention implementation whose per-token result depends least on the forward's token count (measured)
+SHAPE_INVARIANT_ATTENTION = "eager"
+#: the model attribute ``enable_speculation`` records its ``exact_reduced_precision`` choice in
+EXACT_ATTRIBUTE = "_speculation_exact_reduced_precision"
+
+
+def attention_implementation(model: PreTrainedModel) -> str | None:
+    """The model's attention implementation (``config._attn_implementation``), or None when it records none."""
+    return getattr(model.config, "_attn_implementation", None)
+
+
+def keep_greedy_exact(model: PreTrainedModel) -> None:
+    """Switches a reduced-precision ``model`` to shape-invariant attention, unless its owner turned that off
+    (``enable_speculation(model, exact_reduced_precision=False)``) or it already runs it. Logs the switch once."""
+    if not getattr(model, EXACT_ATTRIBUTE, True) or model.dtype not in REDUCED_PRECISION:
+        return
+    current = attention_implementation(model)
+    if current == SHAPE_INVARIANT_ATTENTION:
+        return
+    try:
+        model.set_attn_implementation(SHAPE_INVARIANT_ATTENTION)
+    except (ValueError, NotImplementedError) as error:
+        setattr(model, EXACT_ATTRIBUTE, False)  # asked once: the model keeps its attention
+        logger.warning(
+            "%s runs in %s with %s attention, which rounds a multi-token forward differently from a one-token step, "
+            "and it could not switch to %s attention (%s): r=0 speculative decoding may depart from greedy decoding "
+            "at near-ties", type(model).__name__, model.dtype, current, SHAPE_INVARIANT_ATTENTION, error,
+        )  # fmt: skip
+        return
+    logger.warning(
+        "%s runs in %s: its attention is switched from %s to %s, for greedy and speculative generate alike, so that "
+        "r=0 speculative decoding keeps greedy decoding's tokens at near-ties (%s attention rounds a multi-token "
+        "forward differently from a one-token step). enable_speculation(model, exact_reduced_precision=False) keeps "
+        "%s attention", type(model).__name__, model.dtype, current, SHAPE_INVARIANT_ATTENTION, current, current,
+    )  # fmt: skip
