@@ -116,3 +116,23 @@ def test_bf16_departures_script_runs_with_and_without_the_option(tmp_path):
         assert all(row["calls"] == 4 for row in figures["rows"])
         if option == "on":
             assert all(row["departed"] == 0 for row in figures["rows"]), figures["rows"]
+
+
+def test_batch_forward_cost_script_compares_every_width_with_a_greedy_step(tmp_path):
+    output = tmp_path / "forward_cost.json"
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "examples/benchmarks/batch_forward_cost.py"), "--tiny", "--output", str(output)],
+        capture_output=True, text=True, timeout=300, check=True,
+    )  # fmt: skip
+    assert "| B | new tokens per row | ms | / greedy step (1 token) |" in result.stdout
+    rows = json.loads(output.read_text())["rows"]
+    assert [(row["batch_size"], row["tokens_per_row"]) for row in rows] == [(1, 1), (1, 3), (4, 1), (4, 3)]
+    assert all(row["over_greedy_step"] == 1.0 for row in rows if row["tokens_per_row"] == 1)
+
+
+def test_batch_forward_cost_script_needs_the_greedy_step():
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "examples/benchmarks/batch_forward_cost.py"), "--tiny", "--tokens", "3", "5"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 2 and "--tokens must include 1" in result.stderr
