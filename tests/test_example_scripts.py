@@ -136,3 +136,14 @@ def test_batch_forward_cost_script_needs_the_greedy_step():
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert result.returncode == 2 and "--tokens must include 1" in result.stderr
+
+
+def test_batch_throughput_script_refuses_an_unknown_method_before_loading_anything(tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "examples/benchmarks/batch_throughput.py"), "--toy", str(tmp_path / "toy"),
+         "--max-drafts-per-row", "2", "--methods", "prior:cap=3"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 2 and "--methods: unknown ['prior:cap=3']" in result.stderr
+    assert "prior:cap=2" in result.stderr  # the choices name the capped methods asked for
+    assert not (tmp_path / "toy").exists()

@@ -8,6 +8,8 @@ Methods run in a freshly shuffled order at every step, so machine-load drift hit
 
     python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla --draft-head policies/mt10_vla_draft
     python examples/benchmarks/batch_throughput.py --toy runs/batch/toy_pipeline --steps 8
+    python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft \
+        --steps 8 --methods prior head prior:cap=1 prior:cap=2 head:cap=1 head:cap=2 --max-drafts-per-row 1 2
 """
 
 from __future__ import annotations
@@ -32,9 +34,14 @@ from hf_specvla.speculative.loop import as_drafter
 BOUNDS = ("oracle", "one-token")
 
 
-def methods(draft_head, bin_tolerance: int) -> dict[str, dict]:
-    """name -> generate kwargs ("oracle" gets its draft_ids at each step)."""
-    return {
+def methods(draft_head, bin_tolerance: int, caps: list[int] = (), only: list[str] | None = None) -> dict[str, dict]:
+    """name -> generate kwargs ("oracle" gets its draft_ids at each step); ``caps``: also prior and head with at most
+    that many drafts per row and forward (``max_drafts_per_row``); ``only``: these methods (and greedy)."""
+    capped = {}
+    for cap in caps:
+        capped[f"prior:cap={cap}"] = {"action_prior": True, "max_drafts_per_row": cap}
+        capped[f"head:cap={cap}"] = {"assistant_model": draft_head, "max_drafts_per_row": cap}
+    every = {
         "greedy": {},
         "oracle": {},
         "one-token": {"max_new_tokens": 1, "min_new_tokens": 1},
@@ -42,7 +49,9 @@ def methods(draft_head, bin_tolerance: int) -> dict[str, dict]:
         f"prior:r={bin_tolerance}": {"action_prior": True, "bin_tolerance": bin_tolerance},
         "head": {"assistant_model": draft_head},
         f"head:r={bin_tolerance}": {"assistant_model": draft_head, "bin_tolerance": bin_tolerance},
+        **capped,
     }
+    return every if only is None else {name: every[name] for name in every if name == "greedy" or name in only}
 
 
 def policy_target(args):
@@ -103,8 +112,17 @@ def main():
     parser.add_argument("--steps", type=int, default=24, help="steps replayed per episode")
     parser.add_argument("--bin-tolerance", type=int, default=4, help="the relaxed r")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--max-drafts-per-row", type=int, nargs="*", default=[],
+                        help="also prior and head with at most this many drafts per row (e.g. 1 2)")  # fmt: skip
+    parser.add_argument("--methods", nargs="+", default=None, help="only these methods (and greedy)")
     parser.add_argument("--json", help="write the results here")
     args = parser.parse_args()
+    if any(cap < 0 for cap in args.max_drafts_per_row):
+        parser.error(f"--max-drafts-per-row takes ints >= 0, got {args.max_drafts_per_row}")
+    known = methods(None, args.bin_tolerance, args.max_drafts_per_row)
+    unknown = sorted(set(args.methods or []) - set(known))
+    if unknown:
+        parser.error(f"--methods: unknown {unknown}; choose from {sorted(known)}")
     if (args.policy is None) == (args.toy is None) or (args.policy and not args.draft_head):
         parser.error("give --policy with --draft-head, or --toy")
     torch.set_num_threads(args.threads)
@@ -115,14 +133,15 @@ def main():
         chosen = [e for e in range(len(episodes)) if len(episodes[e]) >= args.steps][:batch_size]
         if len(chosen) < batch_size:
             raise SystemExit(f"only {len(chosen)} episodes have {args.steps} steps; lower --steps or the batch size")
-        settings = methods(draft_head, args.bin_tolerance)
+        settings = methods(draft_head, args.bin_tolerance, args.max_drafts_per_row, args.methods)
         memories = {name: [[] for _ in chosen] for name in settings}
         seconds = {name: [] for name in settings}
         row_forwards = {name: 0 for name in settings}
         batch_forwards = {name: 0 for name in settings}
         for step in range(args.steps):
-            greedy_ids = act([(e, step) for e in chosen], [[] for _ in chosen], {}).sequences[:, -action_dim:]
-            settings["oracle"] = {"draft_ids": greedy_ids}  # (an untimed greedy call: the oracle's drafts)
+            if "oracle" in settings:  # an untimed greedy call: the oracle's drafts
+                greedy_ids = act([(e, step) for e in chosen], [[] for _ in chosen], {}).sequences[:, -action_dim:]
+                settings["oracle"] = {"draft_ids": greedy_ids}
             order = list(settings)
             random.shuffle(order)
             for name in order:

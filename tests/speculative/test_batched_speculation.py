@@ -2,6 +2,8 @@
 batch and decoding the row alone, whatever each row accepts; rows stop on their own; r > 0 stays within r bins
 per row; statistics per row add up; bad batches are refused clearly."""
 
+import re
+
 import pytest
 import torch
 
@@ -259,3 +261,34 @@ def test_a_right_padded_batch_is_refused_before_any_forward(tiny_llama, random_d
     # the same batch left-padded speculates as usual
     out = tiny_llama.generate(**left, max_new_tokens=4, do_sample=False, pad_token_id=PAD, **kwargs)
     assert out.shape == (3, left["input_ids"].shape[1] + 4)
+
+
+# ------------------------------------------------------------------------------- max_drafts_per_row
+@pytest.mark.parametrize("cap", [0, 1, 2])
+def test_max_drafts_per_row_cuts_every_tree_and_stays_lossless(tiny_llama, random_draft, cap):
+    """Batches verify fewer drafts per row than one row can afford (a compute-bound forward's cost grows with its
+    tokens): every verified tree holds at most ``cap`` drafts, and r=0 is still batched greedy decoding."""
+    prompts = [torch.randint(3, 320, (1, n), generator=torch.Generator().manual_seed(n)) for n in (5, 9, 7)]
+    width = max(p.shape[1] for p in prompts)
+    input_ids = torch.cat([torch.cat([torch.zeros(1, width - p.shape[1], dtype=torch.long), p], 1) for p in prompts])
+    mask = torch.cat([torch.cat([torch.zeros(1, width - p.shape[1]), torch.ones(1, p.shape[1])], 1) for p in prompts])
+    batch = {"input_ids": input_ids, "attention_mask": mask.long()}
+    expected = tiny_llama.generate(**batch, max_new_tokens=10, do_sample=False)
+    right = expected[:, width:]
+    tree = DraftHeadDrafter(random_draft, tree=DraftTreeConfig(top_k=2, total_tokens=8))
+    for kwargs in ({"draft_ids": right}, {"assistant_model": tree}):
+        out = tiny_llama.generate(**batch, max_new_tokens=10, do_sample=False, max_drafts_per_row=cap,
+                                  return_dict_in_generate=True, **kwargs)  # fmt: skip
+        assert torch.equal(out.sequences, expected)
+        assert max(out.speculation.tree_sizes) <= cap
+    # right drafts, cut to `cap`: each forward emits cap + 1 tokens per row (until the last ones)
+    out = tiny_llama.generate(**batch, max_new_tokens=10, do_sample=False, max_drafts_per_row=cap, draft_ids=right,
+                              return_dict_in_generate=True)  # fmt: skip
+    assert out.speculation.num_batch_forwards == -(-10 // (cap + 1))
+
+
+@pytest.mark.parametrize("cap", [-1, 1.5, True, "2"])
+def test_bad_max_drafts_per_row(tiny_llama, random_draft, cap):
+    with pytest.raises(ValueError, match=f"max_drafts_per_row must be an int >= 0 .* got {re.escape(repr(cap))}"):
+        tiny_llama.generate(input_ids=torch.tensor([[5, 6, 7]]), max_new_tokens=3, assistant_model=random_draft,
+                            max_drafts_per_row=cap)  # fmt: skip

@@ -34,6 +34,10 @@ class SpeculationConfig:
             (the target is unsure); None = no gate.
         max_relaxed_per_action: at most this many relaxed tokens per action (past it acceptance is exact); None = no
             budget.
+        max_drafts_per_row: each row's draft tree is cut to its first this many tokens per verification (the prefill
+            included); None = as the drafter proposes. A verification's cost grows with its tokens once the forward is
+            compute-bound (a batch on a CPU: docs/benchmarks.md, "The arithmetic floor"), so batches verify fewer
+            drafts per row than one row can afford.
     """
 
     bin_tolerance: int | Sequence[int] | Sequence[Sequence[int]] = 0
@@ -42,6 +46,7 @@ class SpeculationConfig:
     profile_speculation: bool = False
     confidence_gate: float | None = None
     max_relaxed_per_action: int | None = None
+    max_drafts_per_row: int | None = None
 
     def __post_init__(self):
         k = self.num_draft_tokens
@@ -49,5 +54,11 @@ class SpeculationConfig:
             raise ValueError(f"num_draft_tokens must be an int >= 1 (tokens drafted per verification), got {k!r}")
         check_confidence_gate(self.confidence_gate)
         check_relaxed_budget(self.max_relaxed_per_action)
+        cap = self.max_drafts_per_row
+        if cap is not None and (isinstance(cap, bool) or not isinstance(cap, int) or cap < 0):
+            raise ValueError(
+                f"max_drafts_per_row must be an int >= 0 (drafted tokens verified per row and forward; 0 = none) or "
+                f"None (as the drafter proposes), got {cap!r}"
+            )
         if self.action_layout is not None and not isinstance(self.action_layout, ActionLayout):
             raise TypeError(f"action_layout must be a hf_specvla.ActionLayout, got {type(self.action_layout).__name__}")

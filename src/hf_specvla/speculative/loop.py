@@ -453,6 +453,7 @@ class RoundPlan:
     compiled_prefill: Callable | None  # the compiled call for the prefill (its graph compiled by an earlier call)
     buckets: tuple[int, ...]  # the widths a compiled verification is padded to (up to the drafter's largest tree)
     prefix_attention: bool  # a prefix-LM prompt: the prefill verifies one chain
+    max_drafts: int | None  # each row's tree is cut to its first this many nodes (``max_drafts_per_row``), or None
     keep_scores: bool
     keep_logits: bool
 
@@ -476,10 +477,13 @@ def propose(state: DecodeState, plan: RoundPlan, at_prefill: bool) -> list[Draft
 def fit_trees(
     trees: list[DraftTree], state: DecodeState, plan: RoundPlan, at_prefill: bool, stats: SpeculationStats
 ) -> TreeBatch:
-    """The rows' trees as one [`TreeBatch`]: a prefix-LM prefill keeps one chain; on a static cache the pending tokens
+    """The rows' trees as one [`TreeBatch`]: a prefix-LM prefill keeps one chain, ``max_drafts_per_row`` cuts every
+    tree to its first nodes; on a static cache the pending tokens
     and the tree fit in the free slots, and a compiled round is padded (or cut) to its width bucket."""
     if at_prefill and plan.prefix_attention:
         trees = [tree.first_path() for tree in trees]
+    if plan.max_drafts is not None:
+        trees = [tree.truncate_nodes(plan.max_drafts) for tree in trees]
     width = 0  # the node count a compiled verification is padded to
     if plan.capacity is not None:  # batch 1
         free = plan.capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
@@ -613,6 +617,13 @@ def _compiled_prefill_key(model, generation_config, capacity: int, output_hidden
     return None if prompt_length < 2 or prefill_stays_eager(model, key) else key
 
 
+def _widest_tree(drafter: Drafter, max_depth: int, settings: SpeculationConfig) -> int | None:
+    """The most nodes a round's tree can hold: the drafter's largest tree ``max_depth`` deep (None: unknown), cut to
+    ``max_drafts_per_row``."""
+    widest, cap = drafter.max_tree_nodes(max(0, max_depth)), settings.max_drafts_per_row
+    return widest if cap is None else cap if widest is None else min(widest, cap)
+
+
 # ----------------------------------------------------------------------------- the loop
 @torch.no_grad()
 def check_left_padded(attention_mask: torch.Tensor | None) -> None:
@@ -652,6 +663,7 @@ def speculative_generate(
     profile_speculation: bool = SpeculationConfig.profile_speculation,
     confidence_gate: float | None = SpeculationConfig.confidence_gate,
     max_relaxed_per_action: int | None = SpeculationConfig.max_relaxed_per_action,
+    max_drafts_per_row: int | None = SpeculationConfig.max_drafts_per_row,
     **model_kwargs,
 ) -> SpeculativeDecoderOnlyOutput | torch.LongTensor:
     """Greedy speculative decoding of a batch; a ``custom_generate`` callable for ``model.generate``.
@@ -677,8 +689,9 @@ def speculative_generate(
     """
     check_transformers_support()
     settings = SpeculationConfig(
-        bin_tolerance, num_draft_tokens, action_layout, profile_speculation, confidence_gate, max_relaxed_per_action
-    )
+        bin_tolerance, num_draft_tokens, action_layout, profile_speculation, confidence_gate, max_relaxed_per_action,
+        max_drafts_per_row,
+    )  # fmt: skip
     batch_size = input_ids.shape[0]
     drafter, candidates = _call_drafter(model, batch_size, drafter, draft_head, draft_ids, settings)
     _validate_call(model, generation_config, logits_processor, batch_size, drafter)
@@ -750,8 +763,9 @@ def speculative_generate(
         compiled=compiled,
         compiled_prefill=compiled if prefill_key is not None and prefill_is_compiled(model, prefill_key) else None,
         # the deepest a round after the prefill can draft: max_new_tokens - 1 (the bonus token takes the last slot)
-        buckets=buckets_up_to(drafter.max_tree_nodes(max(0, generation_config.max_length - input_ids.shape[1] - 1))),
+        buckets=buckets_up_to(_widest_tree(drafter, generation_config.max_length - input_ids.shape[1] - 1, settings)),
         prefix_attention=prefix_attention,
+        max_drafts=settings.max_drafts_per_row,
         keep_scores=keep_scores,
         keep_logits=keep_logits,
     )
