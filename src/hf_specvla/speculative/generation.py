@@ -33,8 +33,8 @@ class SpeculativeGenerationMixin:
 
     ``generate(..., assistant_model=draft_head_or_drafter, draft_ids=..., bin_tolerance=r)`` runs speculative
     decoding (see [`speculative_generate`]); every other call behaves exactly as the base class's ``generate``. In
-    bf16 / fp16 every call first makes sure the model runs shape-invariant attention (``speculative.precision``), so
-    that greedy and r=0 speculative calls give the same tokens.
+    bf16 / fp16 every call first makes sure the model runs eager attention (``speculative.precision``), which keeps
+    r=0 speculative calls with greedy ones at near-ties.
     """
 
     def generate(self, *args, assistant_model=None, draft_ids=None, **kwargs):

@@ -478,8 +478,8 @@ def fit_trees(
     trees: list[DraftTree], state: DecodeState, plan: RoundPlan, at_prefill: bool, stats: SpeculationStats
 ) -> TreeBatch:
     """The rows' trees as one [`TreeBatch`]: a prefix-LM prefill keeps one chain, ``max_drafts_per_row`` cuts every
-    tree to its first nodes; on a static cache the pending tokens
-    and the tree fit in the free slots, and a compiled round is padded (or cut) to its width bucket."""
+    tree to its first nodes; on a static cache the pending tokens and the tree fit in the free slots, and a compiled
+    round is padded (or cut) to its width bucket."""
     if at_prefill and plan.prefix_attention:
         trees = [tree.first_path() for tree in trees]
     if plan.max_drafts is not None:

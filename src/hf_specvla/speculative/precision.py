@@ -29,7 +29,7 @@ logger = logging.getLogger(__name__)
 #: dtypes whose rounding makes a forward's shape matter
 REDUCED_PRECISION = (torch.bfloat16, torch.float16)
 #: the attention implementation whose per-token result depends least on the forward's token count (measured)
-SHAPE_INVARIANT_ATTENTION = "eager"
+STABLE_ATTENTION = "eager"
 #: the model attribute ``enable_speculation`` records its ``exact_reduced_precision`` choice in
 EXACT_ATTRIBUTE = "_speculation_exact_reduced_precision"
 
@@ -40,26 +40,26 @@ def attention_implementation(model: PreTrainedModel) -> str | None:
 
 
 def keep_greedy_exact(model: PreTrainedModel) -> None:
-    """Switches a reduced-precision ``model`` to shape-invariant attention, unless its owner turned that off
+    """Switches a reduced-precision ``model`` to eager attention, unless its owner turned that off
     (``enable_speculation(model, exact_reduced_precision=False)``) or it already runs it. Logs the switch once."""
     if not getattr(model, EXACT_ATTRIBUTE, True) or model.dtype not in REDUCED_PRECISION:
         return
     current = attention_implementation(model)
-    if current == SHAPE_INVARIANT_ATTENTION:
+    if current == STABLE_ATTENTION:
         return
     try:
-        model.set_attn_implementation(SHAPE_INVARIANT_ATTENTION)
+        model.set_attn_implementation(STABLE_ATTENTION)
     except (ValueError, NotImplementedError) as error:
         setattr(model, EXACT_ATTRIBUTE, False)  # asked once: the model keeps its attention
         logger.warning(
             "%s runs in %s with %s attention, which rounds a multi-token forward differently from a one-token step, "
             "and it could not switch to %s attention (%s): r=0 speculative decoding may depart from greedy decoding "
-            "at near-ties", type(model).__name__, model.dtype, current, SHAPE_INVARIANT_ATTENTION, error,
+            "at near-ties", type(model).__name__, model.dtype, current, STABLE_ATTENTION, error,
         )  # fmt: skip
         return
     logger.warning(
         "%s runs in %s: its attention is switched from %s to %s, for greedy and speculative generate alike, so that "
         "r=0 speculative decoding keeps greedy decoding's tokens at near-ties (%s attention rounds a multi-token "
         "forward differently from a one-token step). enable_speculation(model, exact_reduced_precision=False) keeps "
-        "%s attention", type(model).__name__, model.dtype, current, SHAPE_INVARIANT_ATTENTION, current, current,
+        "%s attention", type(model).__name__, model.dtype, current, STABLE_ATTENTION, current, current,
     )  # fmt: skip
