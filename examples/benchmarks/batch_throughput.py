@@ -23,7 +23,7 @@ import time
 import numpy as np
 import torch
 
-from hf_specvla import ActionLayout, DraftHead
+from hf_specvla import ActionLayout, DraftHead, JacobiDrafter
 from hf_specvla.speculative.drafters import with_action_priors
 from hf_specvla.speculative.generation import SPECULATION_KWARGS
 from hf_specvla.speculative.loop import as_drafter
@@ -35,11 +35,13 @@ BOUNDS = ("oracle", "one-token")
 
 
 def methods(draft_head, bin_tolerance: int, caps: list[int] = (), only: list[str] | None = None) -> dict[str, dict]:
-    """name -> generate kwargs ("oracle" gets its draft_ids at each step); ``caps``: also prior and head with at most
-    that many drafts per row and forward (``max_drafts_per_row``); ``only``: these methods (and greedy)."""
+    """name -> generate kwargs ("oracle" gets its draft_ids at each step); ``caps``: also prior, prior+jacobi and head
+    with at most that many drafts per row and forward (``max_drafts_per_row``); ``only``: these methods (and greedy)."""
     capped = {}
     for cap in caps:
         capped[f"prior:cap={cap}"] = {"action_prior": True, "max_drafts_per_row": cap}
+        capped[f"prior+jacobi:cap={cap}"] = {"action_prior": True, "assistant_model": JacobiDrafter(),
+                                             "max_drafts_per_row": cap}  # fmt: skip
         capped[f"head:cap={cap}"] = {"assistant_model": draft_head, "max_drafts_per_row": cap}
     every = {
         "greedy": {},
@@ -47,6 +49,7 @@ def methods(draft_head, bin_tolerance: int, caps: list[int] = (), only: list[str
         "one-token": {"max_new_tokens": 1, "min_new_tokens": 1},
         "prior": {"action_prior": True},
         f"prior:r={bin_tolerance}": {"action_prior": True, "bin_tolerance": bin_tolerance},
+        "prior+jacobi": {"action_prior": True, "assistant_model": JacobiDrafter()},
         "head": {"assistant_model": draft_head},
         f"head:r={bin_tolerance}": {"assistant_model": draft_head, "bin_tolerance": bin_tolerance},
         **capped,
