@@ -11,12 +11,15 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def run_example(script: str, *args, timeout: int = 300, check: bool = True) -> subprocess.CompletedProcess:
+    """Runs ``examples/<script>`` with ``args`` in a fresh interpreter; its stdout / stderr captured as text."""
+    command = [sys.executable, str(ROOT / "examples" / script), *map(str, args)]
+    return subprocess.run(command, capture_output=True, text=True, timeout=timeout, check=check)
+
+
 def test_policy_cost_script_runs_and_reports_every_ratio(tmp_path):
     output = tmp_path / "cost.json"
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "examples/benchmarks/policy_cost.py"), "--tiny", "--output", str(output)],
-        capture_output=True, text=True, timeout=300, check=True,
-    )  # fmt: skip
+    result = run_example("benchmarks/policy_cost.py", "--tiny", "--output", str(output))
     assert "| decoder | decode step | head step | head / decode |" in result.stdout
     rows = json.loads(output.read_text())["rows"]
     assert [row["decoder"] for row in rows] == ["1x12", "2x12"]
@@ -26,20 +29,14 @@ def test_policy_cost_script_runs_and_reports_every_ratio(tmp_path):
 
 
 def test_policy_cost_script_refuses_a_bad_decoder_shape():
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "examples/benchmarks/policy_cost.py"), "--decoders", "12by192"],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+    result = run_example("benchmarks/policy_cost.py", "--decoders", "12by192", timeout=120, check=False)
     assert result.returncode == 2 and "a decoder is LAYERSxWIDTH, e.g. 12x192, got '12by192'" in result.stderr
 
 
 def test_toy_head_per_backbone_script_trains_a_head_on_a_non_llama_family(tmp_path):
     output = tmp_path / "heads"
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "examples/backbones/toy_head_per_backbone.py"), "--tiny", "--families", "gemma2",
-         "--output-dir", str(output), "--threads", "1"],
-        capture_output=True, text=True, timeout=600, check=True,
-    )  # fmt: skip
+    result = run_example("backbones/toy_head_per_backbone.py", "--tiny", "--families", "gemma2", "--output-dir",
+                         output, "--threads", 1, timeout=600)  # fmt: skip
     assert "| family | target accuracy |" in result.stdout
     (row,) = json.loads((output / "results.json").read_text())["rows"]
     assert row["family"] == "gemma2" and row["equal_to_greedy"] is True  # r=0 decodes as greedy on Gemma-2
@@ -47,22 +44,17 @@ def test_toy_head_per_backbone_script_trains_a_head_on_a_non_llama_family(tmp_pa
 
 
 def test_toy_head_per_backbone_script_refuses_an_unknown_family(tmp_path):
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "examples/backbones/toy_head_per_backbone.py"), "--families", "lama",
-         "--output-dir", str(tmp_path / "x")],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+    result = run_example("backbones/toy_head_per_backbone.py", "--families", "lama", "--output-dir", tmp_path / "x",
+                         timeout=120, check=False)  # fmt: skip
     assert result.returncode == 2 and "unknown model_type(s) ['lama']" in result.stderr
     assert not (tmp_path / "x").exists()  # refused before any folder was written
 
 
 def test_compile_strategies_script_times_every_strategy_at_every_width(tmp_path):
     output = tmp_path / "strategies.json"
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "examples/benchmarks/compile_strategies.py"), "--tiny", "--backend", "eager",
-         "--repeats", "2", "--output", str(output)],
-        capture_output=True, text=True, timeout=300, check=True,
-    )  # fmt: skip
+    result = run_example(
+        "benchmarks/compile_strategies.py", "--tiny", "--backend", "eager", "--repeats", "2", "--output", str(output)
+    )
     assert "| width (pending + nodes) | eager | regional | whole model |" in result.stdout
     figures = json.loads(output.read_text())
     assert figures["layers"] == 2 and len(figures["rows"]) == 4
@@ -73,10 +65,7 @@ def test_compile_strategies_script_times_every_strategy_at_every_width(tmp_path)
 def test_attention_cost_script_times_both_attentions_in_both_dtypes(tmp_path):
     pytest.importorskip("metaworld")
     output = tmp_path / "attention.json"
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "examples/benchmarks/attention_cost.py"), "--tiny", "--output", str(output)],
-        capture_output=True, text=True, timeout=600, check=True,
-    )  # fmt: skip
+    result = run_example("benchmarks/attention_cost.py", "--tiny", "--output", str(output), timeout=600)
     assert "| dtype | method | sdpa | eager | eager / sdpa |" in result.stdout
     rows = json.loads(output.read_text())["rows"]
     assert [(row["dtype"], row["method"]) for row in rows] == [
@@ -103,12 +92,9 @@ def test_bf16_departures_script_runs_with_and_without_the_option(tmp_path):
     VLAPolicy.build(["reach the goal"], actions, states, config, seed=3).save_pretrained(tmp_path / "policy")
     for option, attention in (("on", "eager"), ("off", "sdpa")):
         output = tmp_path / f"departures-{option}.json"
-        result = subprocess.run(
-            [sys.executable, str(ROOT / "examples/benchmarks/bf16_departures.py"), "--policy",
-             str(tmp_path / "policy"), "--tasks", "reach-v3", "--steps", "4", "--methods", "prior", "jacobi",
-             "prior+jacobi", "--exact-reduced-precision", option, "--output", str(output)],
-            capture_output=True, text=True, timeout=600, check=True,
-        )  # fmt: skip
+        result = run_example("benchmarks/bf16_departures.py", "--policy", tmp_path / "policy", "--tasks", "reach-v3",
+                             "--steps", 4, "--methods", "prior", "jacobi", "prior+jacobi", "--exact-reduced-precision",
+                             option, "--output", output, timeout=600)  # fmt: skip
         assert f"bfloat16, {attention} attention, 4 calls" in result.stdout
         figures = json.loads(output.read_text())
         assert figures["attn_implementation"] == attention
@@ -120,10 +106,7 @@ def test_bf16_departures_script_runs_with_and_without_the_option(tmp_path):
 
 def test_batch_forward_cost_script_compares_every_width_with_a_greedy_step(tmp_path):
     output = tmp_path / "forward_cost.json"
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "examples/benchmarks/batch_forward_cost.py"), "--tiny", "--output", str(output)],
-        capture_output=True, text=True, timeout=300, check=True,
-    )  # fmt: skip
+    result = run_example("benchmarks/batch_forward_cost.py", "--tiny", "--output", str(output))
     assert "| B | new tokens per row | ms | / greedy step (1 token) |" in result.stdout
     rows = json.loads(output.read_text())["rows"]
     assert [(row["batch_size"], row["tokens_per_row"]) for row in rows] == [(1, 1), (1, 3), (4, 1), (4, 3)]
@@ -131,19 +114,13 @@ def test_batch_forward_cost_script_compares_every_width_with_a_greedy_step(tmp_p
 
 
 def test_batch_forward_cost_script_needs_the_greedy_step():
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "examples/benchmarks/batch_forward_cost.py"), "--tiny", "--tokens", "3", "5"],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+    result = run_example("benchmarks/batch_forward_cost.py", "--tiny", "--tokens", "3", "5", timeout=120, check=False)
     assert result.returncode == 2 and "--tokens must include 1" in result.stderr
 
 
 def test_batch_throughput_script_refuses_an_unknown_method_before_loading_anything(tmp_path):
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "examples/benchmarks/batch_throughput.py"), "--toy", str(tmp_path / "toy"),
-         "--max-drafts-per-row", "2", "--methods", "prior:cap=3"],
-        capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+    result = run_example("benchmarks/batch_throughput.py", "--toy", tmp_path / "toy", "--max-drafts-per-row", 2,
+                         "--methods", "prior:cap=3", timeout=120, check=False)  # fmt: skip
     assert result.returncode == 2 and "--methods: unknown ['prior:cap=3']" in result.stderr
     assert "prior:cap=2" in result.stderr  # the choices name the capped methods asked for
     assert not (tmp_path / "toy").exists()

@@ -17,6 +17,7 @@ import statistics
 import time
 
 import torch
+from compile_strategies import load_model  # the same --policy / --tiny model (this script's folder is on sys.path)
 from transformers import DynamicCache
 
 from hf_specvla.run_folder import write_json_atomic
@@ -44,19 +45,6 @@ def parse_args(argv=None):
     if args.tiny:
         args.batch_sizes, args.tokens, args.repeats = [1, 4], [1, 3], 2
     return args
-
-
-def load_model(args):
-    if args.tiny:
-        from transformers import LlamaConfig, LlamaForCausalLM
-
-        torch.manual_seed(0)
-        config = LlamaConfig(vocab_size=320, hidden_size=64, intermediate_size=128, num_hidden_layers=2,
-                             num_attention_heads=4, num_key_value_heads=2, max_position_embeddings=256)  # fmt: skip
-        return LlamaForCausalLM(config).eval()
-    from hf_specvla.policies import VLAPolicy
-
-    return VLAPolicy.from_pretrained(args.policy).model.eval()
 
 
 @torch.no_grad()

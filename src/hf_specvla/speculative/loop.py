@@ -621,7 +621,8 @@ def _widest_tree(drafter: Drafter, max_depth: int, settings: SpeculationConfig) 
     """The most nodes a round's tree can hold: the drafter's largest tree ``max_depth`` deep (None: unknown), cut to
     ``max_drafts_per_row``."""
     widest, cap = drafter.max_tree_nodes(max(0, max_depth)), settings.max_drafts_per_row
-    return widest if cap is None else cap if widest is None else min(widest, cap)
+    known = [n for n in (widest, cap) if n is not None]
+    return min(known) if known else None
 
 
 # ----------------------------------------------------------------------------- the loop
