@@ -4,6 +4,7 @@ folders written before the move keep working."""
 from __future__ import annotations
 
 import importlib
+import json
 import shutil
 import sys
 import warnings
@@ -51,17 +52,29 @@ def test_the_shipped_policies_and_heads_load(policy, draft_head):
 
 def test_a_compare_folder_written_before_the_move_resumes(tmp_path, monkeypatch, capsys):
     """Written by the pre-move code (`compare --policy policies/mt10_vla --tasks reach --episodes 1 --methods greedy
-    prior:r=4 --max-episode-steps 12`): the same command finds every episode done and runs none."""
+    prior:r=4 --max-episode-steps 12`): the same command finds every episode done and runs none. Its episodes were
+    rendered before the reset frame showed the goal marker (render revision 1), so as it is the same command refuses
+    to add frames of revision 2 to it; stamped with today's revision, the paths are what is tested."""
     pytest.importorskip("metaworld")
     from hf_specvla.cli import main
     from hf_specvla.metaworld.comparison import runner
 
+    command = ["compare", "--policy", str(ROOT / "policies" / "mt10_vla"), "--tasks", "reach", "--episodes", "1",
+               "--methods", "greedy", "prior:r=4", "--max-episode-steps", "12", "--threads", "1",
+               "--output-dir"]  # fmt: skip
+    monkeypatch.setattr(runner, "run_method_episode", lambda *a, **k: pytest.fail("a finished episode ran again"))
+    as_written = tmp_path / "as_written"
+    shutil.copytree(ROOT / "tests" / "fixtures" / "compare_before_move", as_written)
+    with pytest.raises(SystemExit):
+        main([*command, str(as_written)])
+    assert "env.render_revision: 2 here vs 1 there" in capsys.readouterr().err
+
     folder = tmp_path / "compare"
     shutil.copytree(ROOT / "tests" / "fixtures" / "compare_before_move", folder)
-    monkeypatch.setattr(runner, "run_method_episode", lambda *a, **k: pytest.fail("a finished episode ran again"))
-    main(["compare", "--policy", str(ROOT / "policies" / "mt10_vla"), "--tasks", "reach", "--episodes", "1",
-          "--methods", "greedy", "prior:r=4", "--max-episode-steps", "12", "--threads", "1",
-          "--output-dir", str(folder)])  # fmt: skip
+    record = json.loads((folder / "run.json").read_text())
+    record["settings"]["env"]["render_revision"] = 2
+    (folder / "run.json").write_text(json.dumps(record))
+    main([*command, str(folder)])
     assert "| prior:r=4 | 1 |" in capsys.readouterr().out
     assert (folder / "summary.json").exists()
 

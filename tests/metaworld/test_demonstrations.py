@@ -102,6 +102,24 @@ def test_mixing_settings_is_refused(dataset):
         collect_demonstrations(dataset, "reach", 3, EnvConfig(image_size=32, hand_start_noise=0.1), progress=False)
 
 
+def test_a_dataset_of_an_older_rendering_is_not_extended(dataset, tmp_path):
+    """A dataset recorded before ``render_revision`` existed has revision-1 first frames (a stale goal marker): new
+    episodes of revision 2 go into another folder, the old dataset stays as it is and still loads."""
+    import shutil
+
+    old = tmp_path / "old"
+    shutil.copytree(dataset, old)
+    info = json.loads((old / "meta" / "info.json").read_text())
+    assert info["render_revision"] == 2
+    del info["render_revision"]
+    (old / "meta" / "info.json").write_text(json.dumps(info))
+    before = sorted(p.name for p in (old / "data" / "reach-v3").glob("*.parquet"))
+    with pytest.raises(ValueError, match="render_revision=1, but this collection uses 2"):
+        collect_demonstrations(old, "reach", 3, EnvConfig(image_size=32), progress=False)
+    assert sorted(p.name for p in (old / "data" / "reach-v3").glob("*.parquet")) == before
+    assert len(set(load_demonstrations(old, progress=False).episode_index)) == len(before)
+
+
 def test_missing_dataset(tmp_path):
     with pytest.raises(FileNotFoundError, match="hf-specvla collect"):
         load_demonstrations(tmp_path)

@@ -8,6 +8,7 @@ pytest.importorskip("metaworld")
 from hf_specvla.metaworld.env import (  # noqa: E402
     FREE_CAMERAS,
     MT10_TASKS,
+    RENDER_REVISION,
     TASK_INSTRUCTIONS,
     EnvConfig,
     MetaWorldEnv,
@@ -71,6 +72,29 @@ def test_overview_camera_is_real_upright_and_shows_the_goal():
     assert image[:6].mean() > image[-6:].mean() + 20
     # the green goal marker is a blob of several pixels, not a speck
     assert int(((image[..., 1] > 150) & (image[..., 0] < 100)).sum()) >= 5
+
+
+def _marker_centre(image: np.ndarray, channel: int) -> np.ndarray:
+    """Mean pixel (row, column) of a saturated red / green / blue marker."""
+    others = [c for c in range(3) if c != channel]
+    mask = (image[..., channel] > 150) & (image[..., others[0]] < 100) & (image[..., others[1]] < 100)
+    assert mask.sum() >= 3, "no marker in the image"
+    return np.argwhere(mask).mean(0)
+
+
+@pytest.mark.parametrize(("task", "channel"), [("push", 1), ("pick-place", 2)])
+def test_reset_frame_shows_the_goal_marker_at_the_goal(task, channel):
+    """Meta-World's reset leaves the rendered goal marker at the XML's default until the first step: the first frame
+    of every episode showed a goal that was not the task's. It must be where the next frames show it."""
+    with MetaWorldEnv(task, EnvConfig(image_size=64, camera="overview")) as env:
+        centres = []
+        for seed in (100000, 100001):  # goals 18 cm apart in x
+            first = _marker_centre(env.reset(seed)["image"], channel)
+            after_a_step = _marker_centre(env.step(np.zeros(4))[0]["image"], channel)
+            np.testing.assert_allclose(first, after_a_step, atol=0.5)
+            centres.append(first)
+    assert np.abs(centres[0] - centres[1]).max() > 5  # pixels: the two goals are seen apart
+    assert EnvConfig().render_revision == RENDER_REVISION == 2
 
 
 def test_free_camera_settings_are_frozen():

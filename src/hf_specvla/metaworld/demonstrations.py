@@ -176,6 +176,7 @@ _INFO_DEFAULTS = {
     "policy": None,
     "expert_mix": None,
     "policy_weights": None,
+    "render_revision": 1,  # datasets collected before the reset frame showed the goal marker at the goal
 }
 
 
@@ -192,6 +193,7 @@ def _check_info(root: Path, env_config: EnvConfig, action_noise: float, driver: 
         "action_noise": action_noise,
         "hand_start_noise": env_config.hand_start_noise,
         "max_episode_steps": env_config.max_episode_steps,
+        "render_revision": env_config.render_revision,
         **driver,
         "columns": [
             "episode_index",

@@ -19,7 +19,7 @@ from __future__ import annotations
 import gc
 import os
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -100,6 +100,10 @@ ACTION_DIM = 4  # xyz delta + gripper
 STATE_DIM = 4  # hand xyz + gripper opening
 SCENE_STATE_DIM = 6  # object xyz + goal xyz (privileged: recorded for auxiliary training targets, never observed)
 MAX_EPISODE_STEPS = 500  # Meta-World's max_path_length
+#: which rendering of observations an env makes; recorded beside its settings, so that a run or dataset is never
+#: extended with frames of another one. 1: the reset frame showed the goal marker where the task's XML puts it
+#: (Meta-World moves it to the goal only at the first step); 2: the reset frame shows it at the goal
+RENDER_REVISION = 2
 MAX_HAND_START_NOISE = 0.15  # metres: an upper bound that keeps starts near the table's workspace (0.1 is tested)
 
 
@@ -139,12 +143,15 @@ class EnvConfig:
             demonstrations from varied starts stop the hand position from giving away where the expert is
             heading (a cloned policy then reads the goal from the image instead of copying the state's drift).
             0 gives Meta-World's own starts (used for evaluation).
+
+    ``render_revision`` is not an argument: it is [`RENDER_REVISION`], recorded with the other settings.
     """
 
     image_size: int = 64
     camera: str = "corner"
     max_episode_steps: int = MAX_EPISODE_STEPS
     hand_start_noise: float = 0.0
+    render_revision: int = field(default=RENDER_REVISION, init=False)  # recorded with the settings, not chosen
 
     def __post_init__(self):
         if self.camera not in CAMERAS:
@@ -249,6 +256,10 @@ class MetaWorldEnv:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             self._raw_obs, _ = self._env.reset()
+        # Meta-World's reset moves the goal site in the model but leaves the rendered marker where the XML put it
+        # until the first step() re-places it: place it now, as step() does, so the first frame shows the goal
+        for site in self._env._target_site_config:
+            self._env._set_pos_site(*site)
         self._env._freeze_rand_vec = True  # ... and keep it: some tasks re-read it while stepping
         self.steps = 0
         return self._observation()
