@@ -124,3 +124,19 @@ def test_batch_throughput_script_refuses_an_unknown_method_before_loading_anythi
     assert result.returncode == 2 and "--methods: unknown ['prior:cap=3']" in result.stderr
     assert "prior:cap=2" in result.stderr  # the choices name the capped methods asked for
     assert not (tmp_path / "toy").exists()
+
+
+def test_localization_probe_script_prints_the_error_table(tmp_path):
+    pytest.importorskip("metaworld")
+    result = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2", "--tasks",
+                         "push", "--scenes", 3, "--validation-scenes", 2, "--steps", 2, "--second-view", "front",
+                         timeout=600)  # fmt: skip
+    assert "| task | object | goal | hand | goal from the marker's colour |" in result.stdout
+    row = next(line for line in result.stdout.splitlines() if line.startswith("| push-v3 |"))
+    assert all(math.isfinite(float(cell)) for cell in row.strip("|").split("|")[1:])
+
+
+def test_localization_probe_script_refuses_bad_counts_before_rendering():
+    result = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2", "--scenes", 1,
+                         timeout=120, check=False)  # fmt: skip
+    assert result.returncode == 2 and "--scenes >= 2" in result.stderr

@@ -97,6 +97,21 @@ def test_reset_frame_shows_the_goal_marker_at_the_goal(task, channel):
     assert EnvConfig().render_revision == RENDER_REVISION == 2
 
 
+def test_a_step_without_its_image_is_the_same_step():
+    """``step(render=False)`` skips only the camera: the simulation, and the frame rendered afterwards, are the same."""
+    observations = []
+    for render in (True, False):
+        with MetaWorldEnv("push", EnvConfig(image_size=32, camera="overview")) as env:
+            env.reset(seed=7)
+            observation, *_ = env.step(env.expert_action(), render=render)
+            observations.append((observation, env.render()))
+    (rendered, after_rendered), (skipped, after_skipped) = observations
+    assert skipped["image"] is None
+    np.testing.assert_array_equal(rendered["state"], skipped["state"])
+    np.testing.assert_array_equal(rendered["image"], after_skipped)
+    np.testing.assert_array_equal(after_rendered, after_skipped)
+
+
 def test_free_camera_settings_are_frozen():
     """Datasets and policies record only a free camera's name: its view must never move."""
     assert FREE_CAMERAS["workspace"] == {

@@ -240,9 +240,9 @@ class MetaWorldEnv:
             image = image[::-1, ::-1]  # these cameras come out rotated by 180 degrees
         return np.ascontiguousarray(image)
 
-    def _observation(self) -> dict:
+    def _observation(self, render: bool = True) -> dict:
         state = np.asarray(self._raw_obs[:STATE_DIM], dtype=np.float32)
-        return {"image": self.render(), "state": state, "instruction": self.instruction}
+        return {"image": self.render() if render else None, "state": state, "instruction": self.instruction}
 
     # ----------------------------------------------------------------------------- control
     def reset(self, seed: int) -> dict:
@@ -264,8 +264,9 @@ class MetaWorldEnv:
         self.steps = 0
         return self._observation()
 
-    def step(self, action) -> tuple[dict, float, bool, dict]:
-        """Applies a 4-dim action (clipped to [-1, 1]).
+    def step(self, action, render: bool = True) -> tuple[dict, float, bool, dict]:
+        """Applies a 4-dim action (clipped to [-1, 1]). ``render=False`` skips the camera image (``image`` is None;
+        rendering is most of a step's cost): for steps whose frame is not used, `render()` gives it later.
 
         Returns:
             (observation, reward, done, info) with ``info["success"]`` (bool) and ``info["truncated"]`` (the
@@ -280,7 +281,8 @@ class MetaWorldEnv:
         self.steps += 1
         success = bool(info.get("success", 0.0) > 0.5)
         truncated = self.steps >= self.config.max_episode_steps
-        return self._observation(), float(reward), success or truncated, {"success": success, "truncated": truncated}
+        observation = self._observation(render)
+        return observation, float(reward), success or truncated, {"success": success, "truncated": truncated}
 
     def scene_state(self) -> np.ndarray:
         """Where the task's object and goal are, float32 ``[6]`` (object xyz, goal xyz) from the simulator.

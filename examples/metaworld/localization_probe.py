@@ -1,0 +1,193 @@
+"""How precisely can a policy's vision tower locate the task's object, goal and hand? The "What the images hold"
+table of docs/metaworld.md (policy v3).
+
+Renders scenes from the policy's camera (a reset with the hand start varied by up to 0.1 m, then 1-39 expert steps;
+one frame per scene), trains the vision tower with a linear readout on its patch features to the simulator's object,
+goal and hand xyz (the tower trained along, as a policy trains it), and prints the held-out error per task in cm.
+``--second-view front`` stacks a low view from the table's far end under the policy's view (each squeezed to half
+height: the same image size, so the same image tokens and cost per call). A colour-centroid fit (a quadratic in the
+goal marker's pixel centre) gives what the pixels hold for the goals whose marker has a colour of its own.
+
+    python examples/metaworld/localization_probe.py --policy runs/v3/mt10_vla3/checkpoint-3000/policy
+    python examples/metaworld/localization_probe.py --policy runs/v3/mt10_vla3/checkpoint-3000/policy \\
+        --second-view front --scenes 1500 --steps 3000
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+#: a low view from the table's far end, aimed where the overview camera looks: it sees heights the overview cannot
+FRONT_VIEW = {"azimuth": 0.0, "elevation": -20.0, "distance": 1.0}
+#: goal marker colours (the channel that is high while the other two are low); reach's red marker is the arm's colour
+MARKER_CHANNEL = {"push-v3": 1, "pick-place-v3": 2}
+TRAIN_SEED, VALIDATION_SEED = 300_000, 400_000
+
+
+def render_scenes(task: str, count: int, seed_start: int, image_size: int, camera: str, second_view: str | None):
+    """``count`` scenes: images uint8 ``[N, S, S, 3]`` (the second view stacked under the first when asked),
+    targets float32 ``[N, 9]`` (object xyz, goal xyz, hand xyz)."""
+    from hf_specvla.metaworld.env import EnvConfig, MetaWorldEnv
+
+    rng = np.random.default_rng(seed_start)
+    images, targets = [], []
+    with MetaWorldEnv(task, EnvConfig(image_size=image_size, camera=camera, hand_start_noise=0.1)) as env:
+        for seed in range(seed_start, seed_start + count):
+            env.reset(seed)
+            for _ in range(int(rng.integers(1, 40))):
+                observation, *_ = env.step(env.expert_action(), render=False)
+            image = env.render()
+            if second_view:
+                camera_now = env._env.mujoco_renderer.viewer.cam
+                kept = {key: getattr(camera_now, key) for key in FRONT_VIEW}
+                for key, value in FRONT_VIEW.items():
+                    setattr(camera_now, key, value)
+                other = env.render()
+                for key, value in kept.items():
+                    setattr(camera_now, key, value)
+                squeeze = lambda view: ((view[0::2].astype(np.uint16) + view[1::2]) // 2).astype(np.uint8)  # noqa: E731
+                image = np.concatenate([squeeze(image), squeeze(other)], 0)
+            images.append(image)
+            targets.append(np.concatenate([env.scene_state(), observation["state"][:3]]))
+    return np.stack(images), np.stack(targets).astype(np.float32)
+
+
+def marker_centres(images: np.ndarray, channel: int) -> np.ndarray:
+    """Pixel (column, row) centre of the saturated marker of ``channel`` in each image ``[N, 2]`` (per half when
+    the image stacks two views: ``[N, 4]``)."""
+    others = [c for c in range(3) if c != channel]
+    halves = [images] if images.shape[1] == images.shape[2] else [images[:, : images.shape[1] // 2],
+                                                                   images[:, images.shape[1] // 2 :]]  # fmt: skip
+    centres = []
+    for part in halves:
+        part = part.astype(np.int16)
+        mask = (part[..., channel] > 180) & (part[..., others[0]] < 80) & (part[..., others[1]] < 80)
+        rows, columns = np.indices(mask.shape[1:])
+        count = np.maximum(mask.sum((1, 2)), 1)
+        centres += [(mask * columns).sum((1, 2)) / count, (mask * rows).sum((1, 2)) / count]
+    return np.stack(centres, 1)
+
+
+def colour_fit_error(train_images, train_goals, val_images, val_goals, channel: int) -> float:
+    """Mean held-out goal error (m) of a quadratic fit from the marker's pixel centre(s) to the goal xyz."""
+    features = lambda c: np.concatenate([c, c**2, np.ones((len(c), 1))], 1)  # noqa: E731
+    weights, *_ = np.linalg.lstsq(features(marker_centres(train_images, channel)), train_goals, rcond=None)
+    predicted = features(marker_centres(val_images, channel)) @ weights
+    return float(np.linalg.norm(predicted - val_goals, axis=1).mean())
+
+
+def train_readout(policy, train_images, train_targets, steps: int, fresh_patch_size: int | None, log_every: int):
+    """Trains the policy's vision tower (or a fresh one with another patch size) and a linear readout on its patch
+    features to the standardised targets; returns ``predict(images) -> [N, 9]`` in metres."""
+    tower = policy.model.model.vision_tower
+    if fresh_patch_size:
+        from copy import deepcopy
+
+        from transformers import CLIPVisionModel
+
+        config = deepcopy(tower.config)
+        config.patch_size = fresh_patch_size
+        torch.manual_seed(0)
+        tower = CLIPVisionModel(config)
+    tokens = (policy.config.image_size // tower.config.patch_size) ** 2
+    readout = torch.nn.Linear(tokens * tower.config.hidden_size, train_targets.shape[1])
+    pixels = policy.preprocess_images(list(train_images))  # [N, 3, S, S]
+    targets = torch.from_numpy(train_targets)
+    mean, std = targets.mean(0), targets.std(0) + 1e-3
+
+    def forward(batch):
+        features = tower(pixel_values=batch).last_hidden_state[:, 1:]  # [B, tokens, D], the class token dropped
+        return readout(features.flatten(1))
+
+    parameters = [*tower.parameters(), *readout.parameters()]
+    optimizer = torch.optim.AdamW(parameters, lr=5e-4, weight_decay=0.01)
+    schedule = torch.optim.lr_scheduler.OneCycleLR(optimizer, 5e-4, total_steps=steps, pct_start=0.05)
+    generator = torch.Generator().manual_seed(0)
+    start = time.perf_counter()
+    for step in range(steps):
+        rows = torch.randint(0, len(pixels), (64,), generator=generator)
+        shift = tuple(int(s) for s in torch.randint(-4, 5, (2,), generator=generator))
+        batch = torch.roll(pixels[rows], shifts=shift, dims=(2, 3))  # a random shift, as train-vla augments
+        loss = ((forward(batch) - (targets[rows] - mean) / std) ** 2).mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        schedule.step()
+        if log_every and (step + 1) % log_every == 0:
+            seconds = time.perf_counter() - start
+            print(f"  step {step + 1}/{steps}: loss {loss.item():.3f} ({seconds:.0f} s)", flush=True)
+
+    @torch.no_grad()
+    def predict(images):
+        batches = [policy.preprocess_images(list(images[i : i + 256])) for i in range(0, len(images), 256)]
+        return (torch.cat([forward(b) for b in batches]) * std + mean).numpy()
+
+    return predict
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--policy", required=True, help="a policy folder: its camera, image size and vision tower")
+    parser.add_argument("--tasks", nargs="+", default=["reach", "push", "pick-place", "peg-insert-side"])
+    parser.add_argument("--scenes", type=int, default=2500, help="training scenes per task")
+    parser.add_argument("--validation-scenes", type=int, default=200, help="held-out scenes per task")
+    parser.add_argument("--steps", type=int, default=1200, help="readout training steps (batch 64)")
+    parser.add_argument("--second-view", choices=["none", "front"], default="none")
+    parser.add_argument("--fresh-patch-size", type=int, default=None,
+                        help="train a fresh tower of the policy's widths with this patch size instead")  # fmt: skip
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    if args.scenes < 2 or args.validation_scenes < 1 or args.steps < 1:
+        parser.error(f"--scenes >= 2, --validation-scenes >= 1 and --steps >= 1, got {args.scenes}, "
+                     f"{args.validation_scenes}, {args.steps}")  # fmt: skip
+    from hf_specvla.metaworld.env import resolve_tasks
+    from hf_specvla.policies import VLAPolicy
+
+    try:
+        tasks = resolve_tasks(args.tasks)
+    except ValueError as error:
+        parser.error(str(error))
+    torch.set_num_threads(args.threads)
+    policy = VLAPolicy.from_pretrained(args.policy)
+    size, camera = policy.config.image_size, policy.config.camera
+    if args.fresh_patch_size and size % args.fresh_patch_size:
+        parser.error(f"--fresh-patch-size must divide the policy's {size} px images, got {args.fresh_patch_size}")
+    second = None if args.second_view == "none" else args.second_view
+    from hf_specvla.metaworld.env import FREE_CAMERAS
+
+    if second and camera not in FREE_CAMERAS:
+        parser.error(f"--second-view moves a free camera; the policy's camera {camera!r} is not one of "
+                     f"{sorted(FREE_CAMERAS)}")  # fmt: skip
+    data = {}
+    for task in tasks:
+        start = time.perf_counter()
+        train = render_scenes(task, args.scenes, TRAIN_SEED, size, camera, second)
+        validation = render_scenes(task, args.validation_scenes, VALIDATION_SEED, size, camera, second)
+        data[task] = (train, validation)
+        print(f"{task}: {args.scenes} + {args.validation_scenes} scenes rendered ({time.perf_counter() - start:.0f} s)")
+    train_images = np.concatenate([data[t][0][0] for t in tasks])
+    train_targets = np.concatenate([data[t][0][1] for t in tasks])
+    predict = train_readout(policy, train_images, train_targets, args.steps, args.fresh_patch_size,
+                            max(args.steps // 4, 1))  # fmt: skip
+    view = f"{camera} + front, stacked" if second else camera
+    tower = f"fresh, {args.fresh_patch_size} px patches" if args.fresh_patch_size else "the policy's"
+    print(f"\nvision tower: {tower}; view: {view}; {args.scenes} scenes per task; {args.steps} steps")
+    print("| task | object | goal | hand | goal from the marker's colour |")
+    print("|---|---:|---:|---:|---:|")
+    for task in tasks:
+        (train_x, train_y), (val_x, val_y) = data[task]
+        error = np.abs(predict(val_x) - val_y)
+        norms = [np.linalg.norm(error[:, i : i + 3], axis=1).mean() * 100 for i in (0, 3, 6)]
+        colour = "-"
+        if task in MARKER_CHANNEL:
+            goal_error = colour_fit_error(train_x, train_y[:, 3:6], val_x, val_y[:, 3:6], MARKER_CHANNEL[task])
+            colour = f"{100 * goal_error:.1f}"
+        print(f"| {task} | {norms[0]:.1f} | {norms[1]:.1f} | {norms[2]:.1f} | {colour} |")
+
+
+if __name__ == "__main__":
+    main()
