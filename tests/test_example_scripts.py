@@ -126,14 +126,17 @@ def test_batch_throughput_script_refuses_an_unknown_method_before_loading_anythi
     assert not (tmp_path / "toy").exists()
 
 
-def test_localization_probe_script_prints_the_error_table(tmp_path):
+@pytest.mark.parametrize("second_view", ["none", "front"])
+def test_localization_probe_script_prints_the_error_table(second_view):
     pytest.importorskip("metaworld")
     result = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2", "--tasks",
-                         "push", "--scenes", 3, "--validation-scenes", 2, "--steps", 2, "--second-view", "front",
+                         "push", "--scenes", 3, "--validation-scenes", 2, "--steps", 2, "--second-view", second_view,
                          timeout=600)  # fmt: skip
-    assert "| task | object | goal | hand | goal from the marker's colour |" in result.stdout
-    row = next(line for line in result.stdout.splitlines() if line.startswith("| push-v3 |"))
-    assert all(math.isfinite(float(cell)) for cell in row.strip("|").split("|")[1:])
+    assert "| task | object | goal | hand | goal from the marker's colour | the policy's scene tokens" in result.stdout
+    cells = next(line for line in result.stdout.splitlines() if line.startswith("| push-v3 |")).strip("|").split("|")
+    assert all(math.isfinite(float(cell)) for cell in cells[1:5])
+    own = cells[5].strip()  # policy v2 learned scene targets on its own (overview) images only
+    assert own == "-" if second_view == "front" else all(math.isfinite(float(x)) for x in own.split(" / "))
 
 
 def test_localization_probe_script_refuses_bad_counts_before_rendering():

@@ -2,8 +2,9 @@
 table of docs/metaworld.md (policy v3).
 
 Renders scenes from the policy's camera (a reset with the hand start varied by up to 0.1 m, then 1-39 expert steps;
-one frame per scene), trains the vision tower with a linear readout on its patch features to the simulator's object,
-goal and hand xyz (the tower trained along, as a policy trains it), and prints the held-out error per task in cm.
+one frame per scene), reads the policy's own scene tokens on the held-out ones (a policy trained with scene targets),
+then trains the vision tower with a linear readout on its patch features to the simulator's object, goal and hand
+xyz (the tower trained along, as a policy trains it), and prints the held-out errors per task in cm.
 ``--second-view front`` stacks a low view from the table's far end under the policy's view (each squeezed to half
 height: the same image size, so the same image tokens and cost per call). A colour-centroid fit (a quadratic in the
 goal marker's pixel centre) gives what the pixels hold for the goals whose marker has a colour of its own.
@@ -30,11 +31,11 @@ TRAIN_SEED, VALIDATION_SEED = 300_000, 400_000
 
 def render_scenes(task: str, count: int, seed_start: int, image_size: int, camera: str, second_view: str | None):
     """``count`` scenes: images uint8 ``[N, S, S, 3]`` (the second view stacked under the first when asked),
-    targets float32 ``[N, 9]`` (object xyz, goal xyz, hand xyz)."""
+    targets float32 ``[N, 9]`` (object xyz, goal xyz, hand xyz), proprio states float32 ``[N, 4]``."""
     from hf_specvla.metaworld.env import EnvConfig, MetaWorldEnv
 
     rng = np.random.default_rng(seed_start)
-    images, targets = [], []
+    images, targets, states = [], [], []
     with MetaWorldEnv(task, EnvConfig(image_size=image_size, camera=camera, hand_start_noise=0.1)) as env:
         for seed in range(seed_start, seed_start + count):
             env.reset(seed)
@@ -53,7 +54,27 @@ def render_scenes(task: str, count: int, seed_start: int, image_size: int, camer
                 image = np.concatenate([squeeze(image), squeeze(other)], 0)
             images.append(image)
             targets.append(np.concatenate([env.scene_state(), observation["state"][:3]]))
-    return np.stack(images), np.stack(targets).astype(np.float32)
+            states.append(observation["state"])
+    return np.stack(images), np.stack(targets).astype(np.float32), np.stack(states)
+
+
+@torch.no_grad()
+def policy_scene_errors(policy, task: str, images: np.ndarray, states: np.ndarray, scenes: np.ndarray) -> np.ndarray:
+    """Mean error (m) of the policy's own scene tokens (generated after its action tokens, greedy) ``[2]``: object,
+    goal. Only for a policy trained with scene targets, on its own camera's images."""
+    from hf_specvla.metaworld.env import TASK_INSTRUCTIONS
+
+    action_tokens, scene_dim = policy.config.action_tokens, policy.config.scene_state_dim
+    errors = []
+    for image, state, scene in zip(images, states, scenes):
+        prompt = torch.tensor([policy.prompt_ids(TASK_INSTRUCTIONS[task], state)])
+        output = policy.model.generate(input_ids=prompt, pixel_values=policy.preprocess_images([image]),
+                                       max_new_tokens=action_tokens + scene_dim,
+                                       min_new_tokens=action_tokens + scene_dim, do_sample=False)  # fmt: skip
+        bins = policy.action_tokenizer.decode(output[:, -scene_dim:].numpy())
+        predicted = policy.scene_normalizer.unnormalize(bins)[0]
+        errors.append([np.linalg.norm(predicted[i : i + 3] - scene[i : i + 3]) for i in (0, 3)])
+    return np.mean(errors, 0)
 
 
 def marker_centres(images: np.ndarray, channel: int) -> np.ndarray:
@@ -169,6 +190,12 @@ def main():
         validation = render_scenes(task, args.validation_scenes, VALIDATION_SEED, size, camera, second)
         data[task] = (train, validation)
         print(f"{task}: {args.scenes} + {args.validation_scenes} scenes rendered ({time.perf_counter() - start:.0f} s)")
+    own = {}
+    if policy.config.scene_state_dim and not second:
+        policy.model.eval()
+        for task in tasks:
+            images, targets, states = data[task][1]
+            own[task] = policy_scene_errors(policy, task, images, states, targets[:, :6])
     train_images = np.concatenate([data[t][0][0] for t in tasks])
     train_targets = np.concatenate([data[t][0][1] for t in tasks])
     predict = train_readout(policy, train_images, train_targets, args.steps, args.fresh_patch_size,
@@ -176,17 +203,18 @@ def main():
     view = f"{camera} + front, stacked" if second else camera
     tower = f"fresh, {args.fresh_patch_size} px patches" if args.fresh_patch_size else "the policy's"
     print(f"\nvision tower: {tower}; view: {view}; {args.scenes} scenes per task; {args.steps} steps")
-    print("| task | object | goal | hand | goal from the marker's colour |")
-    print("|---|---:|---:|---:|---:|")
+    print("| task | object | goal | hand | goal from the marker's colour | the policy's scene tokens: object / goal |")
+    print("|---|---:|---:|---:|---:|---:|")
     for task in tasks:
-        (train_x, train_y), (val_x, val_y) = data[task]
+        (train_x, train_y, _), (val_x, val_y, _) = data[task]
         error = np.abs(predict(val_x) - val_y)
         norms = [np.linalg.norm(error[:, i : i + 3], axis=1).mean() * 100 for i in (0, 3, 6)]
         colour = "-"
         if task in MARKER_CHANNEL:
             goal_error = colour_fit_error(train_x, train_y[:, 3:6], val_x, val_y[:, 3:6], MARKER_CHANNEL[task])
             colour = f"{100 * goal_error:.1f}"
-        print(f"| {task} | {norms[0]:.1f} | {norms[1]:.1f} | {norms[2]:.1f} | {colour} |")
+        scene = f"{100 * own[task][0]:.1f} / {100 * own[task][1]:.1f}" if task in own else "-"
+        print(f"| {task} | {norms[0]:.1f} | {norms[1]:.1f} | {norms[2]:.1f} | {colour} | {scene} |")
 
 
 if __name__ == "__main__":
