@@ -97,7 +97,7 @@ def test_collect_train_eval(tmp_path, capsys):
     dagger = tmp_path / "dagger"
     assert main(["collect", "--policy", str(policy), "--tasks", "reach", "--episodes", "1", "--expert-mix", "0.5",
                  "--max-episode-steps", "5", "--output-dir", str(dagger)]) == 0  # fmt: skip
-    assert "the policy solved" in capsys.readouterr().out
+    assert "the policy (the expert at 50% of the steps) solved" in capsys.readouterr().out
     info = json.loads((dagger / "meta" / "info.json").read_text())
     assert [info[k] for k in ("camera", "image_size", "policy", "expert_mix")] == ["workspace", 32, str(policy), 0.5]
     assert len(load_demonstrations(dagger, progress=False)) == 5  # the failed episode is kept

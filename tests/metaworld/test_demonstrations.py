@@ -45,6 +45,32 @@ def test_round_trip_with_common_tools(dataset):
     assert info["image_size"] == 32 and info["action_dim"] == 4
 
 
+def test_frames_stay_encoded_until_read_and_read_as_the_parquet_images(dataset):
+    """Loaded frames are held PNG-encoded (a fraction of the decoded bytes) and every way of indexing them gives the
+    decoded images of the Parquet files, in order."""
+    import pyarrow.parquet as pq
+
+    from hf_specvla.metaworld.demonstrations import EncodedFrames, decode_png
+
+    demos = load_demonstrations(dataset, progress=False)
+    decoded = np.stack([
+        decode_png(b) for f in sorted((dataset / "data" / "reach-v3").glob("*.parquet"))
+        for b in pq.read_table(f).to_pydict()["image"]
+    ])  # fmt: skip
+    frames = demos.images
+    assert isinstance(frames, EncodedFrames) and len(frames) == len(decoded) == len(demos)
+    assert frames.nbytes < decoded.nbytes / 2
+    np.testing.assert_array_equal(frames[3], decoded[3])
+    np.testing.assert_array_equal(frames[np.int64(-1)], decoded[-1])
+    np.testing.assert_array_equal(frames[2:7:2], decoded[2:7:2])
+    np.testing.assert_array_equal(frames[[5, 0, 5]], decoded[[5, 0, 5]])
+    np.testing.assert_array_equal(frames[np.array([1, 4])], decoded[[1, 4]])
+    np.testing.assert_array_equal(np.asarray(frames), decoded)
+    assert frames[10:10].shape == (0, 32, 32, 3)
+    with pytest.raises(ValueError, match="at least one frame"):
+        EncodedFrames([])
+
+
 def test_resume_adds_only_missing_episodes(dataset):
     before = collected_seeds(dataset, "reach-v3")
     summary = collect_demonstrations(dataset, "reach", 3, EnvConfig(image_size=32), progress=False)

@@ -61,5 +61,8 @@ def run(args, parser) -> int:
     print(f"{summary.episodes_written} episodes written, {summary.episodes_present} in {args.output_dir}, "
           f"{summary.expert_failures} expert failures skipped")  # fmt: skip
     if policy is not None:
-        print(f"the policy solved {summary.driven_successes} of the {summary.episodes_written} episodes it drove")
+        driver = "the policy"
+        if args.expert_mix:
+            driver += f" (the expert at {args.expert_mix:.0%} of the steps)"
+        print(f"{driver} solved {summary.driven_successes} of the {summary.episodes_written} episodes it drove")
     return 0
