@@ -7,7 +7,8 @@ then trains the vision tower with a linear readout on its patch features to the 
 xyz (the tower trained along, as a policy trains it), and prints the held-out errors per task in cm.
 ``--second-view front`` stacks a low view from the table's far end under the policy's view (each squeezed to half
 height: the same image size, so the same image tokens and cost per call). A colour-centroid fit (a quadratic in the
-goal marker's pixel centre) gives what the pixels hold for the goals whose marker has a colour of its own.
+goal marker's pixel centre) gives what the pixels hold for the goals whose marker has a colour of its own; always
+guessing the training scenes' mean position gives what knowing nothing scores.
 
     python examples/metaworld/localization_probe.py --policy runs/v3/mt10_vla3/checkpoint-3000/policy
     python examples/metaworld/localization_probe.py --policy runs/v3/mt10_vla3/checkpoint-3000/policy \\
@@ -203,8 +204,9 @@ def main():
     view = f"{camera} + front, stacked" if second else camera
     tower = f"fresh, {args.fresh_patch_size} px patches" if args.fresh_patch_size else "the policy's"
     print(f"\nvision tower: {tower}; view: {view}; {args.scenes} scenes per task; {args.steps} steps")
-    print("| task | object | goal | hand | goal from the marker's colour | the policy's scene tokens: object / goal |")
-    print("|---|---:|---:|---:|---:|---:|")
+    print("| task | object | goal | hand | goal from the marker's colour | the policy's scene tokens: object / goal "
+          "| the training mean: object / goal |")  # fmt: skip
+    print("|---|---:|---:|---:|---:|---:|---:|")
     for task in tasks:
         (train_x, train_y, _), (val_x, val_y, _) = data[task]
         error = np.abs(predict(val_x) - val_y)
@@ -214,7 +216,10 @@ def main():
             goal_error = colour_fit_error(train_x, train_y[:, 3:6], val_x, val_y[:, 3:6], MARKER_CHANNEL[task])
             colour = f"{100 * goal_error:.1f}"
         scene = f"{100 * own[task][0]:.1f} / {100 * own[task][1]:.1f}" if task in own else "-"
-        print(f"| {task} | {norms[0]:.1f} | {norms[1]:.1f} | {norms[2]:.1f} | {colour} | {scene} |")
+        guess = train_y.mean(0)  # [9]
+        mean = [np.linalg.norm(val_y[:, i : i + 3] - guess[i : i + 3], axis=1).mean() * 100 for i in (0, 3)]
+        print(f"| {task} | {norms[0]:.1f} | {norms[1]:.1f} | {norms[2]:.1f} | {colour} | {scene} "
+              f"| {mean[0]:.1f} / {mean[1]:.1f} |")  # fmt: skip
 
 
 if __name__ == "__main__":
