@@ -30,6 +30,11 @@ MARKER_CHANNEL = {"push-v3": 1, "pick-place-v3": 2}
 TRAIN_SEED, VALIDATION_SEED = 300_000, 400_000
 
 
+def half_height(view: np.ndarray) -> np.ndarray:
+    """``[S, S, 3]`` -> ``[S / 2, S, 3]``: each pair of rows averaged."""
+    return ((view[0::2].astype(np.uint16) + view[1::2]) // 2).astype(np.uint8)
+
+
 def render_scenes(task: str, count: int, seed_start: int, image_size: int, camera: str, second_view: str | None):
     """``count`` scenes: images uint8 ``[N, S, S, 3]`` (the second view stacked under the first when asked),
     targets float32 ``[N, 9]`` (object xyz, goal xyz, hand xyz), proprio states float32 ``[N, 4]``."""
@@ -51,8 +56,7 @@ def render_scenes(task: str, count: int, seed_start: int, image_size: int, camer
                 other = env.render()
                 for key, value in kept.items():
                     setattr(camera_now, key, value)
-                squeeze = lambda view: ((view[0::2].astype(np.uint16) + view[1::2]) // 2).astype(np.uint8)  # noqa: E731
-                image = np.concatenate([squeeze(image), squeeze(other)], 0)
+                image = np.concatenate([half_height(image), half_height(other)], 0)
             images.append(image)
             targets.append(np.concatenate([env.scene_state(), observation["state"][:3]]))
             states.append(observation["state"])
@@ -166,7 +170,7 @@ def main():
     if args.scenes < 2 or args.validation_scenes < 1 or args.steps < 1:
         parser.error(f"--scenes >= 2, --validation-scenes >= 1 and --steps >= 1, got {args.scenes}, "
                      f"{args.validation_scenes}, {args.steps}")  # fmt: skip
-    from hf_specvla.metaworld.env import resolve_tasks
+    from hf_specvla.metaworld.env import FREE_CAMERAS, resolve_tasks
     from hf_specvla.policies import VLAPolicy
 
     try:
@@ -179,8 +183,6 @@ def main():
     if args.fresh_patch_size and size % args.fresh_patch_size:
         parser.error(f"--fresh-patch-size must divide the policy's {size} px images, got {args.fresh_patch_size}")
     second = None if args.second_view == "none" else args.second_view
-    from hf_specvla.metaworld.env import FREE_CAMERAS
-
     if second and camera not in FREE_CAMERAS:
         parser.error(f"--second-view moves a free camera; the policy's camera {camera!r} is not one of "
                      f"{sorted(FREE_CAMERAS)}")  # fmt: skip
