@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -139,6 +140,27 @@ def test_localization_probe_script_prints_the_error_table(second_view):
     own = cells[5].strip()  # policy v2 learned scene targets on its own (overview) images only
     assert own == "-" if second_view == "front" else all(math.isfinite(float(x)) for x in own.split(" / "))
     assert all(math.isfinite(float(x)) for x in cells[6].split(" / "))  # the training mean's errors
+
+
+def test_localization_probe_saves_the_policy_with_its_scene_trained_tower(tmp_path):
+    pytest.importorskip("metaworld")
+    from hf_specvla.policies import VLAPolicy
+
+    folder = tmp_path / "pretrained"
+    run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2", "--tasks", "push",
+                "--scenes", 3, "--validation-scenes", 1, "--steps", 2, "--save-policy", folder,
+                timeout=600)  # fmt: skip
+    record = json.loads((folder / "scene_pretraining.json").read_text())
+    assert record["tasks"] == ["push-v3"] and record["steps"] == 2
+    saved, original = VLAPolicy.from_pretrained(folder), VLAPolicy.from_pretrained(ROOT / "policies" / "mt10_vla2")
+    towers = [dict(p.model.model.vision_tower.named_parameters()) for p in (saved, original)]
+    assert any(not torch.equal(towers[0][name], towers[1][name]) for name in towers[1])  # the tower was trained
+    decoders = [dict(p.model.model.language_model.named_parameters()) for p in (saved, original)]
+    assert all(torch.equal(decoders[0][name], decoders[1][name]) for name in decoders[1])  # nothing else
+    again = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2",
+                        "--save-policy", folder, timeout=120, check=False)  # fmt: skip
+    assert again.returncode == 2 and "is not empty" in again.stderr
+    assert json.loads((folder / "scene_pretraining.json").read_text()) == record  # untouched
 
 
 def test_localization_probe_script_refuses_bad_counts_before_rendering():

@@ -11,6 +11,9 @@ Methods run in a freshly shuffled order at every step, so machine-load drift hit
     python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft \
         --steps 12 --methods greedy:compile prior+jacobi
     python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft \
+        --steps 12 --methods greedy:compile prior+jacobi prior+jacobi:compile prior+jacobi:cap=2:compile \
+        --max-drafts-per-row 2
+    python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft \
         --steps 8 --methods prior head prior:cap=1 prior:cap=2 head:cap=1 head:cap=2 --max-drafts-per-row 1 2
 """
 
@@ -39,23 +42,31 @@ BOUNDS = ("oracle", "one-token")
 
 def methods(draft_head, bin_tolerance: int, caps: list[int] = (), only: list[str] | None = None) -> dict[str, dict]:
     """name -> generate kwargs ("oracle" gets its draft_ids at each step); ``caps``: also prior, prior+jacobi and head
-    with at most that many drafts per row and forward (``max_drafts_per_row``); ``only``: these methods (and greedy)."""
+    with at most that many drafts per row and forward (``max_drafts_per_row``); ``only``: these methods (and greedy).
+    ``:compile``: on a static cache through transformers' compiled model call (greedy: transformers' own compiled
+    decoding; the others: compiled batched verification)."""
+    compiled = compiled_decoding_kwargs("cpu")
+    relaxed = {"action_prior": True, "bin_tolerance": bin_tolerance}
     capped = {}
     for cap in caps:
         capped[f"prior:cap={cap}"] = {"action_prior": True, "max_drafts_per_row": cap}
         capped[f"prior+jacobi:cap={cap}"] = {"action_prior": True, "assistant_model": JacobiDrafter(),
                                              "max_drafts_per_row": cap}  # fmt: skip
         capped[f"head:cap={cap}"] = {"assistant_model": draft_head, "max_drafts_per_row": cap}
+        capped[f"prior+jacobi:cap={cap}:compile"] = {**capped[f"prior+jacobi:cap={cap}"], **compiled}
     every = {
         "greedy": {},
-        "greedy:compile": compiled_decoding_kwargs("cpu"),  # transformers' compiled greedy (static cache), batched
+        "greedy:compile": compiled,  # transformers' compiled greedy (static cache), batched
         "oracle": {},
         "one-token": {"max_new_tokens": 1, "min_new_tokens": 1},
         "prior": {"action_prior": True},
-        f"prior:r={bin_tolerance}": {"action_prior": True, "bin_tolerance": bin_tolerance},
+        f"prior:r={bin_tolerance}": relaxed,
         "prior+jacobi": {"action_prior": True, "assistant_model": JacobiDrafter()},
+        "prior+jacobi:compile": {"action_prior": True, "assistant_model": JacobiDrafter(), **compiled},
+        f"prior+jacobi:r={bin_tolerance}:compile": {**relaxed, "assistant_model": JacobiDrafter(), **compiled},
         "head": {"assistant_model": draft_head},
         f"head:r={bin_tolerance}": {"assistant_model": draft_head, "bin_tolerance": bin_tolerance},
+        "head:compile": {"assistant_model": draft_head, **compiled},
         **capped,
     }
     return every if only is None else {name: every[name] for name in every if name == "greedy" or name in only}
@@ -163,29 +174,34 @@ def main():
                 row_forwards[name] += stats.num_target_forwards if stats else tokens * batch_size
                 batch_forwards[name] += stats.num_batch_forwards if stats else tokens
         greedy_median = statistics.median(seconds["greedy"])
+        compiled_median = statistics.median(seconds["greedy:compile"]) if "greedy:compile" in seconds else None
         for name in settings:
             median = statistics.median(seconds[name])
             table.append({
                 "batch_size": batch_size, "method": name, "bound": name in BOUNDS,
                 "median_ms_per_call": 1000 * median,
                 "actions_per_second": batch_size / median, "vs_greedy": greedy_median / median,
+                "vs_compiled_greedy": None if compiled_median is None else compiled_median / median,
                 "target_forwards_per_action": row_forwards[name] / (batch_size * args.steps),
                 "batch_forwards_per_step": batch_forwards[name] / args.steps,
+                # a call's median time over its mean batch forwards: what one batch forward costs, loop included
+                "ms_per_batch_forward": 1000 * median * args.steps / batch_forwards[name],
             })  # fmt: skip
             row = table[-1]
             print(f"B={batch_size:2d} {name:10s} {row['median_ms_per_call']:7.1f} ms/call "
                   f"{row['actions_per_second']:7.1f} actions/s {row['vs_greedy']:.2f}x "
                   f"{row['target_forwards_per_action']:.2f} fwd/action {row['batch_forwards_per_step']:.2f} "
                   f"batch fwd/step", flush=True)  # fmt: skip
-    print(
-        "\n| B | method | ms per call (median) | actions/s | vs batched greedy | target fwd/action | batch fwd/step |"
-    )
-    print("|---:|---|---:|---:|---:|---:|---:|")
+    print("\n| B | method | ms per call (median) | actions/s | vs batched greedy | vs batched compiled greedy | "
+          "target fwd/action | batch fwd/step | ms per batch fwd |")  # fmt: skip
+    print("|---:|---|---:|---:|---:|---:|---:|---:|---:|")
     for row in table:
         method = f"({row['method']}: bound)" if row["bound"] else row["method"]
+        versus = "-" if row["vs_compiled_greedy"] is None else f"{row['vs_compiled_greedy']:.2f}x"
         print(f"| {row['batch_size']} | {method} | {row['median_ms_per_call']:.1f} | "
-              f"{row['actions_per_second']:.0f} | {row['vs_greedy']:.2f}x | {row['target_forwards_per_action']:.2f} | "
-              f"{row['batch_forwards_per_step']:.2f} |")  # fmt: skip
+              f"{row['actions_per_second']:.0f} | {row['vs_greedy']:.2f}x | {versus} | "
+              f"{row['target_forwards_per_action']:.2f} | {row['batch_forwards_per_step']:.2f} | "
+              f"{row['ms_per_batch_forward']:.1f} |")  # fmt: skip
     if args.json:
         with open(args.json, "w") as file:
             json.dump({"args": vars(args), "rows": table}, file, indent=2)

@@ -13,12 +13,21 @@ guessing the training scenes' mean position gives what knowing nothing scores.
     python examples/metaworld/localization_probe.py --policy runs/v3/mt10_vla3/checkpoint-3000/policy
     python examples/metaworld/localization_probe.py --policy runs/v3/mt10_vla3/checkpoint-3000/policy \\
         --second-view front --scenes 1500 --steps 3000
+
+``--save-policy DIR`` keeps the result: the policy with its vision tower trained on the scenes (a start for
+``hf-specvla train-vla --init-from DIR``: a tower pretrained to locate what the tasks need), the arguments in
+``DIR/scene_pretraining.json``:
+
+    python examples/metaworld/localization_probe.py --policy runs/v3/mt10_vla3/checkpoint-3000/policy \\
+        --tasks MT10 --scenes 600 --steps 3000 --save-policy runs/v3/tower_pretrained
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -165,8 +174,15 @@ def main():
     parser.add_argument("--second-view", choices=["none", "front"], default="none")
     parser.add_argument("--fresh-patch-size", type=int, default=None,
                         help="train a fresh tower of the policy's widths with this patch size instead")  # fmt: skip
+    parser.add_argument("--save-policy", type=Path, default=None,
+                        help="save the policy with its scene-trained tower here (a new folder)")  # fmt: skip
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
+    if args.save_policy is not None and args.save_policy.exists() and any(args.save_policy.iterdir()):
+        parser.error(f"--save-policy {args.save_policy} is not empty: name a new folder (nothing is overwritten)")
+    if args.save_policy is not None and (args.fresh_patch_size or args.second_view != "none"):
+        parser.error("--save-policy keeps the policy's own tower on its own view: drop --fresh-patch-size / "
+                     "--second-view")  # fmt: skip
     if args.scenes < 2 or args.validation_scenes < 1 or args.steps < 1:
         parser.error(f"--scenes >= 2, --validation-scenes >= 1 and --steps >= 1, got {args.scenes}, "
                      f"{args.validation_scenes}, {args.steps}")  # fmt: skip
@@ -203,6 +219,12 @@ def main():
     train_targets = np.concatenate([data[t][0][1] for t in tasks])
     predict = train_readout(policy, train_images, train_targets, args.steps, args.fresh_patch_size,
                             max(args.steps // 4, 1))  # fmt: skip
+    if args.save_policy is not None:
+        policy.save_pretrained(args.save_policy)
+        record = {"script": "examples/metaworld/localization_probe.py", "policy": args.policy, "tasks": tasks,
+                  "scenes": args.scenes, "steps": args.steps, "train_seed": TRAIN_SEED}  # fmt: skip
+        (args.save_policy / "scene_pretraining.json").write_text(json.dumps(record, indent=2))
+        print(f"saved the policy with its scene-trained tower to {args.save_policy}")
     view = f"{camera} + front, stacked" if second else camera
     tower = f"fresh, {args.fresh_patch_size} px patches" if args.fresh_patch_size else "the policy's"
     print(f"\nvision tower: {tower}; view: {view}; {args.scenes} scenes per task; {args.steps} steps")

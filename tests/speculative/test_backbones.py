@@ -350,15 +350,6 @@ def test_generation_longer_than_the_sliding_window_is_refused_before_any_forward
     assert counter.count == 0
 
 
-def test_static_cache_for_a_batch_is_refused_before_any_forward(tiny_llama):
-    counter = ForwardCounter(tiny_llama)
-    with pytest.raises(ValueError, match=r"static KV cache \(layer 0's StaticLayer\) is supported for one unpadded "
-                                         r"sequence, got batch size 2"):  # fmt: skip
-        tiny_llama.generate(input_ids=torch.tensor([[1, 7, 9], [1, 8, 9]]), max_new_tokens=3, do_sample=False,
-                            draft_ids=torch.tensor([[70], [71]]), cache_implementation="static")  # fmt: skip
-    assert counter.count == 0
-
-
 def test_static_cache_too_short_is_refused_before_any_forward(tiny_llama):
     counter = ForwardCounter(tiny_llama)
     cache = StaticCache(config=tiny_llama.config, max_cache_len=6)

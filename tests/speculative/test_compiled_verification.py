@@ -347,3 +347,89 @@ def test_widths_are_compiled_once_per_model_even_when_the_compiled_call_is_wrapp
         for _ in range(3)
     ]
     assert seconds[0] > 0 and seconds[1:] == [0.0, 0.0]
+
+
+# ----------------------------------------------------------------------------- batches on a static cache
+def _left_padded_batch(generator_seed: int = 3):
+    """Four prompts of 6, 4, 6 and 5 tokens, left-padded: ``input_ids`` and ``attention_mask`` ``[4, 6]``."""
+    input_ids = torch.randint(6, 64, (4, 6), generator=torch.Generator().manual_seed(generator_seed))
+    attention_mask = torch.ones_like(input_ids)
+    for row, padding in ((1, 2), (3, 1)):
+        input_ids[row, :padding], attention_mask[row, :padding] = 0, 0
+    return input_ids, attention_mask
+
+
+def _eos_that_stops_one_row_early(model, inputs) -> int:
+    """A token batched greedy decoding emits third in row 1 and nowhere else earlier: as EOS, row 1 stops early and
+    the other rows go on (a static cache then keeps row 1 as an idle row)."""
+    plain = greedy(model, inputs["input_ids"], attention_mask=inputs["attention_mask"], eos_token_id=None)
+    new = plain[:, inputs["input_ids"].shape[1] :]
+    token = int(new[1, 2])
+    assert all(token not in new[b, :3].tolist() for b in (0, 2, 3)), "pick another prompt seed"
+    return token
+
+
+@pytest.mark.parametrize("name", ["llama", "gemma2"])
+def test_a_batch_on_a_static_cache_gives_batched_greedys_tokens_for_every_drafter(name):
+    """Left-padded rows that accept different lengths and stop at different times, on generate's static cache, eager
+    and compiled: every drafter gives batched greedy decoding's tokens (on the default cache)."""
+    model = _model(name)
+    input_ids, attention_mask = _left_padded_batch()
+    eos = _eos_that_stops_one_row_early(model, {"input_ids": input_ids, "attention_mask": attention_mask})
+    expected = greedy(model, input_ids, attention_mask=attention_mask, eos_token_id=eos, pad_token_id=0)
+    assert int((expected[1] == 0).sum()) > 2  # row 1 stopped early (right-padded)
+    for kwargs in calls_for(model, input_ids, expected[:, :-1]):
+        for compiled in ({}, {"compile_config": eager_compile_config()}):
+            out = greedy(model, input_ids, attention_mask=attention_mask, eos_token_id=eos, pad_token_id=0,
+                         cache_implementation="static", return_dict_in_generate=True, **compiled, **kwargs)  # fmt: skip
+            assert torch.equal(out.sequences, expected), (kwargs, compiled)
+            assert bool(compiled) == bool(out.speculation.compiled_widths)
+
+
+@pytest.mark.parametrize("slots", [12, 14, 17])
+def test_a_batch_fills_a_tight_static_cache_by_compacting_its_rows(slots):
+    """A user's static cache with barely the slots greedy needs (11: prompt 6 + 6 fed tokens - 1): rows that accept
+    different lengths leave invalid slots behind, which are compacted away when the trees need room; the tokens stay
+    batched greedy's (without compaction the free slots run out and the call fails)."""
+    model = _model("llama")
+    input_ids, attention_mask = _left_padded_batch()
+    expected = greedy(model, input_ids, attention_mask=attention_mask)
+    torch.manual_seed(1)
+    head = DraftHead.from_target(model, num_draft_tokens=3).eval()
+    wrong = expected[:, input_ids.shape[1] : -1].clone()
+    wrong[0, 0], wrong[2, 3] = (wrong[0, 0] + 1) % VOCAB, (wrong[2, 3] + 1) % VOCAB
+    drafters = [dict(assistant_model=DraftHeadDrafter(head, tree=DraftTreeConfig(top_k=3, depth=4, total_tokens=12))),
+                dict(draft_ids=wrong, assistant_model=JacobiDrafter())]  # fmt: skip
+    for kwargs in drafters:
+        for compiled in ({}, {"compile_config": eager_compile_config()}):
+            cache = StaticCache(config=model.config, max_cache_len=slots)
+            out = greedy(model, input_ids, attention_mask=attention_mask, return_dict_in_generate=True,
+                         **{CACHE_KEY: cache}, **compiled, **kwargs)  # fmt: skip
+            assert torch.equal(out.sequences, expected), (slots, kwargs, compiled)
+
+
+def test_compact_rows_moves_each_rows_valid_entries_to_the_front_in_order():
+    """Static and dynamic layers alike: row b's valid entries, in order, then nothing; the static layer's buffers keep
+    their addresses and its counter is the longest row's count."""
+    from transformers.cache_utils import DynamicCache
+
+    from hf_specvla.speculative.cache import cache_length, compact_rows
+
+    torch.manual_seed(0)
+    keys, values = torch.randn(3, 2, 7, 4), torch.randn(3, 2, 7, 4)
+    valid = torch.tensor([[1, 1, 0, 1, 0, 0, 1], [0, 0, 1, 1, 1, 1, 1], [1, 0, 0, 0, 0, 0, 1]]).bool()
+    config = tiny_llama_config(num_hidden_layers=1)
+    static = StaticCache(config=config, max_cache_len=9)
+    static.update(keys, values, 0)
+    address = static.layers[0].keys.data_ptr()
+    dynamic = DynamicCache()
+    dynamic.update(keys, values, 0)
+    for cache in (static, dynamic):
+        compacted = compact_rows(cache, valid)
+        assert compacted.tolist() == [[True] * 4 + [False], [True] * 5, [True] * 2 + [False] * 3]
+        assert cache_length(cache) == 5
+        for b in range(3):
+            count = int(valid[b].sum())
+            assert torch.equal(cache.layers[0].keys[b, :, :count], keys[b][:, valid[b]])
+            assert torch.equal(cache.layers[0].values[b, :, :count], values[b][:, valid[b]])
+    assert static.layers[0].keys.data_ptr() == address

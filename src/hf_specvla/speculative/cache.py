@@ -13,8 +13,9 @@ types where it is exact:
 * ``StaticLayer`` (``cache_implementation="static"``, a ``StaticCache``): preallocated ``[B, H_kv, max_cache_len, D]``
   buffers written at a length counter. Rolled back **in place**, never re-allocated (compiled graphs and CUDA graphs
   hold the buffers' addresses): a rejected entry is dropped by moving the counter back (the next forward overwrites
-  it; keys past the counter are masked), a tree's accepted path is copied into consecutive slots. Batch 1 without
-  prompt padding (a batch's rows would keep different entries).
+  it; keys past the counter are masked), a tree's accepted path is copied into consecutive slots. A batch keeps one
+  counter for all rows: a row that kept fewer entries than another in a round leaves invalid slots (masked like
+  prompt padding); when the free slots run short, [`compact_rows`] moves every row's valid entries to the front.
 * ``StaticSlidingWindowLayer`` (a static cache of a model with sliding layers): allocates ``min(window,
   max_cache_len)`` slots and rolls its entries once full. When the generation fits in those slots it never rolls
   and is rolled back like a ``StaticLayer``; a generation that does not fit is refused before the first forward.
@@ -57,16 +58,15 @@ def _layers(cache: Cache) -> list:
     return layers
 
 
-def check_rollback_cache(cache: Cache, max_length: int, batch_size: int = 1, padded: bool = False) -> None:
+def check_rollback_cache(cache: Cache, max_length: int) -> None:
     """Refuses, before any forward runs, a cache that speculative decoding cannot roll back exactly.
 
     Args:
         max_length: the longest sequence the generation can reach (prompt + ``max_new_tokens``).
-        batch_size / padded: the call's batch size and whether its prompt has padding (static layers: B = 1 only).
     Raises:
         TypeError: a layer type that cannot be rolled back (names the layer and what would work).
         ValueError: a sliding-window layer whose window is shorter than ``max_length``, a static layer with fewer
-            slots than ``max_length``, or a static cache for a batch (each names the values and the fix).
+            slots than ``max_length`` (each names the values and the fix).
     """
     for index, layer in enumerate(_layers(cache)):
         kind = type(layer)
@@ -86,13 +86,6 @@ def check_rollback_cache(cache: Cache, max_length: int, batch_size: int = 1, pad
                 f"{layer.sliding_window}, or generate without assistant_model / draft_ids"
             )
         if kind in STATIC_LAYER_TYPES:
-            if batch_size > 1 or padded:
-                raise ValueError(
-                    f"a static KV cache (layer {index}'s {kind.__name__}) is supported for one unpadded sequence, got "
-                    f"batch size {batch_size}{' with prompt padding' if padded else ''}: the rows of a batch keep "
-                    f"different entries. Generate each row alone with the static cache, or use the default "
-                    f"DynamicCache (cache_implementation=None) for the batch"
-                )
             if layer.max_cache_len < max_length - 1:  # the last token is emitted, never fed (as in generate)
                 raise ValueError(
                     f"the static KV cache holds {layer.max_cache_len} tokens (layer {index}'s {kind.__name__}) but "
@@ -111,7 +104,7 @@ def check_rollback_cache(cache: Cache, max_length: int, batch_size: int = 1, pad
 _DRAFT_SLOT_CACHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def with_draft_slots(model, cache: Cache | None, slots: int, multiple: int = 1) -> Cache | None:
+def with_draft_slots(model, cache: Cache | None, slots: int, multiple: int = 1, batch_size: int = 1) -> Cache | None:
     """``generate``'s own static cache (``cache_implementation="static"``) replaced by one with ``slots`` more slots, so
     that a draft tree fits beside the tokens greedy decoding would store (``generate`` sizes it for those alone). The
     larger cache is kept per model and size and reused, emptied, by later calls (its buffers keep their addresses, as
@@ -124,6 +117,8 @@ def with_draft_slots(model, cache: Cache | None, slots: int, multiple: int = 1) 
         model: the target (its decoder's text config is read, as ``generate`` does; its dtype and device key reuse).
         multiple: the slot count is rounded up to a multiple of this (compiled graphs hold the cache's shape: prompts
             of different lengths then share one graph per width).
+        batch_size: the call's rows (a cache is reused only by calls of the same batch size: its layers take their
+            batch dimension from the first forward).
     """
     if type(cache) is not StaticCache or getattr(cache, "_is_user_defined", False) or slots <= 0:
         return cache
@@ -137,7 +132,7 @@ def with_draft_slots(model, cache: Cache | None, slots: int, multiple: int = 1) 
         if slots <= 0 or any(w != capacity for w in windows):
             return cache
     offloading = bool(getattr(cache, "offloading", False))
-    key = (capacity + slots, offloading, model.dtype, model.device)
+    key = (capacity + slots, offloading, model.dtype, model.device, batch_size)
     built = _DRAFT_SLOT_CACHES.setdefault(model, {})
     larger = built.get(key)
     if larger is not None and [type(layer) for layer in larger.layers] == [type(layer) for layer in cache.layers]:
@@ -158,6 +153,11 @@ def static_capacity(cache: Cache) -> int | None:
 def cache_length(cache: Cache) -> int:
     """The number of entries the cache holds (a static layer's counter read on the host)."""
     return int(cache.get_seq_length())
+
+
+def cache_batch_size(cache: Cache) -> int:
+    """The number of rows the cache's layers hold (after the first forward)."""
+    return next(_stored_layers(cache)).keys.shape[0]
 
 
 def sliding_window(cache: Cache) -> int | None:
@@ -295,6 +295,27 @@ def keep_cache_path(cache: Cache, base: int, path: torch.Tensor) -> None:
         else:
             prefix_keys, prefix_values = layer.keys[..., :base, :], layer.values[..., :base, :]
             _stored(layer, torch.cat([prefix_keys, keys], dim=-2), torch.cat([prefix_values, values], dim=-2))
+
+
+def compact_rows(cache: Cache, valid: torch.Tensor) -> torch.Tensor:
+    """Moves every row's valid entries to the front of the cache, in order, in place (a static layer's buffers keep
+    their addresses and its counter moves to the longest row): the batch's rectangle shrinks to its longest row. The
+    entries keep their positions (rotary positions are in the keys) and what attends to them does not change.
+
+    Args:
+        valid: ``[B, C]`` bool, True at the entries row b keeps (C: the cache's length).
+    Returns:
+        ``[B, C']`` bool, the entries' validity afterwards (row b: its first ``valid[b].sum()``), C' the longest row.
+    """
+    counts = valid.sum(dim=1)  # [B]
+    length = int(counts.max())
+    # per row, the columns of its valid entries first, in order (a stable sort of "is invalid"), cut to the longest row
+    order = torch.sort((~valid).to(torch.uint8), dim=1, stable=True).indices[:, :length]  # [B, C']
+    for layer in _stored_layers(cache):
+        heads, dim = layer.keys.shape[1], layer.keys.shape[-1]
+        index = order[:, None, :, None].expand(-1, heads, -1, dim)  # [B, H_kv, C', D]
+        _stored(layer, layer.keys.gather(2, index), layer.values.gather(2, index))  # copies: then written in place
+    return torch.arange(length, device=valid.device)[None] < counts[:, None]
 
 
 def select_cache_rows(cache: Cache, rows: torch.Tensor) -> None:

@@ -48,6 +48,10 @@ SLOT_MULTIPLE = 64
 _GRAPHS_BESIDE_OURS = 16
 
 _DEVICES_COMPILED_BY_DEFAULT = ("cuda", "xpu", "neuron", "tpu")
+
+#: the graphs compiled up front in this process (every width and prefill of every key: cache slots, batch size, ...):
+#: dynamo's recompile limit counts the graphs of one code object, a model class's forward, across its instances
+_graphs_compiled = 0
 _WARNED_EAGER_DEVICES: set[str] = set()  # device types already told that compile_config is ignored there
 
 
@@ -136,7 +140,9 @@ def compile_once(key: tuple, compile_all: Callable[[], None]) -> float:
 def reset_compilation() -> None:
     """``torch._dynamo.reset()`` and forgets what hf_specvla compiled up front (so that the next call compiles every
     width and depth again, before its first compiled round)."""
+    global _graphs_compiled
     torch._dynamo.reset()
+    _graphs_compiled = 0
     _COMPILED_WIDTHS.clear()
     _COMPILED_PREFILLS.clear()
     _EAGER_PREFILLS.clear()
@@ -165,6 +171,7 @@ def compile_every_width(model: PreTrainedModel, key: tuple, verify_width: Callab
         return 0.0
     start = time.perf_counter()
     widths = [b for b in buckets if b <= free_slots]
+    _count_graphs(len(widths))
     for width in widths:
         verify_width(width)
     done.add(key)
@@ -218,6 +225,7 @@ def compile_prefill(model: PreTrainedModel, key: tuple, cache: Cache, run_prefil
     from torch.fx.experimental.symbolic_shapes import ConstraintViolationError
 
     start = time.perf_counter()
+    _count_graphs(1)
     try:
         with preserved_entries(cache):
             run_prefill()
@@ -234,6 +242,14 @@ def compile_prefill(model: PreTrainedModel, key: tuple, cache: Cache, run_prefil
     seconds = time.perf_counter() - start
     logger.info("compiled the prefill (every prompt length, %d slots, hidden states %s) in %.1f s", *key[1:3], seconds)
     return seconds
+
+
+def _count_graphs(count: int) -> None:
+    """Books ``count`` graphs about to be compiled up front and raises dynamo's recompile limit to hold them beside
+    every graph compiled before (past the limit dynamo would refuse, or silently run eagerly)."""
+    global _graphs_compiled
+    _graphs_compiled += count
+    allow_graphs(_graphs_compiled + _GRAPHS_BESIDE_OURS)
 
 
 def allow_graphs(count: int) -> None:

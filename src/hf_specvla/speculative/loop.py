@@ -18,7 +18,9 @@ Invariants kept between rounds, per batch row (each row has its own drafter sess
 * After a round the target cache holds, for each row, the pending tokens and the accepted path as valid entries
   (an accepted node need not be leftmost in the tree: then the path is gathered). The cache is one rectangle for
   the batch: entries a row did not keep are invalid keys, masked like prompt padding (``DecodeState.key_valid``).
-  Finished rows leave the batch.
+  Finished rows leave the batch; a static cache keeps its batch (compiled graphs hold its shape): finished rows stay
+  in it as idle rows, fed filler and never read (``DecodeState.cache_rows``), and when its free slots run short every
+  row's valid entries are moved to the front ([`compact_rows`]).
 
 Entry point: [`speculative_generate`], a ``custom_generate`` callable for ``model.generate``.
 """
@@ -39,8 +41,10 @@ from transformers.generation.logits_process import PrefixConstrainedLogitsProces
 from ..actions.tokenizer import ActionLayout
 from .acceptance import AcceptanceRule, AcceptedPath, accept_trees, make_acceptance_rule
 from .cache import (
+    cache_batch_size,
     cache_length,
     check_rollback_cache,
+    compact_rows,
     keep_cache_path,
     open_sliding_windows,
     select_cache_positions,
@@ -106,9 +110,10 @@ class RowState:
 class DecodeState:
     """Everything one speculative decode carries between rounds (one explicit object, nothing on the models).
 
-    The tensors hold the rows still generating, in ``rows`` order (finished rows are dropped from them and from
-    the cache). The target cache is rectangular: a row that accepted fewer tokens than another in a round keeps
-    *invalid* entries there, masked by ``key_valid`` like the prompt's left padding.
+    The tensors hold the rows still generating, in ``rows`` order (finished rows are dropped from them and from a
+    dynamic cache). The target cache is rectangular: a row that accepted fewer tokens than another in a round keeps
+    *invalid* entries there, masked by ``key_valid`` like the prompt's left padding. A static cache keeps every row
+    of the call: ``cache_rows`` says which of its rows the generating rows are.
     """
 
     rows: list[RowState]
@@ -117,6 +122,17 @@ class DecodeState:
     position_offsets: torch.Tensor | None  # [K, B, 1] multi-component positions' offsets (Qwen2-VL), else None
     key_valid: torch.Tensor | None  # [B, C + P] False at invalid cached / pending keys; None = all valid
     target_cache: Cache
+    cache_rows: torch.Tensor | None = None  # [B] the rows' indices in a static cache's batch; None: the same rows
+
+
+def in_cache_batch(state: DecodeState, values: torch.Tensor, fill) -> torch.Tensor:
+    """``values`` ``[B, ...]`` of the generating rows -> ``[B_cache, ...]`` over a static cache's batch, its idle
+    rows (finished ones, kept in it) set to ``fill``; ``values`` itself when the cache holds exactly the rows."""
+    if state.cache_rows is None:
+        return values
+    out = values.new_full((cache_batch_size(state.target_cache), *values.shape[1:]), fill)
+    out[state.cache_rows] = values
+    return out
 
 
 class _Stopwatch:
@@ -325,7 +341,7 @@ def commit_paths(
     if all(p.nodes == list(range(len(p.nodes))) for p in paths):  # leftmost paths (chains): a prefix, truncate
         truncate_cache(state.target_cache, base + longest)  # a shorter row's extra entries become invalid keys
     else:
-        keep_cache_path(state.target_cache, base, node_index)
+        keep_cache_path(state.target_cache, base, in_cache_batch(state, node_index, 0))
     valid_before = state.key_valid
     if valid_before is None:
         valid_before = torch.ones(batch_size, base, dtype=torch.bool, device=device)
@@ -358,8 +374,10 @@ def commit_paths(
     return commits
 
 
-def drop_finished_rows(state: DecodeState) -> None:
-    """Removes finished rows from the batch tensors and the target cache, and cache columns no row needs."""
+def drop_finished_rows(state: DecodeState, fixed_batch: bool = False) -> None:
+    """Removes finished rows from the batch tensors, and from the target cache with the cache columns no row needs;
+    with ``fixed_batch`` (a static cache) the cache keeps its rows and columns: the finished ones become idle rows
+    (``state.cache_rows`` maps the rows still generating to theirs)."""
     active = [b for b, row in enumerate(state.rows) if not row.finished]
     if len(active) == len(state.rows):
         return
@@ -367,10 +385,15 @@ def drop_finished_rows(state: DecodeState) -> None:
     if not active:
         return
     index = torch.tensor(active, device=state.pending_ids.device)
-    select_cache_rows(state.target_cache, index)
     state.pending_ids, state.pending_positions = state.pending_ids[index], state.pending_positions[index]
     if state.position_offsets is not None:
         state.position_offsets = state.position_offsets[:, index]
+    if fixed_batch:
+        state.cache_rows = index if state.cache_rows is None else state.cache_rows[index]
+        if state.key_valid is not None:
+            state.key_valid = state.key_valid[index]
+        return
+    select_cache_rows(state.target_cache, index)
     if state.key_valid is not None:
         key_valid = state.key_valid[index]
         needed = key_valid[:, :-1].any(dim=0)  # cached columns some remaining row attends to
@@ -448,7 +471,7 @@ class RoundPlan:
     layout: ActionLayout | None
     output_hidden: bool  # the drafters read the target's hidden states
     window: int | None  # the target cache's smallest sliding window
-    capacity: int | None  # a static cache's slots (batch 1): trees fit in the free ones
+    capacity: int | None  # a static cache's slots: trees fit in the free ones
     compiled: Callable | None  # the compiled model call for rounds after the prefill, or None (eager)
     compiled_prefill: Callable | None  # the compiled call for the prefill (its graph compiled by an earlier call)
     buckets: tuple[int, ...]  # the widths a compiled verification is padded to (up to the drafter's largest tree)
@@ -478,15 +501,21 @@ def fit_trees(
     trees: list[DraftTree], state: DecodeState, plan: RoundPlan, at_prefill: bool, stats: SpeculationStats
 ) -> TreeBatch:
     """The rows' trees as one [`TreeBatch`]: a prefix-LM prefill keeps one chain, ``max_drafts_per_row`` cuts every
-    tree to its first nodes; on a static cache the pending tokens and the tree fit in the free slots, and a compiled
-    round is padded (or cut) to its width bucket."""
+    tree to its first nodes; on a static cache the pending tokens and the tree fit in the free slots (a batch's rows
+    are compacted first when invalid entries take the slots the trees need), and a compiled round is padded (or cut)
+    to its width bucket."""
     if at_prefill and plan.prefix_attention:
         trees = [tree.first_path() for tree in trees]
     if plan.max_drafts is not None:
         trees = [tree.truncate_nodes(plan.max_drafts) for tree in trees]
     width = 0  # the node count a compiled verification is padded to
-    if plan.capacity is not None:  # batch 1
+    if plan.capacity is not None:
         free = plan.capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
+        widest = max(tree.num_nodes for tree in trees)
+        wanted = verification_width(widest, plan.buckets[-1], plan.buckets) if plan.compiled is not None else widest
+        if free < wanted and state.key_valid is not None and not at_prefill:
+            _compact(state)
+            free = plan.capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
         if plan.compiled is not None and not at_prefill:  # one width per bucket: padded, or cut to fit
             free = width = verification_width(max(tree.num_nodes for tree in trees), free, plan.buckets)
             stats.compiled_widths.append(width)
@@ -494,25 +523,59 @@ def fit_trees(
     return TreeBatch(trees, min_nodes=width)
 
 
+def _compact(state: DecodeState) -> None:
+    """[`compact_rows`] on a static cache's batch: each row's valid entries moved to the front (idle rows keep none)."""
+    cached = cache_length(state.target_cache)
+    valid = in_cache_batch(state, state.key_valid[:, :cached], False)  # [B_cache, C]
+    if int(valid.sum(dim=1).max()) == cached:  # some row keeps every entry: nothing to free
+        return
+    compacted = compact_rows(state.target_cache, valid)  # [B_cache, C']
+    if state.cache_rows is not None:
+        compacted = compacted[state.cache_rows]
+    key_valid = torch.cat([compacted, state.key_valid[:, cached:]], dim=1)  # [B, C' + P]
+    state.key_valid = None if bool(key_valid.all()) else key_valid
+
+
 def verify(
     model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: TreeBatch, prefill_model_inputs: dict | None
 ) -> TargetOutput:
     """2. Every row's tree in one target forward: the prefill's (with the model's prepared inputs), else a
-    verification on the cache (compiled when the plan has a compiled call)."""
-    return verify_trees(
+    verification on the cache (compiled when the plan has a compiled call). A static cache's idle rows (finished,
+    kept in its batch) are fed a filler token and an empty tree, their outputs dropped."""
+    pending_ids, positions, key_valid, offsets = (
+        state.pending_ids, state.pending_positions, state.key_valid, state.position_offsets
+    )  # fmt: skip
+    if state.cache_rows is not None:
+        pending_ids, positions = in_cache_batch(state, pending_ids, 0), in_cache_batch(state, positions, 0)
+        if key_valid is None:
+            columns = cache_length(state.target_cache) + state.pending_ids.shape[1]
+            key_valid = torch.ones(state.pending_ids.shape[0], columns, dtype=torch.bool, device=pending_ids.device)
+        key_valid = in_cache_batch(state, key_valid, False)
+        key_valid[:, -1] = True  # an idle row's filler attends to itself
+        if offsets is not None:
+            offsets = in_cache_batch(state, offsets.transpose(0, 1), 0).transpose(0, 1)
+        rows = [DraftTree.empty(pending_ids.device)] * pending_ids.shape[0]
+        for tree, b in zip(trees.trees, state.cache_rows.tolist()):
+            rows[b] = tree
+        trees = TreeBatch(rows, min_nodes=trees.num_nodes)
+    output = verify_trees(
         model,
         prefill_model_inputs if prefill_model_inputs is not None else {CACHE_KEY: state.target_cache},
-        state.pending_ids,
-        state.pending_positions,
+        pending_ids,
+        positions,
         trees,
-        state.key_valid,
+        key_valid,
         output_hidden=plan.output_hidden,
         sliding_window=plan.window,
-        position_offsets=state.position_offsets,
+        position_offsets=offsets,
         key_length=plan.capacity,
         forward=plan.compiled_prefill if prefill_model_inputs is not None else plan.compiled,
         dynamic_length=prefill_model_inputs is not None and plan.compiled_prefill is not None,
     )
+    if state.cache_rows is None:
+        return output
+    hidden = None if output.hidden is None else output.hidden[state.cache_rows]
+    return TargetOutput(output.logits[state.cache_rows], hidden)
 
 
 def accept(
@@ -586,11 +649,12 @@ def _compile_every_width(model, plan: RoundPlan, compile_config, state: DecodeSt
     length = cache_length(cache)
 
     def verify_width(width: int) -> None:
-        verify(model, state, plan, TreeBatch([DraftTree.empty(state.pending_ids.device)], min_nodes=width), None)
+        empty = [DraftTree.empty(state.pending_ids.device)] * len(state.rows)
+        verify(model, state, plan, TreeBatch(empty, min_nodes=width), None)
         truncate_cache(cache, length)
 
     free = plan.capacity - length - state.pending_ids.shape[1]
-    key = (settings, plan.capacity, plan.output_hidden, plan.buckets)
+    key = (settings, plan.capacity, plan.output_hidden, plan.buckets, cache_batch_size(cache))
     return compile_every_width(model, key, verify_width, free, plan.buckets)
 
 
@@ -608,12 +672,14 @@ def _compile_prefill(model, plan: RoundPlan, key: tuple, model_inputs: dict, pro
     return compile_prefill(model, key, model_inputs[CACHE_KEY], run_prefill)
 
 
-def _compiled_prefill_key(model, generation_config, capacity: int, output_hidden: bool, prompt_length: int):
+def _compiled_prefill_key(
+    model, generation_config, capacity: int, output_hidden: bool, prompt_length: int, batch_size: int
+):
     """What a compiled prefill graph depends on (the compile settings, the cache's slots, whether hidden states are
-    returned), or None when this call's prefill stays eager: a prompt of one token (a size-1 dimension would be
-    specialised), or a model whose forward did not compile over the prompt. The caller checks the rest: a compiled
-    call (batch 1, a static cache), 2D positions, a causal prompt."""
-    key = (compile_settings(generation_config.compile_config), capacity, output_hidden)
+    returned, the batch size), or None when this call's prefill stays eager: a prompt of one token (a size-1
+    dimension would be specialised), or a model whose forward did not compile over the prompt. The caller checks the
+    rest: a compiled call (a static cache), 2D positions, a causal prompt."""
+    key = (compile_settings(generation_config.compile_config), capacity, output_hidden, batch_size)
     return None if prompt_length < 2 or prefill_stays_eager(model, key) else key
 
 
@@ -718,13 +784,14 @@ def speculative_generate(
     keep_logits = return_dict and generation_config.output_logits
     total_start = time.perf_counter()
 
-    padded = prompt_padding is not None
     # generate's own static cache holds the tokens greedy decoding stores; a tree needs slots beside them
-    model_kwargs[CACHE_KEY] = with_draft_slots(model, model_kwargs.get(CACHE_KEY), NODE_BUCKETS[-1], SLOT_MULTIPLE)
+    model_kwargs[CACHE_KEY] = with_draft_slots(
+        model, model_kwargs.get(CACHE_KEY), NODE_BUCKETS[-1], SLOT_MULTIPLE, batch_size
+    )
     if model_kwargs.get(CACHE_KEY) is not None:
-        check_rollback_cache(model_kwargs[CACHE_KEY], generation_config.max_length, batch_size, padded)
+        check_rollback_cache(model_kwargs[CACHE_KEY], generation_config.max_length)
     model_inputs = prefill_inputs(model, input_ids, model_kwargs)
-    check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length, batch_size, padded)
+    check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length)
     prompt_positions, position_offsets = _prompt_positions(model_inputs, input_ids, prompt_padding)
     cache = model_inputs[CACHE_KEY]
     compiled = None  # the compiled model call verifying every round after the prefill (fixed widths), or eager
@@ -753,7 +820,9 @@ def speculative_generate(
     prefix_attention = model_inputs.get("token_type_ids") is not None
     prefill_key = None  # the compiled prefill graph this call can use, or None (an eager prefill)
     if compiled is not None and not prefix_attention and position_offsets is None:
-        prefill_key = _compiled_prefill_key(model, generation_config, capacity, output_hidden, input_ids.shape[1])
+        prefill_key = _compiled_prefill_key(
+            model, generation_config, capacity, output_hidden, input_ids.shape[1], batch_size
+        )
     plan = RoundPlan(
         max_length=generation_config.max_length,
         rule=rule,
@@ -790,7 +859,7 @@ def speculative_generate(
                 stats.compile_seconds = _compile_every_width(model, plan, generation_config.compile_config, state)
                 if prefill_key is not None and plan.compiled_prefill is None:  # the next call's prefill, compiled
                     stats.compile_seconds += _compile_prefill(model, plan, prefill_key, model_inputs, prompt, trees)
-            drop_finished_rows(state)
+            drop_finished_rows(state, fixed_batch=plan.capacity is not None)
             at_prefill = False
 
     for row in all_rows:
