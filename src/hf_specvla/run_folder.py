@@ -104,6 +104,8 @@ ADDED_SETTINGS = {
     "tree.top_k": 4,
     "tree.depth": 6,
     "tree.total_tokens": 24,
+    # train-vla trained every parameter before it could freeze the vision tower
+    "freeze_vision": False,
     # the env's rendering (metaworld.env.RENDER_REVISION): runs before it was recorded rendered revision 1
     "env.render_revision": 1,
 }

@@ -1,5 +1,7 @@
 """The OpenVLA-style policy: loss, predict_action, save/load, bad input, and speculative decoding on it."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -198,6 +200,29 @@ def test_dataset_with_other_action_dim_is_refused(policy, tmp_path):
     demos.actions = np.zeros((4, 4), np.float32)  # no scene states: collected before the column existed
     with pytest.raises(ValueError, match="scene_state_dim=6 scene targets but the demonstrations have no"):
         train_vla(scene_policy, demos, VLATrainingConfig(str(tmp_path / "out"), max_steps=1))
+
+
+def test_freeze_vision_trains_everything_but_the_vision_tower(tmp_path):
+    from hf_specvla.metaworld.demonstrations import Demonstrations
+    from hf_specvla.training.behaviour_cloning import VLATrainingConfig, train_vla
+
+    actions = ActionNormalizer(q01=[-1.0] * 4, q99=[1.0] * 4)
+    policy = VLAPolicy.build(INSTRUCTIONS, actions, actions, VLAPolicyConfig(**SMALL))
+    rng = np.random.default_rng(0)
+    demos = Demonstrations(
+        rng.integers(0, 255, (8, 32, 32, 3), dtype=np.uint8), rng.uniform(-1, 1, (8, 4)).astype(np.float32),
+        rng.uniform(-1, 1, (8, 4)).astype(np.float32), ["reach-v3"] * 8, np.repeat(np.arange(2), 4),
+    )  # fmt: skip
+    before = {name: p.detach().clone() for name, p in policy.model.named_parameters()}
+    config = VLATrainingConfig(str(tmp_path / "out"), max_steps=2, batch_size=4, val_episodes=0, warmup_steps=0,
+                               eval_every=0, save_every=0, freeze_vision=True)  # fmt: skip
+    train_vla(policy, demos, config, progress=False)
+    moved = {name for name, p in policy.model.named_parameters() if not torch.equal(p, before[name])}
+    tower = {name for name in before if ".vision_tower." in f".{name}"}
+    assert tower and not moved & tower
+    assert any("language_model" in name for name in moved) and any("projector" in name for name in moved)
+    record = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert record["settings"]["freeze_vision"] is True  # the folder records it
 
 
 # ----------------------------------------------------------------------------- a batch of observations

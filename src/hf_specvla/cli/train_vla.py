@@ -51,6 +51,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--scene-loss-weight", type=float, default=None,
                         help="weight of the scene-state loss against the action tokens' (with --scene-targets; "
                              f"default {VLATrainingConfig.scene_loss_weight})")  # fmt: skip
+    parser.add_argument("--freeze-vision", action="store_true",
+                        help="do not train the vision tower (e.g. one pretrained on scenes: "
+                             "examples/metaworld/localization_probe.py --save-policy, with --init-from)")  # fmt: skip
     add_training_run_arguments(parser, VLATrainingConfig.seed)
 
 
@@ -62,7 +65,7 @@ def _configs(args, parser, info: dict) -> tuple[VLATrainingConfig, VLAPolicyConf
         config = VLATrainingConfig(
             args.output_dir, max_steps=args.max_steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
             eval_every=args.eval_every, save_every=args.save_every, resume=args.resume,
-            overwrite_output_dir=args.overwrite_output_dir, seed=args.seed, **weight,
+            overwrite_output_dir=args.overwrite_output_dir, seed=args.seed, freeze_vision=args.freeze_vision, **weight,
         )  # fmt: skip
         policy_config = VLAPolicyConfig(
             image_size=info["image_size"], camera=info["camera"], patch_size=args.patch_size,

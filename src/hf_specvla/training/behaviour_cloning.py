@@ -282,6 +282,8 @@ def train_vla(
         inputs["init_from"] = init_from.weights_fingerprint()
         layer_map = grow_from(policy, init_from)  # in memory only: refusals come before the folder is touched
         logger.info("initialised from %s (decoder layers %s)", init_from.name_or_path, layer_map)
+    if config.freeze_vision:  # the loop trains the parameters that require gradients
+        policy.model.model.vision_tower.requires_grad_(False)
     record = training_record("train-vla", config, inputs)
     with prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir) as run:
         chunk = policy.config.chunk_length

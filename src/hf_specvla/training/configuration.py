@@ -99,6 +99,8 @@ class VLATrainingConfig(TrainingConfig):
         augment_shift: pixels of random-shift augmentation (0 = off).
         scene_loss_weight: weight of the scene-state tokens' loss against the action tokens' (policies with
             ``scene_state_dim`` only).
+        freeze_vision: the vision tower is not trained (e.g. a tower pretrained to locate the scene:
+            ``examples/metaworld/localization_probe.py --save-policy``); the projector and the decoder are.
     """
 
     max_steps: int = 6000
@@ -111,6 +113,7 @@ class VLATrainingConfig(TrainingConfig):
     val_episodes: int = 2
     augment_shift: int = 4
     scene_loss_weight: float = 0.5
+    freeze_vision: bool = False
 
     def __post_init__(self):
         super().__post_init__()
