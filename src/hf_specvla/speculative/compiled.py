@@ -3,8 +3,9 @@
 A compiled graph (and a CUDA graph) holds one input shape. Every verification after the prefill feeds the pending
 token and a draft tree: its node count is rounded **up** to a width bucket (filler nodes pad it, see
 [`TreeBatch`]), its mask is always the explicit ``[1, 1, 1 + N, slots]`` tree mask over the static cache's slots,
-and it keeps ``1 + N`` logits, so a call site compiles one graph per bucket it meets and none afterwards, whatever
-the drafts, the accepted lengths or the tree shapes. Near the end of the cache, where a bucket no longer fits the
+and it keeps ``1 + N`` logits, so a call site compiles one graph per bucket it meets (per batch size: a batch keeps
+its rows in the static cache, finished ones included) and none afterwards, whatever the drafts, the accepted lengths
+or the tree shapes. Near the end of the cache, where a bucket no longer fits the
 free slots, the tree is cut to the largest bucket that does (fewer drafts, still exact) rather than compiling a
 new width.
 
