@@ -106,6 +106,8 @@ ADDED_SETTINGS = {
     "tree.total_tokens": 24,
     # train-vla trained every parameter before it could freeze the vision tower
     "freeze_vision": False,
+    # ... and before it could read the scene where the actions are decoded
+    "scene_readout_weight": 0.0,
     # the env's rendering (metaworld.env.RENDER_REVISION): runs before it was recorded rendered revision 1
     "env.render_revision": 1,
 }

@@ -116,6 +116,24 @@ def test_collect_train_eval(tmp_path, capsys):
     assert last["scene_loss"] > 0 and last["val_scene_loss"] > 0
     with pytest.raises(SystemExit):  # a scene loss weight without scene targets to weigh
         main(["train-vla", "--data", str(data), "--output-dir", str(tmp_path / "w"), "--scene-loss-weight", "1"])
+    # the scene read where the actions are decoded: reported on validation, kept in checkpoints, not in the policy
+    readout = tmp_path / "readout"
+    readout_args = [*scene_args[:5], str(readout), *scene_args[6:], "--scene-readout-weight", "0.5",
+                    "--save-every", "2"]  # fmt: skip
+    assert main(readout_args) == 0
+    last = json.loads((readout / "training_log.jsonl").read_text().splitlines()[-1])
+    assert last["scene_readout_loss"] > 0 and last["val_scene_readout_goal_m"] > 0
+    assert json.loads((readout / "run.json").read_text())["settings"]["scene_readout_weight"] == 0.5
+    from safetensors import safe_open
+
+    with safe_open(readout / "model.safetensors", "pt") as weights:
+        assert not [name for name in weights.keys() if "readout" in name]  # noqa: SIM118
+    readout_args[readout_args.index("--max-steps") + 1] = "3"
+    assert main([*readout_args, "--resume"]) == 0  # the readout continues from the checkpoint
+    with pytest.raises(SystemExit) as exit_info:  # a readout without scene statistics to read into
+        main(["train-vla", "--data", str(data), "--output-dir", str(tmp_path / "r"), "--scene-readout-weight", "1"])
+    assert exit_info.value.code == 2 and "--scene-readout-weight needs --scene-targets" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
 
 
 @pytest.mark.parametrize(

@@ -225,6 +225,39 @@ def test_freeze_vision_trains_everything_but_the_vision_tower(tmp_path):
     assert record["settings"]["freeze_vision"] is True  # the folder records it
 
 
+def test_scene_readout_reads_where_the_first_action_token_is_decoded(policy):
+    """The readout sees the prompt only: the actions after it (teacher-forced) cannot move it, the image does; it
+    reads the position whose logits decode the first action token."""
+    from hf_specvla.training.behaviour_cloning import PolicyWithSceneReadout, _forward
+
+    scene_norm = ActionNormalizer(q01=[-1.0] * 6, q99=[1.0] * 6)
+    config = VLAPolicyConfig(**SMALL, scene_state_dim=6)
+    scene_policy = VLAPolicy.build(INSTRUCTIONS, policy.action_normalizer, policy.state_normalizer, config,
+                                   scene_normalizer=scene_norm)  # fmt: skip
+    model = PolicyWithSceneReadout(scene_policy.model, 6).eval()
+    image, state = observation()
+    scenes = np.full((2, 6), 0.25)
+    seen = []
+    for actions, picture in [([[0.1, 0.2, -0.3, 1.0]] * 2, image), ([[-0.9, 0.4, 0.2, -1.0]] * 2, image),
+                             ([[0.1, 0.2, -0.3, 1.0]] * 2, 255 - image)]:  # fmt: skip
+        with torch.no_grad():
+            losses = _forward(scene_policy, model, picture[None].repeat(2, 0), [state, state], actions,
+                              INSTRUCTIONS, scenes, readout=True)  # fmt: skip
+        seen.append(losses["scene_readout_loss"].item())
+        assert losses["scene_readout_object_m"] > 0 and losses["action_count"] == 8
+    assert seen[0] == seen[1] and seen[0] != seen[2]
+    batch = scene_policy.training_batch(image[None], [state], [[0.1, 0.2, -0.3, 1.0]], INSTRUCTIONS[:1], scenes[:1])
+    position = len(scene_policy.prompt_ids(INSTRUCTIONS[0], state)) - 1
+    assert int((batch["labels"][0] != -100).int().argmax()) - 1 == position  # the readout's position
+    from hf_specvla.metaworld.demonstrations import Demonstrations
+    from hf_specvla.training.behaviour_cloning import VLATrainingConfig, train_vla
+
+    demos = Demonstrations(np.zeros((4, 32, 32, 3), np.uint8), np.zeros((4, 4), np.float32),
+                           np.zeros((4, 4), np.float32), ["reach-v3"] * 4, np.zeros(4, np.int64))  # fmt: skip
+    with pytest.raises(ValueError, match="scene_readout_weight=1.0 reads the scene state.*--scene-targets"):
+        train_vla(policy, demos, VLATrainingConfig("unused", max_steps=1, scene_readout_weight=1.0))
+
+
 # ----------------------------------------------------------------------------- a batch of observations
 def batch_of_observations(n):
     images, states = zip(*(observation(seed) for seed in range(n)))

@@ -51,6 +51,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--scene-loss-weight", type=float, default=None,
                         help="weight of the scene-state loss against the action tokens' (with --scene-targets; "
                              f"default {VLATrainingConfig.scene_loss_weight})")  # fmt: skip
+    parser.add_argument("--scene-readout-weight", type=float, default=None,
+                        help="also train a linear readout of the object and goal positions from the decoder where the "
+                             "first action token is decoded, with this loss weight (with --scene-targets; training "
+                             "only: the policy folder holds no readout, acting is unchanged; default "
+                             f"{VLATrainingConfig.scene_readout_weight}: none)")  # fmt: skip
     parser.add_argument("--freeze-vision", action="store_true",
                         help="do not train the vision tower (e.g. one pretrained on scenes: "
                              "examples/metaworld/localization_probe.py --save-policy, with --init-from)")  # fmt: skip
@@ -61,6 +66,8 @@ def _configs(args, parser, info: dict) -> tuple[VLATrainingConfig, VLAPolicyConf
     from ..metaworld.env import SCENE_STATE_DIM
 
     weight = {} if args.scene_loss_weight is None else {"scene_loss_weight": args.scene_loss_weight}
+    if args.scene_readout_weight is not None:
+        weight["scene_readout_weight"] = args.scene_readout_weight
     with usage_errors(parser, errors=(ValueError,)):
         config = VLATrainingConfig(
             args.output_dir, max_steps=args.max_steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
@@ -84,6 +91,9 @@ def run(args, parser) -> int:
 
     if args.scene_loss_weight is not None and not args.scene_targets:
         parser.error("--scene-loss-weight needs --scene-targets (it weighs the scene-state tokens' loss)")
+    if args.scene_readout_weight is not None and not args.scene_targets:
+        parser.error("--scene-readout-weight needs --scene-targets (the readout learns the data's scene_state column "
+                     "in the policy's scene-state statistics)")  # fmt: skip
     if args.tasks is not None:
         check_tasks(args.tasks, parser)
     check_training_folder(args.output_dir, args.resume, args.overwrite_output_dir, parser)

@@ -1,7 +1,9 @@
 """Behaviour cloning of a [`VLAPolicy`] on Meta-World demonstrations, on accelerate.
 
 Next-token cross-entropy on the action tokens only (the prompt, image and state tokens carry no loss; a policy
-with ``scene_state_dim`` also learns the scene-state tokens after them, weighted by ``scene_loss_weight``), AdamW with
+with ``scene_state_dim`` also learns the scene-state tokens after them, weighted by ``scene_loss_weight``, and / or,
+with ``scene_readout_weight``, a linear readout of the scene state where the first action token is decoded:
+[`PolicyWithSceneReadout`]), AdamW with
 warm-up and cosine decay, random-shift image augmentation (pad 4 px by edge replication, crop back: DrQ's
 augmentation, which matters for behaviour cloning from pixels). Validation on held-out *episodes*: loss and
 action-token accuracy (teacher-forced argmax == demonstrated token). Periodic checkpoints with full accelerate
@@ -124,29 +126,73 @@ def target_losses(logits: torch.Tensor, labels: torch.Tensor, action_dim: int) -
     return losses
 
 
-def _forward(policy: VLAPolicy, model, images, states, actions, instructions, scene_states) -> dict[str, torch.Tensor]:
-    """The action (and scene-state) token losses of ``model`` (the policy's model, maybe accelerate-wrapped)."""
+class PolicyWithSceneReadout(torch.nn.Module):
+    """Training only: a policy's model with a linear readout from the decoder's last hidden state at the position that
+    decodes the first action token (the prompt's last) to the frame's scene state (object and goal xyz, normalised
+    like the scene tokens). Its loss asks the representation the actions are decoded from to hold where the object and
+    the goal are, with nothing to copy them from (scene tokens after the actions can lean on the demonstrated actions,
+    which point at both). The readout is kept in checkpoints (a resumed run continues it) and never in the policy
+    folder: acting is unchanged.
+
+    Attributes:
+        model: the policy's ``LlavaForConditionalGeneration``; readout: ``Linear(text hidden size, scene_dim)``.
+    """
+
+    def __init__(self, model, scene_dim: int):
+        super().__init__()
+        self.model = model
+        self.readout = torch.nn.Linear(model.config.text_config.hidden_size, scene_dim)
+
+    def forward(self, readout_positions: torch.Tensor, **inputs) -> tuple[torch.Tensor, torch.Tensor]:
+        """``inputs``: the model's (``input_ids`` ``[B, L]``, ``attention_mask``, ``pixel_values``);
+        ``readout_positions`` ``[B]``: where each row's readout reads. Returns logits ``[B, L, V]`` and the readout
+        ``[B, scene_dim]``."""
+        output = self.model(**inputs, output_hidden_states=True)
+        hidden = output.hidden_states[-1]  # [B, L, D], after the final norm
+        rows = torch.arange(len(hidden), device=hidden.device)
+        return output.logits, self.readout(hidden[rows, readout_positions])
+
+
+def _forward(
+    policy: VLAPolicy, model, images, states, actions, instructions, scene_states, readout: bool = False
+) -> dict[str, torch.Tensor]:
+    """The action (and scene-state) token losses of ``model`` (the policy's model, maybe accelerate-wrapped); with
+    ``readout`` (``model`` a [`PolicyWithSceneReadout`]) also ``scene_readout_loss`` (mean squared error against the
+    normalised scene state) and the readout's mean ``scene_readout_object_m`` / ``scene_readout_goal_m`` errors."""
     batch = policy.training_batch(images, states, actions, instructions, scene_states)
     labels = batch.pop("labels")
-    return target_losses(model(**batch).logits, labels, policy.config.action_tokens)
+    if not readout:
+        return target_losses(model(**batch).logits, labels, policy.config.action_tokens)
+    positions = (labels != -100).int().argmax(dim=1) - 1  # [B]: the position that decodes the first target token
+    logits, predicted = model(readout_positions=positions, **batch)
+    losses = target_losses(logits, labels, policy.config.action_tokens)
+    normalizer = policy.scene_normalizer
+    target = torch.as_tensor(normalizer.normalize(np.asarray(scene_states)), dtype=predicted.dtype)
+    losses["scene_readout_loss"] = torch.nn.functional.mse_loss(predicted, target.to(predicted.device))
+    metres = normalizer.unnormalize(predicted.detach().float().cpu().numpy()) - np.asarray(scene_states)  # [B, 6]
+    losses["scene_readout_object_m"] = torch.tensor(np.linalg.norm(metres[:, :3], axis=1).mean())
+    losses["scene_readout_goal_m"] = torch.tensor(np.linalg.norm(metres[:, 3:6], axis=1).mean())
+    return losses
 
 
 @torch.no_grad()
-def validate(policy: VLAPolicy, model, loader: DataLoader) -> dict[str, float]:
+def validate(policy: VLAPolicy, model, loader: DataLoader, readout: bool = False) -> dict[str, float]:
     """Mean action-token ``loss`` and ``action_token_accuracy`` (teacher-forced) over a loader; and the scene-state
-    tokens' ``scene_loss`` for a policy that learns them. ``model`` in eval mode (the training loop's hook)."""
+    tokens' ``scene_loss`` for a policy that learns them; with ``readout``, the scene readout's loss and mean object /
+    goal errors in metres (see [`_forward`]). ``model`` in eval mode (the training loop's hook)."""
     sums: dict[str, float] = {}
     correct = count = batches = 0
     for images, states, actions, instructions, scene_states in loader:
-        losses = _forward(policy, model, images, states, actions, instructions, scene_states)
+        losses = _forward(policy, model, images, states, actions, instructions, scene_states, readout)
         correct += int(losses.pop("action_correct"))
         count += int(losses.pop("action_count"))
         for name, value in losses.items():
             sums[name] = sums.get(name, 0.0) + value.item()
         batches += 1
     metrics = {"loss": sums.get("action_loss", 0.0) / max(batches, 1), "action_token_accuracy": correct / max(count, 1)}
-    if "scene_loss" in sums:
-        metrics["scene_loss"] = sums["scene_loss"] / batches
+    for name in ("scene_loss", "scene_readout_loss", "scene_readout_object_m", "scene_readout_goal_m"):
+        if name in sums:
+            metrics[name] = sums[name] / batches
     return metrics
 
 
@@ -265,6 +311,11 @@ def train_vla(
             f"demonstrations have {scene_dim or 'no'} scene-state values per frame (collected before the "
             "scene_state column existed?); collect them again or train without scene targets"
         )
+    if config.scene_readout_weight > 0 and not policy.config.scene_state_dim:
+        raise ValueError(
+            f"scene_readout_weight={config.scene_readout_weight} reads the scene state into the policy's scene-state "
+            "statistics: build the policy with scene_state_dim (train-vla --scene-targets)"
+        )
     train_idx, val_idx = split_episodes(demos, config.val_episodes, config.seed)
     if len(train_idx) < config.batch_size:  # drop_last would leave no batch at all
         raise ValueError(
@@ -284,6 +335,8 @@ def train_vla(
         logger.info("initialised from %s (decoder layers %s)", init_from.name_or_path, layer_map)
     if config.freeze_vision:  # the loop trains the parameters that require gradients
         policy.model.model.vision_tower.requires_grad_(False)
+    readout = config.scene_readout_weight > 0
+    model = PolicyWithSceneReadout(policy.model, policy.config.scene_state_dim) if readout else policy.model
     record = training_record("train-vla", config, inputs)
     with prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir) as run:
         chunk = policy.config.chunk_length
@@ -293,22 +346,27 @@ def train_vla(
             images, states, actions, instructions, scene_states = batch
             rng = np.random.default_rng((config.seed, step))  # per step: a resumed run augments identically
             images = random_shift(images, config.augment_shift, rng)
-            losses = _forward(policy, model, images, states, actions, instructions, scene_states)
+            losses = _forward(policy, model, images, states, actions, instructions, scene_states, readout)
             metrics = {"loss": losses["action_loss"].detach()}
             total = losses["action_loss"]
             if "scene_loss" in losses:
                 total = total + config.scene_loss_weight * losses["scene_loss"]
                 metrics["scene_loss"] = losses["scene_loss"].detach()
+            if readout:
+                total = total + config.scene_readout_weight * losses["scene_readout_loss"]
+                metrics["scene_readout_loss"] = losses["scene_readout_loss"].detach()
             return total, metrics
 
         def save(model, folder: Path) -> None:
-            policy.model = model  # the unwrapped model: what a policy folder holds
+            # the unwrapped policy model: what a policy folder holds (a scene readout stays in the checkpoint)
+            policy.model = model.model if isinstance(model, PolicyWithSceneReadout) else model
             policy.save_pretrained(folder)
 
         job = TrainingJob(
-            policy.model, FrameDataset(demos, train_idx, chunk), loss, save,
-            validate=(lambda model: validate(policy, model, val_loader)) if len(val_idx) else None,
+            model, FrameDataset(demos, train_idx, chunk), loss, save,
+            validate=(lambda model: validate(policy, model, val_loader, readout)) if len(val_idx) else None,
             collate_fn=_collate, drop_last=True, checkpoint_name="policy", description="train-vla",
         )  # fmt: skip
-        policy.model, metrics = run_training(job, config, run.bound, progress=progress)  # the claimed folder
+        model, metrics = run_training(job, config, run.bound, progress=progress)  # the claimed folder
+        policy.model = model.model if isinstance(model, PolicyWithSceneReadout) else model
         return metrics

@@ -101,6 +101,9 @@ class VLATrainingConfig(TrainingConfig):
             ``scene_state_dim`` only).
         freeze_vision: the vision tower is not trained (e.g. a tower pretrained to locate the scene:
             ``examples/metaworld/localization_probe.py --save-policy``); the projector and the decoder are.
+        scene_readout_weight: weight of a linear readout's loss (mean squared error on the normalised object and goal
+            xyz) read from the decoder where the first action token is decoded (0 = none; training only, the policy
+            folder is unchanged: [`PolicyWithSceneReadout`]); policies with ``scene_state_dim`` only.
     """
 
     max_steps: int = 6000
@@ -114,10 +117,11 @@ class VLATrainingConfig(TrainingConfig):
     augment_shift: int = 4
     scene_loss_weight: float = 0.5
     freeze_vision: bool = False
+    scene_readout_weight: float = 0.0
 
     def __post_init__(self):
         super().__post_init__()
-        check_ranges(self, non_negative=("val_episodes", "augment_shift", "scene_loss_weight"))
+        check_ranges(self, non_negative=("val_episodes", "augment_shift", "scene_loss_weight", "scene_readout_weight"))
 
 
 @dataclass
