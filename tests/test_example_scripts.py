@@ -130,16 +130,20 @@ def test_batch_throughput_script_refuses_an_unknown_method_before_loading_anythi
 @pytest.mark.parametrize("second_view", ["none", "front"])
 def test_localization_probe_script_prints_the_error_table(second_view):
     pytest.importorskip("metaworld")
+    decoder = ["--decoder-steps", 2] if second_view == "none" else []  # the decoder reads the policy's own view
     result = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2", "--tasks",
                          "push", "--scenes", 3, "--validation-scenes", 2, "--steps", 2, "--second-view", second_view,
-                         timeout=600)  # fmt: skip
-    header = "| the policy's scene tokens: object / goal | the training mean: object / goal |"
+                         *decoder, timeout=600)  # fmt: skip
+    header = "| the policy's scene tokens: object / goal | the training mean: object / goal"
     assert header in result.stdout
+    assert ("| the decoder, scene tokens first (2 steps): object / goal |" in result.stdout) == bool(decoder)
     cells = next(line for line in result.stdout.splitlines() if line.startswith("| push-v3 |")).strip("|").split("|")
     assert all(math.isfinite(float(cell)) for cell in cells[1:5])
     own = cells[5].strip()  # policy v2 learned scene targets on its own (overview) images only
     assert own == "-" if second_view == "front" else all(math.isfinite(float(x)) for x in own.split(" / "))
     assert all(math.isfinite(float(x)) for x in cells[6].split(" / "))  # the training mean's errors
+    assert len(cells) == (8 if decoder else 7)
+    assert all(math.isfinite(float(x)) for cell in cells[7:] for x in cell.split(" / "))  # the decoder's errors
 
 
 def test_localization_probe_saves_the_policy_with_its_scene_trained_tower(tmp_path):
@@ -167,3 +171,6 @@ def test_localization_probe_script_refuses_bad_counts_before_rendering():
     result = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2", "--scenes", 1,
                          timeout=120, check=False)  # fmt: skip
     assert result.returncode == 2 and "--scenes >= 2" in result.stderr
+    result = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2",
+                         "--decoder-steps", 5, "--second-view", "front", timeout=120, check=False)  # fmt: skip
+    assert result.returncode == 2 and "--decoder-steps trains the policy's decoder on its own view" in result.stderr

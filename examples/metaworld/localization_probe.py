@@ -14,6 +14,13 @@ guessing the training scenes' mean position gives what knowing nothing scores.
     python examples/metaworld/localization_probe.py --policy runs/v3/mt10_vla3/checkpoint-3000/policy \\
         --second-view front --scenes 1500 --steps 3000
 
+``--decoder-steps N`` asks whether the policy's decoder can read what the tower holds: a copy of the policy, its
+tower held fixed, trains projector and decoder for N steps to emit the 6 scene tokens right after the prompt (no
+action tokens before them to lean on), and its held-out errors get a column:
+
+    python examples/metaworld/localization_probe.py --policy runs/v3/tower_pretrained --scenes 1500 --steps 1 \
+        --decoder-steps 600
+
 ``--save-policy DIR`` keeps the result: the policy with its vision tower trained on the scenes (a start for
 ``hf-specvla train-vla --init-from DIR``: a tower pretrained to locate what the tasks need), the arguments in
 ``DIR/scene_pretraining.json``:
@@ -89,6 +96,64 @@ def policy_scene_errors(policy, task: str, images: np.ndarray, states: np.ndarra
         predicted = policy.scene_normalizer.unnormalize(bins)[0]
         errors.append([np.linalg.norm(predicted[i : i + 3] - scene[i : i + 3]) for i in (0, 3)])
     return np.mean(errors, 0)
+
+
+def train_decoder_readout(policy, data: dict, steps: int, log_every: int):
+    """A copy of ``policy`` (its vision tower fixed) whose projector and decoder learn to emit the 6 scene tokens
+    (object xyz, goal xyz) right after the prompt, on the training scenes of ``data`` (``{task: (train, val)}``, as
+    [`render_scenes`] returns them); returns ``errors(task) -> [2]``: its held-out object and goal errors (m),
+    decoded greedily."""
+    from copy import deepcopy
+
+    from hf_specvla.metaworld.env import TASK_INSTRUCTIONS
+
+    model = deepcopy(policy.model).train()
+    model.model.vision_tower.requires_grad_(False)
+    normalizer, tokenizer = policy.scene_normalizer, policy.action_tokenizer
+    parameters = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.AdamW(parameters, lr=3e-4, weight_decay=0.01)
+    schedule = torch.optim.lr_scheduler.OneCycleLR(optimizer, 3e-4, total_steps=steps, pct_start=0.05)
+    scenes = [(task, i) for task in data for i in range(len(data[task][0][0]))]
+    rng = np.random.default_rng(0)
+    start = time.perf_counter()
+    for step in range(steps):
+        images, sequences = [], []
+        for k in rng.integers(0, len(scenes), 32):
+            task, i = scenes[k]
+            train_images, targets, states = data[task][0]
+            images.append(train_images[i])
+            scene_ids = tokenizer.encode(normalizer.normalize(targets[i : i + 1, :6]))[0].tolist()
+            sequences.append(policy.prompt_ids(TASK_INSTRUCTIONS[task], states[i]) + scene_ids)
+        length = max(map(len, sequences))
+        input_ids = torch.full((len(sequences), length), policy.tokenizer.pad_token_id)
+        mask, labels = torch.zeros_like(input_ids), torch.full_like(input_ids, -100)
+        for row, sequence in enumerate(sequences):
+            input_ids[row, : len(sequence)], mask[row, : len(sequence)] = torch.tensor(sequence), 1
+            labels[row, len(sequence) - 6 : len(sequence)] = input_ids[row, len(sequence) - 6 : len(sequence)]
+        shift = tuple(int(v) for v in rng.integers(-4, 5, 2))  # a random shift, as train-vla augments
+        pixels = torch.roll(policy.preprocess_images(np.stack(images)), shifts=shift, dims=(2, 3))
+        loss = model(input_ids=input_ids, attention_mask=mask, pixel_values=pixels, labels=labels).loss
+        optimizer.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(parameters, 1.0)
+        optimizer.step()
+        schedule.step()
+        if log_every and (step + 1) % log_every == 0:
+            seconds = time.perf_counter() - start
+            print(f"  decoder step {step + 1}/{steps}: loss {loss.item():.3f} ({seconds:.0f} s)", flush=True)
+    model.eval()
+
+    @torch.no_grad()
+    def errors(task: str) -> np.ndarray:
+        images, targets, states = data[task][1]
+        prompts = torch.tensor([policy.prompt_ids(TASK_INSTRUCTIONS[task], state) for state in states])
+        output = model.generate(input_ids=prompts, pixel_values=policy.preprocess_images(images), max_new_tokens=6,
+                                min_new_tokens=6, do_sample=False)  # fmt: skip
+        predicted = normalizer.unnormalize(tokenizer.decode(output[:, -6:].numpy()))  # [N, 6]
+        distances = [np.linalg.norm(predicted[:, i : i + 3] - targets[:, i : i + 3], axis=1) for i in (0, 3)]
+        return np.array([d.mean() for d in distances])
+
+    return errors
 
 
 def marker_centres(images: np.ndarray, channel: int) -> np.ndarray:
@@ -176,6 +241,10 @@ def main():
                         help="train a fresh tower of the policy's widths with this patch size instead")  # fmt: skip
     parser.add_argument("--save-policy", type=Path, default=None,
                         help="save the policy with its scene-trained tower here (a new folder)")  # fmt: skip
+    parser.add_argument("--decoder-steps", type=int, default=0,
+                        help="also train a copy of the policy's decoder (tower fixed) this many steps to emit the "
+                             "scene tokens right after the prompt, and report its errors (policies with scene "
+                             "targets; 0 = not)")  # fmt: skip
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     if args.save_policy is not None and args.save_policy.exists() and any(args.save_policy.iterdir()):
@@ -183,9 +252,11 @@ def main():
     if args.save_policy is not None and (args.fresh_patch_size or args.second_view != "none"):
         parser.error("--save-policy keeps the policy's own tower on its own view: drop --fresh-patch-size / "
                      "--second-view")  # fmt: skip
-    if args.scenes < 2 or args.validation_scenes < 1 or args.steps < 1:
-        parser.error(f"--scenes >= 2, --validation-scenes >= 1 and --steps >= 1, got {args.scenes}, "
-                     f"{args.validation_scenes}, {args.steps}")  # fmt: skip
+    if args.scenes < 2 or args.validation_scenes < 1 or args.steps < 1 or args.decoder_steps < 0:
+        parser.error(f"--scenes >= 2, --validation-scenes >= 1, --steps >= 1 and --decoder-steps >= 0, got "
+                     f"{args.scenes}, {args.validation_scenes}, {args.steps}, {args.decoder_steps}")  # fmt: skip
+    if args.decoder_steps and args.second_view != "none":
+        parser.error("--decoder-steps trains the policy's decoder on its own view: drop --second-view")
     from hf_specvla.metaworld.env import FREE_CAMERAS, resolve_tasks
     from hf_specvla.policies import VLAPolicy
 
@@ -195,6 +266,9 @@ def main():
         parser.error(str(error))
     torch.set_num_threads(args.threads)
     policy = VLAPolicy.from_pretrained(args.policy)
+    if args.decoder_steps and not policy.config.scene_state_dim:
+        parser.error(f"--decoder-steps: {args.policy} was trained without scene targets: it has no scene statistics "
+                     "to emit scene tokens in")  # fmt: skip
     size, camera = policy.config.image_size, policy.config.camera
     if args.fresh_patch_size and size % args.fresh_patch_size:
         parser.error(f"--fresh-patch-size must divide the policy's {size} px images, got {args.fresh_patch_size}")
@@ -215,6 +289,9 @@ def main():
         for task in tasks:
             images, targets, states = data[task][1]
             own[task] = policy_scene_errors(policy, task, images, states, targets[:, :6])
+    decoder_errors = None
+    if args.decoder_steps:
+        decoder_errors = train_decoder_readout(policy, data, args.decoder_steps, max(args.decoder_steps // 4, 1))
     train_images = np.concatenate([data[t][0][0] for t in tasks])
     train_targets = np.concatenate([data[t][0][1] for t in tasks])
     predict = train_readout(policy, train_images, train_targets, args.steps, args.fresh_patch_size,
@@ -228,9 +305,11 @@ def main():
     view = f"{camera} + front, stacked" if second else camera
     tower = f"fresh, {args.fresh_patch_size} px patches" if args.fresh_patch_size else "the policy's"
     print(f"\nvision tower: {tower}; view: {view}; {args.scenes} scenes per task; {args.steps} steps")
+    decoder = f" | the decoder, scene tokens first ({args.decoder_steps} steps): object / goal"
+    decoder = decoder if decoder_errors else ""
     print("| task | object | goal | hand | goal from the marker's colour | the policy's scene tokens: object / goal "
-          "| the training mean: object / goal |")  # fmt: skip
-    print("|---|---:|---:|---:|---:|---:|---:|")
+          f"| the training mean: object / goal{decoder} |")  # fmt: skip
+    print("|---|---:|---:|---:|---:|---:|---:|" + ("---:|" if decoder_errors else ""))
     for task in tasks:
         (train_x, train_y, _), (val_x, val_y, _) = data[task]
         error = np.abs(predict(val_x) - val_y)
@@ -242,8 +321,12 @@ def main():
         scene = f"{100 * own[task][0]:.1f} / {100 * own[task][1]:.1f}" if task in own else "-"
         guess = train_y.mean(0)  # [9]
         mean = [np.linalg.norm(val_y[:, i : i + 3] - guess[i : i + 3], axis=1).mean() * 100 for i in (0, 3)]
+        read = ""
+        if decoder_errors:
+            object_error, goal_error = 100 * decoder_errors(task)
+            read = f" {object_error:.1f} / {goal_error:.1f} |"
         print(f"| {task} | {norms[0]:.1f} | {norms[1]:.1f} | {norms[2]:.1f} | {colour} | {scene} "
-              f"| {mean[0]:.1f} / {mean[1]:.1f} |")  # fmt: skip
+              f"| {mean[0]:.1f} / {mean[1]:.1f} |{read}")  # fmt: skip
 
 
 if __name__ == "__main__":
