@@ -92,10 +92,14 @@ def policy_scene_errors(policy, task: str, images: np.ndarray, states: np.ndarra
         output = policy.model.generate(input_ids=prompt, pixel_values=policy.preprocess_images([image]),
                                        max_new_tokens=action_tokens + scene_dim,
                                        min_new_tokens=action_tokens + scene_dim, do_sample=False)  # fmt: skip
-        bins = policy.action_tokenizer.decode(output[:, -scene_dim:].numpy())
-        predicted = policy.scene_normalizer.unnormalize(bins)[0]
-        errors.append([np.linalg.norm(predicted[i : i + 3] - scene[i : i + 3]) for i in (0, 3)])
+        errors.append(scene_token_errors(policy, output[:, -scene_dim:], scene[None]))
     return np.mean(errors, 0)
+
+
+def scene_token_errors(policy, scene_ids: torch.Tensor, scenes: np.ndarray) -> np.ndarray:
+    """Mean object and goal errors (m) ``[2]`` of scene tokens ``[N, 6]`` against the true scenes ``[N, >= 6]``."""
+    predicted = policy.scene_normalizer.unnormalize(policy.action_tokenizer.decode(scene_ids.numpy()))  # [N, 6]
+    return np.array([np.linalg.norm(predicted[:, i : i + 3] - scenes[:, i : i + 3], axis=1).mean() for i in (0, 3)])
 
 
 def train_decoder_readout(policy, data: dict, steps: int, log_every: int):
@@ -149,9 +153,7 @@ def train_decoder_readout(policy, data: dict, steps: int, log_every: int):
         prompts = torch.tensor([policy.prompt_ids(TASK_INSTRUCTIONS[task], state) for state in states])
         output = model.generate(input_ids=prompts, pixel_values=policy.preprocess_images(images), max_new_tokens=6,
                                 min_new_tokens=6, do_sample=False)  # fmt: skip
-        predicted = normalizer.unnormalize(tokenizer.decode(output[:, -6:].numpy()))  # [N, 6]
-        distances = [np.linalg.norm(predicted[:, i : i + 3] - targets[:, i : i + 3], axis=1) for i in (0, 3)]
-        return np.array([d.mean() for d in distances])
+        return scene_token_errors(policy, output[:, -6:], targets)
 
     return errors
 

@@ -166,10 +166,10 @@ def _forward(
     positions = (labels != -100).int().argmax(dim=1) - 1  # [B]: the position that decodes the first target token
     logits, predicted = model(readout_positions=positions, **batch)
     losses = target_losses(logits, labels, policy.config.action_tokens)
-    normalizer = policy.scene_normalizer
-    target = torch.as_tensor(normalizer.normalize(np.asarray(scene_states)), dtype=predicted.dtype)
+    normalizer, scene_states = policy.scene_normalizer, np.asarray(scene_states)  # [B, 6]
+    target = torch.as_tensor(normalizer.normalize(scene_states), dtype=predicted.dtype)
     losses["scene_readout_loss"] = torch.nn.functional.mse_loss(predicted, target.to(predicted.device))
-    metres = normalizer.unnormalize(predicted.detach().float().cpu().numpy()) - np.asarray(scene_states)  # [B, 6]
+    metres = normalizer.unnormalize(predicted.detach().float().cpu().numpy()) - scene_states  # [B, 6]
     losses["scene_readout_object_m"] = torch.tensor(np.linalg.norm(metres[:, :3], axis=1).mean())
     losses["scene_readout_goal_m"] = torch.tensor(np.linalg.norm(metres[:, 3:6], axis=1).mean())
     return losses
@@ -357,9 +357,11 @@ def train_vla(
                 metrics["scene_readout_loss"] = losses["scene_readout_loss"].detach()
             return total, metrics
 
+        def policy_model(model):  # what a policy folder holds: a scene readout stays in the checkpoint
+            return model.model if isinstance(model, PolicyWithSceneReadout) else model
+
         def save(model, folder: Path) -> None:
-            # the unwrapped policy model: what a policy folder holds (a scene readout stays in the checkpoint)
-            policy.model = model.model if isinstance(model, PolicyWithSceneReadout) else model
+            policy.model = policy_model(model)  # the unwrapped model
             policy.save_pretrained(folder)
 
         job = TrainingJob(
@@ -368,5 +370,5 @@ def train_vla(
             collate_fn=_collate, drop_last=True, checkpoint_name="policy", description="train-vla",
         )  # fmt: skip
         model, metrics = run_training(job, config, run.bound, progress=progress)  # the claimed folder
-        policy.model = model.model if isinstance(model, PolicyWithSceneReadout) else model
+        policy.model = policy_model(model)
         return metrics
