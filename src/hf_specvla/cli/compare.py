@@ -24,8 +24,8 @@ EXAMPLES = """
     # Jacobi drafts (the target's own guesses past a rejection) against transformers' compiled greedy
     hf-specvla compare --policy policies/mt10_vla2 --tasks reach --episodes 1 \\
         --methods greedy greedy:compile prior+jacobi prior+jacobi:compile --output-dir runs/compare_jacobi_smoke
-    # The presets (exact: the fastest setting identical to greedy; fast: the recommended relaxed one) and a relaxed
-    # rule spelled out: r per dimension (a strict gripper), at most 1 relaxed token per action, a confidence gate
+    # The presets (exact: the fastest setting identical to greedy; fast: the relaxed one chosen on policy v2) and a
+    # relaxed rule spelled out: r per dimension (strict gripper), at most 1 relaxed token per action, a confidence gate
     hf-specvla compare --policy policies/mt10_vla2 --tasks reach --episodes 1 \\
         --methods greedy exact fast prior+jacobi:r=4/4/4/0,m=1,gate=0.5 --output-dir runs/compare_rules_smoke
 """
