@@ -43,8 +43,9 @@ METHOD_KEYS = {"r": "bin tolerance: an int, or one per action dimension joined b
                "k": "draft-head chain length (head only)"}  # fmt: skip
 #: preset -> (its method without a draft head, with one): chosen by the paired comparisons in docs/metaworld.md
 #: ("The presets on both seed ranges"): ``fast`` held the fidelity criterion on seeds 100000+ and 200000+ (policy v2)
-#: and missed it on policy v3, which solves the hard tasks ("The presets on policy v3": 17 of 200 episodes flipped,
-#: interval [-4.5, +3.5] points); ``exact`` was identical to greedy on every episode of both policies
+#: and missed it on policy v3, which solves the hard tasks ("The presets on policy v3": seeds 100000+ -0.5 [-4.5, +3.5]
+#: points, 200000+ +2.0 [-2.0, +6.0], 33 of 400 episodes flipped); ``exact`` was identical to greedy on every episode
+#: of both policies and both ranges
 PRESETS = {
     "exact": ("prior+jacobi:compile", "prior+jacobi:compile"),
     "fast": ("prior+jacobi:r=4/4/4/0,gate=0.5:compile", "prior+jacobi:r=4/4/4/0,gate=0.5:compile"),
