@@ -41,10 +41,7 @@ def test_old_from_imports_give_the_same_classes():
     assert (OldVLAPolicy, OldCompareConfig, OldDraftTrainingConfig) == (VLAPolicy, CompareConfig, DraftTrainingConfig)
 
 
-@pytest.mark.parametrize(
-    ("policy", "draft_head"),
-    [("mt10_vla", "mt10_vla_draft"), ("mt10_vla2", "mt10_vla2_draft"), ("mt10_vla3", "mt10_vla3_draft")],
-)
+@pytest.mark.parametrize(("policy", "draft_head"), [("mt10_vla", "mt10_vla_draft"), ("mt10_vla2", "mt10_vla2_draft")])
 def test_the_shipped_policies_and_heads_load(policy, draft_head):
     from hf_specvla import DraftHead
     from hf_specvla.policies import VLAPolicy
