@@ -15,12 +15,19 @@ import torch
 from hf_specvla.run_folder import (
     LOCK_FILE,
     RUN_FILE,
+    TIMING_FILE,
     FolderInUseError,
+    FolderTiming,
     RunRecord,
+    TimingConditionsError,
     claim_run_folder,
     fingerprint,
+    machine_fingerprint,
     open_run_folder,
     read_jsonl,
+    resolve_timing,
+    timing_conditions,
+    write_timing,
 )
 
 
@@ -218,3 +225,56 @@ def test_video_is_checked_up_front_and_never_costs_an_episode(tmp_path, tiny_pol
     with caplog.at_level(logging.WARNING):
         evaluation.evaluate(tiny_policy, "reach", 2, out, env, video_path=tmp_path / "w.gif", progress=False)
     assert "no video written" in caplog.text and not (tmp_path / "w.gif").exists()
+
+
+# ----------------------------------------------------------------------------- timing conditions
+def test_timings_continue_only_under_their_conditions(tmp_path, caplog):
+    folder = tmp_path / "run"
+    folder.mkdir()
+    one, two = timing_conditions(1, 1, 1), timing_conditions(1, 2, 2)
+    assert one["machine"] == machine_fingerprint() and {"system", "cpu", "cpu_count", "torch"} <= set(one["machine"])
+    assert resolve_timing(folder, one, []) == FolderTiming(one, None)  # a new folder takes this run's conditions
+    write_timing(folder, FolderTiming(one, None))
+    records = [{"seed": s, "timing": one} for s in range(3)]
+    assert resolve_timing(folder, one, records) == FolderTiming(one, None)  # the same conditions continue
+    # other threads: refused, naming what differs, both conditions and the ways out
+    with pytest.raises(TimingConditionsError) as refusal:
+        resolve_timing(folder, two, records)
+    message = str(refusal.value)
+    assert "threads: 2 here vs 1 there" in message and "torch_threads: 2 here vs 1 there" in message
+    assert "recorded workers=1, threads=1, torch_threads=1 on " in message
+    assert "this run workers=1, threads=2, torch_threads=2 (the same machine)" in message
+    assert "--restart-timing" in message and isinstance(refusal.value, FileExistsError)  # the CLI's usage errors
+    other_machine = {**one, "machine": {**one["machine"], "cpu_count": 96}}
+    with pytest.raises(TimingConditionsError, match="machine.cpu_count: 96 here vs"):
+        resolve_timing(folder, other_machine, records)
+    # a restart: this run's conditions from now on; the earlier records stay, out of the speed figures
+    with caplog.at_level(logging.WARNING):
+        restarted = resolve_timing(folder, two, records, restart=True)
+    assert restarted == FolderTiming(two, None) and "timing restarted" in caplog.text
+    assert not any(restarted.timed(r) for r in records) and restarted.timed({"timing": two})
+    write_timing(folder, restarted)
+    assert json.loads((folder / TIMING_FILE).read_text())["conditions"]["threads"] == 2
+    assert resolve_timing(folder, two, [*records, {"timing": two}]) == restarted  # and it continues without the flag
+    with pytest.raises(TimingConditionsError, match="threads: 1 here vs 2 there"):
+        resolve_timing(folder, one, records)  # the first conditions are not the folder's any more
+
+
+def test_records_from_before_timing_conditions_were_recorded(tmp_path, caplog):
+    """Records without ``timing`` are taken as timed under the first continuing run's conditions (with a warning),
+    unless what the folder recorded elsewhere disagrees (refused) or the timing restarts (left out)."""
+    folder = tmp_path / "old"
+    folder.mkdir()
+    now, untimed = timing_conditions(2, 1, 1), [{"seed": 0}, {"seed": 1}]
+    with caplog.at_level(logging.WARNING):
+        adopted = resolve_timing(folder, now, untimed, untimed_hint={"workers": 2, "threads": 1})
+    assert adopted == FolderTiming(now, now) and all(adopted.timed(r) for r in untimed)
+    assert "2 records were written before timing conditions were recorded; they are taken as timed" in caplog.text
+    with pytest.raises(TimingConditionsError, match=r"workers: 2 here vs 1 there\): recorded workers=1, threads=1;"):
+        resolve_timing(folder, now, untimed, untimed_hint={"workers": 1, "threads": 1})
+    for hint in ({"workers": 1, "threads": 1}, None):  # restarted: they stay, out of the speed figures
+        restarted = resolve_timing(folder, now, untimed, restart=True, untimed_hint=hint)
+        assert restarted == FolderTiming(now, None) and not any(restarted.timed(r) for r in untimed)
+    write_timing(folder, adopted)  # once adopted, they count under those conditions only
+    later = resolve_timing(folder, timing_conditions(1, 1, 1), [*untimed, {"timing": now}], restart=True)
+    assert later.untimed_conditions == now and not later.timed(untimed[0])

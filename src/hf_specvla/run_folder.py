@@ -22,6 +22,15 @@ folder is refused naming the holder, ``--overwrite-output-dir`` included; a lock
 over with a warning. The run then writes through ``RunFolder.bound``, a path bound to the directory it claimed
 (``/proc/<pid>/fd/<n>`` on Linux), so that renaming the folder, or moving it aside, never redirects a live run's
 writes into another folder of the same name.
+
+**Timings are of their conditions** ([`resolve_timing`], used by the commands whose records hold wall times): each
+timed record carries the conditions it was timed under ([`timing_conditions`]: workers, threads, torch's threads,
+[`machine_fingerprint`]), and ``timing.json`` names the folder's conditions, those its speed figures are of. A run
+under other conditions is refused, naming both, unless it restarts the timing: then the earlier records keep
+everything but their timings' place in speed figures (they stay in the logs), and only records timed under the new
+conditions enter them. Records written before conditions were recorded are taken as timed under the conditions of
+the first run that continues the folder (a warning says so), unless what the folder recorded elsewhere (e.g. a
+summary's threads and workers) disagrees, or that run restarts the timing: then they are left out of speed figures.
 """
 
 from __future__ import annotations
@@ -32,6 +41,7 @@ import hashlib
 import json
 import logging
 import os
+import platform
 import shlex
 import sys
 import time
@@ -44,6 +54,7 @@ logger = logging.getLogger(__name__)
 
 RUN_FILE = "run.json"
 LOCK_FILE = ".lock"
+TIMING_FILE = "timing.json"
 
 
 def fingerprint(module: torch.nn.Module) -> str:
@@ -382,3 +393,164 @@ def read_jsonl(path: str | Path) -> list[dict]:
             logger.warning("%s: dropping a torn last line (a crash mid-write); that record is redone", path)
             path.write_text("".join(line + "\n" for line in lines[:-1]))
     return records
+
+
+# ----------------------------------------------------------------------------- timing conditions
+def _cpu_model() -> str:
+    """The CPU's model name (Linux ``/proc/cpuinfo``; elsewhere ``platform.processor()``)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+@functools.cache
+def machine_fingerprint() -> dict:
+    """What a wall time depends on besides a run's settings: OS, architecture, CPU model, CPU count, torch version.
+    The host name is left out on purpose: identical machines (or a restarted container) time alike."""
+    return {"system": platform.system(), "arch": platform.machine(), "cpu": _cpu_model(),
+            "cpu_count": os.cpu_count(), "torch": torch.__version__}  # fmt: skip
+
+
+def timing_conditions(workers: int, threads: int, torch_threads: int) -> dict:
+    """The conditions a record's wall times were measured under (recorded with each timed record).
+
+    Args:
+        workers: processes the run is split between (they share the machine's cores).
+        threads: the CPU threads each worker was asked for.
+        torch_threads: the threads torch actually decodes with in the process that times (``torch.get_num_threads()``).
+    """
+    return {"workers": workers, "threads": threads, "torch_threads": torch_threads, "machine": machine_fingerprint()}
+
+
+def describe_conditions(conditions: dict, machine: bool = True) -> str:
+    """``workers=2, threads=1, torch_threads=1 on Linux x86_64, 'AMD EPYC' x 2 CPUs, torch 2.5.1`` (the keys a record
+    holds; ``machine=False`` leaves the machine out)."""
+    text = ", ".join(f"{key}={value}" for key, value in conditions.items() if key != "machine")
+    box = conditions.get("machine")
+    if machine and box:
+        text += (f" on {box.get('system')} {box.get('arch')}, {box.get('cpu')!r} x {box.get('cpu_count')} CPUs, "
+                 f"torch {box.get('torch')}")  # fmt: skip
+    return text
+
+
+class TimingConditionsError(FileExistsError):
+    """A folder's records were timed under other conditions than this run's (see [`resolve_timing`])."""
+
+
+@dataclass
+class FolderTiming:
+    """A folder's timing state, ``timing.json``.
+
+    Attributes:
+        conditions: the conditions the folder's speed figures are of (see [`timing_conditions`]).
+        untimed_conditions: what records without conditions (written before they were recorded) are taken as timed
+            under; None: they are left out of speed figures.
+    """
+
+    conditions: dict
+    untimed_conditions: dict | None = None
+
+    def timed(self, record: dict) -> bool:
+        """Whether ``record``'s wall times enter speed figures: it was timed under the folder's conditions."""
+        return record.get("timing", self.untimed_conditions) == self.conditions
+
+
+def _condition_differences(recorded: dict, now: dict) -> list[str]:
+    """``name: <now> here vs <recorded> there`` for every key ``recorded`` holds (a partial record compares only
+    what it knows)."""
+    saved, current = _flatten(recorded), _flatten(now)
+    return [f"{key}: {_shorten(current.get(key, '(not set)'))} here vs {_shorten(value)} there"
+            for key, value in saved.items() if current.get(key, "(not set)") != value]  # fmt: skip
+
+
+def _silent(*args, **kwargs) -> None:
+    pass
+
+
+def _read_timing(folder: Path) -> FolderTiming | None:
+    path = folder / TIMING_FILE
+    return FolderTiming(**json.loads(path.read_text())) if path.is_file() else None
+
+
+def resolve_timing(
+    folder: str | Path,
+    conditions: dict,
+    records: list[dict],
+    restart: bool = False,
+    untimed_hint: dict | None = None,
+    restart_flag: str = "--restart-timing",
+    announce: bool = True,
+) -> FolderTiming:
+    """The timing state a run under ``conditions`` continues ``folder`` with; writes nothing (see [`write_timing`]).
+
+    Args:
+        folder: the run folder (its ``timing.json`` is read when present).
+        conditions: this run's [`timing_conditions`].
+        records: the folder's records; those with a ``timing`` key say what they were timed under.
+        restart: start timing afresh under ``conditions``: records timed otherwise stay, out of speed figures.
+        untimed_hint: what the folder recorded elsewhere about the conditions of records without ``timing``, e.g.
+            ``{"workers": 2, "threads": 1}`` from a summary (only its keys are compared).
+        restart_flag: the option to name in the refusal.
+        announce: log what is done with earlier records (False for a check ahead of the run, which logs it).
+    Returns:
+        The folder's timing state from now on: a new folder's, the saved one, or the restarted one. Records without
+        conditions are taken as timed under ``conditions`` when nothing the folder holds says otherwise (a warning
+        says so), and left out of speed figures on a restart.
+    Raises:
+        TimingConditionsError: the folder's records were timed under other conditions and ``restart`` is False; the
+            message names both and the ways out.
+    """
+    folder = Path(folder)
+    conditions = json.loads(json.dumps(conditions))  # JSON-normal form, as saved
+    saved = _read_timing(folder)
+    untimed = sum("timing" not in r for r in records)
+    recorded: list[dict] = []  # the conditions this run must match to continue without a restart
+    if saved is not None:
+        recorded = [saved.conditions]
+    else:  # no timing.json: what the records say (written by a run that recorded conditions) or the hint
+        for record in records:
+            if "timing" in record and record["timing"] not in recorded:
+                recorded.append(record["timing"])
+        if not recorded and untimed and untimed_hint:
+            recorded = [untimed_hint]
+    differences = [d for r in recorded if (d := _condition_differences(r, conditions))]
+    if differences and not restart:
+        there = "; ".join(describe_conditions(r) for r in recorded)
+        same_machine = all(r.get("machine", conditions["machine"]) == conditions["machine"] for r in recorded)
+        here = describe_conditions(conditions, machine=not same_machine) + (" (the same machine)" * same_machine)
+        raise TimingConditionsError(
+            f"{str(folder)!r} holds episodes timed under other conditions ({'; '.join(differences[0])}): recorded "
+            f"{there}; this run {here}. Their speed figures would mix: rerun under the "
+            f"recorded conditions, pass {restart_flag} to keep the finished episodes and time only the episodes run "
+            f"from now on (the earlier timings stay in the folder, out of the speed figures), or choose another "
+            f"output folder"
+        )
+    warn, inform = (logger.warning, logger.info) if announce else (_silent, _silent)
+    if saved is not None and not differences:
+        if restart:
+            inform("%s: the timing conditions are unchanged (%s): nothing to restart", folder,
+                        describe_conditions(conditions))  # fmt: skip
+        return saved
+    if differences:  # restart: records timed otherwise keep their place, out of speed figures
+        warn("%s: timing restarted (%s): episodes timed under %s stay in the folder, out of the speed "
+                       "figures", folder, describe_conditions(conditions),
+                       "; ".join(describe_conditions(r) for r in recorded))  # fmt: skip
+        return FolderTiming(conditions, saved.untimed_conditions if saved else None)
+    if untimed and not restart:
+        warn("%s: %d records were written before timing conditions were recorded; they are taken as timed "
+                       "under this run's (%s); if they were not, rerun with %s to time only new episodes",
+                       folder, untimed, describe_conditions(conditions), restart_flag)  # fmt: skip
+        return FolderTiming(conditions, conditions)
+    if untimed:
+        warn("%s: %d records written before timing conditions were recorded are left out of the speed "
+                       "figures (%s)", folder, untimed, restart_flag)  # fmt: skip
+    return FolderTiming(conditions, None)
+
+
+def write_timing(folder: str | Path, timing: FolderTiming) -> None:
+    """Saves a folder's timing state (``timing.json``)."""
+    write_json_atomic(Path(folder) / TIMING_FILE, asdict(timing))

@@ -3,9 +3,20 @@
 import json
 import re
 
+import numpy as np
 import pytest
 
-from hf_specvla.metaworld.comparison import DRAFTER_CHOICES, PRESETS, DecodingMethod, paired_difference, parse_methods
+from hf_specvla.metaworld.comparison import (
+    DRAFTER_CHOICES,
+    PRESETS,
+    DecodingMethod,
+    format_comparison,
+    paired_difference,
+    paired_speedup,
+    parse_methods,
+    per_call_latencies,
+    summarize_comparison,
+)
 
 
 def test_paired_difference_known_answers():
@@ -26,6 +37,80 @@ def test_paired_difference_known_answers():
     assert -0.02 <= mixed["ci_low"] <= 0.01 and 0.19 <= mixed["ci_high"] <= 0.22
     with pytest.raises(ValueError, match="equally long"):
         paired_difference([True], [True, False])
+
+
+def test_paired_speedup_is_the_ratio_of_total_time_per_call():
+    greedy = [[10.0, 12.0, 14.0], [20.0, 20.0], [9.0]]  # 6 calls, 85 ms
+    method = [[5.0, 6.0, 7.0], [10.0, 12.0], [3.0]]  # 6 calls, 43 ms
+    result = paired_speedup(greedy, method)
+    assert result["speedup"] == pytest.approx(85 / 43) and result["pairs"] == 3
+    assert result["ci_low"] <= result["speedup"] <= result["ci_high"]
+    # calls may differ (a relaxed episode can end elsewhere): the ratio of the mean ms per call
+    relaxed = [[5.0, 6.0], [10.0, 12.0, 8.0, 9.0], [3.0]]  # 7 calls, 53 ms
+    assert paired_speedup(greedy, relaxed)["speedup"] == pytest.approx((85 / 6) / (53 / 7))
+    # identical timings: 1.0 with a degenerate interval; twice as fast on every call: 2.0, degenerate too
+    same = paired_speedup(greedy, greedy)
+    assert (same["speedup"], same["ci_low"], same["ci_high"]) == (1.0, 1.0, 1.0)
+    twice = paired_speedup(greedy, [[x / 2 for x in episode] for episode in greedy])
+    assert (twice["speedup"], twice["ci_low"], twice["ci_high"]) == (2.0, 2.0, 2.0)
+    # not the median of per-episode ratios: one slow episode moves the total, not the median
+    rng = np.random.default_rng(0)
+    base = [list(rng.uniform(90, 110, 50)) for _ in range(40)]
+    fast = [[x / 1.5 for x in episode] for episode in base]
+    fast[0] = [x * 20 for x in fast[0]]  # one episode 20x slower
+    result = paired_speedup(base, fast)  # 4000 ms against 39 x 66.7 + 1333 ms: ~1.02x (the median ratio: 1.5x)
+    assert 1.0 < result["speedup"] < 1.05 and result["ci_low"] <= result["speedup"] <= result["ci_high"]
+    assert result == paired_speedup(base, fast)  # a fixed seed: the same interval every time
+    for bad, message in [(([[1.0]], [[1.0], [1.0]]), "equally long"), (([], []), "non-empty"),
+                         (([[1.0]], [[]]), "at least one timed call")]:  # fmt: skip
+        with pytest.raises(ValueError, match=message):
+            paired_speedup(*bad)
+
+
+def _record(task, seed, method, latencies, success=True, timing=None):
+    """A comparison log record with the fields the statistics read (4 tokens per call, greedy's forwards)."""
+    record = {"task": task, "seed": seed, "method": method, "success": success, "length": len(latencies),
+              "latencies_ms": latencies, "target_forwards": 4 * len(latencies), "new_tokens": 4 * len(latencies),
+              "accept_length_counts": {"1": 4 * len(latencies)}, "bin_distance_sum": 0, "bin_distance_count": 0,
+              "bin_distance_max": 0, "actions_digest": f"{task}{seed}"}  # fmt: skip
+    return record if timing is None else {**record, "timing": timing}
+
+
+def test_summary_keeps_per_call_times_and_times_only_episodes_of_the_folders_conditions():
+    rng = np.random.default_rng(1)
+    records = []
+    for seed in range(6):
+        greedy = [round(float(x), 3) for x in rng.uniform(90, 110, 20)]
+        records.append(_record("reach-v3", seed, "greedy", greedy, timing="old" if seed < 2 else "new"))
+        method = [round(x / 2, 3) for x in greedy] if seed >= 2 else [round(x * 5, 3) for x in greedy]
+        records.append(_record("reach-v3", seed, "prior", method, timing="old" if seed < 2 else "new"))
+    methods = ["greedy", "prior"]
+    summary = summarize_comparison(records, methods, timed=lambda r: r["timing"] == "new")
+    row = summary["methods"]["prior"]
+    # speed from the 4 seeds timed under the folder's conditions only; success from all 6
+    assert row["episodes"] == 6 and row["timed_episodes"] == 4 and row["vs_greedy"]["pairs"] == 6
+    assert row["speedup_total"]["pairs"] == 4 and row["speedup_total"]["speedup"] == pytest.approx(2.0, rel=1e-4)
+    assert row["speedup"] == pytest.approx(2.0, rel=1e-3) and row["speedup_vs_greedy_compile"] is None
+    assert row["speedup_total_vs_greedy_compile"] is None
+    everything = summarize_comparison(records, methods)["methods"]["prior"]
+    assert everything["speedup_total"]["pairs"] == 6 and everything["speedup_total"]["speedup"] < 1.0
+    # the per-call times kept in the summary recompute the statistic (to their 0.01 ms rounding)
+    kept = per_call_latencies(json.loads(json.dumps(summary)))
+    assert sorted(kept["prior"]) == [("reach-v3", s) for s in range(2, 6)]
+    assert kept["greedy"]["reach-v3", 2] == pytest.approx(records[4]["latencies_ms"], abs=0.005)
+    keys = sorted(kept["prior"])
+    again = paired_speedup([kept["greedy"][k] for k in keys], [kept["prior"][k] for k in keys])
+    assert again["speedup"] == pytest.approx(row["speedup_total"]["speedup"], rel=1e-4)
+    table = format_comparison(summary)
+    assert "speed-up, total time (95% CI)" in table and "speed-up, median of ratios" in table
+    assert f"| {row['speedup_total']['speedup']:.2f}x [" in table and "(4 pairs)" in table
+    # against compiled greedy too, when it ran
+    compiled = [_record(r["task"], r["seed"], "greedy:compile", [x / 2 for x in r["latencies_ms"]])
+                for r in records if r["method"] == "greedy"]  # fmt: skip
+    row = summarize_comparison(records + compiled, ["greedy", "greedy:compile", "prior"])["methods"]["prior"]
+    assert row["speedup_total_vs_greedy_compile"]["speedup"] == pytest.approx(
+        row["speedup_total"]["speedup"] / 2, rel=1e-6
+    )
 
 
 def test_jacobi_methods_build_their_drafters(random_draft):
@@ -108,9 +193,9 @@ from hf_specvla.metaworld.comparison import PLOTS  # noqa: E402
 from tests.training.test_policy_draft import build_policy  # noqa: E402
 
 COLUMNS = {"episodes", "success_rate", "task_success_rates", "vs_greedy", "mean_episode_length", "median_ms_per_call",
-           "speedup", "speedup_vs_greedy_compile", "target_forwards_per_action", "target_forwards_per_call",
-           "tokens_per_target_forward", "accept_length_counts", "mean_bin_deviation", "max_bin_deviation",
-           "identical_to_greedy"}  # fmt: skip
+           "speedup", "speedup_vs_greedy_compile", "speedup_total", "speedup_total_vs_greedy_compile",
+           "timed_episodes", "target_forwards_per_action", "target_forwards_per_call", "tokens_per_target_forward",
+           "accept_length_counts", "mean_bin_deviation", "max_bin_deviation", "identical_to_greedy"}  # fmt: skip
 
 
 @pytest.fixture(scope="module")

@@ -24,6 +24,10 @@ EXAMPLES = """
     # Jacobi drafts (the target's own guesses past a rejection) against transformers' compiled greedy
     hf-specvla compare --policy policies/mt10_vla2 --tasks reach --episodes 1 \\
         --methods greedy greedy:compile prior+jacobi prior+jacobi:compile --output-dir runs/compare_jacobi_smoke
+    # More seeds into a folder timed with 1 worker, now with 2: refused (timings would mix) unless the timing restarts
+    # (the finished episodes kept; only episodes timed from now on enter the speed columns)
+    hf-specvla compare --policy policies/mt10_vla --tasks reach --episodes 4 --methods greedy prior prior:r=4 \\
+        --workers 2 --restart-timing --output-dir runs/compare_smoke
     # The presets (exact: the fastest setting identical to greedy; fast: the relaxed one chosen on policy v2) and a
     # relaxed rule spelled out: r per dimension (strict gripper), at most 1 relaxed token per action, a confidence gate
     hf-specvla compare --policy policies/mt10_vla2 --tasks reach --episodes 1 \\
@@ -54,10 +58,14 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--overwrite-output-dir", action="store_true", help="move a folder holding another run aside, start over"
     )
+    parser.add_argument("--restart-timing", action="store_true",
+                        help="continue a folder timed under other conditions (workers, threads, machine): its finished "
+                             "episodes are kept, only episodes timed from now on enter the speed columns")  # fmt: skip
 
 
 def run(args, parser) -> int:
     from ..metaworld.comparison import format_comparison, run_comparison
+    from ..metaworld.comparison.runner import WorkerDiedError, check_timing
     from ..speculative import DraftHead
 
     with usage_errors(parser, errors=(ValueError,)):
@@ -70,11 +78,20 @@ def run(args, parser) -> int:
                        "prior+head, prior+tree); it is ignored", args.draft_head, config.methods)  # fmt: skip
         args.draft_head = None
     check_draft_head_flag(args.draft_head, parser)
+    if not args.overwrite_output_dir:  # a folder timed otherwise is refused before anything loads
+        with usage_errors(parser, errors=(FileExistsError,)):
+            check_timing(args.output_dir, config, args.restart_timing)
     policy = load_policy(args.policy, parser)
     draft_head = DraftHead.from_pretrained(args.draft_head).eval() if args.draft_head else None
-    with usage_errors(parser, errors=(FileExistsError, ValueError)):
-        summary = run_comparison(policy, config, args.output_dir, draft_head, args.policy, args.draft_head,
-                                 overwrite=args.overwrite_output_dir)  # fmt: skip
+    try:
+        with usage_errors(parser, errors=(FileExistsError, ValueError)):
+            summary = run_comparison(
+                policy, config, args.output_dir, draft_head, args.policy, args.draft_head,
+                overwrite=args.overwrite_output_dir, restart_timing=args.restart_timing,
+            )  # fmt: skip
+    except WorkerDiedError as error:  # a killed worker: the folder is consistent, the same command resumes it
+        logger.error("%s", error)
+        return 1
     print(format_comparison(summary))
     print(f"table, JSON and plots in {args.output_dir}")
     return 0

@@ -1,5 +1,10 @@
 """Running a comparison: every method on every (task, seed), seed-major, methods in a fresh random order per seed,
-in one or several worker processes; one resumable log per worker; the summary, table and plots at the end."""
+in one or several worker processes; one resumable log per worker; the summary, table and plots at the end.
+
+Every episode record carries the conditions it was timed under (workers, threads, torch's threads, the machine:
+``run_folder.timing_conditions``); a folder continues only under its recorded conditions, or with
+``restart_timing`` (``--restart-timing``), which keeps the finished episodes and lets only the episodes timed from
+then on into the speed figures (``run_folder.resolve_timing``)."""
 
 from __future__ import annotations
 
@@ -8,10 +13,12 @@ import json
 import logging
 import os
 import random
+import signal
 import threading
 import time
 from collections import Counter
 from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict
 from multiprocessing import get_context
 from pathlib import Path
@@ -21,7 +28,17 @@ import torch
 
 from ...policies import VLAPolicy
 from ...progress import progress_bar
-from ...run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
+from ...run_folder import (
+    FolderTiming,
+    RunRecord,
+    claim_run_folder,
+    fingerprint,
+    read_jsonl,
+    resolve_timing,
+    timing_conditions,
+    write_json_atomic,
+    write_timing,
+)
 from ...speculative import DraftHead, DraftTreeConfig, check_bin_tolerance_range, make_acceptance_rule
 from ..env import EnvConfig, MetaWorldEnv
 from ..rollout import rollout
@@ -32,6 +49,12 @@ from .statistics import format_comparison, plot_comparison, summarize_comparison
 logger = logging.getLogger(__name__)
 
 LOG_PATTERN = "episodes.worker-*.jsonl"
+RESTART_TIMING_FLAG = "--restart-timing"
+
+
+class WorkerDiedError(RuntimeError):
+    """A comparison worker process ended abruptly (killed, out of memory); the finished episodes are saved and
+    rerunning the same command resumes."""
 
 
 # ----------------------------------------------------------------------------- episodes
@@ -143,10 +166,11 @@ def _run_shard(
     pairs: list[tuple[str, int]],
     log_path: Path,
     done: set[tuple[str, int, str]],
+    timing: dict,
     bar=None,
 ) -> None:
     """Runs every method not yet ``done`` on each (task, seed) of ``pairs``, seed by seed, appending to
-    ``log_path``."""
+    ``log_path`` records that carry ``timing`` (the conditions they were timed under)."""
     env_config = EnvConfig(policy.config.image_size, policy.config.camera, config.max_episode_steps)
     methods, tree = config.decoding_methods(), config.tree_config()
     env = None
@@ -162,7 +186,7 @@ def _run_shard(
                 warm_up_compiled(policy, env, methods, draft_head, tree=tree)
             random.Random(f"{config.order_seed}:{task}:{seed}").shuffle(todo)
             for method in todo:
-                record = run_method_episode(policy, env, seed, method, draft_head, tree)
+                record = {**run_method_episode(policy, env, seed, method, draft_head, tree), "timing": timing}
                 with log_path.open("a") as log:
                     log.write(json.dumps(record) + "\n")
                 if bar is not None:
@@ -195,9 +219,11 @@ def _worker_main(policy_dir: str, draft_head_dir: str | None, config: dict, pair
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     config = CompareConfig(**config)
     torch.set_num_threads(config.threads)
+    timing = timing_conditions(config.workers, config.threads, torch.get_num_threads())  # as this worker times
     policy = VLAPolicy.from_pretrained(policy_dir)
     draft_head = None if draft_head_dir is None else DraftHead.from_pretrained(draft_head_dir).eval()
-    _run_shard(policy, draft_head, config, [tuple(p) for p in pairs], Path(log_path), {tuple(d) for d in done})
+    _run_shard(policy, draft_head, config, [tuple(p) for p in pairs], Path(log_path), {tuple(d) for d in done},
+               timing)  # fmt: skip
 
 
 def _count_log_lines(output_dir: Path) -> int:
@@ -209,6 +235,52 @@ def read_episode_logs(output_dir: Path) -> list[dict]:
     return [record for path in sorted(output_dir.glob(LOG_PATTERN)) for record in read_jsonl(path)]
 
 
+def _peek_episode_logs(output_dir: Path) -> list[dict]:
+    """The episode records of a folder read without repairing anything (a folder this process does not hold: a torn
+    line may be another run's line being written)."""
+    records = []
+    for path in sorted(output_dir.glob(LOG_PATTERN)):
+        for line in path.read_text().splitlines():
+            try:
+                records.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue
+    return records
+
+
+def compare_timing_conditions(config: CompareConfig) -> dict:
+    """The conditions a comparison's episodes are timed under: workers set torch's threads to ``config.threads``;
+    one worker decodes in this process, with torch's threads as they are (the CLI sets them to ``--threads``)."""
+    torch_threads = config.threads if config.workers > 1 else torch.get_num_threads()
+    return timing_conditions(config.workers, config.threads, torch_threads)
+
+
+def _untimed_hint(output_dir: Path) -> dict | None:
+    """What a folder written before episodes carried their timing conditions says about them: the workers and
+    threads its last ``summary.json`` names (None: no summary)."""
+    path = output_dir / "summary.json"
+    try:
+        settings = json.loads(path.read_text()).get("settings", {})
+    except (OSError, json.JSONDecodeError):
+        return None
+    hint = {key: settings[key] for key in ("workers", "threads") if key in settings}
+    return hint or None
+
+
+def check_timing(output_dir: str | Path, config: CompareConfig, restart_timing: bool = False) -> None:
+    """The timing refusal of [`run_comparison`] ahead of it, writing nothing (call it before loading models).
+
+    Raises:
+        TimingConditionsError: ``output_dir`` holds episodes timed under other conditions and ``restart_timing`` is
+            False; the message names both.
+    """
+    output_dir = Path(output_dir)
+    if output_dir.is_dir():
+        records = _peek_episode_logs(output_dir)
+        resolve_timing(output_dir, compare_timing_conditions(config), records, restart_timing,
+                       _untimed_hint(output_dir), RESTART_TIMING_FLAG, announce=False)  # fmt: skip
+
+
 def run_comparison(
     policy: VLAPolicy,
     config: CompareConfig,
@@ -218,15 +290,21 @@ def run_comparison(
     draft_head_dir: str | None = None,
     overwrite: bool = False,
     progress: bool = True,
+    restart_timing: bool = False,
 ) -> dict:
     """Runs (or resumes) a comparison into ``output_dir`` and writes its summary, table and plots.
 
     ``workers > 1`` spawns processes that load the policy (and head) from ``policy_dir`` (``draft_head_dir``);
-    with one worker everything runs in this process on ``policy``.
+    with one worker everything runs in this process on ``policy``. ``restart_timing``: continue a folder timed
+    under other conditions (workers, threads, machine), keeping its finished episodes; only episodes timed under
+    this run's conditions enter the speed figures.
 
     Raises:
         ValueError: a method needs a draft head and none was given, or the head was made for another policy.
         FileExistsError: ``output_dir`` holds another comparison (other weights, env, seeds or methods).
+        TimingConditionsError (a FileExistsError): ``output_dir``'s episodes were timed under other conditions
+            and ``restart_timing`` is False.
+        WorkerDiedError: a worker process died (killed, out of memory); the finished episodes are saved.
     """
     methods = config.decoding_methods()
     config.check_draft_head_given(draft_head is not None)
@@ -251,7 +329,11 @@ def run_comparison(
         settings["tree"] = asdict(config.tree_config())  # what the tree methods drafted with
     with claim_run_folder(output_dir, RunRecord("compare", settings), overwrite) as run:
         output_dir = run.bound  # writes stay in the claimed folder, renamed or not
-        done = {(r["task"], r["seed"], r["method"]) for r in read_episode_logs(output_dir)}
+        records = read_episode_logs(output_dir)
+        timing = resolve_timing(run.path, compare_timing_conditions(config), records, restart_timing,
+                                _untimed_hint(output_dir), RESTART_TIMING_FLAG)  # fmt: skip
+        write_timing(output_dir, timing)
+        done = {(r["task"], r["seed"], r["method"]) for r in records}
         pairs = config.pairs()
         total = len(pairs) * len(methods)
         remaining = sum((t, s, m.name) not in done for t, s in pairs for m in methods)
@@ -259,9 +341,18 @@ def run_comparison(
                     remaining)  # fmt: skip
         bar = progress_bar(total=total, initial=total - remaining, desc="compare", unit="episode", disable=not progress)
         if config.workers == 1:
-            _run_shard(policy, draft_head, config, pairs, output_dir / "episodes.worker-0.jsonl", done, bar)
+            _run_shard(policy, draft_head, config, pairs, output_dir / "episodes.worker-0.jsonl", done,
+                       timing.conditions, bar)  # fmt: skip
         else:
-            _run_in_workers(config, pairs, done, output_dir, policy_dir, draft_head_dir, bar)
+            try:
+                _run_in_workers(config, pairs, done, output_dir, policy_dir, draft_head_dir, bar)
+            except WorkerDiedError as error:
+                bar.close()
+                saved = len(read_episode_logs(output_dir))  # the workers are gone: a torn last line is dropped
+                raise WorkerDiedError(
+                    f"{error}. The other workers were stopped; the {saved} episodes finished so far are saved in "
+                    f"{str(run.path)!r}: rerun the same command to resume (finished episodes are not run again)"
+                ) from None
         bar.close()
         records = read_episode_logs(output_dir)
         wanted = {(t, s) for t, s in pairs}
@@ -273,19 +364,58 @@ def run_comparison(
                 "methods); the folder holds %d, and a run with more --episodes summarises them all",
                 len(records), len(config.tasks), config.episodes_per_task, len(methods), in_folder,
             )  # fmt: skip
-        summary = summarize_comparison(records, config.methods)
+        summary = summarize_comparison(records, config.methods, timed=timing.timed)
         summary["settings"] = {**settings, "tasks": config.tasks, "episodes_per_task": config.episodes_per_task,
                                "workers": config.workers, "threads": config.threads}  # fmt: skip
+        summary["timing"] = _timing_summary(timing, records)
         write_json_atomic(output_dir / "summary.json", summary)
         (output_dir / "compare.md").write_text(format_comparison(summary) + "\n")
         plot_comparison(summary, output_dir)
         return summary
 
 
+def _timing_summary(timing: FolderTiming, records: list[dict]) -> dict:
+    """The conditions the speed figures are of, and how many of the summarised episodes were timed under them (the
+    others count for success, forwards and deviation, not speed)."""
+    timed = sum(timing.timed(r) for r in records)
+    left_out = len(records) - timed
+    if left_out:
+        logger.warning("speed figures: %d of %d episodes were timed under other conditions (or before conditions "
+                       "were recorded) and are left out of them; success and the other columns count them all",
+                       left_out, len(records))  # fmt: skip
+    return {"conditions": timing.conditions, "episodes_timed": timed, "episodes_timed_otherwise": left_out}
+
+
+def _describe_exit(exitcode: int | None) -> str:
+    if exitcode is None:
+        return "exit status unknown"
+    if exitcode < 0:
+        try:
+            return f"killed by signal {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"killed by signal {-exitcode}"
+    return f"exit code {exitcode}"
+
+
+def _describe_dead_worker(processes: dict) -> str:
+    """The worker that ended first, as far as its exit status tells: once one dies the pool stops the others with
+    SIGTERM, so a worker that ended otherwise is named first."""
+    ended = [(pid, p.exitcode) for pid, p in processes.items() if p.exitcode not in (None, 0)]
+    first = [e for e in ended if e[1] != -signal.SIGTERM] or ended
+    if not first:
+        return "a compare worker process died (its exit status is unknown)"
+    pid, exitcode = first[0]
+    return f"a compare worker process (pid {pid}) died: {_describe_exit(exitcode)}"
+
+
 def _run_in_workers(config: CompareConfig, pairs: list, done: set, output_dir: Path, policy_dir: str | None,
                     draft_head_dir: str | None, bar) -> None:  # fmt: skip
     """Splits ``pairs`` between ``config.workers`` spawned processes (a seed never spans two) and follows their
-    logs on ``bar``."""
+    logs on ``bar``.
+
+    Raises:
+        WorkerDiedError: a worker process ended abruptly (naming its exit signal when known).
+    """
     shards = [pairs[i :: config.workers] for i in range(config.workers)]
     bar_start, lines_at_start = bar.n, _count_log_lines(output_dir)
     with ProcessPoolExecutor(config.workers, mp_context=get_context("spawn")) as pool:
@@ -302,12 +432,20 @@ def _run_in_workers(config: CompareConfig, pairs: list, done: set, output_dir: P
             for i, shard in enumerate(shards)
             if shard
         }
-        while pending:
-            finished, pending = wait(pending, timeout=10, return_when=FIRST_EXCEPTION)
-            for future in finished:
-                future.result()  # a worker's exception surfaces here
-            # new finished lines only (workers write only wanted episodes; repairing a log with read_jsonl while
-            # its worker appends would race); update() keeps the bar's redraw interval
-            written = min(bar.total, bar_start + _count_log_lines(output_dir) - lines_at_start)
-            if written > bar.n:
-                bar.update(written - bar.n)
+        processes = dict(getattr(pool, "_processes", None) or {})  # the workers, for their exit status
+        try:
+            while pending:
+                finished, pending = wait(pending, timeout=10, return_when=FIRST_EXCEPTION)
+                for future in finished:
+                    future.result()  # a worker's exception surfaces here
+                # new finished lines only (workers write only wanted episodes; repairing a log with read_jsonl while
+                # its worker appends would race); update() keeps the bar's redraw interval
+                written = min(bar.total, bar_start + _count_log_lines(output_dir) - lines_at_start)
+                if written > bar.n:
+                    bar.update(written - bar.n)
+        except BrokenProcessPool:  # a worker died; the pool stops the others
+            processes.update(getattr(pool, "_processes", None) or {})
+        else:
+            return
+    # read once the pool is shut down: its own join has collected every worker's exit status by then
+    raise WorkerDiedError(_describe_dead_worker(processes))

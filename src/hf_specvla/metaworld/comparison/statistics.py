@@ -1,10 +1,24 @@
 """A comparison's statistics: success with paired bootstrap intervals against greedy, speed-up, forwards per call
-and per action, tokens per forward, bin deviation; the markdown table and the plots."""
+and per action, tokens per forward, bin deviation; the markdown table and the plots.
+
+Two speed-ups, both paired (a seed's methods run side by side in one worker):
+
+* ``speedup_total`` (the headline): greedy's total decode time over the paired episodes per call, divided by the
+  method's, i.e. the ratio of the two mean ms per call (for a lossless method, whose episodes make the same calls
+  as greedy's, exactly the ratio of total decode times), with a 95% paired bootstrap interval over episodes
+  ([`paired_speedup`]);
+* ``speedup``: the median over episodes of (greedy's median ms per call / the method's), the figure reported before
+  ``speedup_total`` existed: robust to a slow call, blind to how slow calls add up.
+
+Each against eager greedy and, when the comparison ran it, transformers' compiled greedy (``greedy:compile``). The
+summary keeps every timed episode's ms per call (``per_call_ms``, 0.01 ms, [`per_call_latencies`] reads them back),
+so that any other statistic can be computed later."""
 
 from __future__ import annotations
 
 import statistics
 from collections import Counter
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -13,6 +27,8 @@ import numpy as np
 from .methods import COMPILED_GREEDY, GREEDY, DecodingMethod
 
 BOOTSTRAP_RESAMPLES = 10_000
+#: resamples of the speed-up's paired bootstrap (a ratio of sums: each resample costs a gather over episodes)
+SPEEDUP_RESAMPLES = 2_000
 PLOTS = ("speedup_vs_r.png", "success_vs_r.png", "accept_lengths.png")
 
 
@@ -45,33 +61,107 @@ def paired_difference(
     }  # fmt: skip
 
 
-def summarize_comparison(records: list[dict], methods: list[str]) -> dict:
-    """Per-method figures (see module docstring) from episode records; ``methods[0]`` must be greedy."""
+def paired_speedup(
+    baseline_ms: Sequence[Sequence[float]],
+    method_ms: Sequence[Sequence[float]],
+    resamples: int = SPEEDUP_RESAMPLES,
+    seed: int = 0,
+) -> dict:
+    """Speed-up of a method over a baseline from their paired episodes' per-call times: the baseline's mean ms per
+    call over all the episodes divided by the method's (= the ratio of total decode times when both made the same
+    calls), with a 95% percentile-bootstrap interval (the episode pairs resampled with replacement, ``seed`` fixed).
+
+    Args:
+        baseline_ms: per episode, the baseline's ms per call (episode i is paired with ``method_ms[i]``).
+        method_ms: per episode, the method's ms per call (its number of calls may differ: a relaxed method's
+            episode can end elsewhere).
+    Returns:
+        ``speedup``, ``ci_low``, ``ci_high``, ``pairs``.
+    Raises:
+        ValueError: the lists differ in length, are empty, or an episode has no calls.
+    """
+    if len(baseline_ms) != len(method_ms) or not baseline_ms:
+        raise ValueError(f"paired timings must be two equally long, non-empty lists of episodes, got "
+                         f"{len(baseline_ms)} and {len(method_ms)}")  # fmt: skip
+    if any(len(episode) == 0 for episode in [*baseline_ms, *method_ms]):
+        raise ValueError("every paired episode needs at least one timed call, got an episode with none")
+    # per episode: total ms and number of calls, [pairs]
+    base_total = np.array([np.sum(e, dtype=np.float64) for e in baseline_ms])
+    base_calls = np.array([len(e) for e in baseline_ms], dtype=np.float64)
+    method_total = np.array([np.sum(e, dtype=np.float64) for e in method_ms])
+    method_calls = np.array([len(e) for e in method_ms], dtype=np.float64)
+
+    def ratio(index):  # index: [..., pairs] episode indices -> the speed-up of those episodes, [...]
+        base = base_total[index].sum(-1) / base_calls[index].sum(-1)
+        return base / (method_total[index].sum(-1) / method_calls[index].sum(-1))
+
+    pairs = len(base_total)
+    rng = np.random.default_rng(seed)
+    samples = ratio(rng.integers(0, pairs, (resamples, pairs)))  # [resamples]
+    low, high = np.percentile(samples, [2.5, 97.5])
+    return {"speedup": float(ratio(np.arange(pairs))), "ci_low": float(low), "ci_high": float(high), "pairs": pairs}
+
+
+def format_per_call_ms(latencies_ms: Sequence[float]) -> str:
+    """One episode's ms per call as compact text, 0.01 ms: ``"107.23 98.11 12.50"``."""
+    return " ".join(f"{x:.2f}" for x in latencies_ms)
+
+
+def per_call_latencies(summary: dict) -> dict[str, dict[tuple[str, int], list[float]]]:
+    """A summary's ``per_call_ms`` read back: method -> (task, seed) -> ms per call (the episodes its speed figures
+    are of), e.g. ``paired_speedup`` on them recomputes ``speedup_total`` (to the 0.01 ms rounding)."""
+    latencies: dict[str, dict[tuple[str, int], list[float]]] = {}
+    for method, episodes in summary.get("per_call_ms", {}).items():
+        latencies[method] = {}
+        for key, text in episodes.items():
+            task, _, seed = key.rpartition(":")
+            latencies[method][task, int(seed)] = [float(x) for x in text.split()]
+    return latencies
+
+
+def _speedups(baseline: dict, episodes: dict, timed_keys: set) -> tuple[float | None, dict | None]:
+    """(median of per-episode median ratios, [`paired_speedup`]) of ``episodes`` over ``baseline`` on the pairs
+    both timed under the folder's conditions; (None, None) without such pairs."""
+    paired = sorted(key for key in episodes if key in baseline and key in timed_keys and baseline[key]["_timed"])
+    paired = [key for key in paired if episodes[key]["latencies_ms"] and baseline[key]["latencies_ms"]]
+    if not paired:
+        return None, None
+    ratios = [statistics.median(baseline[k]["latencies_ms"]) / statistics.median(episodes[k]["latencies_ms"])
+              for k in paired]  # fmt: skip
+    total = paired_speedup([baseline[k]["latencies_ms"] for k in paired], [episodes[k]["latencies_ms"] for k in paired])
+    return statistics.median(ratios), total
+
+
+def summarize_comparison(records: list[dict], methods: list[str], timed: Callable[[dict], bool] | None = None) -> dict:
+    """Per-method figures (see module docstring) from episode records; ``methods[0]`` must be greedy.
+
+    Args:
+        timed: whether a record's wall times enter the speed figures (timed under the folder's conditions); the
+            others count for every other figure. Default: all do.
+    """
     if not methods or methods[0] != GREEDY.name:
         raise ValueError(f"the first method must be greedy (the baseline), got {methods[:1]}")
     by_method: dict[str, dict[tuple[str, int], dict]] = {m: {} for m in methods}
     for record in records:
         if record["method"] in by_method:
+            record = {**record, "_timed": True if timed is None else bool(timed(record))}
             by_method[record["method"]][(record["task"], record["seed"])] = record
     greedy = by_method[GREEDY.name]
     compiled_greedy = by_method.get(COMPILED_GREEDY.name, {})
-    summary: dict = {"methods": {}}
+    summary: dict = {"methods": {}, "per_call_ms": {}}
     for name in methods:
         episodes = by_method[name]
         if not episodes:
             continue
         method = DecodingMethod.parse(name)
         paired = sorted(key for key in episodes if key in greedy)
-        latencies = [x for r in episodes.values() for x in r["latencies_ms"]]
-        ratios = [
-            statistics.median(greedy[key]["latencies_ms"]) / statistics.median(episodes[key]["latencies_ms"])
-            for key in paired
-        ]
-        compiled_paired = [key for key in episodes if key in compiled_greedy]
-        compiled_ratios = [
-            statistics.median(compiled_greedy[key]["latencies_ms"]) / statistics.median(episodes[key]["latencies_ms"])
-            for key in compiled_paired
-        ]
+        timed_keys = {key for key, r in episodes.items() if r["_timed"]}
+        latencies = [x for key in sorted(timed_keys) for x in episodes[key]["latencies_ms"]]
+        calls = sum(len(r["latencies_ms"]) for r in episodes.values())
+        speedup, speedup_total = _speedups(greedy, episodes, timed_keys)
+        compiled_speedup, compiled_total = _speedups(compiled_greedy, episodes, timed_keys)
+        summary["per_call_ms"][name] = {f"{task}:{seed}": format_per_call_ms(episodes[task, seed]["latencies_ms"])
+                                        for task, seed in sorted(timed_keys)}  # fmt: skip
         accept_counts: Counter = Counter()
         for record in episodes.values():
             accept_counts.update({int(k): v for k, v in record["accept_length_counts"].items()})
@@ -90,12 +180,19 @@ def summarize_comparison(records: list[dict], methods: list[str]) -> dict:
                 t: statistics.mean(r["success"] for (task, _), r in episodes.items() if task == t) for t in tasks
             },
             "mean_episode_length": statistics.mean(r["length"] for r in episodes.values()),
-            "median_ms_per_call": statistics.median(latencies),  # one call decides one action, or one chunk
-            "speedup": statistics.median(ratios) if ratios else None,
-            # against transformers' compiled greedy decoding, when the comparison ran it (greedy:compile)
-            "speedup_vs_greedy_compile": statistics.median(compiled_ratios) if compiled_ratios else None,
+            # speed: only episodes timed under the folder's conditions (and paired with a timed baseline episode)
+            "timed_episodes": len(timed_keys),
+            # one call decides one action, or one chunk
+            "median_ms_per_call": statistics.median(latencies) if latencies else None,
+            # greedy's mean ms per call / the method's (total decode time per call), 95% paired bootstrap interval
+            "speedup_total": speedup_total,
+            # the median over episodes of (greedy's median ms per call / the method's)
+            "speedup": speedup,
+            # the same two against transformers' compiled greedy decoding, when the comparison ran it (greedy:compile)
+            "speedup_total_vs_greedy_compile": compiled_total,
+            "speedup_vs_greedy_compile": compiled_speedup,
             "target_forwards_per_action": forwards / actions,  # per env step
-            "target_forwards_per_call": forwards / len(latencies),
+            "target_forwards_per_call": forwards / calls,
             "tokens_per_target_forward": sum(r["new_tokens"] for r in episodes.values()) / forwards,
             "accept_length_counts": {str(k): v for k, v in sorted(accept_counts.items())},
             "mean_bin_deviation": (
@@ -130,13 +227,33 @@ def _deviation_per_dim(records: list[dict]) -> dict:
     }  # fmt: skip
 
 
+def _format_speedup(total: dict | None, episodes: int) -> str:
+    """``1.85x [1.79, 1.91]``, and the pairs it is of when fewer than the method's episodes were timed alike."""
+    if total is None:
+        return "-"
+    pairs = f" ({total['pairs']} pairs)" if total["pairs"] < episodes else ""
+    return f"{total['speedup']:.2f}x [{total['ci_low']:.2f}, {total['ci_high']:.2f}]{pairs}"
+
+
+def _format_ratio(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}x"
+
+
+SPEEDUP_NOTE = (
+    "Speed-up, total time: greedy's mean ms per call over the paired episodes divided by the method's (the ratio of "
+    "total decode times when both make the same calls), 95% paired bootstrap interval over episodes; median of "
+    "ratios: the median over episodes of greedy's median ms per call / the method's (the figure reported before)."
+)
+
+
 def format_comparison(summary: dict) -> str:
-    """The markdown table of a comparison summary."""
+    """The markdown table of a comparison summary, then a note on the speed-ups and the timing conditions."""
     lines = [
         "| method | episodes | success | vs greedy (95% CI) | greedy-only / method-only | mean length "
-        "| median ms/call | speed-up | vs greedy:compile | target fwd/call | tokens/target fwd | bin dev. mean / max "
-        "| deviation per dim. (mean) | identical to greedy |",
-        "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---|---:|",
+        "| median ms/call | speed-up, total time (95% CI) | speed-up, median of ratios "
+        "| vs greedy:compile, total time (95% CI) | vs greedy:compile, median of ratios | target fwd/call "
+        "| tokens/target fwd | bin dev. mean / max | deviation per dim. (mean) | identical to greedy |",
+        "|---|---:|---:|---|---:|---:|---:|---|---:|---|---:|---:|---:|---|---|---:|",
     ]
     for name, row in summary["methods"].items():
         paired = row.get("vs_greedy")
@@ -145,18 +262,31 @@ def format_comparison(summary: dict) -> str:
         else:
             versus = f"{paired['difference']:+.1%} [{paired['ci_low']:+.1%}, {paired['ci_high']:+.1%}]"
             discordant = f"{paired['greedy_only']} / {paired['method_only']}"
-        speedup = "-" if row["speedup"] is None else f"{row['speedup']:.2f}x"
-        compiled = row.get("speedup_vs_greedy_compile")
-        versus_compiled = "-" if compiled is None else f"{compiled:.2f}x"
+        speeds = " | ".join([_format_speedup(row.get("speedup_total"), row["episodes"]),
+                             _format_ratio(row.get("speedup")),
+                             _format_speedup(row.get("speedup_total_vs_greedy_compile"), row["episodes"]),
+                             _format_ratio(row.get("speedup_vs_greedy_compile"))])  # fmt: skip
+        median_ms = "-" if row.get("median_ms_per_call") is None else f"{row['median_ms_per_call']:.2f}"
         deviation = "-" if not row["bin_tolerance"] else f"{row['mean_bin_deviation']:.2f} / {row['max_bin_deviation']}"
         identical = f"{row['identical_to_greedy']}/{paired['pairs'] if paired else 0}"
         per_dim = row.get("mean_bin_deviation_per_dim")
         per_dim = "-" if not row["bin_tolerance"] or not per_dim else " / ".join(f"{d:.2f}" for d in per_dim)
         lines.append(
             f"| {name} | {row['episodes']} | {row['success_rate']:.1%} | {versus} | {discordant} "
-            f"| {row['mean_episode_length']:.0f} | {row['median_ms_per_call']:.2f} | {speedup} | {versus_compiled} "
+            f"| {row['mean_episode_length']:.0f} | {median_ms} | {speeds} "
             f"| {row['target_forwards_per_call']:.2f} | {row['tokens_per_target_forward']:.2f} | {deviation} "
             f"| {per_dim} | {identical} |"
+        )
+    lines += ["", SPEEDUP_NOTE]
+    timing = summary.get("timing")
+    if timing:
+        conditions = ", ".join(f"{k}={v}" for k, v in timing["conditions"].items() if k != "machine")
+        machine = timing["conditions"].get("machine", {})
+        left_out = timing["episodes_timed_otherwise"]
+        left_out = f"; {left_out} timed otherwise are left out of the speed columns" if left_out else ""
+        lines.append(
+            f"Timed under {conditions} on {machine.get('cpu', '?')} ({machine.get('cpu_count', '?')} CPUs, torch "
+            f"{machine.get('torch', '?')}): {timing['episodes_timed']} episodes{left_out}."
         )
     return "\n".join(lines)
 
@@ -188,10 +318,15 @@ def plot_comparison(summary: dict, output_dir: str | Path) -> list[Path]:
     paths = [output_dir / name for name in PLOTS]
 
     figure, axis = plt.subplots(figsize=(6, 4))
-    for family, points in families.items():
-        points = sorted((r, row["speedup"]) for r, row in points if row["speedup"] is not None)
-        axis.plot([p[0] for p in points], [p[1] for p in points], marker="o", label=family)
-    _finish_plot(plt, figure, axis, 1.0, "speed-up vs greedy (per action)", "Speed-up", paths[0])
+    for family, points in families.items():  # total time per call, with its 95% interval
+        points = sorted(((r, row["speedup_total"]) for r, row in points if row.get("speedup_total")),
+                        key=lambda p: p[0])  # fmt: skip
+        if not points:
+            continue
+        axis.errorbar([p[0] for p in points], [p[1]["speedup"] for p in points], marker="o", capsize=3, label=family,
+                      yerr=[[p[1]["speedup"] - p[1]["ci_low"] for p in points],
+                            [p[1]["ci_high"] - p[1]["speedup"] for p in points]])  # fmt: skip
+    _finish_plot(plt, figure, axis, 1.0, "speed-up vs greedy, total time per call (95% CI)", "Speed-up", paths[0])
 
     figure, axis = plt.subplots(figsize=(6, 4))
     for offset, (family, points) in enumerate(families.items()):
