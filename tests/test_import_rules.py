@@ -4,6 +4,9 @@ rules. A forbidden edge fails naming the module, the line and the imported name.
 from __future__ import annotations
 
 import ast
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "src" / "hf_specvla"
@@ -147,3 +150,51 @@ def test_only_the_cli_prints_or_raises_usage_errors():
             ):
                 found.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno} parser.error(...)")
     assert found == []
+
+
+def test_a_hook_runs_once_the_import_that_loads_its_module_has_finished(tmp_path, monkeypatch):
+    """``when_imported``: not while a module of the package is half-initialised (``outer`` imports ``target`` and then
+    ``late``), once, and at once for a module already imported."""
+    from hf_specvla._lazy import when_imported
+
+    package = tmp_path / "hookprobe"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "target.py").write_text("")
+    (package / "late.py").write_text("")
+    (package / "outer.py").write_text("import hookprobe.target\nimport hookprobe.late\nDONE = True\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    seen = []
+    try:
+        when_imported("hookprobe.target", lambda: seen.append(getattr(sys.modules["hookprobe.outer"], "DONE", False)))
+        assert seen == []
+        import hookprobe.outer  # noqa: F401
+
+        assert seen == [True]
+        import hookprobe.late  # noqa: F401
+
+        assert seen == [True] and not any(type(finder).__name__ == "_WhenImported" for finder in sys.meta_path)
+        when_imported("hookprobe.late", lambda: seen.append("now"))
+        assert seen == [True, "now"]
+    finally:
+        for name in [name for name in sys.modules if name.partition(".")[0] == "hookprobe"]:
+            del sys.modules[name]
+
+
+def test_the_package_imports_without_torch_and_registers_the_draft_head_with_the_auto_classes_later():
+    """``import hf_specvla`` loads neither torch nor transformers; importing a model class first (whose import loads
+    the Auto classes midway) and then ``AutoConfig`` still finds the draft head (``AutoModel`` first:
+    test_moved_paths)."""
+    head = str(PACKAGE.parents[1] / "policies" / "mt10_vla2_draft")
+    code = "\n".join([
+        "import sys",
+        "import hf_specvla",
+        "print('torch' in sys.modules, 'transformers' in sys.modules)",
+        "from transformers import LlamaForCausalLM",
+        "from transformers import AutoConfig",
+        f"print(type(AutoConfig.from_pretrained({head!r})).__name__)",
+    ])  # fmt: skip
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                            env={**os.environ, "HF_HUB_OFFLINE": "1"})  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.split() == ["False", "False", "DraftHeadConfig"]
