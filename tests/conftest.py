@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import logging
+import time
+from contextlib import contextmanager, nullcontext
+
 import pytest
 import torch
 from transformers import CLIPVisionConfig, LlamaConfig, LlamaForCausalLM, LlavaConfig, LlavaForConditionalGeneration
@@ -78,11 +82,45 @@ def random_llava_draft(tiny_llava, action_tokenizer):
 
 
 @pytest.fixture(scope="session")
-def toy_pipeline(tmp_path_factory):
-    """The toy target + a self-distilled draft head, trained once per test session (~1 minute)."""
+def toy_pipeline(tmp_path_factory, request):
+    """The toy target + a self-distilled draft head, trained once per test session (minutes on 2 CPU cores). It says
+    so on the terminal, a line per stage, and draws the stages' progress bars on stderr past pytest's capture (every
+    30 s when stderr is a file or a pipe, as on CI): a long silence would look like a hang."""
     from hf_specvla.benchmarks.toy import build_toy_pipeline
 
-    return build_toy_pipeline(str(tmp_path_factory.mktemp("toy")), progress=False)
+    with _on_the_terminal(request.config, "toy_pipeline") as say:
+        say("training the toy target, then self-distilling its draft head (once per session)")
+        start = time.perf_counter()
+        pipeline = build_toy_pipeline(str(tmp_path_factory.mktemp("toy")), progress=True)
+        say(f"ready in {time.perf_counter() - start:.0f} s")
+    return pipeline
+
+
+@contextmanager
+def _on_the_terminal(config: pytest.Config, name: str):
+    """Inside the block, ``say(text)`` and hf_specvla's INFO log lines (a training stage's summary) go to the terminal
+    as ``name: ...`` lines, and stderr is not captured (progress bars show)."""
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    capture = config.pluginmanager.get_plugin("capturemanager")
+
+    def say(text: str) -> None:
+        if reporter is not None:
+            reporter.write_line(f"{name}: {text}")
+
+    class ToTerminal(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            say(self.format(record))
+
+    library = logging.getLogger("hf_specvla")
+    handler, level = ToTerminal(logging.INFO), library.level
+    library.addHandler(handler)
+    library.setLevel(logging.INFO)
+    try:
+        with capture.global_and_fixture_disabled() if capture is not None else nullcontext():
+            yield say
+    finally:
+        library.removeHandler(handler)
+        library.setLevel(level)
 
 
 def llava_prompt(generator: torch.Generator, text_len: int = 4) -> dict[str, torch.Tensor]:
