@@ -10,6 +10,7 @@ from .common import (
     NON_NEGATIVE,
     POSITIVE,
     add_tree_arguments,
+    check_bin_tolerances,
     check_draft_head_flag,
     check_tasks,
     load_draft_head_for,
@@ -54,6 +55,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (method order, untrained head)")
 
 
+def _check_bin_tolerances(args, n_bins: int, parser) -> None:
+    check_bin_tolerances(args.bin_tolerances, n_bins, f"--bin-tolerances {' '.join(map(str, args.bin_tolerances))}",
+                         parser)  # fmt: skip
+
+
 def _policy_episodes(args, parser):
     """(act, action_dim, episodes, target, draft_head, head_name) for ``--policy``: its greedy rollouts recorded."""
     import torch
@@ -63,6 +69,7 @@ def _policy_episodes(args, parser):
     from ..speculative import DraftHead
 
     policy = load_policy(args.policy, parser)
+    _check_bin_tolerances(args, policy.action_tokenizer.n_bins, parser)  # before the rollouts are recorded
     if args.draft_head:
         draft_head, head_name = load_draft_head_for(policy, args.draft_head, parser), args.draft_head
     else:
@@ -81,6 +88,7 @@ def _toy_episodes(args, parser):
     from ..speculative import DraftHead
 
     pipeline = load_pipeline(args.pipeline_dir, parser)
+    _check_bin_tolerances(args, pipeline.action_tokenizer.n_bins, parser)
     draft_head = DraftHead.from_pretrained(args.draft_head).eval() if args.draft_head else pipeline.draft_head
     head_name = args.draft_head or f"{pipeline.output_dir}/draft_head"
     return toy_actor(pipeline), ACTION_DIM, toy_episodes(args.episodes), pipeline.target, draft_head, head_name

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .common import NON_NEGATIVE, POSITIVE, usage_errors
+from .common import NON_NEGATIVE, POSITIVE, check_bin_tolerances, usage_errors
 
 NAME = "benchmark"
 HELP = "benchmark a pipeline saved by `demo`"
@@ -68,5 +68,8 @@ def time_pipeline(pipeline, args) -> None:
 
 
 def run(args, parser) -> int:
-    time_pipeline(load_pipeline(args.pipeline_dir, parser), args)
+    pipeline = load_pipeline(args.pipeline_dir, parser)
+    given = f"--bin-tolerances {' '.join(map(str, args.bin_tolerances))}"
+    check_bin_tolerances(args.bin_tolerances, pipeline.action_tokenizer.n_bins, given, parser)  # before any timing
+    time_pipeline(pipeline, args)
     return 0

@@ -5,7 +5,15 @@ from __future__ import annotations
 
 from ..metaworld.env import CAMERAS, EnvConfig
 from ..metaworld.seeds import COLLECT_SEED_START
-from .common import NON_NEGATIVE, POSITIVE, check_tasks, load_policy
+from .common import (
+    NON_NEGATIVE,
+    POSITIVE,
+    check_output_dir_flag,
+    check_tasks,
+    load_policy,
+    read_policy_config,
+    usage_errors,
+)
 
 NAME = "collect"
 HELP = "record scripted-expert Meta-World demonstrations (Parquet; resumable)"
@@ -44,16 +52,33 @@ def add_arguments(parser) -> None:
 
 
 def run(args, parser) -> int:
-    from ..metaworld.demonstrations import collect_demonstrations
+    from ..metaworld.demonstrations import (
+        check_action_noise,
+        check_dataset_folder,
+        check_expert_mix,
+        collect_demonstrations,
+    )
 
+    check_output_dir_flag(args.output_dir, parser)
     check_tasks(args.tasks, parser)
     if args.policy is None and args.expert_mix is not None:
         parser.error("--expert-mix needs --policy (it mixes expert steps into the policy's rollouts)")
-    policy = load_policy(args.policy, parser) if args.policy is not None else None
+    with usage_errors(parser, "--action-noise", (ValueError,)):
+        check_action_noise(args.action_noise)
+    if args.expert_mix is not None:
+        with usage_errors(parser, "--expert-mix", (ValueError,)):
+            check_expert_mix(args.expert_mix)
+    policy_config = read_policy_config(args.policy, parser) if args.policy is not None else None
     # the image settings default to the driving policy's (it can only read what it was trained on)
-    image_size = args.image_size or (policy.config.image_size if policy else EnvConfig.image_size)
-    camera = args.camera or (policy.config.camera if policy else EnvConfig.camera)
-    env_config = EnvConfig(image_size, camera, args.max_episode_steps, args.hand_start_noise)
+    image_size = args.image_size or (policy_config.image_size if policy_config else EnvConfig.image_size)
+    camera = args.camera or (policy_config.camera if policy_config else EnvConfig.camera)
+    with usage_errors(parser, errors=(ValueError,)):
+        env_config = EnvConfig(image_size, camera, args.max_episode_steps, args.hand_start_noise)
+        if policy_config is not None:
+            env_config.check_renders_for(policy_config)
+    policy = load_policy(args.policy, parser) if args.policy is not None else None
+    with usage_errors(parser, "--output-dir", (ValueError,)):  # a dataset of other settings: before any episode
+        check_dataset_folder(args.output_dir, env_config, args.action_noise, policy, args.expert_mix or 0.0)
     summary = collect_demonstrations(
         args.output_dir, args.tasks, args.episodes, env_config, args.seed_start, action_noise=args.action_noise,
         policy=policy, expert_mix=args.expert_mix or 0.0,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -75,6 +76,46 @@ def check_draft_head_flag(draft_head: str | None, parser) -> None:
     if draft_head is not None:
         with usage_errors(parser, "--draft-head", (FileNotFoundError, ValueError)):
             check_draft_head_folder(draft_head)
+
+
+def check_output_dir_flag(output_dir: str, parser, flag: str = "--output-dir") -> None:
+    """``flag`` must name a folder that exists or can be made: a usage error, before anything loads or is written,
+    when it is a file, when a folder above it is a file, or when the nearest existing folder above it is not
+    writable."""
+    path = Path(output_dir)
+    if path.exists() and not path.is_dir():
+        parser.error(f"{flag} {output_dir}: is a file, not a folder; give a folder (it is made if missing)")
+    existing = next((p for p in (path, *path.parents) if p.exists()), Path("."))  # Path.exists: False under a file
+    if not existing.is_dir():
+        parser.error(f"{flag} {output_dir}: {existing} is a file, so no folder can be made under it; give another path")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        parser.error(f"{flag} {output_dir}: {existing} is not writable; give a folder you can write to")
+
+
+def read_policy_config(path: str, parser, flag: str = "--policy"):
+    """The [`VLAPolicyConfig`] of the saved policy ``flag`` names, read without loading the model (action layout,
+    image settings: what checks need before the slow load); the same usage error as [`load_policy`] when the
+    folder holds no policy."""
+    import json
+
+    from ..policies import POLICY_CONFIG_NAME, VLAPolicyConfig
+
+    config_path = Path(path) / POLICY_CONFIG_NAME
+    if not config_path.is_file():
+        load_policy(path, parser, flag)  # names the missing folder or file
+    try:
+        return VLAPolicyConfig(**json.loads(config_path.read_text()))
+    except (ValueError, TypeError) as error:  # not JSON, unknown or bad fields
+        parser.error(f"{flag} {path}: {config_path} is not a policy configuration: {error}")
+
+
+def check_bin_tolerances(tolerances: list[int], n_bins: int, given: str, parser) -> None:
+    """A tolerance wider than the action range (``0 .. n_bins - 1``) is a usage error naming ``given`` (the flag
+    and its values), in the engine's own words."""
+    from ..speculative import check_bin_tolerance_range
+
+    with usage_errors(parser, errors=(ValueError,)):
+        check_bin_tolerance_range(tolerances, n_bins, given)
 
 
 def load_policy(path: str, parser, flag: str = "--policy"):

@@ -7,14 +7,16 @@ import logging
 
 from ..metaworld.env import EnvConfig
 from ..metaworld.seeds import EVAL_SEED_START
-from ..speculative import check_bin_tolerance_range
 from .common import (
     NON_NEGATIVE,
     POSITIVE,
+    check_bin_tolerances,
     check_draft_head_flag,
+    check_output_dir_flag,
     check_tasks,
     load_draft_head_for,
     load_policy,
+    read_policy_config,
     usage_errors,
 )
 
@@ -64,9 +66,10 @@ def add_arguments(parser) -> None:
                              "results, less wall time)")  # fmt: skip
 
 
-def decoding_method(args, parser):
-    """The [`DecodingMethod`] that ``--method`` or the older flags name, checked before anything loads."""
-    from ..metaworld.comparison.methods import DecodingMethod
+def decoding_method(args, parser, action_dim: int | None = None):
+    """The [`DecodingMethod`] that ``--method`` or the older flags name, checked before anything loads; with
+    ``action_dim`` (the policy's), presets resolve to its layout and per-dimension tolerances must fit it."""
+    from ..metaworld.comparison.methods import DecodingMethod, check_tolerance_dims
 
     if args.method is not None:
         flags = [flag for flag, given in (("--action-prior", args.action_prior), ("--draft-tree", args.draft_tree),
@@ -75,9 +78,7 @@ def decoding_method(args, parser):
         if flags:
             parser.error(f"--method {args.method} already says how to decode; drop {' / '.join(flags)}")
         with usage_errors(parser, "--method", (ValueError,)):
-            method = DecodingMethod.parse(args.method, draft_head_given=bool(args.draft_head))
-        if method.name != args.method.strip():
-            logger.info("--method %s = %s", args.method.strip(), method.name)
+            method = DecodingMethod.parse(args.method, bool(args.draft_head), action_dim)
         if method.uses_draft_head and not args.draft_head:
             parser.error(f"--method {method.name} drafts with the draft head: give --draft-head")
         return method
@@ -89,22 +90,23 @@ def decoding_method(args, parser):
         parser.error("--num-draft-tokens sets a chain; --draft-tree drafts a tree: give one of them")
     parts = ["prior"] * args.action_prior + (["tree" if args.draft_tree else "head"] if args.draft_head else [])
     tolerance = args.bin_tolerance or [0]
-    return DecodingMethod(
-        "+".join(parts) or "greedy", tolerance[0] if len(tolerance) == 1 else 0, args.num_draft_tokens
-    )
+    tolerance = tolerance[0] if len(tolerance) == 1 else tuple(tolerance)
+    if action_dim is not None and args.bin_tolerance is not None:
+        with usage_errors(parser, errors=(ValueError,)):
+            check_tolerance_dims(tolerance, action_dim, f"--bin-tolerance {' '.join(map(str, args.bin_tolerance))}")
+    return DecodingMethod("+".join(parts) or "greedy", tolerance, args.num_draft_tokens)
 
 
 def _check_tolerances(policy, method, args, parser) -> None:
+    """The method's acceptance rule built for ``policy``'s actions (the engine's checks), before the folder is
+    claimed."""
     from ..metaworld.comparison.runner import check_method_rule
 
     tolerances = args.bin_tolerance or method.tolerances() or [0]
     given = f"--method {method.name}" if args.method else f"--bin-tolerance {' '.join(map(str, tolerances))}"
-    try:
-        check_bin_tolerance_range(tolerances, policy.action_tokenizer.n_bins, given)
-        if args.method:
-            check_method_rule(method, policy)
-    except (ValueError, TypeError) as error:
-        parser.error(str(error))
+    check_bin_tolerances(tolerances, policy.action_tokenizer.n_bins, given, parser)
+    with usage_errors(parser, errors=(ValueError, TypeError)):
+        check_method_rule(method, policy)
 
 
 def run(args, parser) -> int:
@@ -112,12 +114,19 @@ def run(args, parser) -> int:
 
     from ..metaworld.evaluation import check_video_path, evaluate, format_summary
 
+    check_output_dir_flag(args.output_dir, parser)
     check_tasks(args.tasks, parser)
-    method = decoding_method(args, parser)
+    decoding_method(args, parser)  # the flags' own mistakes first, whatever the policy
     check_draft_head_flag(args.draft_head, parser)
     if args.video is not None:
         with usage_errors(parser, "--video", (ValueError,)):
             check_video_path(args.video)
+    policy_config = read_policy_config(args.policy, parser)  # cheap: no weights loaded yet
+    method = decoding_method(args, parser, policy_config.action_dim)
+    if args.method is not None and method.name != args.method.strip():
+        logger.info("--method %s = %s", args.method.strip(), method.name)
+    with usage_errors(parser, errors=(ValueError,)):
+        env_config = EnvConfig(policy_config.image_size, policy_config.camera, args.max_episode_steps)
     policy = load_policy(args.policy, parser)
     _check_tolerances(policy, method, args, parser)
     if args.draft_head and not method.uses_draft_head:
@@ -127,7 +136,6 @@ def run(args, parser) -> int:
     if args.bin_tolerance is not None:  # as given (one r, or one per action dimension), as eval folders record it
         tolerance = args.bin_tolerance
         generate_kwargs["bin_tolerance"] = tolerance[0] if len(tolerance) == 1 else tolerance
-    env_config = EnvConfig(policy.config.image_size, policy.config.camera, args.max_episode_steps)
     with usage_errors(parser, errors=(FileExistsError,)):
         summary = evaluate(policy, args.tasks, args.episodes, args.output_dir, env_config, args.seed_start,
                            generate_kwargs, args.video, overwrite=args.overwrite_output_dir,

@@ -4,7 +4,15 @@ optionally demonstration frames), validated by the engine, saved with a model ca
 from __future__ import annotations
 
 from ..training.configuration import DraftDataConfig, PolicyDraftTrainingConfig
-from .common import NON_NEGATIVE, POSITIVE, add_training_run_arguments, check_training_folder, load_policy, usage_errors
+from .common import (
+    NON_NEGATIVE,
+    POSITIVE,
+    add_training_run_arguments,
+    check_output_dir_flag,
+    check_training_folder,
+    load_policy,
+    usage_errors,
+)
 
 NAME = "train-draft"
 HELP = "train a draft head for a policy: self-distillation on its rollouts (resumable)"
@@ -59,6 +67,7 @@ def run(args, parser) -> int:
     from ..metaworld.demonstrations import dataset_info
     from ..training.policy_draft import train_policy_draft_head
 
+    check_output_dir_flag(args.output_dir, parser)
     check_training_folder(args.output_dir, args.resume, args.overwrite_output_dir, parser)
     with usage_errors(parser, errors=(ValueError, FileNotFoundError)):
         data_config = DraftDataConfig(

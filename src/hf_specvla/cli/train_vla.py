@@ -4,7 +4,15 @@ from __future__ import annotations
 
 from ..policies.configuration_vla import VLAPolicyConfig
 from ..training.configuration import VLATrainingConfig
-from .common import POSITIVE, add_training_run_arguments, check_tasks, check_training_folder, load_policy, usage_errors
+from .common import (
+    POSITIVE,
+    add_training_run_arguments,
+    check_output_dir_flag,
+    check_tasks,
+    check_training_folder,
+    load_policy,
+    usage_errors,
+)
 
 NAME = "train-vla"
 HELP = "behaviour-clone an OpenVLA-style policy on demonstrations (resumable)"
@@ -89,6 +97,7 @@ def run(args, parser) -> int:
     from ..policies import VLAPolicy
     from ..training.behaviour_cloning import train_vla
 
+    check_output_dir_flag(args.output_dir, parser)
     if args.scene_loss_weight is not None and not args.scene_targets:
         parser.error("--scene-loss-weight needs --scene-targets (it weighs the scene-state tokens' loss)")
     if args.scene_readout_weight is not None and not args.scene_targets:

@@ -101,12 +101,14 @@ def _write_episode(path: Path, rows: dict[str, list]) -> None:
     os.replace(tmp, path)  # atomic: a crash leaves either no episode or a whole one
 
 
-def _check_action_noise(action_noise: float) -> None:
+def check_action_noise(action_noise: float) -> None:
+    """Raises ValueError naming ``action_noise`` unless it is in [0, 1] (NaN included)."""
     if not 0.0 <= action_noise <= 1.0:
         raise ValueError(f"action_noise must be in [0, 1] (a standard deviation in action units), got {action_noise}")
 
 
-def _check_expert_mix(expert_mix: float) -> None:
+def check_expert_mix(expert_mix: float) -> None:
+    """Raises ValueError naming ``expert_mix`` unless it is a probability in [0, 1] (NaN included)."""
     if not 0.0 <= expert_mix <= 1.0:
         raise ValueError(
             f"expert_mix must be in [0, 1] (the probability that a step runs the expert), got {expert_mix}"
@@ -129,8 +131,8 @@ def record_episode(
     labels cover the states the policy itself reaches, its mistakes included). The episode is returned whether
     or not it succeeded. The noise and the mixing are drawn from ``seed``, so an episode is reproducible.
     """
-    _check_action_noise(action_noise)
-    _check_expert_mix(expert_mix)
+    check_action_noise(action_noise)
+    check_expert_mix(expert_mix)
     rng = np.random.default_rng(seed)
     if policy is not None:
         policy.reset()
@@ -180,8 +182,10 @@ _INFO_DEFAULTS = {
 }
 
 
-def _check_info(root: Path, env_config: EnvConfig, action_noise: float, driver: dict, write: bool = True) -> None:
-    """Refuses a folder holding a dataset collected with other settings; ``write``: record ours in a new one."""
+def _check_info(root: Path, env_config: EnvConfig, action_noise: float, driver: dict, write: bool = True,
+                shown_as: Path | None = None) -> None:  # fmt: skip
+    """Refuses a folder holding a dataset collected with other settings; ``write``: record ours in a new one;
+    ``shown_as``: the folder's name in messages (``root`` may be a held folder's bound ``/proc`` path)."""
     info_path = root / "meta" / "info.json"
     info = {
         "format": FORMAT_NAME,
@@ -219,7 +223,7 @@ def _check_info(root: Path, env_config: EnvConfig, action_noise: float, driver: 
         for key in ("format", "image_size", "camera", "action_dim", *compared):
             if existing.get(key) != info[key]:
                 raise ValueError(
-                    f"{root} holds a dataset with {key}={existing.get(key)!r}, but this collection uses "
+                    f"{shown_as or root} holds a dataset with {key}={existing.get(key)!r}, but this collection uses "
                     f"{info[key]!r}; collect into another folder or use the same settings"
                 )
         return
@@ -244,6 +248,26 @@ class CollectSummary:
     #: policy-driven collections: how many of the episodes written this run the policy (with the mixed-in
     #: expert steps) solved
     driven_successes: int = 0
+
+
+def check_dataset_folder(
+    output_dir: str | Path, env_config: EnvConfig, action_noise: float = 0.0, policy=None, expert_mix: float = 0.0
+) -> dict:
+    """Refuses, before anything is written, settings out of range and a folder holding a dataset collected with
+    other settings (see [`collect_demonstrations`]); returns what ``meta/info.json`` records of the driving policy.
+
+    Raises:
+        ValueError: naming the bad value, or the folder and the setting that differs.
+    """
+    check_action_noise(action_noise)
+    check_expert_mix(expert_mix)
+    driver = {"policy": None, "expert_mix": None, "policy_weights": None}
+    if policy is not None:
+        env_config.check_renders_for(policy.config)
+        driver = {"policy": policy.name_or_path or "in-memory", "expert_mix": float(expert_mix),
+                  "policy_weights": fingerprint(policy.model)}  # fmt: skip
+    _check_info(Path(output_dir), env_config, float(action_noise), driver, write=False)
+    return driver
 
 
 def collect_demonstrations(
@@ -273,19 +297,13 @@ def collect_demonstrations(
         raise ValueError(f"episodes_per_task must be >= 1, got {episodes_per_task}")
     if seed_start < 0 or max_seed_tries < 1:  # checked before anything is written (a seed is a uint32)
         raise ValueError(f"seed_start must be >= 0 and max_seed_tries >= 1, got {seed_start} and {max_seed_tries}")
-    _check_action_noise(action_noise)
-    _check_expert_mix(expert_mix)
     root = Path(output_dir)
     env_config = env_config or EnvConfig()
     tasks = resolve_tasks(tasks)
-    driver = {"policy": None, "expert_mix": None, "policy_weights": None}
-    if policy is not None:
-        env_config.check_renders_for(policy.config)
-        driver = {"policy": policy.name_or_path or "in-memory", "expert_mix": float(expert_mix),
-                  "policy_weights": fingerprint(policy.model)}  # fmt: skip
-    _check_info(root, env_config, float(action_noise), driver, write=False)  # refusals first: nothing written yet
+    driver = check_dataset_folder(root, env_config, action_noise, policy, expert_mix)  # refusals first
     with lock_folder(root) as held:
-        _check_info(held.bound, env_config, float(action_noise), driver)  # under the lock: writes meta/info.json
+        # under the lock: writes meta/info.json
+        _check_info(held.bound, env_config, float(action_noise), driver, shown_as=root)
         return _collect_into(held.bound, tasks, episodes_per_task, env_config, seed_start, max_seed_tries, progress,
                              action_noise, policy, expert_mix)  # fmt: skip
 

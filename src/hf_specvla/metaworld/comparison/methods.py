@@ -12,8 +12,14 @@ probability is below p; ``k=<int>`` the head chain's length. E.g. ``prior+jacobi
 
 Presets: ``exact`` (the fastest setting identical to greedy decoding) and ``fast`` (the relaxed setting chosen on policy
 v2; on policy v3 it flips episodes both ways beyond the fidelity criterion), resolved per policy, with or without a
-draft head ([`PRESETS`], chosen by the evidence in docs/metaworld.md); every place that takes a method string takes them
-and names what they resolved to.
+draft head, and to the policy's action layout ([`PRESETS`], [`Preset`], chosen by the evidence in docs/metaworld.md);
+every place that takes a method string takes them and names what they resolved to. A preset is defined by what it
+relaxes, not by a table: ``fast`` relaxes the position dimensions (x y z) with r=4 and keeps the rotation and the
+gripper strict, only where the target's top-1 probability is below 0.5. On this project's 4-dimensional actions
+(x y z gripper) that is ``r=4/4/4/0``; on OpenVLA's 7 (x y z roll pitch yaw gripper) ``r=4/4/4/0/0/0/0``; on 8
+(x y z, a quaternion qx qy qz qw, gripper) ``r=4/4/4/0/0/0/0/0`` ([`ACTION_LAYOUTS`]). Rotations stay strict because
+no measurement here relaxed one (Meta-World's hand does not rotate); any other number of dimensions is refused with
+the rule to spell out instead. ``exact`` relaxes nothing, so it fits every layout.
 
 ``:compile`` decodes on a static cache with transformers' ``CompileConfig``: ``greedy:compile`` is transformers' own
 compiled greedy decoding (the baseline a user who wants speed has), ``tree:compile`` / ``prior+tree:r=4:compile``
@@ -22,10 +28,12 @@ verify drafts through the same compiled model call (``speculative.compiled``).""
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from ..._validation import check_ranges
+from ...policies.configuration_vla import VLAPolicyConfig
 from ..env import EnvConfig, resolve_tasks
 from ..seeds import EVAL_SEED_START
 
@@ -41,15 +49,6 @@ METHOD_KEYS = {"r": "bin tolerance: an int, or one per action dimension joined b
                "m": "at most this many relaxed tokens per action",
                "gate": "relax only where the target's top-1 probability is below this (0 < p <= 1)",
                "k": "draft-head chain length (head only)"}  # fmt: skip
-#: preset -> (its method without a draft head, with one): chosen by the paired comparisons in docs/metaworld.md
-#: ("The presets on both seed ranges"): ``fast`` held the fidelity criterion on seeds 100000+ and 200000+ (policy v2)
-#: and missed it on policy v3, which solves the hard tasks ("The presets on policy v3": seeds 100000+ -0.5 [-4.5, +3.5]
-#: points, 200000+ +2.0 [-2.0, +6.0], 33 of 400 episodes flipped); ``exact`` was identical to greedy on every episode
-#: of both policies and both ranges
-PRESETS = {
-    "exact": ("prior+jacobi:compile", "prior+jacobi:compile"),
-    "fast": ("prior+jacobi:r=4/4/4/0,gate=0.5:compile", "prior+jacobi:r=4/4/4/0,gate=0.5:compile"),
-}
 #: the option word that compiles a method (static cache + transformers' CompileConfig)
 COMPILE = "compile"
 DEFAULT_METHODS = ("greedy", "head", "tree", "tree:r=4", "prior", "prior:r=2", "prior:r=4", "prior:r=8",
@@ -60,14 +59,48 @@ DEFAULT_METHODS = ("greedy", "head", "tree", "tree:r=4", "prior", "prior:r=2", "
 Tolerance = int | tuple[int, ...]  # one r, or one per action dimension
 
 
+#: an option's integer and probability, in ASCII digits only (``str.isdigit`` and ``int`` / ``float`` also take
+#: superscripts and other scripts' digits: ``r=²``, ``r=٣``)
+_INTEGER = re.compile(r"-?[0-9]+")
+_PROBABILITY = re.compile(r"[0-9]+(\.[0-9]*)?|\.[0-9]+")
+#: the smallest value of each integer option (r, rl and m may be 0; a chain drafts at least one token)
+_MINIMUM = {"r": 0, "rl": 0, "m": 0, "k": 1}
+
+
+def _parse_integer(text: str, key: str, value: str) -> int:
+    """One integer of option ``key`` (``value``: as written), at least ``_MINIMUM[key]``."""
+    if not _INTEGER.fullmatch(value.strip()):
+        raise ValueError(f"decoding method {text!r}: bad option '{key}={value}'; {key} is {METHOD_KEYS[key]} "
+                         f"(an integer in digits 0-9)")  # fmt: skip
+    number = int(value)
+    if number < _MINIMUM[key]:
+        raise ValueError(f"decoding method {text!r}: {key} must be an integer >= {_MINIMUM[key]} "
+                         f"({METHOD_KEYS[key]}), got {key}={value}")  # fmt: skip
+    return number
+
+
 def _parse_tolerance(text: str, value: str, key: str) -> Tolerance:
     parts = value.split("/")
-    if not all(p.strip().lstrip("-").isdigit() for p in parts):
-        raise ValueError(f"decoding method {text!r}: bad option '{key}={value}'; {key} is {METHOD_KEYS[key]}")
-    numbers = [int(p) for p in parts]
-    if any(n < 0 for n in numbers):
-        raise ValueError(f"decoding method {text!r}: {key} must be an integer >= 0 ({METHOD_KEYS[key]}), got {value}")
+    if not all(_INTEGER.fullmatch(p.strip()) for p in parts):
+        raise ValueError(f"decoding method {text!r}: bad option '{key}={value}'; {key} is {METHOD_KEYS[key]} "
+                         f"(integers in digits 0-9)")  # fmt: skip
+    numbers = [_parse_integer(text, key, p) for p in parts]
     return numbers[0] if len(numbers) == 1 else tuple(numbers)
+
+
+def check_tolerance_dims(tolerance: Tolerance | None, action_dim: int, given: str) -> None:
+    """Refuses a per-dimension tolerance (``4/4/4``) whose length is not ``action_dim``, naming ``given`` (what the
+    user wrote) and the layout; an int fits any action.
+
+    Raises:
+        ValueError: the number of values differs from the action's dimensions.
+    """
+    if tolerance is None or isinstance(tolerance, int) or len(tolerance) == action_dim:
+        return
+    raise ValueError(
+        f"{given} has {len(tolerance)} values, but the policy's actions have {action_dim} dimensions"
+        f"{_layout_words(action_dim)}: give one r for all of them, or one per dimension ({action_dim})"
+    )
 
 
 def _format_tolerance(tolerance: Tolerance) -> str:
@@ -93,15 +126,18 @@ class DecodingMethod:
     confidence_gate: float | None = None
 
     @classmethod
-    def parse(cls, text: str, draft_head_given: bool = False) -> DecodingMethod:
+    def parse(cls, text: str, draft_head_given: bool = False, action_dim: int | None = None) -> DecodingMethod:
         """``"prior+tree:r=4"`` -> DecodingMethod("prior+tree", 4); a preset (``exact``, ``fast``) -> the method it
-        names for a policy with (``draft_head_given``) or without a draft head.
+        names for a policy with (``draft_head_given``) or without a draft head and with ``action_dim``-dimensional
+        actions ([`Preset.resolve`]; None: this project's policies' layout). With ``action_dim``, a per-dimension r
+        of another length is refused here.
 
         Raises:
             ValueError: naming the bad part and listing what is valid.
         """
-        if text.strip() in PRESETS:
-            return cls.parse(PRESETS[text.strip()][int(bool(draft_head_given))])
+        preset = PRESETS.get(text.strip())
+        if preset is not None:
+            return preset.resolve(draft_head_given, action_dim)
         valid = (f"valid: {', '.join(DRAFTER_CHOICES)}, optionally followed by :<option>=<value>,... and/or :compile "
                  f"(e.g. prior+tree:r=4, greedy:compile, prior+jacobi:r=4/4/4/0,m=1:compile), or a preset: "
                  f"{', '.join(PRESETS)}")  # fmt: skip
@@ -132,11 +168,18 @@ class DecodingMethod:
             raise ValueError(f"decoding method {text!r}: greedy drafts nothing, so it takes no r, rl, m, gate or k")
         if method.num_draft_tokens is not None and "head" not in method.drafters.split("+"):
             raise ValueError(f"decoding method {text!r}: k (a chain length) needs the head chain (head, prior+head)")
-        if method.num_draft_tokens == 0:
-            raise ValueError(f"decoding method {text!r}: k must be >= 1")
         if not method.widest_tolerance and ("m" in values or "gate" in values):
             raise ValueError(f"decoding method {text!r}: m and gate restrict relaxed acceptance; give r (or rl) > 0")
+        if action_dim is not None:
+            method.check_action_dim(action_dim)
         return method
+
+    def check_action_dim(self, action_dim: int) -> None:
+        """Refuses a per-dimension r (or rl) whose length is not ``action_dim`` (ValueError naming the method)."""
+        for key, tolerance in (("r", self.bin_tolerance), ("rl", self.later_tolerance)):
+            if tolerance is not None:
+                given = f"decoding method {self.name!r}: {key}={_format_tolerance(tolerance)}"
+                check_tolerance_dims(tolerance, action_dim, given)
 
     @property
     def name(self) -> str:
@@ -233,19 +276,12 @@ def _parse_option(text: str, key: str, value: str):
     if key in ("r", "rl"):
         return _parse_tolerance(text, value, key)
     if key == "gate":
-        try:
-            gate = float(value)
-        except ValueError:
-            gate = -1.0
+        gate = float(value) if _PROBABILITY.fullmatch(value) else -1.0
         if not 0 < gate <= 1:
-            raise ValueError(f"decoding method {text!r}: gate must be a probability in (0, 1] ({METHOD_KEYS[key]}), "
-                             f"got {value}")  # fmt: skip
+            raise ValueError(f"decoding method {text!r}: gate must be a probability in (0, 1] written in digits 0-9 "
+                             f"({METHOD_KEYS[key]}), got gate={value}")  # fmt: skip
         return gate
-    if not value.lstrip("-").isdigit():
-        raise ValueError(f"decoding method {text!r}: bad option '{key}={value}'; {key} is {METHOD_KEYS[key]}")
-    if int(value) < 0:
-        raise ValueError(f"decoding method {text!r}: {key} must be an integer >= 0 ({METHOD_KEYS[key]}), got {value}")
-    return int(value)
+    return _parse_integer(text, key, value)
 
 
 def _row(tolerance: Tolerance, action_dim: int) -> list[int]:
@@ -253,11 +289,107 @@ def _row(tolerance: Tolerance, action_dim: int) -> list[int]:
     return [tolerance] * action_dim if isinstance(tolerance, int) else list(tolerance)
 
 
-def resolve_preset(name: str, draft_head_given: bool) -> str | None:
-    """The method a preset names (``exact``, ``fast``) for a policy with or without a draft head; None for a method
-    string that is not a preset."""
-    choice = PRESETS.get(name.strip())
-    return None if choice is None else choice[int(bool(draft_head_given))]
+# ----------------------------------------------------------------------------- presets
+#: what each action dimension is, for the action sizes a preset can resolve to: this project's Meta-World hand
+#: (x y z gripper), OpenVLA's end-effector delta (x y z roll pitch yaw gripper) and an end-effector pose whose
+#: rotation is a quaternion (x y z qx qy qz qw gripper). A joint-space action of one of these sizes (7 joints, 7 joints
+#: + gripper) would be misread: give such a policy an explicit per-dimension r instead of a relaxed preset.
+ACTION_LAYOUTS = {
+    4: ("x", "y", "z", "gripper"),
+    7: ("x", "y", "z", "roll", "pitch", "yaw", "gripper"),
+    8: ("x", "y", "z", "qx", "qy", "qz", "qw", "gripper"),
+}
+POSITION_DIMENSIONS, GRIPPER_DIMENSIONS = ("x", "y", "z"), ("gripper",)  # every other named dimension is a rotation
+
+
+def _layout_words(action_dim: int) -> str:
+    """`` (x y z gripper)`` for a known layout, else nothing (for messages)."""
+    return f" ({' '.join(ACTION_LAYOUTS[action_dim])})" if action_dim in ACTION_LAYOUTS else ""
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A named decoding setting, defined by what it relaxes and resolved per policy ([`resolve`]).
+
+    Args:
+        name: what users write (``fast``).
+        drafters / drafters_with_head: what drafts for a policy without / with a draft head.
+        position_tolerance: r on the position dimensions (x y z).
+        rotation_tolerance: r on the rotation dimensions (roll pitch yaw, or a quaternion's four).
+        gripper_tolerance: r on the gripper.
+        confidence_gate: relax only where the target's top-1 probability is below this (None: wherever r allows).
+        compiled: decode on a static cache with compiled forwards (``:compile``).
+    """
+
+    name: str
+    drafters: str
+    drafters_with_head: str
+    position_tolerance: int = 0
+    rotation_tolerance: int = 0
+    gripper_tolerance: int = 0
+    confidence_gate: float | None = None
+    compiled: bool = True
+
+    @property
+    def lossless(self) -> bool:
+        return not (self.position_tolerance or self.rotation_tolerance or self.gripper_tolerance)
+
+    def tolerance(self, action_dim: int) -> Tolerance:
+        """r per dimension of an ``action_dim``-dimensional action ([`ACTION_LAYOUTS`]); one int when all agree.
+
+        Raises:
+            ValueError: a relaxed preset and an action size with no known layout, naming the rule to spell out.
+        """
+        if self.lossless:
+            return 0
+        layout = ACTION_LAYOUTS.get(action_dim)
+        if layout is None:
+            known = "; ".join(f"{size}: {' '.join(dims)}" for size, dims in ACTION_LAYOUTS.items())
+            guess = tuple(self.position_tolerance if i < 3 else 0 for i in range(action_dim))  # x y z first, a guess
+            spelled = DecodingMethod(self.drafters, guess, compiled=self.compiled, confidence_gate=self.confidence_gate)
+            raise ValueError(
+                f"preset {self.name!r} relaxes by kind of action dimension, but the policy's {action_dim}-dimensional "
+                f"actions have no known layout (known: {known}); spell the method out with one r per dimension, "
+                f"e.g. {spelled.name}"
+            )
+        row = tuple(
+            self.position_tolerance if dim in POSITION_DIMENSIONS
+            else self.gripper_tolerance if dim in GRIPPER_DIMENSIONS
+            else self.rotation_tolerance
+            for dim in layout
+        )  # fmt: skip
+        return row[0] if len(set(row)) == 1 else row
+
+    def resolve(self, draft_head_given: bool = False, action_dim: int | None = None) -> DecodingMethod:
+        """The [`DecodingMethod`] for a policy with (``draft_head_given``) or without a draft head and with
+        ``action_dim``-dimensional actions (None: this project's policies', ``VLAPolicyConfig.action_dim``)."""
+        action_dim = VLAPolicyConfig.action_dim if action_dim is None else action_dim
+        return DecodingMethod(
+            self.drafters_with_head if draft_head_given else self.drafters,
+            self.tolerance(action_dim),
+            compiled=self.compiled,
+            confidence_gate=None if self.lossless else self.confidence_gate,
+        )
+
+
+#: the presets, chosen by the paired comparisons in docs/metaworld.md ("The presets on both seed ranges"): ``fast``
+#: held the fidelity criterion on seeds 100000+ and 200000+ (policy v2) and missed it on policy v3, which solves the
+#: hard tasks ("The presets on policy v3": seeds 100000+ -0.5 [-4.5, +3.5] points, 200000+ +2.0 [-2.0, +6.0], 33 of 400
+#: episodes flipped); ``exact`` was identical to greedy on every episode of both policies and both ranges
+PRESETS = {
+    preset.name: preset
+    for preset in (
+        Preset("exact", "prior+jacobi", "prior+jacobi"),
+        Preset("fast", "prior+jacobi", "prior+jacobi", position_tolerance=4, confidence_gate=0.5),
+    )
+}
+
+
+def resolve_preset(name: str, draft_head_given: bool, action_dim: int | None = None) -> str | None:
+    """The method string a preset (``exact``, ``fast``) names for a policy with or without a draft head and with
+    ``action_dim``-dimensional actions (see [`Preset.resolve`]); None for a method string that is not a preset."""
+    preset = PRESETS.get(name.strip())
+    return None if preset is None else preset.resolve(draft_head_given, action_dim).name
 
 
 GREEDY = DecodingMethod()
@@ -265,11 +397,14 @@ GREEDY = DecodingMethod()
 COMPILED_GREEDY = DecodingMethod(compiled=True)
 
 
-def parse_methods(names: list[str], draft_head_given: bool = False) -> list[DecodingMethod]:
-    """Parsed, de-duplicated methods (presets resolved), greedy first (added when missing: it is the baseline)."""
+def parse_methods(
+    names: list[str], draft_head_given: bool = False, action_dim: int | None = None
+) -> list[DecodingMethod]:
+    """Parsed, de-duplicated methods (presets resolved for ``action_dim``-dimensional actions, see
+    [`DecodingMethod.parse`]), greedy first (added when missing: it is the baseline)."""
     methods = [GREEDY]
     for name in names:
-        method = DecodingMethod.parse(name, draft_head_given)
+        method = DecodingMethod.parse(name, draft_head_given, action_dim)
         if method not in methods:
             methods.append(method)
     return methods
@@ -292,6 +427,8 @@ class CompareConfig:
             ``DraftTreeConfig``'s default).
         draft_head_given: whether a draft head comes with the policy (the presets ``exact`` / ``fast`` resolve to
             its methods).
+        action_dim: the policy's action dimensions: the presets resolve to its layout and a per-dimension r of
+            another length is refused (None: presets resolve to this project's policies' layout, x y z gripper).
     """
 
     tasks: str | list[str] = "MT10"
@@ -306,16 +443,19 @@ class CompareConfig:
     tree_depth: int | None = None
     tree_total_tokens: int | None = None
     draft_head_given: bool = False  # presets resolve to the methods of a policy with a draft head
+    action_dim: int | None = None  # presets resolve to its layout
 
     def __post_init__(self):
         self.tasks = resolve_tasks(self.tasks)
         names = ("episodes_per_task", "workers", "threads", "seed_start", "max_episode_steps")
         check_ranges(self, at_least_one=names[:3] + names[4:], non_negative=names[3:4], integers=names)
+        if self.action_dim is not None:
+            check_ranges(self, at_least_one=("action_dim",), integers=("action_dim",))
         for name in self.methods:
-            resolved = resolve_preset(name, self.draft_head_given)
+            resolved = resolve_preset(name, self.draft_head_given, self.action_dim)
             if resolved is not None:
                 logger.info("preset %s = %s", name.strip(), resolved)
-        self.methods = [m.name for m in parse_methods(list(self.methods), self.draft_head_given)]
+        self.methods = [m.name for m in parse_methods(list(self.methods), self.draft_head_given, self.action_dim)]
         self.tree_config()  # refuses bad tree settings now
 
     def tree_config(self) -> DraftTreeConfig:

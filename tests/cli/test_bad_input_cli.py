@@ -1,0 +1,214 @@
+"""Bad inputs a new user tried (issue 55, items 3-5): each is a usage error (``error:``, exit code 2, no traceback)
+before any folder is written and before the slow work (model load where it can be avoided, environments,
+rollouts)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from hf_specvla.cli import main
+from hf_specvla.cli.main import build_parser
+
+POLICY = Path(__file__).resolve().parents[2] / "policies" / "mt10_vla"
+
+
+def _usage_error(argv: list[str], capsys) -> str:
+    """The stderr of a command that must stop with a usage error."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2, err
+    assert "error: " in err and "Traceback" not in err
+    return err
+
+
+@pytest.fixture
+def afile(tmp_path) -> Path:
+    path = tmp_path / "afile"
+    path.write_text("not a folder")
+    return path
+
+
+# ----------------------------------------------------------------------------- --output-dir under a file
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["collect", "--tasks", "reach", "--episodes", "1"],
+        ["eval", "--policy", str(POLICY), "--tasks", "reach", "--episodes", "1"],
+        ["train-vla", "--data", "{tmp}/nodata"],
+        ["train-draft", "--policy", str(POLICY)],
+    ],
+)
+@pytest.mark.parametrize("under", [True, False])
+def test_an_output_dir_that_is_or_is_under_a_file_is_a_usage_error(tmp_path, afile, capsys, argv, under):
+    output_dir = afile / "sub" if under else afile
+    err = _usage_error([a.format(tmp=tmp_path) for a in argv] + ["--output-dir", str(output_dir)], capsys)
+    if under:
+        assert f"--output-dir {output_dir}: {afile} is a file, so no folder can be made under it" in err
+    else:
+        assert f"--output-dir {afile}: is a file, not a folder" in err
+    assert afile.read_text() == "not a folder"
+
+
+def test_check_output_dir_flag_accepts_new_and_existing_folders(tmp_path):
+    import argparse
+
+    from hf_specvla.cli.common import check_output_dir_flag
+
+    parser = argparse.ArgumentParser()
+    check_output_dir_flag(str(tmp_path), parser)
+    check_output_dir_flag(str(tmp_path / "new" / "deeper"), parser)
+    assert not (tmp_path / "new").exists()  # a check writes nothing
+
+
+# ----------------------------------------------------------------------------- collect's values
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--action-noise", "-1"], "--action-noise: action_noise must be in [0, 1]"),
+        (["--action-noise", "nan"], "--action-noise: action_noise must be in [0, 1]"),
+        (["--policy", str(POLICY), "--expert-mix", "1.5"], "--expert-mix: expert_mix must be in [0, 1]"),
+        (["--policy", str(POLICY), "--expert-mix", "-0.1"], "--expert-mix: expert_mix must be in [0, 1]"),
+        (["--max-episode-steps", "0"], "max_episode_steps must be in [1, "),
+        (["--hand-start-noise", "-1"], "hand_start_noise must be in [0, "),
+        (["--policy", str(POLICY), "--image-size", "128"], "the policy reads 64px images, the env makes 128px"),
+    ],
+)
+def test_collect_values_are_checked_before_anything_loads(tmp_path, capsys, monkeypatch, extra, message):
+    from hf_specvla.cli import collect
+
+    monkeypatch.setattr(collect, "load_policy", lambda *a, **k: pytest.fail("the policy was loaded"))
+    err = _usage_error(["collect", "--tasks", "reach", "--output-dir", str(tmp_path / "d"), *extra], capsys)
+    assert message in err
+    assert not (tmp_path / "d").exists()
+
+
+def test_collect_refuses_a_dataset_of_other_settings_as_a_usage_error(tmp_path, capsys):
+    from hf_specvla.metaworld.demonstrations import check_dataset_folder
+    from hf_specvla.metaworld.env import EnvConfig
+
+    (tmp_path / "d" / "meta").mkdir(parents=True)
+    info = {"format": "hf_specvla.metaworld.demonstrations", "image_size": 32, "camera": "corner", "action_dim": 4}
+    (tmp_path / "d" / "meta" / "info.json").write_text(json.dumps(info))
+    with pytest.raises(ValueError, match="holds a dataset with"):
+        check_dataset_folder(tmp_path / "d", EnvConfig())
+    err = _usage_error(["collect", "--tasks", "reach", "--output-dir", str(tmp_path / "d")], capsys)
+    assert f"--output-dir: {tmp_path / 'd'} holds a dataset with" in err
+    assert sorted(p.name for p in (tmp_path / "d").rglob("*")) == ["info.json", "meta"]
+
+
+# ----------------------------------------------------------------------------- eval: tolerances and presets
+def test_eval_refuses_tolerances_that_do_not_fit_the_action_before_the_folder_is_claimed(tmp_path, capsys):
+    """Regression: --bin-tolerance 4 4 4 on 4-dimensional actions wrote run.json and started the environment, then
+    failed in generate; the corrected rerun was refused as 'another run'."""
+    out = tmp_path / "X"
+    err = _usage_error(["eval", "--policy", str(POLICY), "--action-prior", "--bin-tolerance", "4", "4", "4",
+                        "--output-dir", str(out)], capsys)  # fmt: skip
+    assert "--bin-tolerance 4 4 4 has 3 values, but the policy's actions have 4 dimensions (x y z gripper)" in err
+    assert not out.exists()
+    err = _usage_error(["eval", "--policy", str(POLICY), "--method", "prior:r=4/4/4", "--output-dir", str(out)], capsys)
+    assert "--method: decoding method 'prior:r=4/4/4': r=4/4/4 has 3 values" in err
+    err = _usage_error(["eval", "--policy", str(POLICY), "--action-prior", "--bin-tolerance", "999",
+                        "--output-dir", str(out)], capsys)  # fmt: skip
+    assert "--bin-tolerance 999: r is wider than the action range" in err and "use r in 0..255" in err
+    assert not out.exists()
+
+
+def test_eval_checks_tolerances_from_the_policy_config_before_loading_the_model(tmp_path, capsys, monkeypatch):
+    from hf_specvla.cli import eval as eval_command
+
+    monkeypatch.setattr(eval_command, "load_policy", lambda *a, **k: pytest.fail("the model was loaded"))
+    argv = ["eval", "--policy", str(POLICY), "--action-prior", "--output-dir", str(tmp_path / "X")]
+    assert "has 3 values" in _usage_error(argv + ["--bin-tolerance", "1", "2", "3"], capsys)
+    assert "max_episode_steps must be in [1, " in _usage_error(argv + ["--max-episode-steps", "0"], capsys)
+
+
+def _seven_dimensional_policy(tmp_path) -> Path:
+    """A policy folder whose config says 7-dimensional actions (OpenVLA's layout); no weights."""
+    folder = tmp_path / "policy7"
+    folder.mkdir()
+    config = json.loads((POLICY / "policy_config.json").read_text())
+    config["action_dim"] = 7
+    (folder / "policy_config.json").write_text(json.dumps(config))
+    return folder
+
+
+@pytest.mark.parametrize(
+    "method, resolved",
+    [("fast", "prior+jacobi:r=4/4/4/0/0/0/0,gate=0.5:compile"), ("exact", "prior+jacobi:compile")],
+)
+def test_eval_resolves_presets_to_the_policys_layout(tmp_path, method, resolved):
+    from hf_specvla.cli.common import read_policy_config
+    from hf_specvla.cli.eval import decoding_method
+
+    parser = build_parser()
+    args = parser.parse_args(["eval", "--policy", str(_seven_dimensional_policy(tmp_path)), "--method", method,
+                              "--output-dir", str(tmp_path / "X")])  # fmt: skip
+    action_dim = read_policy_config(args.policy, args.command_parser).action_dim
+    assert action_dim == 7
+    assert decoding_method(args, args.command_parser, action_dim).name == resolved
+
+
+def test_eval_on_seven_dimensions_refuses_a_four_value_table(tmp_path, capsys):
+    policy = _seven_dimensional_policy(tmp_path)
+    argv = ["eval", "--policy", str(policy), "--method", "prior:r=4/4/4/0", "--output-dir", str(tmp_path / "X")]
+    err = _usage_error(argv, capsys)
+    assert "r=4/4/4/0 has 4 values, but the policy's actions have 7 dimensions (x y z roll pitch yaw gripper)" in err
+    assert not (tmp_path / "X").exists()
+
+
+def test_a_broken_policy_config_is_a_usage_error(tmp_path, capsys):
+    folder = tmp_path / "broken"
+    folder.mkdir()
+    (folder / "policy_config.json").write_text("{not json")
+    err = _usage_error(["eval", "--policy", str(folder), "--output-dir", str(tmp_path / "X")], capsys)
+    assert f"--policy {folder}: {folder / 'policy_config.json'} is not a policy configuration" in err
+
+
+@pytest.mark.parametrize(
+    "method, message",
+    [
+        ("prior:r=²", "decoding method 'prior:r=²': bad option 'r=²'"),
+        ("prior:r=٣", "decoding method 'prior:r=٣': bad option 'r=٣'"),
+        (
+            "head:k=-1",
+            "decoding method 'head:k=-1': k must be an integer >= 1 (draft-head chain length (head only)), got k=-1",
+        ),
+        (
+            "head:k=0",
+            "decoding method 'head:k=0': k must be an integer >= 1 (draft-head chain length (head only)), got k=0",
+        ),
+    ],
+)
+def test_eval_method_numbers(tmp_path, capsys, method, message):
+    argv = ["eval", "--policy", str(tmp_path / "none"), "--draft-head", str(tmp_path / "none"), "--method", method,
+            "--output-dir", str(tmp_path / "X")]  # fmt: skip
+    assert f"--method: {message}" in _usage_error(argv, capsys)
+
+
+# ----------------------------------------------------------------------------- bench-episodes, benchmark
+def test_bench_episodes_checks_the_tolerances_before_recording_rollouts(capsys, monkeypatch):
+    pytest.importorskip("metaworld")
+    from hf_specvla.metaworld import evaluation
+
+    monkeypatch.setattr(evaluation, "record_observations", lambda *a, **k: pytest.fail("rollouts were recorded"))
+    err = _usage_error(["bench-episodes", "--policy", str(POLICY), "--tasks", "reach", "--bin-tolerances", "2",
+                        "999"], capsys)  # fmt: skip
+    assert "--bin-tolerances 2 999: r is wider than the action range" in err and "use r in 0..255" in err
+
+
+@pytest.mark.parametrize("command", ["benchmark", "bench-episodes"])
+def test_toy_timings_check_the_tolerances_first(tmp_path, capsys, monkeypatch, command):
+    from types import SimpleNamespace
+
+    from hf_specvla.cli import bench_episodes, benchmark
+
+    pipeline = SimpleNamespace(action_tokenizer=SimpleNamespace(n_bins=256))
+    for module in (benchmark, bench_episodes):
+        monkeypatch.setattr(module, "load_pipeline", lambda *a, **k: pipeline)
+    monkeypatch.setattr(benchmark, "time_pipeline", lambda *a, **k: pytest.fail("timing started"))
+    err = _usage_error([command, "--pipeline-dir", str(tmp_path), "--bin-tolerances", "256"], capsys)
+    assert "--bin-tolerances 256: r is wider than the action range" in err
