@@ -171,6 +171,10 @@ def test_the_prior_drafts_later_rounds_alone_and_only_the_prefill_before_another
         assert (composed.drafters[0].start(context).propose(draft_round).num_nodes > 0) == drafted_composed
     with pytest.raises(TypeError, match="later_rounds must be True or False, got 'no'"):
         ActionPriorDrafter(history, layout, later_rounds="no")
+    # a flat list of ids is one action: the error says to wrap it (not "'int' object is not iterable")
+    with pytest.raises(TypeError, match=r"each a list of 4 action token ids.*a flat list of ids is one action"):
+        ActionPriorDrafter(history[0], layout)
+    assert ActionPriorDrafter(np.array(history), layout).previous_actions == history  # an array of actions works
 
 
 @pytest.mark.parametrize("bin_tolerance", [2, 30])

@@ -168,6 +168,10 @@ def test_bad_inputs(policy, tmp_path):
         policy.predict_action(image, "reach the goal")
     with pytest.raises(ValueError, match="4 numbers"):
         policy.predict_action(image, "reach the goal", [0.0, 1.0])
+    with pytest.raises(
+        ValueError, match=r"state must hold finite numbers, got \[0.1, nan, 0.3, inf\].*dimension\(s\) \[1, 3\]"
+    ):
+        policy.predict_action(image, "reach the goal", [0.1, np.nan, 0.3, np.inf])
     with pytest.raises(FileNotFoundError, match="does not exist"):
         VLAPolicy.from_pretrained(tmp_path / "nowhere")
     with pytest.raises(FileNotFoundError, match="policy_config.json"):

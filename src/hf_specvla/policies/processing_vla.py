@@ -63,6 +63,11 @@ class VLAProcessor:
         state = np.asarray(state, dtype=np.float64).reshape(-1)
         if state.shape[0] != self.config.state_dim:
             raise ValueError(f"state must have {self.config.state_dim} numbers, got {state.shape[0]}")
+        if not np.isfinite(state).all():  # NaN would discretise to an arbitrary bin, silently
+            raise ValueError(
+                f"state must hold finite numbers, got {state.tolist()} (NaN or inf at dimension(s) "
+                f"{np.flatnonzero(~np.isfinite(state)).tolist()}): check the robot's proprio reading"
+            )
         normalized = self.state_normalizer.normalize(state) if self.state_normalizer else np.clip(state, -1, 1)
         return self.action_tokenizer.encode(normalized).tolist()
 

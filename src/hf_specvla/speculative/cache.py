@@ -155,6 +155,15 @@ def cache_length(cache: Cache) -> int:
     return int(cache.get_seq_length())
 
 
+def holds_buffers(cache: Cache) -> bool:
+    """Whether any layer has its entry buffers already (written once: a static layer keeps them, and its batch size,
+    when emptied)."""
+    return any(
+        getattr(layer, "is_initialized", True) and getattr(layer, "keys", None) is not None and layer.keys.numel()
+        for layer in _layers(cache)
+    )
+
+
 def cache_batch_size(cache: Cache) -> int:
     """The number of rows the cache's layers hold (after the first forward)."""
     return next(_stored_layers(cache)).keys.shape[0]

@@ -44,6 +44,9 @@ class DraftContext:
         max_length: the longest sequence the call can reach (prompt + ``max_new_tokens``), or None when unknown.
         compile_config: the target's ``CompileConfig`` when its verifications run compiled (a static cache, batch
             1): a drafter may then compile its own work with the same settings; None when the target runs eagerly.
+        cached_tokens: the row's first tokens the target cache already held when the call began (a continued
+            conversation or episode on one cache): the prefill feeds only the tokens after them, so no hidden states
+            exist for them and a drafter's own cache starts empty there (``prompt_padding`` covers the fed ones).
     """
 
     model: PreTrainedModel
@@ -53,6 +56,7 @@ class DraftContext:
     row: int = 0
     max_length: int | None = None
     compile_config: CompileConfig | None = None
+    cached_tokens: int = 0
 
     def __post_init__(self):
         if self.compile_config is not None and self.max_length is None:
@@ -93,8 +97,9 @@ class Commit:
         positions: ``[1, K]`` position ids of the kept inputs.
         target_hidden: ``[1, K, H]`` the target's last hidden state at each kept input, or None when no drafter
             asked for hidden states (``Drafter.needs_hidden_states``).
-        cache_length: the entries the row has kept so far (its prompt, padding included, and its emitted tokens
-            but the last): the length a drafter's own cache of the row has once it has seen this commit.
+        cache_length: the row's tokens in the target cache so far (its prompt, padding included, and its emitted
+            tokens but the last): an index into the row's sequence. A drafter's own cache of the row holds
+            ``cache_length - DraftContext.cached_tokens`` entries once it has seen this commit.
         tree: the row's verified tree (N nodes; the prompt's tree at the prefill).
         tree_target_ids: ``[1 + N]`` the target's greedy token after the root (0) and after each node (1 + i), each
             given that node's own path: past the accepted path these are the target's guesses on rejected prefixes

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -41,10 +42,12 @@ from transformers.generation.logits_process import PrefixConstrainedLogitsProces
 from ..actions.tokenizer import ActionLayout
 from .acceptance import AcceptanceRule, AcceptedPath, accept_trees, make_acceptance_rule
 from .cache import (
+    ROLLBACK_LAYER_TYPES,
     cache_batch_size,
     cache_length,
     check_rollback_cache,
     compact_rows,
+    holds_buffers,
     keep_cache_path,
     open_sliding_windows,
     select_cache_positions,
@@ -234,14 +237,77 @@ def _call_drafter(
 
 
 def _draft_contexts(
-    model, batch_size: int, layout, eos_ids: list[int], prompt_padding, max_length: int, compile_config
+    model,
+    batch_size: int,
+    layout,
+    eos_ids: list[int],
+    prompt_padding,
+    max_length: int,
+    compile_config,
+    cached_tokens: int = 0,
 ) -> list[DraftContext]:
-    """What each row's drafter session starts from (its prompt padding, ``[1, S]`` or None)."""
+    """What each row's drafter session starts from (the padding of the prompt tokens the prefill feeds, ``[1, P]``
+    or None; the row's first ``cached_tokens`` tokens, which a continued cache already held)."""
     rows = [None if prompt_padding is None else prompt_padding[b : b + 1] for b in range(batch_size)]
     return [
-        DraftContext(model, layout, eos_ids, padding, row=b, max_length=max_length, compile_config=compile_config)
+        DraftContext(
+            model,
+            layout,
+            eos_ids,
+            padding,
+            row=b,
+            max_length=max_length,
+            compile_config=compile_config,
+            cached_tokens=cached_tokens,
+        )  # fmt: skip
         for b, padding in enumerate(rows)
     ]
+
+
+#: caches a batched call has decoded on: their rows keep entries of drafts some rows rejected (masked only inside that
+#: call) and a dynamic one has lost its finished rows, so no later call can continue them exactly
+_BATCH_DECODED_CACHES: weakref.WeakSet = weakref.WeakSet()
+
+
+def check_continued_cache(cache: Cache, batch_size: int) -> None:
+    """Refuses, before any forward, a cache this call cannot continue exactly: one holding entries a batched
+    speculative call left, or one whose layers already hold another number of rows than ``input_ids`` (a static
+    cache keeps its rows when emptied).
+
+    Raises:
+        ValueError: naming the cache's rows / history and what would work.
+    """
+    if not holds_buffers(cache) or any(type(layer) not in ROLLBACK_LAYER_TYPES for layer in cache.layers):
+        return  # nothing allocated yet (any batch size), or a cache refused for its layers (check_rollback_cache)
+    if cache in _BATCH_DECODED_CACHES and cache_length(cache):
+        raise ValueError(
+            f"this cache holds {cache_length(cache)} entries left by a batched speculative generate call: a batch's "
+            f"rows accept different numbers of drafts, so its cache keeps entries of rejected drafts (masked only "
+            f"inside that call) and drops finished rows, and it cannot be continued exactly. Continue each row with "
+            f"batch size 1 on its own cache, or start from a fresh cache (pass the whole sequence again)"
+        )
+    rows = cache_batch_size(cache)
+    if rows != batch_size:
+        raise ValueError(
+            f"the cache holds {cache_length(cache)} entries for {rows} row(s) ({type(cache).__name__}), but input_ids "
+            f"has {batch_size} rows: a cache is used again by calls of the same batch size (a static cache keeps its "
+            f"rows when emptied). Pass a fresh cache (e.g. DynamicCache() or a new StaticCache) for a batch of "
+            f"{batch_size}"
+        )
+
+
+def _leave_cache_as_greedy(cache: Cache, rows: list[RowState], offset: int) -> None:
+    """Leaves a one-row cache as greedy decoding would: the entries of its sequence but the last token (a path the
+    stopping criteria cut keeps no entries past the cut), so that a later call continues it exactly. ``offset``: the
+    entries before the row's sequence (a continued cache given only the new tokens). A batch's cache is marked
+    ([`check_continued_cache`] refuses it)."""
+    if len(rows) > 1:
+        _BATCH_DECODED_CACHES.add(cache)
+        return
+    _BATCH_DECODED_CACHES.discard(cache)
+    keep = offset + rows[0].sequence.shape[1] - 1
+    if cache_length(cache) > keep:
+        truncate_cache(cache, keep)
 
 
 def _validate_call(model, generation_config: GenerationConfig, logits_processor, batch_size: int, drafter) -> None:
@@ -289,13 +355,19 @@ def _check_draft_ids_are_actions(
         )
 
 
-def _prompt_positions(model_inputs: dict, input_ids: torch.Tensor, prompt_padding: torch.Tensor | None):
-    """The prompt's position ids ``[B, S]`` (the model's prepared ones, else as generate derives them) and, for
-    models with multi-component positions (Qwen2-VL's ``[4, B, S]``: text positions, then temporal / height / width
+def _prompt_positions(
+    model_inputs: dict, input_ids: torch.Tensor, prompt_padding: torch.Tensor | None, past_length: int = 0
+):
+    """The position ids ``[B, P]`` of the prompt tokens the prefill feeds (``input_ids`` ``[B, P]``; the model's
+    prepared ones, else as generate derives them, after the ``past_length`` entries a continued cache holds) and, for
+    models with multi-component positions (Qwen2-VL's ``[4, B, P]``: text positions, then temporal / height / width
     rotary positions), each component's offset from the text positions after the prompt, ``[K, B, 1]`` (else None).
 
     After the prompt every component advances with the text position (a generated token is text), so a token at
     text position p gets ``p + offset`` in each component: what the model's own generate would give it.
+
+    Args:
+        prompt_padding: ``[B, past_length + P]`` the 2D attention mask over the cached and the new tokens, or None.
     """
     positions = model_inputs.get("position_ids")
     if positions is not None and positions.ndim == 3:
@@ -303,9 +375,50 @@ def _prompt_positions(model_inputs: dict, input_ids: torch.Tensor, prompt_paddin
         return text_positions, positions[:, :, -1:] - positions[:1, :, -1:]
     if positions is not None:
         return positions.expand(input_ids.shape[0], -1), None
+    length = input_ids.shape[1]
     if prompt_padding is None:
-        return torch.arange(input_ids.shape[1], device=input_ids.device)[None].expand(input_ids.shape[0], -1), None
-    return (prompt_padding.long().cumsum(-1) - 1).masked_fill(prompt_padding == 0, 0), None
+        arange = torch.arange(past_length, past_length + length, device=input_ids.device)
+        return arange[None].expand(input_ids.shape[0], -1), None
+    return (prompt_padding.long().cumsum(-1) - 1).masked_fill(prompt_padding == 0, 0)[:, -length:], None
+
+
+def _tokens_to_prefill(
+    input_ids: torch.Tensor, cache: Cache | None, attention_mask: torch.Tensor | None, generation_config
+) -> tuple[int, int]:
+    """How a call continues a cache that already holds entries (a second turn of a conversation, the next step of an
+    episode on one cache), as ``generate`` does: ``(past_length, new)``, the entries the cache holds and the number
+    of ``input_ids``' last columns not in it yet, which the prefill feeds. ``input_ids`` ``[B, S]`` either repeat the
+    cached tokens (an attention mask as long as they are, or none) or are only the new ones (then the attention mask
+    covers the cached and the new tokens: ``past_length + S`` columns). A fresh cache: ``(0, S)``.
+
+    Raises:
+        ValueError: the cache already holds every token of ``input_ids`` (nothing new to feed), or an attention mask
+            whose length fits neither reading; each names the lengths and what would be valid.
+    """
+    length = input_ids.shape[1]
+    past_length = 0 if cache is None else cache_length(cache)
+    if past_length == 0:
+        return 0, length
+    mask_length = attention_mask.shape[1] if attention_mask is not None else None
+    if mask_length is None:  # generate drops an all-ones mask and keeps its length
+        mask_length = getattr(generation_config, "_mask_length", None) or length
+    if mask_length == length:  # the cached tokens repeated, then the new ones (what generate returned, extended)
+        new = length - past_length
+    elif mask_length == past_length + length:  # only the new tokens
+        new = length
+    else:
+        raise ValueError(
+            f"the cache holds {past_length} entries, input_ids has {length} tokens and the attention mask "
+            f"{mask_length} columns: pass the cached tokens followed by the new ones (a mask of the same length), or "
+            f"only the new ones with a mask over the cached and the new tokens ({past_length} + {length} columns)"
+        )
+    if new < 1:
+        raise ValueError(
+            f"the cache already holds {past_length} entries but input_ids has only {length} tokens: there is nothing "
+            f"new to feed. Pass the cached tokens followed by at least one new token (e.g. the sequence the previous "
+            f"generate call returned plus the next turn), or a fresh cache"
+        )
+    return past_length, new
 
 
 # ----------------------------------------------------------------------------- steps
@@ -773,10 +886,14 @@ def speculative_generate(
     pad_token_id = generation_config.pad_token_id if generation_config.pad_token_id is not None else (
         eos_ids[0] if eos_ids else None
     )  # fmt: skip
-    prompt_padding = model_kwargs.get("attention_mask")  # [B, S] or None (no padding)
+    prompt_padding = model_kwargs.get("attention_mask")  # [B, past + new] or None (no padding)
     check_left_padded(prompt_padding)
+    if model_kwargs.get(CACHE_KEY) is not None:
+        check_continued_cache(model_kwargs[CACHE_KEY], batch_size)
+    past_length, num_new = _tokens_to_prefill(input_ids, model_kwargs.get(CACHE_KEY), prompt_padding, generation_config)
     if prompt_padding is not None and bool(prompt_padding.all()):
         prompt_padding = None
+    prompt_ids = input_ids[:, input_ids.shape[1] - num_new :]  # [B, new] what the prefill feeds
     stats = SpeculationStats()
     stopwatch = _Stopwatch(stats, input_ids.device, settings.profile_speculation)
     return_dict = generation_config.return_dict_in_generate
@@ -790,25 +907,27 @@ def speculative_generate(
     )
     if model_kwargs.get(CACHE_KEY) is not None:
         check_rollback_cache(model_kwargs[CACHE_KEY], generation_config.max_length)
-    model_inputs = prefill_inputs(model, input_ids, model_kwargs)
+    model_inputs = prefill_inputs(model, prompt_ids, model_kwargs)
     check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length)
-    prompt_positions, position_offsets = _prompt_positions(model_inputs, input_ids, prompt_padding)
+    prompt_positions, position_offsets = _prompt_positions(model_inputs, prompt_ids, prompt_padding, past_length)
     cache = model_inputs[CACHE_KEY]
     compiled = None  # the compiled model call verifying every round after the prefill (fixed widths), or eager
     if compiles_verification(model, generation_config, cache):
         compiled = compiled_call(model, generation_config, NODE_BUCKETS)
+    cached_tokens = input_ids.shape[1] - num_new  # the rows' first tokens the cache held before the call
     contexts = _draft_contexts(
-        model, batch_size, layout, eos_ids, prompt_padding, generation_config.max_length,
-        generation_config.compile_config if compiled is not None else None,
+        model, batch_size, layout, eos_ids, None if prompt_padding is None else prompt_padding[:, -num_new:],
+        generation_config.max_length, generation_config.compile_config if compiled is not None else None,
+        cached_tokens,
     )  # fmt: skip
     rows = [
-        RowState(b, input_ids[b : b + 1], drafter.start(context), SpeculationStats())
+        RowState(b, input_ids[b : b + 1], drafter.start(context), SpeculationStats(), committed_length=cached_tokens)
         for b, context in enumerate(contexts)
     ]
     all_rows = list(rows)
     state = DecodeState(
         rows=rows,
-        pending_ids=input_ids,
+        pending_ids=prompt_ids,
         pending_positions=prompt_positions,
         position_offsets=position_offsets,
         key_valid=None if prompt_padding is None else prompt_padding.bool(),
@@ -819,10 +938,8 @@ def speculative_generate(
     # the model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies a chain.
     prefix_attention = model_inputs.get("token_type_ids") is not None
     prefill_key = None  # the compiled prefill graph this call can use, or None (an eager prefill)
-    if compiled is not None and not prefix_attention and position_offsets is None:
-        prefill_key = _compiled_prefill_key(
-            model, generation_config, capacity, output_hidden, input_ids.shape[1], batch_size
-        )
+    if compiled is not None and not prefix_attention and position_offsets is None and not past_length:
+        prefill_key = _compiled_prefill_key(model, generation_config, capacity, output_hidden, num_new, batch_size)
     plan = RoundPlan(
         max_length=generation_config.max_length,
         rule=rule,
@@ -839,7 +956,7 @@ def speculative_generate(
         keep_scores=keep_scores,
         keep_logits=keep_logits,
     )
-    prompt = (input_ids, prompt_positions)  # the prefill's pending tokens
+    prompt = (prompt_ids, prompt_positions)  # the prefill's pending tokens
     at_prefill = True
     with open_sliding_windows(cache):  # exact: the generation fits the window (checked)
         while state.rows:
@@ -862,6 +979,7 @@ def speculative_generate(
             drop_finished_rows(state, fixed_batch=plan.capacity is not None)
             at_prefill = False
 
+    _leave_cache_as_greedy(state.target_cache, all_rows, past_length - cached_tokens)
     for row in all_rows:
         row.stats.num_draft_forwards = row.session.num_forwards
         row.session.report(row.stats, row.sequence)

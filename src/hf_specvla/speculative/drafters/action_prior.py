@@ -29,6 +29,23 @@ from ...actions.tokenizer import ActionLayout
 from ..drafter import CandidateDrafter, DraftContext, Drafter, DraftSession, PathSession, PerRowDrafter
 
 
+def _actions_as_lists(previous_actions, action_dim: int) -> list[list[int]]:
+    """``previous_actions`` (a sequence of actions, each a sequence of token ids) as lists of ints.
+
+    Raises:
+        TypeError: a flat list of ids or anything else that is not a sequence of actions (names what was given).
+    """
+    actions = previous_actions.tolist() if hasattr(previous_actions, "tolist") else previous_actions  # array, tensor
+    try:
+        return [[int(t) for t in action] for action in actions]
+    except TypeError:
+        raise TypeError(
+            f"previous_actions must be a list of actions, each a list of {action_dim} action token ids (oldest "
+            f"first), e.g. [[...{action_dim} ids...]] for one action; got {str(actions)[:80]}: a flat list of ids "
+            f"is one action, wrap it in a list"
+        ) from None
+
+
 class ActionPriorDrafter(Drafter):
     """Candidate action-token sequences from the episode's previous actions (see module docstring).
 
@@ -64,7 +81,7 @@ class ActionPriorDrafter(Drafter):
                 raise ValueError(f"ActionPriorDrafter {name} must be an int >= {low}, got {value!r}")
         if not isinstance(later_rounds, bool):
             raise TypeError(f"ActionPriorDrafter later_rounds must be True or False, got {later_rounds!r}")
-        history = [[int(t) for t in action] for action in previous_actions]
+        history = _actions_as_lists(previous_actions, action_layout.action_dim)
         tokenizer = action_layout.tokenizer
         for action in history:
             if len(action) != action_layout.action_dim or not all(tokenizer.is_action_token(t) for t in action):

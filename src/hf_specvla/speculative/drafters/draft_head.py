@@ -189,6 +189,7 @@ class _DraftHeadSession(DraftSession):
             self.compiled_round = compiled_function(catch_up_and_expand, self.compile_config, graphs=1)
         self.graph_depth: int | None = None  # the depth this call's compiled rounds expand to (its first round's)
         self.cache_length = 0  # committed entries in self.cache
+        self.cached_tokens = context.cached_tokens  # the row's tokens the target held before the call (not fed here)
         self.unfed: list[Commit] = []  # commits whose (token, hidden) pairs the head has not seen yet
         self.root_feature: torch.Tensor | None = None  # [1, 1, H] estimate of the hidden state at the root
         self.num_forwards = 0
@@ -210,7 +211,7 @@ class _DraftHeadSession(DraftSession):
         tokens = torch.cat([c.next_token_ids for c in self.unfed], dim=1)
         hidden = torch.cat([c.target_hidden for c in self.unfed], dim=1)
         positions = torch.cat([c.positions for c in self.unfed], dim=1)
-        committed = self.unfed[-1].cache_length
+        committed = self.unfed[-1].cache_length - self.cached_tokens
         self.unfed = []
         return tokens, hidden, positions, committed
 
