@@ -154,7 +154,7 @@ def tiny_policy():
     return VLAPolicy.build(["reach the goal"], actions, states, config, seed=3)
 
 
-def test_eval_refuses_another_run_and_redoes_a_torn_episode(tmp_path, tiny_policy):
+def test_eval_refuses_another_run_and_redoes_a_torn_episode(tmp_path, tiny_policy, caplog):
     """Regression (reliability issue, cases 3 and 9): evaluating into a folder that holds results of another
     policy, decoding setting or step limit used to "resume" and report the old numbers; a torn last line of
     episodes.jsonl used to stop resume with a raw JSONDecodeError."""
@@ -179,7 +179,10 @@ def test_eval_refuses_another_run_and_redoes_a_torn_episode(tmp_path, tiny_polic
         evaluate(other, "reach", 2, out, env, progress=False)
     # a crash mid-write of the second episode: its line is dropped and the episode redone, identically
     (out / "episodes.jsonl").write_text(lines[0] + "\n" + lines[1][: len(lines[1]) // 2])
-    again = evaluate(tiny_policy, "reach", 2, out, env, progress=False)
+    with caplog.at_level(logging.WARNING):
+        again = evaluate(tiny_policy, "reach", 2, out, env, progress=False)
+    # the warning names the folder the user gave, not the claimed folder's /proc/<pid>/fd binding (issue 55, item 5)
+    assert f"{out / 'episodes.jsonl'}: dropping a torn last line" in caplog.text and "/proc/" not in caplog.text
 
     def without_latencies(text_lines):  # wall times differ between runs; everything else must not
         return [{k: v for k, v in json.loads(x).items() if k != "latencies_ms"} for x in text_lines]

@@ -376,10 +376,16 @@ def write_json_atomic(path: str | Path, data) -> None:
     os.replace(temporary, path)
 
 
-def read_jsonl(path: str | Path) -> list[dict]:
+def read_jsonl(path: str | Path, shown_as: str | Path | None = None) -> list[dict]:
     """The records of an append-only JSON-lines log. A torn last line (a crash mid-write) is dropped from the file
-    with a warning, so that its record is redone; a torn line elsewhere is an error naming the line."""
+    with a warning, so that its record is redone; a torn line elsewhere is an error naming the line.
+
+    Args:
+        shown_as: the path messages name (e.g. the run folder the user gave, when ``path`` goes through the claimed
+            folder's ``/proc/<pid>/fd`` binding); default ``path``.
+    """
     path = Path(path)
+    shown = str(shown_as if shown_as is not None else path)
     if not path.exists():
         return []
     lines = path.read_text().splitlines()
@@ -389,8 +395,8 @@ def read_jsonl(path: str | Path) -> list[dict]:
             records.append(json.loads(line))
         except json.JSONDecodeError:
             if number < len(lines):
-                raise ValueError(f"{str(path)!r} line {number} is not valid JSON: the log is damaged") from None
-            logger.warning("%s: dropping a torn last line (a crash mid-write); that record is redone", path)
+                raise ValueError(f"{shown!r} line {number} is not valid JSON: the log is damaged") from None
+            logger.warning("%s: dropping a torn last line (a crash mid-write); that record is redone", shown)
             path.write_text("".join(line + "\n" for line in lines[:-1]))
     return records
 

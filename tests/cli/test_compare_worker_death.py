@@ -32,6 +32,7 @@ def test_the_cli_logs_a_dead_worker_and_exits_1_without_a_traceback(tmp_path, mo
         raise WorkerDiedError("a compare worker process (pid 7) died: killed by signal SIGKILL. The other workers ...")
 
     monkeypatch.setattr(compare, "load_policy", lambda *a, **k: None)
+    monkeypatch.setattr(compare, "read_policy_config", lambda *a, **k: SimpleNamespace(action_dim=4))
     monkeypatch.setattr(comparison, "run_comparison", die)
     argv = ["compare", "--policy", "unused", "--tasks", "reach", "--methods", "prior", "--threads", "1",
             "--output-dir", str(tmp_path / "out")]  # fmt: skip

@@ -151,7 +151,7 @@ def test_method_names():
     with pytest.raises(ValueError, match=re.escape("'jacobi+head' is not a drafter; valid: greedy, head")):
         DecodingMethod.parse("jacobi+head")
     for bad, message in [("prior:k=3", "needs the head chain"), ("greedy:r=2", "takes no r, rl, m, gate or k"),
-                         ("prior:x=1", "bad option 'x=1'"), ("head:k=0", "k must be >= 1"),
+                         ("prior:x=1", "bad option 'x=1'"), ("head:k=0", "k must be an integer >= 1"),
                          ("prior:r=-1", "r must be an integer >= 0"), ("prior:r=x", "bad option 'r=x'"),
                          ("greedy:compile:compile", "'compile' given twice"),
                          ("prior:compiled", "bad option 'compiled'")]:  # fmt: skip
@@ -171,11 +171,11 @@ def test_relaxed_rule_options_and_presets():
     assert chunked.tolerances() == [2, 6, 6, 6, 0]
     assert DecodingMethod.parse("prior:r=4,m=0").lossless  # a budget of 0 relaxes nothing
     # presets resolve to full method strings, with or without a draft head
-    for preset, (alone, with_head) in PRESETS.items():
-        assert DecodingMethod.parse(preset) == DecodingMethod.parse(alone)
-        assert DecodingMethod.parse(preset, draft_head_given=True) == DecodingMethod.parse(with_head)
+    for preset in PRESETS.values():
+        assert DecodingMethod.parse(preset.name) == preset.resolve(False, 4)
+        assert DecodingMethod.parse(preset.name, draft_head_given=True) == preset.resolve(True, 4)
     assert DecodingMethod.parse("exact").lossless and not DecodingMethod.parse("fast").lossless
-    assert [m.name for m in parse_methods(["exact", "prior+jacobi:compile"])] == ["greedy", PRESETS["exact"][0]]
+    assert [m.name for m in parse_methods(["exact", "prior+jacobi:compile"])] == ["greedy", "prior+jacobi:compile"]
     for bad, message in [("prior:gate=0.5", "give r"), ("prior:r=4,gate=2", r"gate must be a probability in \(0, 1\]"),
                          ("prior:r=4,gate=x", "gate must be a probability"), ("prior:r=4/x", "bad option 'r=4/x'"),
                          ("prior:r=4/-1", "r must be an integer >= 0"), ("prior:r=4,m=-1", "m must be an integer"),

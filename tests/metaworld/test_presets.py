@@ -114,3 +114,26 @@ def test_ascii_numbers_still_parse():
     assert (method.bin_tolerance, method.later_tolerance, method.max_relaxed_per_action) == ((4, 4, 4, 0), 8, 1)
     assert (method.confidence_gate, method.num_draft_tokens) == (0.25, 3)
     assert DecodingMethod.parse("prior:r=4,gate=1").confidence_gate == 1.0
+
+
+def test_the_compare_command_resolves_presets_to_the_policys_layout(tmp_path, monkeypatch):
+    """``hf-specvla compare`` reads the policy's action_dim from its config (before loading it) and resolves ``fast``
+    for it: a 7-dimensional (OpenVLA-shaped) policy gets the 7-dimensional table."""
+    from types import SimpleNamespace
+
+    from hf_specvla.cli import compare, main
+    from hf_specvla.metaworld import comparison
+
+    seen = {}
+
+    def record(policy, config, *args, **kwargs):
+        seen["methods"] = config.methods
+        raise ValueError("stop here")  # a usage error: nothing runs
+
+    monkeypatch.setattr(compare, "read_policy_config", lambda *a, **k: SimpleNamespace(action_dim=7))
+    monkeypatch.setattr(compare, "load_policy", lambda *a, **k: None)
+    monkeypatch.setattr(comparison, "run_comparison", record)
+    with pytest.raises(SystemExit):
+        main(["compare", "--policy", "unused", "--tasks", "reach", "--methods", "fast", "--threads", "1",
+              "--output-dir", str(tmp_path / "out")])  # fmt: skip
+    assert seen["methods"] == ["greedy", FAST[7]]

@@ -7,7 +7,16 @@ from __future__ import annotations
 import logging
 
 from ..metaworld.comparison.methods import DRAFTER_CHOICES, METHOD_KEYS, PRESETS, CompareConfig
-from .common import NON_NEGATIVE, POSITIVE, add_tree_arguments, check_draft_head_flag, load_policy, usage_errors
+from .common import (
+    NON_NEGATIVE,
+    POSITIVE,
+    add_tree_arguments,
+    check_draft_head_flag,
+    check_output_dir_flag,
+    load_policy,
+    read_policy_config,
+    usage_errors,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -68,10 +77,13 @@ def run(args, parser) -> int:
     from ..metaworld.comparison.runner import WorkerDiedError, check_timing
     from ..speculative import DraftHead
 
+    check_output_dir_flag(args.output_dir, parser)
+    action_dim = read_policy_config(args.policy, parser).action_dim  # the presets resolve to the policy's layout
     with usage_errors(parser, errors=(ValueError,)):
         config = CompareConfig(args.tasks, args.episodes, args.methods, args.seed_start, args.max_episode_steps,
                                args.workers, args.threads, args.seed, args.tree_top_k, args.tree_depth,
-                               args.tree_total_tokens, draft_head_given=args.draft_head is not None)  # fmt: skip
+                               args.tree_total_tokens, draft_head_given=args.draft_head is not None,
+                               action_dim=action_dim)  # fmt: skip
         config.check_draft_head_given(args.draft_head is not None)
     if args.draft_head and not config.draft_head_methods():
         logger.warning("--draft-head %s is not used: none of the methods %s drafts with a head (head, tree, "

@@ -5,7 +5,7 @@ scenes, and drafts from previous actions / the head / both on moving-dot episode
 from __future__ import annotations
 
 from .benchmark import add_benchmark_arguments, time_pipeline
-from .common import NON_NEGATIVE, usage_errors
+from .common import NON_NEGATIVE, check_output_dir_flag, usage_errors
 
 NAME = "demo"
 HELP = "train a toy VLA target + draft head on the spot and benchmark them"
@@ -72,6 +72,7 @@ def time_episodes(pipeline, args) -> None:
 def run(args, parser) -> int:
     from ..benchmarks.toy import ToyTargetSize, build_toy_pipeline
 
+    check_output_dir_flag(args.output_dir, parser)
     with usage_errors(parser, errors=(FileExistsError,)):
         size = ToyTargetSize(**SIZES[args.size])
         pipeline = build_toy_pipeline(args.output_dir, size, args.target_steps, args.draft_steps, seed=args.seed,

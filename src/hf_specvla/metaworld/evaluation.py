@@ -223,7 +223,7 @@ def evaluate(
     with claim_run_folder(output_dir, RunRecord("eval", settings), overwrite) as run:
         folder = run.bound  # writes stay in the claimed folder, renamed or not
         log_path = folder / "episodes.jsonl"
-        results = [EpisodeResult(**record) for record in read_jsonl(log_path)]
+        results = [EpisodeResult(**record) for record in read_jsonl(log_path, shown_as=output_dir / "episodes.jsonl")]
         done = {(r.task, r.seed) for r in results}
         bar = progress_bar(
             total=len(tasks) * episodes_per_task, initial=len(done), desc="eval", unit="episode", disable=not progress

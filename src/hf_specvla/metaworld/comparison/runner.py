@@ -230,9 +230,14 @@ def _count_log_lines(output_dir: Path) -> int:
     return sum(path.read_bytes().count(b"\n") for path in output_dir.glob(LOG_PATTERN))
 
 
-def read_episode_logs(output_dir: Path) -> list[dict]:
-    """Every episode record of a comparison folder (all workers' logs)."""
-    return [record for path in sorted(output_dir.glob(LOG_PATTERN)) for record in read_jsonl(path)]
+def read_episode_logs(output_dir: Path, shown_as: Path | None = None) -> list[dict]:
+    """Every episode record of a comparison folder (all workers' logs; messages name ``shown_as``, the folder the user
+    gave, when ``output_dir`` is the claimed folder's ``/proc`` binding)."""
+    return [
+        record
+        for path in sorted(output_dir.glob(LOG_PATTERN))
+        for record in read_jsonl(path, shown_as=None if shown_as is None else shown_as / path.name)
+    ]
 
 
 def _peek_episode_logs(output_dir: Path) -> list[dict]:
@@ -329,7 +334,7 @@ def run_comparison(
         settings["tree"] = asdict(config.tree_config())  # what the tree methods drafted with
     with claim_run_folder(output_dir, RunRecord("compare", settings), overwrite) as run:
         output_dir = run.bound  # writes stay in the claimed folder, renamed or not
-        records = read_episode_logs(output_dir)
+        records = read_episode_logs(output_dir, run.path)
         timing = resolve_timing(run.path, compare_timing_conditions(config), records, restart_timing,
                                 _untimed_hint(output_dir), RESTART_TIMING_FLAG)  # fmt: skip
         write_timing(output_dir, timing)
@@ -348,13 +353,15 @@ def run_comparison(
                 _run_in_workers(config, pairs, done, output_dir, policy_dir, draft_head_dir, bar)
             except WorkerDiedError as error:
                 bar.close()
-                saved = len(read_episode_logs(output_dir))  # the workers are gone: a torn last line is dropped
+                saved = len(
+                    read_episode_logs(output_dir, run.path)
+                )  # the workers are gone: a torn last line is dropped
                 raise WorkerDiedError(
                     f"{error}. The other workers were stopped; the {saved} episodes finished so far are saved in "
                     f"{str(run.path)!r}: rerun the same command to resume (finished episodes are not run again)"
                 ) from None
         bar.close()
-        records = read_episode_logs(output_dir)
+        records = read_episode_logs(output_dir, run.path)
         wanted = {(t, s) for t, s in pairs}
         in_folder = len(records)
         records = [r for r in records if (r["task"], r["seed"]) in wanted and r["method"] in config.methods]
