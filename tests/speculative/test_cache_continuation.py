@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from transformers import DynamicCache, LlamaForCausalLM
+from transformers import DynamicCache
 from transformers.cache_utils import StaticCache
 
 from hf_specvla import (
@@ -22,22 +22,20 @@ from hf_specvla import (
     DraftHeadDrafter,
     DraftTreeConfig,
     JacobiDrafter,
-    enable_speculation,
 )
 from hf_specvla.speculative import CACHE_KEY
 from hf_specvla.speculative.compiled import reset_compilation
 
-from ..conftest import llava_prompt, tiny_llama_config
+from ..conftest import llava_prompt
 from .test_compiled_verification import eager_compile_config
 
 NEW_TOKENS = 7
 TURN_2 = torch.tensor([[7, 8]])  # the user's next tokens
 
 
-@pytest.fixture(scope="module")
-def model():
-    torch.manual_seed(0)
-    return enable_speculation(LlamaForCausalLM(tiny_llama_config()).eval())
+@pytest.fixture
+def model(tiny_llama):
+    return tiny_llama
 
 
 @pytest.fixture(scope="module")
