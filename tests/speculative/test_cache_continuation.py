@@ -27,15 +27,17 @@ from hf_specvla.speculative import CACHE_KEY
 from hf_specvla.speculative.compiled import reset_compilation
 
 from ..conftest import llava_prompt
+from .test_compiled_verification import _model as fresh_model
 from .test_compiled_verification import eager_compile_config
 
 NEW_TOKENS = 7
 TURN_2 = torch.tensor([[7, 8]])  # the user's next tokens
 
 
-@pytest.fixture
-def model(tiny_llama):
-    return tiny_llama
+@pytest.fixture(scope="module")
+def model():
+    """A tiny Llama of this module's own: the session's ``tiny_llama`` carries other tests' compiled graphs."""
+    return fresh_model("llama")
 
 
 @pytest.fixture(scope="module")
