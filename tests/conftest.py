@@ -12,7 +12,10 @@ from transformers import CLIPVisionConfig, LlamaConfig, LlamaForCausalLM, LlavaC
 
 from hf_specvla import ActionTokenizer, DraftHead, enable_speculation
 
-torch.set_num_threads(2)
+# One thread: on 2 cores that anything else uses too, torch's second thread spin-waits for a core and the suite crawls
+# (the toy pipeline trained in 30 s with 2 threads on 2 idle cores, 96 s beside one busy process, 12 min at load 5;
+# with 1 thread: 46 s idle, 47 s beside the busy process). tox sets OMP_NUM_THREADS=1 for the commands tests start.
+torch.set_num_threads(1)
 
 VOCAB = 320  # 64 text ids + 256 action ids (64..319)
 IMAGE_TOKEN = 5
