@@ -259,7 +259,7 @@ def _draft_contexts(
             max_length=max_length,
             compile_config=compile_config,
             cached_tokens=cached_tokens,
-        )  # fmt: skip
+        )
         for b, padding in enumerate(rows)
     ]
 
@@ -279,9 +279,10 @@ def check_continued_cache(cache: Cache, batch_size: int) -> None:
     """
     if not holds_buffers(cache) or any(type(layer) not in ROLLBACK_LAYER_TYPES for layer in cache.layers):
         return  # nothing allocated yet (any batch size), or a cache refused for its layers (check_rollback_cache)
-    if cache in _BATCH_DECODED_CACHES and cache_length(cache):
+    entries = cache_length(cache)
+    if cache in _BATCH_DECODED_CACHES and entries:
         raise ValueError(
-            f"this cache holds {cache_length(cache)} entries left by a batched speculative generate call: a batch's "
+            f"this cache holds {entries} entries left by a batched speculative generate call: a batch's "
             f"rows accept different numbers of drafts, so its cache keeps entries of rejected drafts (masked only "
             f"inside that call) and drops finished rows, and it cannot be continued exactly. Continue each row with "
             f"batch size 1 on its own cache, or start from a fresh cache (pass the whole sequence again)"
@@ -289,7 +290,7 @@ def check_continued_cache(cache: Cache, batch_size: int) -> None:
     rows = cache_batch_size(cache)
     if rows != batch_size:
         raise ValueError(
-            f"the cache holds {cache_length(cache)} entries for {rows} row(s) ({type(cache).__name__}), but input_ids "
+            f"the cache holds {entries} entries for {rows} row(s) ({type(cache).__name__}), but input_ids "
             f"has {batch_size} rows: a cache is used again by calls of the same batch size (a static cache keeps its "
             f"rows when emptied). Pass a fresh cache (e.g. DynamicCache() or a new StaticCache) for a batch of "
             f"{batch_size}"
