@@ -3,7 +3,7 @@ imports no simulator, training or CLI code."""
 
 from .._lazy import lazy_exports
 
-__all__ = ["POLICY_CONFIG_NAME", "VLAPolicy", "VLAPolicyConfig", "VLAProcessor"]
+__all__ = ["PRESETS", "POLICY_CONFIG_NAME", "DecodingMethod", "VLAPolicy", "VLAPolicyConfig", "VLAProcessor"]
 
 __getattr__, __dir__ = lazy_exports(
     __name__,
@@ -11,6 +11,7 @@ __getattr__, __dir__ = lazy_exports(
         ".configuration_vla": ("POLICY_CONFIG_NAME", "VLAPolicyConfig"),
         ".processing_vla": ("VLAProcessor",),
         ".modeling_vla": ("VLAPolicy",),
+        ".decoding_methods": ("DecodingMethod", "PRESETS"),
     },
     globals(),
 )
