@@ -1,0 +1,130 @@
+"""Forming batches on one machine: requests that arrive together are decoded in one call ([`Batcher`]).
+
+A worker thread takes the first waiting request, waits up to ``max_wait_ms`` for more (up to the largest bucket),
+drops the requests whose robots gave up meanwhile (their futures cancelled), and hands the rest to
+[`PolicyService.act`]. The queue is bounded: past ``max_queue`` waiting requests, [`submit`] raises [`Overloaded`]
+with the seconds after which a retry is likely to be served (HTTP 503 + Retry-After), rather than letting latency
+grow without bound. A batch whose call fails is retried one request at a time, so one request's failure never
+fails the others. (On Ray Serve, ``serve.batch`` forms the batches instead.)
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+
+from .protocol import ActReply, ActRequest, Overloaded
+from .service import PolicyService
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class _Pending:
+    request: ActRequest
+    arrived: float = field(default_factory=time.perf_counter)
+    future: Future = field(default_factory=Future)
+
+
+class Batcher:
+    """Batches requests for a [`PolicyService`] on a worker thread ([`start`], [`stop`])."""
+
+    def __init__(self, service: PolicyService):
+        self.service = service
+        config = service.config
+        self.max_wait_s, self.max_batch_size = config.max_wait_ms / 1000, config.max_batch_size
+        self._queue: queue.Queue[_Pending] = queue.Queue(maxsize=config.max_queue)
+        self._stopping = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._recent_batch_s = 0.05  # a running mean, for Retry-After
+        self.batches = 0
+        self.dropped = 0  # requests whose robots gave up before their batch started
+
+    def start(self) -> Batcher:
+        self._thread = threading.Thread(target=self._run, name="hf-specvla-batcher", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 60.0) -> None:
+        """Decodes what is queued, then stops the worker."""
+        self._stopping.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+    @property
+    def waiting(self) -> int:
+        return self._queue.qsize()
+
+    def submit(self, request: ActRequest, arrived: float | None = None) -> Future:
+        """Queues ``request`` (``arrived``: its ``time.perf_counter()`` at arrival, default now); its future gets
+        the [`ActReply`] (cancel it to drop a request not yet decoded).
+
+        Raises:
+            Overloaded: the queue is full.
+            RuntimeError: the batcher is stopping.
+        """
+        if self._stopping.is_set():
+            raise RuntimeError("the server is shutting down")
+        pending = _Pending(request) if arrived is None else _Pending(request, arrived)
+        try:
+            self._queue.put_nowait(pending)
+        except queue.Full:
+            batches_ahead = self._queue.maxsize / self.max_batch_size + 1
+            retry_after_s = max(1, math.ceil(batches_ahead * self._recent_batch_s))
+            raise Overloaded(
+                f"{self._queue.maxsize} requests are waiting, the most this server queues: retry in {retry_after_s} s",
+                retry_after_s,
+            ) from None
+        return pending.future
+
+    def _run(self) -> None:
+        while not (self._stopping.is_set() and self._queue.empty()):
+            try:
+                first = self._queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            batch = [first]
+            deadline = time.perf_counter() + self.max_wait_s
+            while len(batch) < self.max_batch_size:
+                try:
+                    remaining = deadline - time.perf_counter()
+                    batch.append(self._queue.get(timeout=remaining) if remaining > 0 else self._queue.get_nowait())
+                except queue.Empty:
+                    break
+            live = [p for p in batch if p.future.set_running_or_notify_cancel()]
+            self.dropped += len(batch) - len(live)
+            if live:
+                self._decode(live)
+
+    def _decode(self, batch: list[_Pending]) -> None:
+        started = time.perf_counter()
+        try:
+            replies = self.service.act([p.request for p in batch], [p.arrived for p in batch])
+        except Exception:  # one request at a time: a failing one fails alone
+            logger.exception("a batch of %d failed; decoding its requests one at a time", len(batch))
+            for pending in batch:
+                self._decode_alone(pending)
+        else:
+            self._finish(batch, replies)
+        self.batches += 1
+        self._recent_batch_s = 0.8 * self._recent_batch_s + 0.2 * (time.perf_counter() - started)
+
+    def _decode_alone(self, pending: _Pending) -> None:
+        try:
+            (reply,) = self.service.act([pending.request], [pending.arrived])
+        except Exception as error:  # noqa: BLE001 (reported to that request's robot)
+            pending.future.set_exception(error)
+        else:
+            self._finish([pending], [reply])
+
+    @staticmethod
+    def _finish(batch: list[_Pending], replies: list[ActReply]) -> None:
+        done = time.perf_counter()
+        for pending, reply in zip(batch, replies):
+            reply.served.server_ms = 1000 * (done - pending.arrived)
+            pending.future.set_result(reply)

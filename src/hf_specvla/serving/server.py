@@ -1,0 +1,167 @@
+"""The policy server on one machine: ``hf-specvla serve`` without ``--ray``. A uvicorn server runs the HTTP app
+(``app``) over a [`LocalBackend`]: a [`Batcher`] that forms batches for one [`PolicyService`].
+
+    service = PolicyService.from_pretrained("policies/mt10_vla3", ServeConfig(method="exact"))
+    service.warm_up()                                  # compiles every bucket, calibrates
+    PolicyServer(service, port=8000).run()             # until SIGTERM / Ctrl-C
+
+    with PolicyServer(service, port=0) as server:      # in a background thread (tests, notebooks)
+        PolicyClient(server.url).act(...)
+
+It binds 127.0.0.1 unless told otherwise; a host reachable from other machines needs an API key
+([`check_exposure`]). SIGTERM (and Ctrl-C) stop accepting connections, let the requests in flight get their actions
+(up to ``drain_timeout_s``), then stop the batcher.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ipaddress
+import logging
+import socket
+import threading
+import time
+
+from .app import DEFAULT_MAX_REQUEST_BYTES, PolicyRoutes
+from .batching import Batcher
+from .protocol import ActReply, ActRequest
+from .service import PolicyService
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8000
+#: the environment variable an API key may come from (so that it stays out of shell histories and process lists)
+API_KEY_VARIABLE = "HF_SPECVLA_API_KEY"
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is reachable only from this machine (127.0.0.0/8, ::1, localhost)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_exposure(host: str, api_key: str | None) -> None:
+    """Refuses to serve beyond this machine without an API key.
+
+    Raises:
+        ValueError: a non-loopback ``host`` and no ``api_key``.
+    """
+    if not is_loopback(host) and not api_key:
+        raise ValueError(f"host {host!r} is reachable from other machines: pass --api-key (or set "
+                         f"{API_KEY_VARIABLE}) so that every request must carry it, or serve on 127.0.0.1")  # fmt: skip
+
+
+class LocalBackend:
+    """The app's backend on one machine: requests -> [`Batcher`] -> [`PolicyService`]."""
+
+    def __init__(self, service: PolicyService):
+        self.service, self.batcher = service, Batcher(service)
+        self.started = time.time()
+
+    def info(self) -> dict:
+        config = self.service.config
+        return {**self.service.info(), "deployment": "local", "max_wait_ms": config.max_wait_ms,
+                "max_queue": config.max_queue}  # fmt: skip
+
+    def stats(self) -> dict:
+        return {**self.service.stats(), "batches": self.batcher.batches, "waiting": self.batcher.waiting,
+                "dropped": self.batcher.dropped, "uptime_s": round(time.time() - self.started, 1)}  # fmt: skip
+
+    def parse(self, payload) -> ActRequest:
+        return self.service.parse(payload)
+
+    async def act(self, request: ActRequest, arrived: float) -> ActReply:
+        return await asyncio.wrap_future(self.batcher.submit(request, arrived))
+
+
+class PolicyServer:
+    """Serves a [`PolicyService`] over HTTP on one machine ([`run`], or ``with`` for a background thread).
+
+    Args:
+        service: the policy service (warmed up, or not: then the first request of each bucket compiles).
+        host / port: where to listen (port 0: any free port; see ``url``).
+        api_key: every request must carry it (None: an open server; refused off loopback).
+        max_request_bytes: the largest request body.
+        drain_timeout_s: how long SIGTERM waits for the requests in flight.
+    """
+
+    def __init__(self, service: PolicyService, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
+                 api_key: str | None = None, max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
+                 drain_timeout_s: float = 30.0):  # fmt: skip
+        check_exposure(host, api_key)
+        self.backend = LocalBackend(service)
+        self.routes = PolicyRoutes(self.backend, api_key, max_request_bytes)
+        self.host, self.drain_timeout_s = host, drain_timeout_s
+        self._socket = _bind(host, port)
+        self.port = self._socket.getsockname()[1]
+        self._server = None
+        self._thread: threading.Thread | None = None
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.port}"
+
+    @contextlib.asynccontextmanager
+    async def _lifespan(self, app):
+        self.backend.batcher.start()
+        logger.info("serving %s (%s) on %s", self.backend.service.policy.name_or_path,
+                    self.backend.service.method.name, self.url)  # fmt: skip
+        yield
+        self.backend.batcher.stop()
+        logger.info("stopped: %d batches served", self.backend.batcher.batches)
+
+    def _uvicorn(self, log_level: str = "warning"):
+        import uvicorn
+
+        config = uvicorn.Config(self.routes.app(self._lifespan), log_level=log_level, access_log=False,
+                                timeout_graceful_shutdown=self.drain_timeout_s, lifespan="on")  # fmt: skip
+        self._server = uvicorn.Server(config)
+        return self._server
+
+    def run(self, log_level: str = "warning") -> None:
+        """Serves until SIGTERM or Ctrl-C, then drains the requests in flight."""
+        self._uvicorn(log_level).run(sockets=[self._socket])
+
+    def __enter__(self) -> PolicyServer:
+        server = self._uvicorn()
+        self._thread = threading.Thread(target=server.run, kwargs={"sockets": [self._socket]}, daemon=True,
+                                        name="hf-specvla-server")  # fmt: skip
+        self._thread.start()
+        deadline = time.time() + 30
+        while not server.started:
+            if not self._thread.is_alive() or time.time() > deadline:
+                raise RuntimeError(f"the policy server on {self.url} did not start")
+            time.sleep(0.01)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stops a server started with ``with`` (the requests in flight finish first)."""
+        if self._server is not None:
+            self._server.should_exit = True
+        if self._thread is not None:
+            self._thread.join(self.drain_timeout_s + 10)
+        self._socket.close()
+
+
+def _bind(host: str, port: int) -> socket.socket:
+    """A listening socket on ``host:port`` (the error names the address when it is taken)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as error:
+        sock.close()
+        raise OSError(f"cannot listen on {host}:{port}: {error.strerror} (another server there? pass --port)") from None
+    sock.listen(2048)
+    sock.set_inheritable(True)
+    return sock

@@ -1,0 +1,355 @@
+"""The policy service: requests from many robots -> one batched ``predict_action`` per batch, each robot with its own
+drafts; the decision per batch size whether speculation pays. No HTTP here (``app`` and ``ray_deployment`` carry it).
+
+**Batches and buckets.** The requests decoded together are padded to the smallest *bucket* that holds them (default
+1, 2, 4, 8, 16) with idle rows (copies of the first row, no drafts; their actions are dropped), so the compiled
+graphs hold a few batch shapes, all compiled by [`PolicyService.warm_up`] before the first request: load never
+triggers a compile. More requests than the largest bucket are decoded in several batches.
+
+**Each robot's drafts.** A robot names itself with ``session``; its previous actions (token ids, as
+``VLAPolicy.previous_action_ids``) are kept per session (least recently used first out past ``max_sessions``) and
+returned in every reply as ``draft_state``, which the robot may echo: then its drafts do not depend on which
+replica answers. A robot whose state is lost gets its action without prior drafts (one step of greedy's speed).
+``reset`` starts a new episode.
+
+**Speculate only where it pays.** For each bucket the service decodes either speculatively (the method, e.g.
+``exact`` = previous action + Jacobi drafts, compiled) or with the greedy baseline (transformers' compiled greedy
+for a compiled method, eager greedy otherwise), whichever is faster: measured at start-up
+([`PolicyService.warm_up`]: a few interleaved calls per bucket on synthetic observations that drift like a robot's),
+then kept current on the real traffic (every ``explore_every``-th batch of a bucket runs the other mode; the choice
+follows the medians of the last calls). Or the user fixes the table (``speculate_buckets``). At ``r = 0`` both modes
+give greedy's actions, so the choice changes speed, never behaviour.
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+import threading
+import time
+from collections import OrderedDict, deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._validation import check_ranges
+from ..policies import VLAPolicy
+from ..policies.decoding_methods import COMPILED_GREEDY, GREEDY, DecodingMethod
+from .protocol import ActReply, ActRequest, RequestError, ServedFigures
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_BUCKETS = (1, 2, 4, 8, 16)
+#: calls kept per bucket and mode for the choice (their median decides)
+TIMING_WINDOW = 16
+#: the instruction of the calibration's synthetic observations
+CALIBRATION_INSTRUCTION = "calibrate the policy server"
+
+
+@dataclass
+class ServeConfig:
+    """How the service decodes and batches.
+
+    Args:
+        method: the speculative decoding method or preset (``exact``, ``prior+jacobi:compile``, ...; see
+            ``policies.decoding_methods``). ``greedy`` / ``greedy:compile`` serves greedy only.
+        buckets: the batch sizes decoding runs at (a batch is padded up to the next); the largest is the most
+            requests decoded together.
+        max_wait_ms: how long a batch waits for more requests after its first arrived (0: decode what is there).
+        max_queue: requests waiting beyond the batch being decoded; more are refused (HTTP 503, Retry-After).
+        calibration_calls: interleaved timed calls per bucket and mode at start-up (0: no calibration: speculate
+            wherever ``speculate_buckets`` says, or everywhere).
+        speculate_buckets: the buckets to decode speculatively, fixed (None: measured).
+        explore_every: every n-th batch of a bucket runs the mode not chosen, to keep its timing current (0: never).
+        max_sessions: robots whose drafts are kept.
+    """
+
+    method: str = "exact"
+    buckets: tuple[int, ...] = DEFAULT_BUCKETS
+    max_wait_ms: float = 2.0
+    max_queue: int = 64
+    calibration_calls: int = 3
+    speculate_buckets: tuple[int, ...] | None = None
+    explore_every: int = 16
+    max_sessions: int = 10_000
+
+    def __post_init__(self):
+        self.buckets = tuple(self.buckets)
+        if not self.buckets or any(isinstance(b, bool) or not isinstance(b, int) or b < 1 for b in self.buckets):
+            raise ValueError(f"buckets must be batch sizes >= 1, got {list(self.buckets)}")
+        if list(self.buckets) != sorted(set(self.buckets)):
+            raise ValueError(f"buckets must be increasing without repeats, got {list(self.buckets)} "
+                             f"(e.g. 1,2,4,8,16)")  # fmt: skip
+        check_ranges(self, at_least_one=("max_queue", "max_sessions"),
+                     non_negative=("max_wait_ms", "calibration_calls", "explore_every"),
+                     integers=("max_queue", "max_sessions", "calibration_calls", "explore_every"))  # fmt: skip
+        if self.speculate_buckets is not None:
+            self.speculate_buckets = tuple(self.speculate_buckets)
+            unknown = sorted(set(self.speculate_buckets) - set(self.buckets))
+            if unknown:
+                raise ValueError(f"speculate_buckets {unknown} are not buckets; the buckets are {list(self.buckets)}")
+
+    @property
+    def max_batch_size(self) -> int:
+        return self.buckets[-1]
+
+
+class PolicyService:
+    """A policy behind a server: [`act`] decodes a batch of requests, each row with its own robot's drafts.
+
+    Not thread-safe by design: one batch at a time (a lock holds it); the HTTP layer forms the batches.
+
+    Args:
+        policy: the loaded policy.
+        config: [`ServeConfig`].
+        draft_head: for methods that draft with a head (``tree``, ``prior+tree``, ...).
+    """
+
+    def __init__(self, policy: VLAPolicy, config: ServeConfig | None = None, draft_head=None):
+        self.policy, self.config = policy, config or ServeConfig()
+        layout = policy.config
+        self.method = DecodingMethod.parse(self.config.method, draft_head is not None, layout.action_dim)
+        device = policy.model.device.type
+        self.baseline = COMPILED_GREEDY if self.method.compiled else GREEDY
+        self._kwargs = {
+            True: self.method.generate_kwargs(draft_head, device, action_dim=layout.action_dim),
+            False: self.baseline.generate_kwargs(None, device),
+        }
+        self.speculates = self.method.drafters != "greedy"
+        self.sessions: OrderedDict[str, list[list[int]]] = OrderedDict()
+        self.timings = {(b, mode): deque(maxlen=TIMING_WINDOW) for b in self.config.buckets for mode in (True, False)}
+        self.calls = {b: 0 for b in self.config.buckets}  # batches per bucket, for exploration
+        self.batches = {key: [0, 0] for key in self.timings}  # (bucket, speculative) -> [batches, rows] served
+        self.calibration: list[dict] = []
+        self._choice = {b: self.speculates for b in self.config.buckets}
+        if self.config.speculate_buckets is not None:
+            self._choice = {b: self.speculates and b in self.config.speculate_buckets for b in self.config.buckets}
+        self._lock = threading.Lock()
+
+    @classmethod
+    def from_pretrained(cls, policy_folder, config: ServeConfig | None = None, draft_head_folder=None,
+                        threads: int | None = None) -> PolicyService:  # fmt: skip
+        """Loads the policy (and draft head) from their folders."""
+        import torch
+
+        if threads is not None:
+            torch.set_num_threads(threads)
+        policy = VLAPolicy.from_pretrained(policy_folder)
+        draft_head = None
+        if draft_head_folder is not None:
+            from ..speculative import DraftHead
+
+            draft_head = DraftHead.from_pretrained(draft_head_folder)
+            policy.check_draft_head(draft_head)
+        return cls(policy, config, draft_head)
+
+    # ----------------------------------------------------------------------------- what the server says it is
+    def info(self) -> dict:
+        """What ``GET /info`` returns: the policy, what a robot must send, the method and the buckets."""
+        layout = self.policy.config
+        return {
+            "server": "hf_specvla",
+            "policy": self.policy.name_or_path,
+            "fingerprint": self.policy.weights_fingerprint(),
+            "image_size": layout.image_size,
+            "camera": layout.camera,
+            "state_dim": layout.state_dim,
+            "use_state": layout.use_state,
+            "action_dim": layout.action_dim,
+            "chunk_length": layout.chunk_length,
+            "method": self.method.name,
+            "baseline": self.baseline.name,
+            "buckets": list(self.config.buckets),
+            "speculate": {str(b): self._choice[b] for b in self.config.buckets},
+            "calibration": self.calibration,
+        }
+
+    def parse(self, payload) -> ActRequest:
+        """A decoded request body -> a checked [`ActRequest`] for this policy (its image size, state, and drafts
+        that are this policy's action tokens).
+
+        Raises:
+            RequestError: naming the field at fault.
+        """
+        layout = self.policy.config
+        request = ActRequest.parse(payload, layout.image_size, layout.state_dim, layout.use_state)
+        if request.draft_state is not None:
+            self._check_draft_state(request.draft_state)
+        return request
+
+    def _check_draft_state(self, draft_state: list[list[int]]) -> None:
+        dim, tokenizer = self.policy.config.action_dim, self.policy.action_tokenizer
+        if len(draft_state) > self.policy.HISTORY_LENGTH or any(len(action) != dim for action in draft_state):
+            raise RequestError(f"draft_state must hold at most {self.policy.HISTORY_LENGTH} actions of {dim} token "
+                               f"ids each (as the last reply sent), got {[len(a) for a in draft_state]}",
+                               "draft_state")  # fmt: skip
+        ids = np.asarray(draft_state, dtype=np.int64).reshape(-1)
+        if ids.size and not bool(tokenizer.is_action_token(ids).all()):
+            raise RequestError("draft_state holds ids that are not this policy's action tokens", "draft_state")
+
+    def stats(self) -> dict:
+        """What ``GET /stats`` returns: per bucket, batches and rows decoded in each mode, the median ms per call
+        of the recent calls, and the mode chosen now; the robots remembered."""
+        buckets = {}
+        for bucket in self.config.buckets:
+            row = {"speculate": self._choice[bucket]}
+            for speculative, mode in ((True, "speculative"), (False, "greedy")):
+                recent = self.timings[(bucket, speculative)]
+                row[f"{mode}_batches"], row[f"{mode}_rows"] = self.batches[(bucket, speculative)]
+                row[f"{mode}_median_ms"] = round(statistics.median(recent), 2) if recent else None
+            buckets[str(bucket)] = row
+        return {"buckets": buckets, "sessions": len(self.sessions)}
+
+    # ----------------------------------------------------------------------------- deciding
+    def speculate(self, bucket: int) -> bool:
+        """Whether batches of ``bucket`` rows decode speculatively now."""
+        return self._choice[bucket]
+
+    def bucket_for(self, rows: int) -> int:
+        """The smallest bucket that holds ``rows`` requests."""
+        return next(b for b in self.config.buckets if b >= rows)
+
+    def act(self, requests: list[ActRequest], arrived: list[float] | None = None) -> list[ActReply]:
+        """Decodes ``requests`` (any number: split into batches of at most the largest bucket) and returns one reply
+        per request, in order. ``arrived``: each request's ``time.perf_counter()`` at arrival (for ``queue_ms``)."""
+        now = time.perf_counter()
+        arrived = arrived or [now] * len(requests)
+        replies: list[ActReply] = []
+        size = self.config.max_batch_size
+        with self._lock:
+            for start in range(0, len(requests), size):
+                replies += self._decode(requests[start : start + size], arrived[start : start + size])
+        return replies
+
+    def _decode(self, requests: list[ActRequest], arrived: list[float], measured: bool = True) -> list[ActReply]:
+        """One batched call (``measured``: counts toward the mode choice; False for the calibration's own calls)."""
+        rows, bucket = len(requests), self.bucket_for(len(requests))
+        self.calls[bucket] += measured
+        speculative = self._mode_for(bucket) if measured else self._choice[bucket]
+        histories = [self._history(r) for r in requests] + [[] for _ in range(bucket - rows)]
+        padded = requests + [requests[0]] * (bucket - rows)
+        images = np.stack([r.image for r in padded])
+        states = np.stack([r.state for r in padded]) if self.policy.config.use_state else None
+        started = time.perf_counter()
+        actions, output = self.policy.predict_action(
+            images, [r.instruction for r in padded], states, return_output=True, previous_action_ids=histories,
+            **self._kwargs[speculative],
+        )  # fmt: skip
+        decode_ms = 1000 * (time.perf_counter() - started)
+        if measured:
+            self._observe(bucket, speculative, decode_ms)
+            self.batches[(bucket, speculative)][0] += 1
+            self.batches[(bucket, speculative)][1] += rows
+        forwards = self._target_forwards(output, bucket)
+        name = self.method.name if speculative else self.baseline.name
+        replies = []
+        for i, request in enumerate(requests):
+            if request.session is not None:
+                self._remember(request.session, histories[i])
+            figures = ServedFigures(name, speculative, forwards[i], rows, bucket,
+                                    queue_ms=1000 * (started - arrived[i]), decode_ms=decode_ms,
+                                    session=request.session, draft_state=[list(a) for a in histories[i]])  # fmt: skip
+            replies.append(ActReply(np.asarray(actions[i]), figures))
+        return replies
+
+    def _target_forwards(self, output, bucket: int) -> list[int]:
+        stats = getattr(output, "speculation", None)
+        if stats is None:  # greedy: one forward per token
+            return [self.policy.config.action_tokens] * bucket
+        rows = stats.rows or [stats]
+        return [row.num_target_forwards for row in rows]
+
+    def _history(self, request: ActRequest) -> list[list[int]]:
+        """The robot's previous actions (its drafts): none at a reset, the echoed ones, else the session's."""
+        if request.reset or request.session is None:
+            if request.session is not None:
+                self.sessions.pop(request.session, None)
+            return []
+        if request.draft_state is not None:
+            return [list(a) for a in request.draft_state]
+        return [list(a) for a in self.sessions.get(request.session, [])]
+
+    def _remember(self, session: str, history: list[list[int]]) -> None:
+        self.sessions[session] = history
+        self.sessions.move_to_end(session)
+        while len(self.sessions) > self.config.max_sessions:
+            self.sessions.popitem(last=False)
+
+    # ----------------------------------------------------------------------------- measuring
+    def _mode_for(self, bucket: int) -> bool:
+        """This batch's mode: the chosen one, or the other every ``explore_every``-th call (measured choice only)."""
+        chosen = self._choice[bucket]
+        every = self.config.explore_every
+        if self.speculates and self.config.speculate_buckets is None and every and self.calls[bucket] % every == 0:
+            return not chosen
+        return chosen
+
+    def _observe(self, bucket: int, speculative: bool, ms: float) -> None:
+        self.timings[(bucket, speculative)].append(ms)
+        if self.config.speculate_buckets is not None or not self.speculates:
+            return
+        spec, greedy = self.timings[(bucket, True)], self.timings[(bucket, False)]
+        if spec and greedy:
+            choice = statistics.median(spec) < statistics.median(greedy)
+            if choice != self._choice[bucket]:
+                logger.info("bucket %d now decodes %s (median %.1f ms speculative vs %.1f ms greedy)", bucket,
+                            "speculatively" if choice else "greedily", statistics.median(spec),
+                            statistics.median(greedy))  # fmt: skip
+            self._choice[bucket] = choice
+
+    def warm_up(self, calibrate: bool = True, seed: int = 0) -> list[dict]:
+        """Compiles every bucket's graphs for both modes (so no request ever waits on a compile), then, with
+        ``calibrate`` and ``calibration_calls`` > 0, times ``calibration_calls`` interleaved calls per bucket and
+        mode on synthetic observations that drift like a robot's (drafts: the previous call's actions) and sets the
+        choice per bucket. Returns the calibration table (empty without calibration)."""
+        rng = np.random.default_rng(seed)
+        size, dim = self.policy.config.image_size, self.policy.config.state_dim
+        base = rng.integers(0, 256, (size, size, 3), dtype=np.uint8)
+        table = []
+        measure = calibrate and self.speculates and self.config.calibration_calls > 0
+        measure = measure and self.config.speculate_buckets is None
+        for bucket in self.config.buckets:
+            sessions = [f"calibration-{bucket}-{i}" for i in range(bucket)]
+            times: dict[bool, list[float]] = {True: [], False: []}
+            modes = (False, True) if self.speculates else (False,)
+            calls = 1 + (self.config.calibration_calls if measure else 0)
+            for call in range(calls + 1):  # call 0 compiles (and leaves each session its first action)
+                drift = rng.integers(-2, 3, (bucket, size, size, 3))
+                images = np.clip(base.astype(np.int64) + drift, 0, 255).astype(np.uint8)
+                requests = [ActRequest(images[i], CALIBRATION_INSTRUCTION, np.zeros(dim), sessions[i], reset=call == 0)
+                            for i in range(bucket)]  # fmt: skip
+                for speculative in modes if call % 2 else modes[::-1]:  # interleaved, alternating which goes first
+                    self._choice[bucket], saved = speculative, self._choice[bucket]
+                    started = time.perf_counter()
+                    self._decode_unexplored(requests)
+                    if call >= 2:  # calls 0 and 1 compile (first without drafts, then with)
+                        times[speculative].append(1000 * (time.perf_counter() - started))
+                    self._choice[bucket] = saved
+            for session in sessions:
+                self.sessions.pop(session, None)
+            if measure:
+                spec, greedy = statistics.median(times[True]), statistics.median(times[False])
+                self._choice[bucket] = spec < greedy
+                for speculative in (True, False):  # the calibration's timings seed the choice; traffic refines it
+                    self.timings[(bucket, speculative)].extend(times[speculative])
+                table.append({"bucket": bucket, "greedy_ms": round(greedy, 2), "speculative_ms": round(spec, 2),
+                              "speed_up": round(greedy / spec, 3), "speculate": spec < greedy})  # fmt: skip
+        self.calibration = table
+        if table:
+            logger.info("calibration (%d calls per bucket and mode, %s vs %s):\n%s", self.config.calibration_calls,
+                        self.method.name, self.baseline.name, format_calibration(table))  # fmt: skip
+        return table
+
+    def _decode_unexplored(self, requests: list[ActRequest]) -> None:
+        """A calibration call in the mode ``_choice`` names (not counted, no exploration)."""
+        with self._lock:
+            self._decode(requests, [time.perf_counter()] * len(requests), measured=False)
+
+
+def format_calibration(table: list[dict]) -> str:
+    """Markdown table of [`PolicyService.warm_up`]'s calibration."""
+    lines = ["| bucket | greedy ms/call | speculative ms/call | speed-up | decodes |", "|---:|---:|---:|---:|---|"]
+    for row in table:
+        lines.append(f"| {row['bucket']} | {row['greedy_ms']:.1f} | {row['speculative_ms']:.1f} | "
+                     f"{row['speed_up']:.2f}x | {'speculative' if row['speculate'] else 'greedy'} |")  # fmt: skip
+    return "\n".join(lines)
