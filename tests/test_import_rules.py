@@ -64,7 +64,17 @@ def _inside(module: str, *packages: str) -> bool:
 def test_the_tree_shows_the_jobs():
     """One folder per job; only shared utilities sit at the top."""
     folders = {path.name for path in PACKAGE.iterdir() if path.is_dir() and (path / "__init__.py").exists()}
-    assert folders == {"actions", "speculative", "openvla", "policies", "training", "metaworld", "benchmarks", "cli"}
+    assert folders == {
+        "actions",
+        "speculative",
+        "openvla",
+        "policies",
+        "training",
+        "metaworld",
+        "benchmarks",
+        "cli",
+        "serving",
+    }
     top_level = {path.stem for path in PACKAGE.glob("*.py")}
     assert top_level == {"__init__", "_lazy", "_moved", "_validation", "progress", "run_folder"}
 
@@ -107,6 +117,36 @@ def test_models_import_no_simulator_training_or_cli():
         return _inside(module, "hf_specvla.policies", "hf_specvla.openvla") and _inside(
             imported, *SIMULATOR_TRAINING_CLI
         )
+
+    assert _violations(rule) == []
+
+
+def test_models_import_no_serving():
+    """The engine and the models know nothing of serving: it sits above them."""
+
+    def rule(module, imported):
+        below = ("hf_specvla.speculative", "hf_specvla.actions", "hf_specvla.policies", "hf_specvla.openvla")
+        return _inside(module, *below) and _inside(imported, "hf_specvla.serving")
+
+    assert _violations(rule) == []
+
+
+def test_serving_imports_no_simulator_training_or_cli():
+    """A policy server loads policies; it never imports the simulator, the trainers, the benchmarks or the CLI."""
+
+    def rule(module, imported):
+        return _inside(module, "hf_specvla.serving") and _inside(imported, *SIMULATOR_TRAINING_CLI)
+
+    assert _violations(rule) == []
+
+
+def test_robots_use_only_the_servers_client_side():
+    """The simulator's robots talk to a server through its client, wire format and defaults, never its internals."""
+    client_side = ("hf_specvla.serving.client", "hf_specvla.serving.protocol", "hf_specvla.serving.config")
+
+    def rule(module, imported):
+        return (_inside(module, "hf_specvla.metaworld") and _inside(imported, "hf_specvla.serving")
+                and not _inside(imported, *client_side))  # fmt: skip
 
     assert _violations(rule) == []
 

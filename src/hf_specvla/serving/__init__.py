@@ -12,7 +12,8 @@ __getattr__, __dir__ = lazy_exports(
     {
         ".protocol": ("ActReply", "ActRequest", "RequestError"),
         ".client": ("PolicyClient", "ServerError"),
-        ".service": ("PolicyService", "ServeConfig"),
+        ".service": ("PolicyService",),
+        ".config": ("ServeConfig",),
     },
     globals(),
 )

@@ -33,12 +33,11 @@ from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 
+from .config import DEFAULT_MAX_REQUEST_BYTES
 from .protocol import ActReply, ActRequest, Overloaded, RequestError, dumps, encode_array, loads
 
 logger = logging.getLogger(__name__)
 
-#: the largest request body read (an OpenVLA 224 x 224 image is ~200 KB as json_numpy)
-DEFAULT_MAX_REQUEST_BYTES = 4 * 2**20
 #: how often a waiting request checks whether its robot is still connected
 DISCONNECT_POLL_S = 0.05
 #: the status logged for a request whose robot went away before its reply (nginx's convention)

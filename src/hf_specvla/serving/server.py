@@ -17,43 +17,19 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ipaddress
 import logging
+import signal
 import socket
 import threading
 import time
 
-from .app import DEFAULT_MAX_REQUEST_BYTES, PolicyRoutes
+from .app import PolicyRoutes
 from .batching import Batcher
+from .config import DEFAULT_HOST, DEFAULT_MAX_REQUEST_BYTES, DEFAULT_PORT, check_exposure
 from .protocol import ActReply, ActRequest
 from .service import PolicyService
 
 logger = logging.getLogger(__name__)
-
-DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8000
-#: the environment variable an API key may come from (so that it stays out of shell histories and process lists)
-API_KEY_VARIABLE = "HF_SPECVLA_API_KEY"
-
-
-def is_loopback(host: str) -> bool:
-    """Whether ``host`` is reachable only from this machine (127.0.0.0/8, ::1, localhost)."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
-def check_exposure(host: str, api_key: str | None) -> None:
-    """Refuses to serve beyond this machine without an API key.
-
-    Raises:
-        ValueError: a non-loopback ``host`` and no ``api_key``.
-    """
-    if not is_loopback(host) and not api_key:
-        raise ValueError(f"host {host!r} is reachable from other machines: pass --api-key (or set "
-                         f"{API_KEY_VARIABLE}) so that every request must carry it, or serve on 127.0.0.1")  # fmt: skip
 
 
 class LocalBackend:
@@ -125,8 +101,20 @@ class PolicyServer:
         return self._server
 
     def run(self, log_level: str = "warning") -> None:
-        """Serves until SIGTERM or Ctrl-C, then drains the requests in flight."""
-        self._uvicorn(log_level).run(sockets=[self._socket])
+        """Serves until SIGTERM or Ctrl-C, then drains the requests in flight and returns (from the main thread;
+        uvicorn re-raises the signal it stopped on to the handler that was there before: here, one that notes it,
+        so that a drained server exits normally)."""
+        stopped_by: list[int] = []
+        main = threading.current_thread() is threading.main_thread()
+        previous = {sig: signal.signal(sig, lambda number, frame: stopped_by.append(number))
+                    for sig in (signal.SIGTERM, signal.SIGINT)} if main else {}  # fmt: skip
+        try:
+            self._uvicorn(log_level).run(sockets=[self._socket])
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        if stopped_by:
+            logger.info("stopped by %s after draining the requests in flight", signal.Signals(stopped_by[0]).name)
 
     def __enter__(self) -> PolicyServer:
         server = self._uvicorn()

@@ -28,70 +28,23 @@ import statistics
 import threading
 import time
 from collections import OrderedDict, deque
-from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .._validation import check_ranges
-from ..policies import VLAPolicy
 from ..policies.decoding_methods import COMPILED_GREEDY, GREEDY, DecodingMethod
+from .config import ServeConfig
 from .protocol import ActReply, ActRequest, RequestError, ServedFigures
+
+if TYPE_CHECKING:
+    from ..policies import VLAPolicy
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_BUCKETS = (1, 2, 4, 8, 16)
 #: calls kept per bucket and mode for the choice (their median decides)
 TIMING_WINDOW = 16
 #: the instruction of the calibration's synthetic observations
 CALIBRATION_INSTRUCTION = "calibrate the policy server"
-
-
-@dataclass
-class ServeConfig:
-    """How the service decodes and batches.
-
-    Args:
-        method: the speculative decoding method or preset (``exact``, ``prior+jacobi:compile``, ...; see
-            ``policies.decoding_methods``). ``greedy`` / ``greedy:compile`` serves greedy only.
-        buckets: the batch sizes decoding runs at (a batch is padded up to the next); the largest is the most
-            requests decoded together.
-        max_wait_ms: how long a batch waits for more requests after its first arrived (0: decode what is there).
-        max_queue: requests waiting beyond the batch being decoded; more are refused (HTTP 503, Retry-After).
-        calibration_calls: interleaved timed calls per bucket and mode at start-up (0: no calibration: speculate
-            wherever ``speculate_buckets`` says, or everywhere).
-        speculate_buckets: the buckets to decode speculatively, fixed (None: measured).
-        explore_every: every n-th batch of a bucket runs the mode not chosen, to keep its timing current (0: never).
-        max_sessions: robots whose drafts are kept.
-    """
-
-    method: str = "exact"
-    buckets: tuple[int, ...] = DEFAULT_BUCKETS
-    max_wait_ms: float = 2.0
-    max_queue: int = 64
-    calibration_calls: int = 3
-    speculate_buckets: tuple[int, ...] | None = None
-    explore_every: int = 16
-    max_sessions: int = 10_000
-
-    def __post_init__(self):
-        self.buckets = tuple(self.buckets)
-        if not self.buckets or any(isinstance(b, bool) or not isinstance(b, int) or b < 1 for b in self.buckets):
-            raise ValueError(f"buckets must be batch sizes >= 1, got {list(self.buckets)}")
-        if list(self.buckets) != sorted(set(self.buckets)):
-            raise ValueError(f"buckets must be increasing without repeats, got {list(self.buckets)} "
-                             f"(e.g. 1,2,4,8,16)")  # fmt: skip
-        check_ranges(self, at_least_one=("max_queue", "max_sessions"),
-                     non_negative=("max_wait_ms", "calibration_calls", "explore_every"),
-                     integers=("max_queue", "max_sessions", "calibration_calls", "explore_every"))  # fmt: skip
-        if self.speculate_buckets is not None:
-            self.speculate_buckets = tuple(self.speculate_buckets)
-            unknown = sorted(set(self.speculate_buckets) - set(self.buckets))
-            if unknown:
-                raise ValueError(f"speculate_buckets {unknown} are not buckets; the buckets are {list(self.buckets)}")
-
-    @property
-    def max_batch_size(self) -> int:
-        return self.buckets[-1]
 
 
 class PolicyService:
@@ -131,6 +84,8 @@ class PolicyService:
                         threads: int | None = None) -> PolicyService:  # fmt: skip
         """Loads the policy (and draft head) from their folders."""
         import torch
+
+        from ..policies import VLAPolicy
 
         if threads is not None:
             torch.set_num_threads(threads)

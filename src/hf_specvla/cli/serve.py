@@ -1,0 +1,150 @@
+"""``hf-specvla serve``: serve a policy to robots over HTTP — OpenVLA's ``POST /act`` API and more (sessions with
+each robot's drafts, per-request figures), batching the requests that arrive together, decoding each batch size
+speculatively or greedily, whichever this machine does faster (measured at start-up, kept current on traffic).
+One machine by default; ``--ray`` runs the same API as a Ray Serve deployment (``--replicas``). Runs until SIGTERM
+or Ctrl-C; the requests in flight get their actions first."""
+
+from __future__ import annotations
+
+import logging
+import os
+
+from .common import POSITIVE, check_draft_head_flag, load_draft_head_for, read_policy_config, usage_errors
+
+logger = logging.getLogger(__name__)
+
+NAME = "serve"
+HELP = "serve a policy to robots over HTTP (OpenVLA's /act API; batched, speculative where it pays)"
+EXAMPLES = """
+    # Serve policy v3 on 127.0.0.1:8000 with the lossless preset; drive it with 4 robots from another shell
+    hf-specvla serve --policy policies/mt10_vla3 --method exact
+    hf-specvla robots --server http://127.0.0.1:8000 --tasks reach-v3 --episodes 2 --robots 4 \\
+        --output-dir runs/robots_reach
+    # Quick start-up (eager decoding, no compile), small batches; a greedy-only server (the baseline)
+    hf-specvla serve --policy policies/mt10_vla3 --method prior+jacobi --buckets 1 2 4 --port 8001
+    hf-specvla serve --policy policies/mt10_vla3 --method greedy:compile --port 8002
+    # Reachable from other machines: an API key is required (from the environment, not the command line)
+    HF_SPECVLA_API_KEY=change-me hf-specvla serve --policy policies/mt10_vla3 --host 0.0.0.0
+    # Ray Serve: 2 replicas on a local Ray cluster (or --ray-address auto for a running one)
+    hf-specvla serve --policy policies/mt10_vla3 --method exact --ray --replicas 2
+"""
+
+
+def add_arguments(parser) -> None:
+    from ..serving.config import API_KEY_VARIABLE, DEFAULT_HOST, DEFAULT_MAX_REQUEST_BYTES, DEFAULT_PORT, ServeConfig
+
+    defaults = ServeConfig()
+    parser.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
+    parser.add_argument("--method", default=defaults.method,
+                        help="the speculative method or preset, as `compare` names it (exact, fast, "
+                             "prior+jacobi:compile, ...); greedy / greedy:compile serve greedy only")  # fmt: skip
+    parser.add_argument("--draft-head", default=None, help="a DraftHead folder, for methods that draft with one")
+    parser.add_argument(
+        "--host",
+        default=DEFAULT_HOST,
+        help=f"address to listen on; other than loopback needs --api-key (or {API_KEY_VARIABLE})",
+    )
+    parser.add_argument("--port", type=_port, default=DEFAULT_PORT, help="TCP port (0: any free port)")
+    parser.add_argument("--api-key", default=os.environ.get(API_KEY_VARIABLE),
+                        help=f"every request must carry it (default: ${API_KEY_VARIABLE})")  # fmt: skip
+    parser.add_argument("--buckets", type=POSITIVE, nargs="+", default=list(defaults.buckets),
+                        help="batch sizes decoding runs at (one compiled shape each); the largest is the most "
+                             "requests decoded together")  # fmt: skip
+    parser.add_argument("--max-wait-ms", type=float, default=defaults.max_wait_ms,
+                        help="how long a batch waits for more requests after its first")  # fmt: skip
+    parser.add_argument(
+        "--max-queue",
+        type=POSITIVE,
+        default=defaults.max_queue,
+        help="requests waiting beyond the batch in decoding; more get 503 + Retry-After",
+    )
+    parser.add_argument("--calibration-calls", type=int, default=defaults.calibration_calls,
+                        help="timed calls per bucket and mode at start-up (0: no calibration)")  # fmt: skip
+    parser.add_argument("--speculate-buckets", type=int, nargs="*", default=None,
+                        help="fix the buckets that decode speculatively (the others greedily), instead of measuring; "
+                             "no values: never speculate")  # fmt: skip
+    parser.add_argument("--explore-every", type=int, default=defaults.explore_every,
+                        help="every n-th batch of a bucket runs the mode not chosen, keeping its timing current "
+                             "(0: never)")  # fmt: skip
+    parser.add_argument("--max-request-bytes", type=POSITIVE, default=DEFAULT_MAX_REQUEST_BYTES,
+                        help="the largest request body")  # fmt: skip
+    parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (per replica with --ray)")
+    parser.add_argument("--ray", action="store_true", help="serve as a Ray Serve deployment")
+    parser.add_argument("--replicas", type=POSITIVE, default=None, help="Ray Serve replicas, with --ray (unset: 1)")
+    parser.add_argument(
+        "--ray-address", default=None, help="a running Ray cluster (auto, ray://host:port); default: start a local one"
+    )
+
+
+def _port(text: str) -> int:
+    import argparse
+
+    if not text.isascii() or not text.isdigit() or int(text) > 65535:
+        raise argparse.ArgumentTypeError(f"must be a TCP port 0..65535, got {text!r}")
+    return int(text)
+
+
+def serve_config(args, parser):
+    """The [`ServeConfig`] the flags name (usage errors for bad values)."""
+    from ..serving.config import ServeConfig
+
+    with usage_errors(parser, errors=(ValueError, TypeError)):
+        speculate = None if args.speculate_buckets is None else tuple(args.speculate_buckets)
+        return ServeConfig(args.method, tuple(args.buckets), args.max_wait_ms, args.max_queue, args.calibration_calls,
+                           speculate, args.explore_every)  # fmt: skip
+
+
+def run(args, parser) -> int:
+    from ..policies.decoding_methods import DecodingMethod
+    from ..serving.config import check_exposure
+
+    if (args.replicas is not None or args.ray_address is not None) and not args.ray:
+        parser.error("--replicas / --ray-address are for Ray Serve: add --ray")
+    with usage_errors(parser, "--host", (ValueError,)):
+        check_exposure(args.host, args.api_key)
+    config = serve_config(args, parser)
+    check_draft_head_flag(args.draft_head, parser)
+    policy_config = read_policy_config(args.policy, parser)  # cheap: no weights loaded yet
+    with usage_errors(parser, "--method", (ValueError,)):
+        method = DecodingMethod.parse(args.method, bool(args.draft_head), policy_config.action_dim)
+    if method.uses_draft_head and not args.draft_head:
+        parser.error(f"--method {method.name} drafts with the draft head: give --draft-head")
+    if args.method.strip() != method.name:
+        logger.info("--method %s = %s", args.method.strip(), method.name)
+    if args.ray:
+        return _run_ray(args, parser, config)
+    return _run_local(args, parser, config, method)
+
+
+def _run_local(args, parser, config, method) -> int:
+    from ..metaworld.comparison.runner import check_method_rule
+    from ..serving.server import PolicyServer
+    from ..serving.service import PolicyService
+    from .common import load_policy
+
+    policy = load_policy(args.policy, parser)
+    with usage_errors(parser, "--method", (ValueError, TypeError)):
+        check_method_rule(method, policy)
+    draft_head = load_draft_head_for(policy, args.draft_head, parser) if method.uses_draft_head else None
+    service = PolicyService(policy, config, draft_head)
+    with usage_errors(parser, "--port", (OSError,)):
+        server = PolicyServer(service, args.host, args.port, args.api_key, args.max_request_bytes)
+    logger.info("compiling and calibrating buckets %s (a compiled method takes about a minute per bucket on a CPU)",
+                list(config.buckets))  # fmt: skip
+    service.warm_up()
+    print(f"serving {args.policy} ({service.method.name}) on {server.url}: POST /act, GET /info, GET /stats",
+          flush=True)  # fmt: skip
+    server.run()
+    return 0
+
+
+def _run_ray(args, parser, config) -> int:
+    try:
+        from ..serving.ray_deployment import deploy
+    except ImportError as error:
+        parser.error(str(error))
+    url = deploy(args.policy, config, replicas=args.replicas or 1, host=args.host, port=args.port,
+                 api_key=args.api_key, draft_head_folder=args.draft_head, threads_per_replica=args.threads or 1,
+                 max_request_bytes=args.max_request_bytes, ray_address=args.ray_address, blocking=True)  # fmt: skip
+    logger.info("Ray Serve deployment on %s stopped", url)
+    return 0

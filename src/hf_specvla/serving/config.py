@@ -1,0 +1,86 @@
+"""What a policy server is configured with: [`ServeConfig`] (how the service decodes and batches) and the HTTP
+defaults, each defined once; [`check_exposure`], the rule for serving beyond this machine. Imports nothing heavy:
+the CLI reads its defaults here."""
+
+from __future__ import annotations
+
+import ipaddress
+from dataclasses import dataclass
+
+from .._validation import check_ranges
+
+DEFAULT_BUCKETS = (1, 2, 4, 8, 16)
+DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8000
+#: the largest request body read (an OpenVLA 224 x 224 image is ~200 KB as json_numpy)
+DEFAULT_MAX_REQUEST_BYTES = 4 * 2**20
+#: the environment variable an API key may come from (so that it stays out of shell histories and process lists)
+API_KEY_VARIABLE = "HF_SPECVLA_API_KEY"
+
+
+@dataclass
+class ServeConfig:
+    """How the service decodes and batches.
+
+    Args:
+        method: the speculative decoding method or preset (``exact``, ``prior+jacobi:compile``, ...; see
+            ``policies.decoding_methods``). ``greedy`` / ``greedy:compile`` serves greedy only.
+        buckets: the batch sizes decoding runs at (a batch is padded up to the next); the largest is the most
+            requests decoded together.
+        max_wait_ms: how long a batch waits for more requests after its first arrived (0: decode what is there).
+        max_queue: requests waiting beyond the batch being decoded; more are refused (HTTP 503, Retry-After).
+        calibration_calls: interleaved timed calls per bucket and mode at start-up (0: no calibration: speculate
+            wherever ``speculate_buckets`` says, or everywhere).
+        speculate_buckets: the buckets to decode speculatively, fixed (None: measured).
+        explore_every: every n-th batch of a bucket runs the mode not chosen, to keep its timing current (0: never).
+        max_sessions: robots whose drafts are kept.
+    """
+
+    method: str = "exact"
+    buckets: tuple[int, ...] = DEFAULT_BUCKETS
+    max_wait_ms: float = 2.0
+    max_queue: int = 64
+    calibration_calls: int = 3
+    speculate_buckets: tuple[int, ...] | None = None
+    explore_every: int = 16
+    max_sessions: int = 10_000
+
+    def __post_init__(self):
+        self.buckets = tuple(self.buckets)
+        if not self.buckets or any(isinstance(b, bool) or not isinstance(b, int) or b < 1 for b in self.buckets):
+            raise ValueError(f"buckets must be batch sizes >= 1, got {list(self.buckets)}")
+        if list(self.buckets) != sorted(set(self.buckets)):
+            raise ValueError(f"buckets must be increasing without repeats, got {list(self.buckets)} "
+                             f"(e.g. 1,2,4,8,16)")  # fmt: skip
+        check_ranges(self, at_least_one=("max_queue", "max_sessions"),
+                     non_negative=("max_wait_ms", "calibration_calls", "explore_every"),
+                     integers=("max_queue", "max_sessions", "calibration_calls", "explore_every"))  # fmt: skip
+        if self.speculate_buckets is not None:
+            self.speculate_buckets = tuple(self.speculate_buckets)
+            unknown = sorted(set(self.speculate_buckets) - set(self.buckets))
+            if unknown:
+                raise ValueError(f"speculate_buckets {unknown} are not buckets; the buckets are {list(self.buckets)}")
+
+    @property
+    def max_batch_size(self) -> int:
+        return self.buckets[-1]
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is reachable only from this machine (127.0.0.0/8, ::1, localhost)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_exposure(host: str, api_key: str | None) -> None:
+    """Refuses to serve beyond this machine without an API key.
+
+    Raises:
+        ValueError: a non-loopback ``host`` and no ``api_key``.
+    """
+    if not is_loopback(host) and not api_key:
+        raise ValueError(f"host {host!r} is reachable from other machines: pass --api-key (or set "
+                         f"{API_KEY_VARIABLE}) so that every request must carry it, or serve on 127.0.0.1")  # fmt: skip

@@ -1,0 +1,327 @@
+"""The policy server on one machine, a real HTTP server on 127.0.0.1 (started by each test, stopped after): OpenVLA's
+unchanged client, batches that give each robot greedy's action, bad input, the API key, the size limit, overload,
+robots that disconnect, and SIGTERM's drain."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hf_specvla.policies import VLAPolicy
+from hf_specvla.serving import PolicyClient, PolicyService, ServeConfig, ServerError
+from hf_specvla.serving.protocol import dumps
+from hf_specvla.serving.server import PolicyServer
+
+ROOT = Path(__file__).resolve().parents[2]
+POLICY = ROOT / "policies" / "mt10_vla3"
+#: eager decoding (no compile): the server's behaviour, not its speed, is under test
+METHOD = "prior+jacobi"
+INSTRUCTIONS = ("reach the goal", "push the puck to the goal", "open the drawer", "press the button")
+
+
+@pytest.fixture(scope="module")
+def policy() -> VLAPolicy:
+    return VLAPolicy.from_pretrained(POLICY)
+
+
+def _service(policy, **settings) -> PolicyService:
+    config = dict(method=METHOD, buckets=(1, 2, 4), calibration_calls=0, max_wait_ms=30.0)
+    return PolicyService(policy, ServeConfig(**{**config, **settings}))
+
+
+def _observation(policy, seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    size = policy.config.image_size
+    return {"image": rng.integers(0, 256, (size, size, 3), dtype=np.uint8),
+            "instruction": INSTRUCTIONS[seed % len(INSTRUCTIONS)], "state": rng.uniform(-0.3, 0.3, 4)}  # fmt: skip
+
+
+def _greedy(policy, observation) -> np.ndarray:
+    """Plain greedy decoding, one observation alone: what every served action must equal."""
+    policy.reset()
+    return policy.predict_action(observation["image"], observation["instruction"], observation["state"])
+
+
+def _post(url: str, body: bytes, headers: dict | None = None) -> tuple[int, dict, dict]:
+    """Raw POST (no retries): status, JSON body, headers."""
+    request = urllib.request.Request(url, body, {"Content-Type": "application/json", **(headers or {})})
+    try:
+        with urllib.request.urlopen(request, timeout=60) as response:
+            return response.status, json.loads(response.read()), dict(response.headers)
+    except urllib.error.HTTPError as error:
+        return error.code, json.loads(error.read() or b"null"), dict(error.headers)
+
+
+@contextmanager
+def _json_numpy_patched():
+    """``json_numpy.patch()`` as an OpenVLA client calls it, undone after."""
+    json_numpy = pytest.importorskip("json_numpy")
+    saved = json.dumps, json.loads, json.dump, json.load
+    json_numpy.patch()
+    try:
+        yield
+    finally:
+        json.dumps, json.loads, json.dump, json.load = saved
+
+
+def test_an_unchanged_openvla_client_gets_greedys_action(policy):
+    requests = pytest.importorskip("requests")
+    observation = _observation(policy, 0)
+    expected = _greedy(policy, observation)
+    with PolicyServer(_service(policy), port=0) as server, _json_numpy_patched():
+        action = requests.post(server.url + "/act", json=observation).json()  # deploy.py's client, verbatim
+        encoded = requests.post(server.url + "/act", json={"encoded": json.dumps(observation)}).json()
+        encoded = json.loads(encoded)  # deploy.py's double-encoded reply: json_numpy text
+    assert isinstance(action, np.ndarray) and action.dtype == np.float64
+    np.testing.assert_array_equal(action, expected)
+    np.testing.assert_array_equal(encoded, expected)  # OpenVLA's double-encoded form, answered alike
+
+
+def test_concurrent_robots_are_batched_and_each_gets_greedys_action(policy):
+    """8 robots at once, 3 steps each (their drafts: their own previous actions, kept by session): every action is
+    what greedy gives that observation alone, whatever batches formed."""
+    observations = [[_observation(policy, 10 * robot + step) for step in range(3)] for robot in range(8)]
+    expected = [[_greedy(policy, o) for o in steps] for steps in observations]
+    replies: dict = {}
+    with PolicyServer(_service(policy), port=0) as server:
+        info = PolicyClient(server.url).info()
+
+        def robot(i: int) -> None:
+            client = PolicyClient(server.url)
+            for step, o in enumerate(observations[i]):
+                reply = client.act(o["image"], o["instruction"], o["state"], session=f"r{i}", reset=step == 0)
+                replies[i, step] = reply
+
+        threads = [threading.Thread(target=robot, args=(i,)) for i in range(8)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        stats = json.loads(urllib.request.urlopen(server.url + "/stats").read())
+    assert info["fingerprint"] == policy.weights_fingerprint() and info["image_size"] == policy.config.image_size
+    for (i, step), reply in replies.items():
+        np.testing.assert_array_equal(reply.action, expected[i][step], err_msg=f"robot {i} step {step}")
+        assert reply.served.session == f"r{i}" and reply.served.bucket >= reply.served.batch_size >= 1
+        assert len(reply.served.draft_state) == min(policy.HISTORY_LENGTH, policy.config.chunk_length * (step + 1))
+    assert max(r.served.batch_size for r in replies.values()) > 1, "no batch formed: the test tests nothing"
+    assert any(r.served.speculative and r.served.target_forwards < policy.config.action_tokens
+               for r in replies.values()), "no request was decoded with fewer forwards than greedy's"  # fmt: skip
+    assert stats["sessions"] == 8
+    served = sum(row["speculative_rows"] + row["greedy_rows"] for row in stats["buckets"].values())
+    assert served == 24
+
+
+def test_echoed_draft_state_and_lost_state_give_the_same_action(policy):
+    """A robot's drafts may come from its echo (another replica answered before) or be lost (a restarted replica):
+    its action is greedy's either way; only the forwards differ."""
+    first, second = _observation(policy, 1), _observation(policy, 2)
+    expected = _greedy(policy, second)
+    with PolicyServer(_service(policy), port=0) as server:
+        client = PolicyClient(server.url)
+        client.act(first["image"], first["instruction"], first["state"], session="a", reset=True)
+        echoed = client.act(second["image"], second["instruction"], second["state"], session="a")
+        fresh = PolicyClient(server.url)  # another client: no echo, and a session this server never saw
+        lost = fresh.act(second["image"], second["instruction"], second["state"], session="never-seen")
+    np.testing.assert_array_equal(echoed.action, expected)
+    np.testing.assert_array_equal(lost.action, expected)
+
+
+@pytest.mark.parametrize(
+    ("change", "field", "status"),
+    [
+        (lambda o: o.pop("image"), "image", 422),
+        (lambda o: o.update(image=o["image"].astype(np.float32)), "image", 422),
+        (lambda o: o.update(image=o["image"][:64]), "image", 422),
+        (lambda o: o.pop("instruction"), "instruction", 422),
+        (lambda o: o.update(instruction=7), "instruction", 422),
+        (lambda o: o.pop("state"), "state", 422),
+        (lambda o: o.update(state=[0.1, float("nan"), 0, 0]), "state", 422),
+        (lambda o: o.update(state=np.zeros(3)), "state", 422),
+        (lambda o: o.update(session=12), "session", 422),
+        (lambda o: o.update(session="x" * 129), "session", 422),
+        (lambda o: o.update(reset="yes"), "reset", 422),
+        (lambda o: o.update(draft_state=[1, 2]), "draft_state", 422),
+        (lambda o: o.update(draft_state=[[1, 2, 3, 4]]), "draft_state", 422),  # not action tokens
+        (lambda o: o.update(unnorm_key=3), "unnorm_key", 422),
+    ],
+)
+def test_bad_input_gets_a_4xx_naming_the_field(policy, change, field, status):
+    observation = _observation(policy, 3)
+    change(observation)
+    with PolicyServer(_service(policy), port=0) as server:
+        code, body, _ = _post(server.url + "/act", dumps(observation))
+        assert (code, body["field"]) == (status, field), body
+        assert body["error"]
+        pickled = json.dumps({"image": {"__numpy__": "AAAA", "dtype": "|O", "shape": [1]}}).encode()
+        for raw, why in ((b"{not json", "not JSON"), (b"[1, 2]", "JSON object"), (pickled, "dtype")):
+            code, body, _ = _post(server.url + "/act", raw)
+            assert 400 <= code < 500 and why in body["error"], body
+        assert _post(server.url + "/nothing", b"{}")[0] == 404
+
+
+def test_a_bad_request_never_fails_or_delays_its_batch(policy):
+    good = [_observation(policy, 20 + i) for i in range(3)]
+    expected = [_greedy(policy, o) for o in good]
+    bad = {**_observation(policy, 30), "state": [0.0]}
+    results: dict = {}
+    with PolicyServer(_service(policy, max_wait_ms=200.0), port=0) as server:
+
+        def send(key, body):
+            results[key] = _post(server.url + "/act", dumps(body))
+
+        threads = [threading.Thread(target=send, args=(i, o)) for i, o in enumerate(good)]
+        threads.append(threading.Thread(target=send, args=("bad", bad)))
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+    assert results["bad"][0] == 422 and results["bad"][1]["field"] == "state"
+    for i in range(3):
+        code, body, _ = results[i]
+        assert code == 200
+        np.testing.assert_array_equal(np.frombuffer(__import__("base64").b64decode(body["__numpy__"])).reshape(
+            body["shape"]), expected[i])  # fmt: skip
+
+
+def test_the_api_key_is_required_everywhere_but_health(policy):
+    observation = dumps(_observation(policy, 4))
+    with PolicyServer(_service(policy), port=0, api_key="s3cret") as server:
+        assert _post(server.url + "/act", observation)[0] == 401
+        code, body, headers = _post(server.url + "/act", observation, {"Authorization": "Bearer wrong"})
+        assert code == 401 and body["field"] == "api_key" and headers.get("www-authenticate") == "Bearer"
+        assert _post(server.url + "/act", observation, {"Authorization": "Bearer s3cret"})[0] == 200
+        assert _post(server.url + "/act", observation, {"X-API-Key": "s3cret"})[0] == 200
+        with_key = dumps({**_observation(policy, 4), "api_key": "s3cret"})
+        assert _post(server.url + "/act", with_key)[0] == 200
+        with pytest.raises(ServerError) as refused:
+            PolicyClient(server.url).info()
+        assert refused.value.status == 401
+        assert PolicyClient(server.url, api_key="s3cret").info()["policy"] == str(POLICY)
+        assert json.loads(urllib.request.urlopen(server.url + "/health").read()) == {"status": "ok"}
+
+
+def test_only_loopback_serves_without_an_api_key(policy):
+    with pytest.raises(ValueError, match="reachable from other machines.*--api-key"):
+        PolicyServer(_service(policy), host="0.0.0.0", port=0)
+
+
+def test_an_oversize_body_is_refused_before_it_is_read(policy):
+    with PolicyServer(_service(policy), port=0, max_request_bytes=10_000) as server:
+        code, body, _ = _post(server.url + "/act", dumps(_observation(policy, 5)))  # a 128 x 128 image: ~65 KB
+    assert code == 413 and "10000 bytes" in body["error"]
+
+
+def _slowed(service: PolicyService, seconds: float) -> PolicyService:
+    act = service.act
+
+    def slow_act(requests, arrived=None):
+        time.sleep(seconds)
+        return act(requests, arrived)
+
+    service.act = slow_act
+    return service
+
+
+def test_overload_gets_503_with_retry_after_and_the_client_retries(policy):
+    observation = _observation(policy, 6)
+    expected = _greedy(policy, observation)
+    service = _slowed(_service(policy, max_queue=1, buckets=(1,), max_wait_ms=0.0), 0.4)
+    results: list = []
+    with PolicyServer(service, port=0) as server:
+        threads = [threading.Thread(target=lambda: results.append(_post(server.url + "/act", dumps(observation))))
+                   for _ in range(6)]  # fmt: skip
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        client = PolicyClient(server.url, backoff_s=0.1)
+        retried = [client.act(**observation) for _ in range(2)]
+    refused = [r for r in results if r[0] == 503]
+    assert refused and all(int(r[2]["retry-after"]) >= 1 for r in refused)
+    assert sum(r[0] == 200 for r in results) >= 2
+    for reply in retried:
+        np.testing.assert_array_equal(reply.action, expected)
+
+
+def test_a_robot_that_disconnects_does_not_stall_the_others(policy):
+    """Robot A's request occupies the server; robot B sends one and hangs up while it waits: B's request is dropped
+    before its batch, and robot C is served."""
+    observation = _observation(policy, 7)
+    service = _slowed(_service(policy, buckets=(1,), max_wait_ms=0.0), 0.6)
+    with PolicyServer(service, port=0) as server:
+        a = threading.Thread(target=_post, args=(server.url + "/act", dumps(observation)))
+        a.start()
+        time.sleep(0.2)
+        body = dumps(observation)
+        with socket.create_connection(("127.0.0.1", server.port)) as b:
+            b.sendall(b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                      + f"Content-Length: {len(body)}\r\n\r\n".encode() + body)  # fmt: skip
+            time.sleep(0.1)
+        started = time.perf_counter()
+        code, _, _ = _post(server.url + "/act", dumps(observation))  # robot C
+        waited = time.perf_counter() - started
+        a.join()
+        stats = json.loads(urllib.request.urlopen(server.url + "/stats").read())
+    assert code == 200
+    assert stats["dropped"] == 1, stats
+    assert waited < 1.5, f"robot C waited {waited:.2f} s: B's abandoned request was decoded in its way"
+
+
+def test_sigterm_drains_the_requests_in_flight(policy, tmp_path):
+    """``PolicyServer.run`` in its own process: SIGTERM while 3 requests are in flight; each gets its action, then
+    the process exits 0 and stops listening."""
+    script = tmp_path / "serve.py"
+    script.write_text(f"""
+import sys, time, torch
+torch.set_num_threads(1)
+from hf_specvla.serving import PolicyService, ServeConfig
+from hf_specvla.serving.server import PolicyServer
+service = PolicyService.from_pretrained({str(POLICY)!r}, ServeConfig(method={METHOD!r}, buckets=(1,), max_wait_ms=0.0,
+                                                                     calibration_calls=0))
+act = service.act
+service.act = lambda requests, arrived=None: (time.sleep(0.5), act(requests, arrived))[1]
+server = PolicyServer(service, port=0)
+print(server.url, flush=True)
+server.run()
+print("exited cleanly", flush=True)
+""")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    process = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        url = process.stdout.readline().strip()
+        observation = dumps(_observation(policy, 8))
+        for _ in range(100):  # the server is up once /health answers
+            try:
+                urllib.request.urlopen(url + "/health", timeout=1)
+                break
+            except OSError:
+                time.sleep(0.1)
+        results: list = []
+        threads = [threading.Thread(target=lambda: results.append(_post(url + "/act", observation)[0]))
+                   for _ in range(3)]  # fmt: skip
+        for thread in threads:
+            thread.start()
+        time.sleep(0.3)  # all three arrived; the first is being decoded, two wait
+        process.send_signal(signal.SIGTERM)
+        for thread in threads:
+            thread.join()
+        assert process.wait(timeout=60) == 0
+        assert results == [200, 200, 200]
+        assert "exited cleanly" in process.stdout.read()
+        with pytest.raises(OSError):
+            urllib.request.urlopen(url + "/health", timeout=2)
+    finally:
+        process.kill()
