@@ -6,6 +6,7 @@ or Ctrl-C; the requests in flight get their actions first."""
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
 
@@ -100,6 +101,9 @@ def run(args, parser) -> int:
 
     if (args.replicas is not None or args.ray_address is not None) and not args.ray:
         parser.error("--replicas / --ray-address are for Ray Serve: add --ray")
+    missing = [name for name in ("starlette", "uvicorn") if importlib.util.find_spec(name) is None]
+    if missing:
+        parser.error(f"serving needs {' and '.join(missing)}: pip install 'hf_specvla[serve]'")
     with usage_errors(parser, "--host", (ValueError,)):
         check_exposure(args.host, args.api_key)
     config = serve_config(args, parser)
@@ -118,17 +122,18 @@ def run(args, parser) -> int:
 
 def _run_local(args, parser, config, method) -> int:
     from ..metaworld.comparison.runner import check_method_rule
-    from ..serving.server import PolicyServer
+    from ..serving.server import PolicyServer, bind
     from ..serving.service import PolicyService
     from .common import load_policy
 
+    with usage_errors(parser, "--port", (OSError,)):
+        sock = bind(args.host, args.port)  # a taken port is refused before the policy loads
     policy = load_policy(args.policy, parser)
     with usage_errors(parser, "--method", (ValueError, TypeError)):
         check_method_rule(method, policy)
     draft_head = load_draft_head_for(policy, args.draft_head, parser) if method.uses_draft_head else None
     service = PolicyService(policy, config, draft_head)
-    with usage_errors(parser, "--port", (OSError,)):
-        server = PolicyServer(service, args.host, args.port, args.api_key, args.max_request_bytes)
+    server = PolicyServer(service, args.host, args.port, args.api_key, args.max_request_bytes, sock=sock)
     logger.info("compiling and calibrating buckets %s (a compiled method takes about a minute per bucket on a CPU)",
                 list(config.buckets))  # fmt: skip
     service.warm_up()

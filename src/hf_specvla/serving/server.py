@@ -64,16 +64,17 @@ class PolicyServer:
         api_key: every request must carry it (None: an open server; refused off loopback).
         max_request_bytes: the largest request body.
         drain_timeout_s: how long SIGTERM waits for the requests in flight.
+        sock: a socket already listening ([`bind`]: e.g. taken before the policy loads), instead of host / port.
     """
 
     def __init__(self, service: PolicyService, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
                  api_key: str | None = None, max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
-                 drain_timeout_s: float = 30.0):  # fmt: skip
+                 drain_timeout_s: float = 30.0, sock: socket.socket | None = None):  # fmt: skip
         check_exposure(host, api_key)
         self.backend = LocalBackend(service)
         self.routes = PolicyRoutes(self.backend, api_key, max_request_bytes)
         self.host, self.drain_timeout_s = host, drain_timeout_s
-        self._socket = _bind(host, port)
+        self._socket = sock if sock is not None else bind(host, port)
         self.port = self._socket.getsockname()[1]
         self._server = None
         self._thread: threading.Thread | None = None
@@ -140,7 +141,7 @@ class PolicyServer:
         self._socket.close()
 
 
-def _bind(host: str, port: int) -> socket.socket:
+def bind(host: str, port: int) -> socket.socket:
     """A listening socket on ``host:port`` (the error names the address when it is taken)."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_STREAM)

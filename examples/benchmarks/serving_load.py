@@ -1,0 +1,285 @@
+"""Serving under load: K concurrent robots against three policy servers, ABAB, on this machine.
+
+Three servers over one policy in one server process (the graphs compiled once, shared): **greedy** (transformers'
+compiled greedy decoding at every batch size: what a plain server does), **always** (the speculative method at every
+batch size) and **adaptive** (speculative or greedy per batch size, whichever its start-up calibration and the
+traffic measure faster: ``hf-specvla serve``'s default). For each K in ``--robots`` and each repeat, the three are
+driven in turn (order rotated per repeat) by K robot threads over the same episodes; each run starts fresh sessions.
+
+**Robots** (``--driver``): ``replay`` (default) sends the observations of recorded greedy episodes (Meta-World,
+tasks x seeds, recorded once in this process): at r = 0 every server acts as greedy, so a robot would meet exactly
+these observations, and the load is the real one without K simulators competing with the server for this machine's
+2 cores (on a lab's network the robots are other machines). ``simulate`` runs K Meta-World robots
+(``hf_specvla.metaworld.fleet``, as ``hf-specvla robots``): actions per second then include the simulators' time.
+
+Reported per K and server (medians over repeats): actions per second (actions returned to all robots / wall time;
+a chunked policy returns its chunk), request latency p50 / p95 (client side), and where a request's time goes:
+waiting for its batch (queue), the batch's decode (the server's own ``predict_action`` call: a local call on the
+same observations) and the rest (HTTP, serialisation, the client). Every server's actions are checked equal.
+
+    python examples/benchmarks/serving_load.py --output runs/serving_load.json            # ~30 min on 2 CPU cores
+    python examples/benchmarks/serving_load.py --tiny --output /tmp/serving_load.json     # a minute: eager, K = 1, 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+KINDS = ("greedy", "always", "adaptive")
+TASKS = ["reach-v3", "push-v3", "drawer-open-v3", "button-press-topdown-v3", "window-open-v3", "door-open-v3"]
+
+logger = logging.getLogger("serving_load")
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)  # fmt: skip
+    parser.add_argument("--policy", default=str(ROOT / "policies" / "mt10_vla3"))
+    parser.add_argument("--method", default="exact", help="the speculative method (a preset or a method name)")
+    parser.add_argument("--robots", type=int, nargs="+", default=[1, 2, 4, 8, 16], help="the K values")
+    parser.add_argument("--buckets", type=int, nargs="+", default=None, help="default: 1 2 4 ... up to the largest K")
+    parser.add_argument("--repeats", type=int, default=2, help="rounds over the three servers (ABC, BCA, ...)")
+    parser.add_argument("--episodes", type=int, default=None, help="episodes per run (default: max(2 K, 6))")
+    parser.add_argument("--max-episode-steps", type=int, default=60)
+    parser.add_argument("--seed-start", type=int, default=100000)
+    parser.add_argument("--calibration-calls", type=int, default=5)
+    parser.add_argument("--max-wait-ms", type=float, default=2.0)
+    parser.add_argument("--output", required=True, help="the JSON of every run and the table")
+    parser.add_argument("--driver", choices=("replay", "simulate"), default="replay", help="see the module docstring")
+    parser.add_argument("--tiny", action="store_true", help="eager prior+jacobi, K = 1 2, 1 repeat, short episodes")
+    parser.add_argument("--serve", default=None, help=argparse.SUPPRESS)  # internal: the server process's settings
+    args = parser.parse_args(argv)
+    if args.tiny:
+        args.method, args.robots, args.repeats, args.max_episode_steps = "prior+jacobi", [1, 2], 1, 6
+        args.calibration_calls, args.episodes = 1, 2
+    if any(k < 1 for k in args.robots) or args.repeats < 1:
+        parser.error(f"--robots must be >= 1 and --repeats >= 1, got {args.robots} and {args.repeats}")
+    args.buckets = args.buckets or [2**i for i in range(max(args.robots).bit_length() + 1) if 2**i <= max(args.robots)]
+    if args.buckets[-1] < max(args.robots):
+        args.buckets.append(2 ** (max(args.robots) - 1).bit_length())
+    return args
+
+
+# ----------------------------------------------------------------------------- the server process
+def serve(settings: dict) -> None:
+    """Three servers over one policy; prints one JSON line (their URLs, the calibration) and serves until killed."""
+    import torch
+
+    from hf_specvla.serving import PolicyService, ServeConfig
+    from hf_specvla.serving.server import PolicyServer
+
+    torch.set_num_threads(1)
+    buckets = tuple(settings["buckets"])
+    base = dict(method=settings["method"], buckets=buckets, max_wait_ms=settings["max_wait_ms"],
+                calibration_calls=settings["calibration_calls"], max_queue=4 * buckets[-1])  # fmt: skip
+    adaptive = PolicyService.from_pretrained(settings["policy"], ServeConfig(**base))
+    started = time.perf_counter()
+    calibration = adaptive.warm_up()  # compiles every bucket in both modes; the others share the graphs
+    compile_s = time.perf_counter() - started
+    services = {
+        "adaptive": adaptive,
+        "always": PolicyService(adaptive.policy, ServeConfig(**{**base, "speculate_buckets": buckets})),
+        "greedy": PolicyService(adaptive.policy, ServeConfig(**{**base, "speculate_buckets": ()})),
+    }
+    servers = {kind: PolicyServer(service, port=0) for kind, service in services.items()}
+    for server in servers.values():
+        server.__enter__()
+    print(json.dumps({"urls": {k: s.url for k, s in servers.items()}, "calibration": calibration,
+                      "warm_up_s": round(compile_s, 1), "method": adaptive.method.name,
+                      "baseline": adaptive.baseline.name}), flush=True)  # fmt: skip
+    while True:
+        time.sleep(3600)
+
+
+# ----------------------------------------------------------------------------- the robots
+def replay(url: str, robots: int, episodes: list[list[dict]], chunk_length: int) -> dict:
+    """One run: ``robots`` threads, each taking the next recorded episode and sending its observations in order
+    (a new session per episode, reset at its first); the figures of :func:`drive`'s rows."""
+    import queue
+    import threading
+
+    from hf_specvla.serving import PolicyClient
+
+    pending: queue.SimpleQueue = queue.SimpleQueue()
+    for index, episode in enumerate(episodes):
+        pending.put((index, episode))
+    records: list[dict] = []
+
+    def robot(number: int) -> None:
+        client = PolicyClient(url)
+        while True:
+            try:
+                index, episode = pending.get_nowait()
+            except queue.Empty:
+                return
+            record = {"key": str(index), "latencies_ms": [], "server_ms": [], "queue_ms": [], "batch_sizes": [],
+                      "target_forwards": [], "speculative": [], "actions": []}  # fmt: skip
+            for step, o in enumerate(episode):
+                sent = time.perf_counter()
+                reply = client.act(o["image"], o["instruction"], o["state"], session=f"{number}-{index}",
+                                   reset=step == 0)  # fmt: skip
+                record["latencies_ms"].append(1000 * (time.perf_counter() - sent))
+                for key in ("server_ms", "queue_ms", "batch_size", "target_forwards", "speculative"):
+                    record[key + "s" if key == "batch_size" else key].append(getattr(reply.served, key))
+                record["actions"].append(reply.action.tolist())
+            records.append(record)
+
+    started = time.perf_counter()
+    threads = [threading.Thread(target=robot, args=(i,)) for i in range(robots)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    wall = time.perf_counter() - started
+    requests = sum(len(r["latencies_ms"]) for r in records)
+    summary = {"actions_per_second": requests * chunk_length / wall, "env_steps": requests * chunk_length,
+               "speculative_fraction": sum(x for r in records for x in r["speculative"]) / requests,
+               "target_forwards_per_request": sum(x for r in records for x in r["target_forwards"]) / requests,
+               }  # fmt: skip
+    return _figures(summary, sorted(records, key=lambda r: int(r["key"])))
+
+
+def drive(url: str, robots: int, episodes: int, args, folder: Path) -> dict:
+    """One run: ``robots`` robot threads over ``episodes`` episodes; the fleet's summary plus where time went."""
+    from hf_specvla.metaworld.fleet import RobotsConfig, run_robots
+
+    per_task = -(-episodes // len(TASKS))
+    config = RobotsConfig(tasks=TASKS, episodes_per_task=per_task, robots=robots, seed_start=args.seed_start,
+                          max_episode_steps=args.max_episode_steps, server=url)  # fmt: skip
+    summary = run_robots(config, folder, progress=False)
+    records = [json.loads(line) for line in (folder / "episodes.jsonl").read_text().splitlines()]
+    for record in records:
+        record["key"] = f"{record['task']}/{record['seed']}"
+    return _figures(summary, records)
+
+
+def _figures(summary: dict, records: list[dict]) -> dict:
+    """A run's row: throughput, latency percentiles and where a request's time went."""
+    latency = [x for r in records for x in r["latencies_ms"]]
+    server = [x for r in records for x in r["server_ms"]]
+    queue = [x for r in records for x in r["queue_ms"]]
+    decode = [s - q for s, q in zip(server, queue)]  # the batch's call (and building the reply)
+    return {
+        "actions_per_second": summary["actions_per_second"],
+        "latency_p50_ms": float(np.percentile(latency, 50)),
+        "latency_p95_ms": float(np.percentile(latency, 95)),
+        "decode_p50_ms": float(np.percentile(decode, 50)),
+        "decode_p95_ms": float(np.percentile(decode, 95)),
+        "queue_mean_ms": statistics.mean(queue),
+        "decode_mean_ms": statistics.mean(decode),
+        "rest_mean_ms": statistics.mean(lat - s for lat, s in zip(latency, server)),
+        "mean_batch_size": statistics.mean(x for r in records for x in r["batch_sizes"]),
+        "speculative_fraction": summary["speculative_fraction"],
+        "forwards_per_request": summary["target_forwards_per_request"],
+        "requests": len(latency),
+        "env_steps": summary["env_steps"],
+        "actions": {r["key"]: r["actions"] for r in records},
+    }
+
+
+def record(args) -> tuple[list[list[dict]], int]:
+    """Greedy episodes of the policy (observations it decided on), enough for the largest run; its chunk length."""
+    import torch
+
+    from hf_specvla.metaworld.evaluation import record_observations
+    from hf_specvla.policies import VLAPolicy
+
+    torch.set_num_threads(1)
+    policy = VLAPolicy.from_pretrained(args.policy)
+    needed = args.episodes or max(2 * max(args.robots), 6)
+    seeds = list(range(args.seed_start, args.seed_start + -(-needed // len(TASKS))))
+    chunk = policy.config.chunk_length
+    started = time.perf_counter()
+    episodes = record_observations(policy, TASKS, seeds, max_steps=-(-args.max_episode_steps // chunk))
+    logger.info("recorded %d greedy episodes (%d observations) in %.0f s", len(episodes),
+                sum(map(len, episodes)), time.perf_counter() - started)  # fmt: skip
+    n = len(seeds)  # task-major -> seed-major: a run of any size covers the tasks alike
+    episodes = [episodes[t * n + i] for i in range(n) for t in range(len(TASKS))]
+    return episodes[:needed], chunk
+
+
+def table(rows: list[dict], robots: list[int]) -> str:
+    header = (
+        "| K | server | actions/s | vs greedy | p50 ms | p95 ms | queue / decode / rest ms | batch | spec. | fwd/req |"
+    )
+    lines = [header, "|---:|---|---:|---:|---:|---:|---|---:|---:|---:|"]
+    for k in robots:
+        medians = {}
+        for kind in KINDS:
+            runs = [r for r in rows if r["robots"] == k and r["kind"] == kind]
+            medians[kind] = {key: statistics.median(r[key] for r in runs) for key in runs[0] if
+                             isinstance(runs[0][key], int | float) and key not in ("robots", "repeat")}  # fmt: skip
+        for kind in KINDS:
+            m = medians[kind]
+            ratio = m["actions_per_second"] / medians["greedy"]["actions_per_second"]
+            lines.append(f"| {k} | {kind} | {m['actions_per_second']:.1f} | {ratio:.2f}x | {m['latency_p50_ms']:.1f} | "
+                         f"{m['latency_p95_ms']:.1f} | {m['queue_mean_ms']:.1f} / {m['decode_mean_ms']:.1f} / "
+                         f"{m['rest_mean_ms']:.1f} | {m['mean_batch_size']:.2f} | {m['speculative_fraction']:.0%} | "
+                         f"{m['forwards_per_request']:.2f} |")  # fmt: skip
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    if args.serve is not None:
+        serve(json.loads(args.serve))
+        return 0
+    settings = {"policy": args.policy, "method": args.method, "buckets": args.buckets,
+                "max_wait_ms": args.max_wait_ms, "calibration_calls": args.calibration_calls}  # fmt: skip
+    recorded: list = []
+    if args.driver == "replay":
+        recorded, chunk_length = record(args)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    process = subprocess.Popen([sys.executable, __file__, "--output", "-", "--serve", json.dumps(settings)],
+                               stdout=subprocess.PIPE, text=True, env=env)  # fmt: skip
+    rows: list[dict] = []
+    try:
+        started = json.loads(process.stdout.readline())
+        logger.info("servers up after %.0f s of warm-up: %s", started["warm_up_s"], started["urls"])
+        with tempfile.TemporaryDirectory() as scratch:
+            for repeat in range(args.repeats):
+                for k in args.robots:
+                    order = KINDS[repeat % 3 :] + KINDS[: repeat % 3]
+                    for kind in order:
+                        folder = Path(scratch) / f"{kind}-{k}-{repeat}"
+                        episodes = args.episodes or max(2 * k, 6)
+                        if args.driver == "replay":
+                            run = replay(started["urls"][kind], k, recorded[:episodes], chunk_length)
+                        else:
+                            run = drive(started["urls"][kind], k, episodes, args, folder)
+                        rows.append({"robots": k, "kind": kind, "repeat": repeat, **run})
+                        logger.info("K=%d %s: %.1f actions/s, p95 %.1f ms", k, kind, run["actions_per_second"],
+                                    run["latency_p95_ms"])  # fmt: skip
+    finally:
+        process.kill()
+    for k in args.robots:  # lossless: every server's episodes executed the same actions
+        runs = [r for r in rows if r["robots"] == k]
+        for run in runs[1:]:
+            assert run["actions"] == runs[0]["actions"], f"K={k}: {run['kind']} acted otherwise than {runs[0]['kind']}"
+    text = table(rows, args.robots)
+    print(f"method {started['method']} vs {started['baseline']}; buckets {args.buckets}; calibration:")
+    print(json.dumps(started["calibration"]))
+    print(text)
+    for row in rows:
+        row.pop("actions")
+    output = {"settings": vars(args), "servers": started, "rows": rows, "table": text}
+    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.output).write_text(json.dumps(output, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,95 @@
+"""``hf-specvla serve``: its examples parse, bad flags are usage errors before the policy loads, and the command serves
+a real policy on 127.0.0.1 until SIGTERM, then exits 0."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hf_specvla.cli import serve as serve_command
+from hf_specvla.cli.main import build_parser
+
+ROOT = Path(__file__).resolve().parents[2]
+POLICY = str(ROOT / "policies" / "mt10_vla3")
+
+
+def test_help_shows_the_examples_and_they_parse():
+    parser = build_parser()
+    lines = serve_command.EXAMPLES.replace("\\\n", " ").splitlines()
+    commands = [line.strip() for line in lines if "hf-specvla " in line and not line.strip().startswith("#")]
+    assert len(commands) >= 5
+    for command in commands:
+        words = command.split()
+        words = words[words.index("hf-specvla") + 1 :]  # after an environment assignment
+        parser.parse_args(words)
+
+
+def _run(*flags: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    command = [sys.executable, "-m", "hf_specvla.cli", "serve", *flags]
+    return subprocess.run(command, capture_output=True, text=True, timeout=120, env={**os.environ, **(env or {})})
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--host", "0.0.0.0"], "reachable from other machines: pass --api-key"),
+        (["--method", "prior+bogus"], "unknown decoding method"),
+        (["--method", "prior+tree"], "drafts with the draft head: give --draft-head"),
+        (["--buckets", "4", "2"], "buckets must be increasing"),
+        (["--buckets", "0"], "argument --buckets: must be >= 1, got 0"),
+        (["--speculate-buckets", "3"], "speculate_buckets [3] are not buckets"),
+        (["--calibration-calls", "-1"], "calibration_calls"),
+        (["--port", "99999"], "must be a TCP port 0..65535"),
+        (["--replicas", "2"], "--replicas / --ray-address are for Ray Serve: add --ray"),
+        (["--policy", "no/such/policy"], "no/such/policy"),
+    ],
+)
+def test_bad_flags_are_usage_errors_before_the_policy_loads(flags, message):
+    args = ["--policy", POLICY, *flags] if "--policy" not in flags else flags
+    started = time.perf_counter()
+    result = _run(*args)
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert message in result.stderr and "Traceback" not in result.stderr
+    assert time.perf_counter() - started < 60
+
+
+def test_a_taken_port_is_a_usage_error_naming_it():
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        result = _run("--policy", POLICY, "--port", str(port))
+    assert result.returncode == 2 and f"cannot listen on 127.0.0.1:{port}" in result.stderr
+
+
+def test_serve_answers_act_and_exits_0_on_sigterm():
+    from hf_specvla.serving import PolicyClient
+
+    command = [sys.executable, "-m", "hf_specvla.cli", "serve", "--policy", POLICY, "--method", "prior+jacobi",
+               "--buckets", "1", "2", "--calibration-calls", "1", "--port", "0"]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "OMP_NUM_THREADS": "1"})  # fmt: skip
+    try:
+        line = process.stdout.readline()
+        assert line.startswith("serving "), process.stderr.read()[-3000:]
+        url = line.split(" on ", 1)[1].split(": POST", 1)[0]  # serving <policy> (<method>) on <url>: POST /act, ...
+        client = PolicyClient(url)
+        info = client.info()
+        assert info["method"] == "prior+jacobi" and info["buckets"] == [1, 2] and len(info["calibration"]) == 2
+        size = info["image_size"]
+        reply = client.act(np.zeros((size, size, 3), np.uint8), "reach the goal", np.zeros(4), session="a", reset=True)
+        assert reply.action.shape == (info["chunk_length"], info["action_dim"])
+        assert urllib.request.urlopen(url + "/health").status == 200
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=60) == 0, process.stderr.read()[-3000:]
+    finally:
+        process.kill()
