@@ -8,7 +8,8 @@ from __future__ import annotations
 import argparse
 import os
 
-from ..metaworld.fleet import API_KEY_ENV, RobotsConfig
+from ..metaworld.fleet import RobotsConfig
+from ..serving.config import API_KEY_VARIABLE
 from .common import NON_NEGATIVE, POSITIVE, check_output_dir_flag, check_tasks, usage_errors
 
 NAME = "robots"
@@ -25,7 +26,7 @@ def add_arguments(parser) -> None:
     defaults = RobotsConfig
     parser.add_argument("--server", default=defaults.server, help="the policy server's address")
     parser.add_argument("--api-key", default=argparse.SUPPRESS,
-                        help=f"the server's API key (default: the {API_KEY_ENV} environment variable)")  # fmt: skip
+                        help=f"the server's API key (default: ${API_KEY_VARIABLE})")  # fmt: skip
     parser.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
     parser.add_argument("--episodes", type=POSITIVE, default=defaults.episodes_per_task, help="episodes per task")
     parser.add_argument("--robots", type=POSITIVE, default=defaults.robots,
@@ -56,7 +57,7 @@ def _check_server(config: RobotsConfig, parser) -> None:
         _fail(parser, f"cannot reach the policy server at {url} ({error}); start one with `hf-specvla serve` or "
                       f"give its address with --server")  # fmt: skip
     except ServerError as error:
-        hint = f"; give its key with --api-key or {API_KEY_ENV}" if error.status in (401, 403) else ""
+        hint = f"; give its key with --api-key or {API_KEY_VARIABLE}" if error.status in (401, 403) else ""
         _fail(parser, f"the policy server at {url} refused GET /info: {error}{hint}")
     except ValueError as error:  # a ServerReplyError, or /info is not JSON
         _fail(parser, f"the server at {url} cannot drive Meta-World robots: {error}")
@@ -68,7 +69,7 @@ def run(args, parser) -> int:
 
     check_output_dir_flag(args.output_dir, parser)
     check_tasks(args.tasks, parser)
-    api_key = getattr(args, "api_key", None) or os.environ.get(API_KEY_ENV) or None
+    api_key = getattr(args, "api_key", None) or os.environ.get(API_KEY_VARIABLE) or None
     with usage_errors(parser, errors=(ValueError,)):
         config = RobotsConfig(args.tasks, args.episodes, args.robots, args.seed_start, args.max_episode_steps,
                               args.server, api_key)  # fmt: skip

@@ -40,15 +40,14 @@ import numpy as np
 from .._validation import check_ranges
 from ..progress import progress_bar
 from ..serving.client import PolicyClient
+from ..serving.config import DEFAULT_HOST, DEFAULT_PORT
 from .env import ACTION_DIM, MAX_EPISODE_STEPS, STATE_DIM, EnvConfig, MetaWorldEnv, resolve_tasks
 from .seeds import EVAL_SEED_START
 
 logger = logging.getLogger(__name__)
 
 #: where ``hf-specvla serve`` listens unless told otherwise
-DEFAULT_SERVER = "http://127.0.0.1:8000"
-#: the environment variable the robots' API key is read from by the command
-API_KEY_ENV = "HF_SPECVLA_API_KEY"
+DEFAULT_SERVER = f"http://{DEFAULT_HOST}:{DEFAULT_PORT}"
 #: the request latency percentiles the summary reports
 LATENCY_PERCENTILES = (50, 95, 99)
 
