@@ -125,13 +125,13 @@ def replay(url: str, robots: int, episodes: list[list[dict]], chunk_length: int)
             except queue.Empty:
                 return
             record = {"key": str(index), "latencies_ms": [], "server_ms": [], "queue_ms": [], "batch_sizes": [],
-                      "target_forwards": [], "speculative": [], "actions": []}  # fmt: skip
+                      "target_forwards": [], "batch_forwards": [], "speculative": [], "actions": []}  # fmt: skip
             for step, o in enumerate(episode):
                 sent = time.perf_counter()
                 reply = client.act(o["image"], o["instruction"], o["state"], session=f"{number}-{index}",
                                    reset=step == 0)  # fmt: skip
                 record["latencies_ms"].append(1000 * (time.perf_counter() - sent))
-                for key in ("server_ms", "queue_ms", "batch_size", "target_forwards", "speculative"):
+                for key in ("server_ms", "queue_ms", "batch_size", "target_forwards", "batch_forwards", "speculative"):
                     record[key + "s" if key == "batch_size" else key].append(getattr(reply.served, key))
                 record["actions"].append(reply.action.tolist())
             records.append(record)
@@ -183,6 +183,7 @@ def _figures(summary: dict, records: list[dict]) -> dict:
         "mean_batch_size": statistics.mean(x for r in records for x in r["batch_sizes"]),
         "speculative_fraction": summary["speculative_fraction"],
         "forwards_per_request": summary["target_forwards_per_request"],
+        "batch_forwards_per_request": statistics.mean(x for r in records for x in r.get("batch_forwards", [0])),
         "requests": len(latency),
         "env_steps": summary["env_steps"],
         "actions": {r["key"]: r["actions"] for r in records},

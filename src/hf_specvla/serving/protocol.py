@@ -258,6 +258,7 @@ class ServedFigures:
         session: the robot's id, as sent.
         draft_state: the robot's previous actions as token ids (one list per action): echo it as the next
             request's ``draft_state``.
+        batch_forwards: target forwards the batch ran (its slowest row's count: rows finish together).
     """
 
     method: str
@@ -270,6 +271,7 @@ class ServedFigures:
     server_ms: float = 0.0
     session: str | None = None
     draft_state: list[list[int]] = field(default_factory=list)
+    batch_forwards: int = 0
 
 
 @dataclass

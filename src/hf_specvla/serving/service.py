@@ -196,6 +196,8 @@ class PolicyService:
             self.batches[(bucket, speculative)][0] += 1
             self.batches[(bucket, speculative)][1] += rows
         forwards = self._target_forwards(output, bucket)
+        stats = getattr(output, "speculation", None)
+        batch_forwards = stats.num_batch_forwards if stats is not None else self.policy.config.action_tokens
         name = self.method.name if speculative else self.baseline.name
         replies = []
         for i, request in enumerate(requests):
@@ -203,7 +205,8 @@ class PolicyService:
                 self._remember(request.session, histories[i])
             figures = ServedFigures(name, speculative, forwards[i], rows, bucket,
                                     queue_ms=1000 * (started - arrived[i]), decode_ms=decode_ms,
-                                    session=request.session, draft_state=[list(a) for a in histories[i]])  # fmt: skip
+                                    session=request.session, draft_state=[list(a) for a in histories[i]],
+                                    batch_forwards=batch_forwards)  # fmt: skip
             replies.append(ActReply(np.asarray(actions[i]), figures))
         return replies
 
