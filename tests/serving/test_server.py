@@ -325,3 +325,48 @@ print("exited cleanly", flush=True)
             urllib.request.urlopen(url + "/health", timeout=2)
     finally:
         process.kill()
+
+
+def test_a_request_cancelled_by_its_server_cancels_its_decode(policy):
+    """Ray Serve's proxy cancels the handler of a request whose robot hung up: the decode it waits for is cancelled
+    too (a batch then skips it), not left to run."""
+    import asyncio
+
+    from starlette.requests import Request
+
+    from hf_specvla.serving.app import PolicyRoutes
+
+    service = _service(policy)
+    cancelled = asyncio.Event()
+
+    class Backend:
+        def parse(self, payload):
+            return service.parse(payload)
+
+        async def act(self, request, arrived):
+            try:
+                await asyncio.sleep(60)
+            except asyncio.CancelledError:
+                cancelled.set()
+                raise
+
+    body = dumps(_observation(policy, 9))
+
+    async def scenario():
+        messages = [{"type": "http.request", "body": body, "more_body": False}]
+
+        async def receive():
+            if messages:
+                return messages.pop()
+            await asyncio.sleep(60)  # connected, nothing more to say
+
+        scope = {"type": "http", "method": "POST", "path": "/act", "headers": [], "query_string": b""}
+        handler = asyncio.ensure_future(PolicyRoutes(Backend()).act(Request(scope, receive)))
+        await asyncio.sleep(0.2)
+        handler.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await handler
+        await asyncio.wait_for(cancelled.wait(), 2)
+
+    asyncio.run(scenario())
+    assert cancelled.is_set()

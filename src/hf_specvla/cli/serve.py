@@ -144,12 +144,19 @@ def _run_local(args, parser, config, method) -> int:
 
 
 def _run_ray(args, parser, config) -> int:
-    try:
-        from ..serving.ray_deployment import deploy
-    except ImportError as error:
-        parser.error(str(error))
-    url = deploy(args.policy, config, replicas=args.replicas or 1, host=args.host, port=args.port,
-                 api_key=args.api_key, draft_head_folder=args.draft_head, threads_per_replica=args.threads or 1,
-                 max_request_bytes=args.max_request_bytes, ray_address=args.ray_address, blocking=True)  # fmt: skip
+    from ..serving.ray_deployment import deploy, require_ray
+
+    with usage_errors(parser, "--ray", (ImportError,)):
+        require_ray()
+
+    def ready(url: str) -> None:
+        print(f"serving {args.policy} ({config.method}) on {url}: POST /act, GET /info, GET /stats "
+              f"(Ray Serve, {args.replicas or 1} replicas)", flush=True)  # fmt: skip
+
+    with usage_errors(parser, errors=(ValueError,)):  # e.g. more replicas x threads than the cluster's CPUs
+        url = deploy(args.policy, config, replicas=args.replicas or 1, host=args.host, port=args.port,
+                     api_key=args.api_key, draft_head_folder=args.draft_head, threads_per_replica=args.threads or 1,
+                     max_request_bytes=args.max_request_bytes, ray_address=args.ray_address, blocking=True,
+                     on_ready=ready)  # fmt: skip
     logger.info("Ray Serve deployment on %s stopped", url)
     return 0

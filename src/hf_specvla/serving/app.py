@@ -110,12 +110,16 @@ class PolicyRoutes:
             self._check_key(payload.get("api_key") if isinstance(payload, dict) else None)
         act_request = self.backend.parse(payload)
         task = asyncio.ensure_future(self.backend.act(act_request, arrived))
-        while not task.done():
-            await asyncio.wait({task}, timeout=DISCONNECT_POLL_S)
-            if not task.done() and await request.is_disconnected():
-                task.cancel()
-                logger.info("a robot (session %s) disconnected before its action", act_request.session)
-                return Response(status_code=CLIENT_CLOSED_REQUEST)
+        try:
+            while not task.done():
+                await asyncio.wait({task}, timeout=DISCONNECT_POLL_S)
+                if not task.done() and await request.is_disconnected():
+                    task.cancel()
+                    logger.info("a robot (session %s) disconnected before its action", act_request.session)
+                    return Response(status_code=CLIENT_CLOSED_REQUEST)
+        except asyncio.CancelledError:  # the server gave up on the request (Ray Serve's proxy: the robot hung up)
+            task.cancel()
+            raise
         reply = task.result()
         if act_request.double_encoded:  # OpenVLA's double-encoded reply: the json_numpy text as a JSON string
             return JSONResponse(json.dumps(encode_array(reply.action)))

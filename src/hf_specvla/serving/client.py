@@ -9,7 +9,8 @@
 
 The client echoes each session's ``draft_state`` (the robot's previous actions) with its next request, so the
 drafts do not depend on which server replica answers. Connection failures, 502/503/504 (overload: after its
-``Retry-After``) are retried; a robot's retried request gets the same action (decoding is deterministic).
+``Retry-After``) and a proxy's plain 500 (a Ray Serve replica that died under the request) are retried; a robot's
+retried request gets the same action (decoding is deterministic).
 """
 
 from __future__ import annotations
@@ -94,7 +95,7 @@ class PolicyClient:
                     return response.read()
             except urllib.error.HTTPError as error:
                 text = error.read()
-                if error.code not in RETRY_STATUSES or attempt == self.retries:
+                if not _retryable(error.code, text) or attempt == self.retries:
                     raise _server_error(error.code, text) from None
                 retry_after = error.headers.get("Retry-After")
                 pause = float(retry_after) if retry_after and retry_after.isdigit() else wait
@@ -109,6 +110,19 @@ class PolicyClient:
             time.sleep(pause)
             wait = min(2 * wait, 5.0)
         raise AssertionError("unreachable")
+
+
+def _retryable(status: int, body: bytes) -> bool:
+    """A 502 / 503 / 504, or a 500 that is not the server's own JSON error (a proxy's: e.g. Ray Serve's replica
+    died under the request, which another replica answers)."""
+    if status in RETRY_STATUSES:
+        return True
+    if status != 500:
+        return False
+    try:
+        return not isinstance(json.loads(body), dict)
+    except ValueError:
+        return True
 
 
 def _server_error(status: int, body: bytes) -> ServerError:
