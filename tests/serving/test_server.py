@@ -370,3 +370,50 @@ def test_a_request_cancelled_by_its_server_cancels_its_decode(policy):
 
     asyncio.run(scenario())
     assert cancelled.is_set()
+
+
+def test_every_decode_runs_on_the_services_thread_with_room_for_every_buckets_graphs(policy):
+    """torch's compiler settings are per thread: graphs compiled at warm-up must be served under the same raised
+    recompile limit, whichever thread (the batcher's, a Ray replica's pool) asks for an action."""
+    import torch
+
+    from hf_specvla.serving.service import GRAPHS_MARGIN, GRAPHS_PER_BUCKET
+
+    service = _service(policy, buckets=(1, 2))
+    seen = []
+    predict = policy.predict_action
+
+    def spy(*args, **kwargs):
+        seen.append((threading.current_thread().name, torch._dynamo.config.recompile_limit))
+        return predict(*args, **kwargs)
+
+    policy.predict_action = spy
+    try:
+        service.warm_up()
+        request = service.parse(_observation(policy, 11))
+        asker = threading.Thread(target=lambda: service.act([request]))
+        asker.start()
+        asker.join()
+        service.act([request, request])
+    finally:
+        del policy.predict_action
+        service.close()
+    assert {name.split("_")[0] for name, _ in seen} == {"hf-specvla-decode"}
+    assert min(limit for _, limit in seen) >= GRAPHS_PER_BUCKET * 2 + GRAPHS_MARGIN
+
+
+def test_compiled_greedy_keeps_one_graph_per_bucket_whatever_the_prompt_length(policy):
+    """The greedy baseline decodes on the service's own static cache per bucket: prompts of other lengths (other
+    instructions) reuse it, and the actions are eager greedy's."""
+    service = _service(policy, method="greedy:compile", buckets=(2,))
+    observations = [_observation(policy, seed) for seed in range(4)]  # 4 instructions of different lengths
+    assert len({len(policy.prompt_ids(o["instruction"], o["state"])) for o in observations}) > 1
+    try:
+        for pair in (observations[:2], observations[2:], observations[1:3]):
+            replies = service.act([service.parse(o) for o in pair])
+            for reply, o in zip(replies, pair):
+                np.testing.assert_array_equal(reply.action, _greedy(policy, o))
+                assert reply.served.method == "greedy:compile"
+    finally:
+        service.close()
+    assert [bucket for bucket, _ in service._greedy_caches] == [2]  # one cache, one graph, for every prompt

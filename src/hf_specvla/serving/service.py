@@ -12,6 +12,16 @@ returned in every reply as ``draft_state``, which the robot may echo: then its d
 replica answers. A robot whose state is lost gets its action without prior drafts (one step of greedy's speed).
 ``reset`` starts a new episode.
 
+**One decoding thread.** Every decode (warm-up, calibration, traffic) runs on the service's own thread, whichever
+thread asks (the batcher's, a Ray replica's pool): torch's compiler settings are per thread (dynamo's recompile limit,
+raised for the graphs of every bucket), so graphs compiled in one thread are then served in another under the
+default limit and fail (``FailOnRecompileLimitHit``, seen in the first load run).
+
+**The greedy baseline's cache.** transformers' compiled greedy decoding sizes its static cache to each call's prompt
+length plus the new tokens, so every new prompt length (another instruction, another batch's widest prompt) compiles
+a new graph mid-traffic. The service passes it a static cache of its own per bucket instead, ``SLOT_MULTIPLE`` slots
+at a time (emptied before each call): one graph per bucket for every prompt, the same tokens.
+
 **Speculate only where it pays.** For each bucket the service decodes either speculatively (the method, e.g.
 ``exact`` = previous action + Jacobi drafts, compiled) or with the greedy baseline (transformers' compiled greedy
 for a compiled method, eager greedy otherwise), whichever is faster: measured at start-up
@@ -24,10 +34,11 @@ give greedy's actions, so the choice changes speed, never behaviour.
 from __future__ import annotations
 
 import logging
+import math
 import statistics
-import threading
 import time
 from collections import OrderedDict, deque
+from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -45,12 +56,18 @@ logger = logging.getLogger(__name__)
 TIMING_WINDOW = 16
 #: the instruction of the calibration's synthetic observations
 CALIBRATION_INSTRUCTION = "calibrate the policy server"
+#: the greedy baseline's static caches hold a multiple of this many slots (a longer prompt takes the next multiple)
+SLOT_MULTIPLE = 64
+#: dynamo graphs allowed per bucket on the decoding thread (verification widths, prefill, greedy steps, with and
+#: without hidden states) beyond the engine's own raise, and a margin for transformers' own
+GRAPHS_PER_BUCKET, GRAPHS_MARGIN = 16, 16
 
 
 class PolicyService:
     """A policy behind a server: [`act`] decodes a batch of requests, each row with its own robot's drafts.
 
-    Not thread-safe by design: one batch at a time (a lock holds it); the HTTP layer forms the batches.
+    Safe to call from any thread: every decode runs on the service's one decoding thread, one batch at a time (the
+    HTTP layer forms the batches).
 
     Args:
         policy: the loaded policy.
@@ -77,7 +94,8 @@ class PolicyService:
         self._choice = {b: self.speculates for b in self.config.buckets}
         if self.config.speculate_buckets is not None:
             self._choice = {b: self.speculates and b in self.config.speculate_buckets for b in self.config.buckets}
-        self._lock = threading.Lock()
+        self._greedy_caches: dict[tuple[int, int], object] = {}  # (bucket, slots) -> the baseline's static cache
+        self._decoder = ThreadPoolExecutor(1, "hf-specvla-decode", initializer=self._allow_graphs)
 
     @classmethod
     def from_pretrained(cls, policy_folder, config: ServeConfig | None = None, draft_head_folder=None,
@@ -166,14 +184,17 @@ class PolicyService:
 
     def act(self, requests: list[ActRequest], arrived: list[float] | None = None) -> list[ActReply]:
         """Decodes ``requests`` (any number: split into batches of at most the largest bucket) and returns one reply
-        per request, in order. ``arrived``: each request's ``time.perf_counter()`` at arrival (for ``queue_ms``)."""
+        per request, in order, on the decoding thread. ``arrived``: each request's ``time.perf_counter()`` at arrival
+        (for ``queue_ms``)."""
+        return self._decoder.submit(self._act, requests, arrived).result()
+
+    def _act(self, requests: list[ActRequest], arrived: list[float] | None) -> list[ActReply]:
         now = time.perf_counter()
         arrived = arrived or [now] * len(requests)
         replies: list[ActReply] = []
         size = self.config.max_batch_size
-        with self._lock:
-            for start in range(0, len(requests), size):
-                replies += self._decode(requests[start : start + size], arrived[start : start + size])
+        for start in range(0, len(requests), size):
+            replies += self._decode(requests[start : start + size], arrived[start : start + size])
         return replies
 
     def _decode(self, requests: list[ActRequest], arrived: list[float], measured: bool = True) -> list[ActReply]:
@@ -186,10 +207,11 @@ class PolicyService:
         images = np.stack([r.image for r in padded])
         states = np.stack([r.state for r in padded]) if self.policy.config.use_state else None
         started = time.perf_counter()
+        instructions = [r.instruction for r in padded]
+        kwargs = self._kwargs[speculative] if speculative else self._greedy_kwargs(bucket, instructions, states)
         actions, output = self.policy.predict_action(
-            images, [r.instruction for r in padded], states, return_output=True, previous_action_ids=histories,
-            **self._kwargs[speculative],
-        )  # fmt: skip
+            images, instructions, states, return_output=True, previous_action_ids=histories, **kwargs
+        )
         decode_ms = 1000 * (time.perf_counter() - started)
         if measured:
             self._observe(bucket, speculative, decode_ms)
@@ -209,6 +231,38 @@ class PolicyService:
                                     batch_forwards=batch_forwards)  # fmt: skip
             replies.append(ActReply(np.asarray(actions[i]), figures))
         return replies
+
+    def _greedy_kwargs(self, bucket: int, instructions: list[str], states) -> dict:
+        """The baseline's ``generate`` arguments; for compiled greedy, an emptied static cache of this bucket with
+        room for the widest prompt (see the module docstring) in place of ``cache_implementation``."""
+        kwargs = self._kwargs[False]
+        if kwargs.get("cache_implementation") != "static":
+            return kwargs
+        from transformers import StaticCache
+
+        from ..speculative import CACHE_KEY
+
+        rows = states if states is not None else [None] * len(instructions)
+        width = max(len(self.policy.prompt_ids(i, s)) for i, s in zip(instructions, rows))
+        slots = SLOT_MULTIPLE * math.ceil((width + self.policy.config.action_tokens) / SLOT_MULTIPLE)
+        cache = self._greedy_caches.get((bucket, slots))
+        if cache is None:
+            logger.info("greedy baseline: a static cache of %d slots for batches of %d", slots, bucket)
+            config = self.policy.model.config.get_text_config()
+            cache = self._greedy_caches[(bucket, slots)] = StaticCache(config=config, max_cache_len=slots)
+        else:
+            cache.reset()
+        return {**{k: v for k, v in kwargs.items() if k != "cache_implementation"}, CACHE_KEY: cache}
+
+    def _allow_graphs(self) -> None:
+        """On the decoding thread: dynamo's recompile limit (a per-thread setting) raised for every bucket's graphs."""
+        import torch
+
+        config = torch._dynamo.config
+        name = "recompile_limit" if hasattr(config, "recompile_limit") else "cache_size_limit"
+        wanted = GRAPHS_PER_BUCKET * len(self.config.buckets) + GRAPHS_MARGIN
+        if getattr(config, name) < wanted:
+            setattr(config, name, wanted)
 
     def _target_forwards(self, output, bucket: int) -> list[int]:
         stats = getattr(output, "speculation", None)
@@ -260,6 +314,9 @@ class PolicyService:
         ``calibrate`` and ``calibration_calls`` > 0, times ``calibration_calls`` interleaved calls per bucket and
         mode on synthetic observations that drift like a robot's (drafts: the previous call's actions) and sets the
         choice per bucket. Returns the calibration table (empty without calibration)."""
+        return self._decoder.submit(self._warm_up, calibrate, seed).result()
+
+    def _warm_up(self, calibrate: bool, seed: int) -> list[dict]:
         rng = np.random.default_rng(seed)
         size, dim = self.policy.config.image_size, self.policy.config.state_dim
         base = rng.integers(0, 256, (size, size, 3), dtype=np.uint8)
@@ -300,8 +357,11 @@ class PolicyService:
 
     def _decode_unexplored(self, requests: list[ActRequest]) -> None:
         """A calibration call in the mode ``_choice`` names (not counted, no exploration)."""
-        with self._lock:
-            self._decode(requests, [time.perf_counter()] * len(requests), measured=False)
+        self._decode(requests, [time.perf_counter()] * len(requests), measured=False)
+
+    def close(self) -> None:
+        """Stops the decoding thread (after the decodes it holds)."""
+        self._decoder.shutdown(wait=True)
 
 
 def format_calibration(table: list[dict]) -> str:
