@@ -174,3 +174,19 @@ def test_localization_probe_script_refuses_bad_counts_before_rendering():
     result = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2",
                          "--decoder-steps", 5, "--second-view", "front", timeout=120, check=False)  # fmt: skip
     assert result.returncode == 2 and "--decoder-steps trains the policy's decoder on its own view" in result.stderr
+
+
+def test_serving_load_script_drives_three_servers_and_reports_every_k(tmp_path):
+    """The load benchmark's tiny mode: greedy / always / adaptive servers, K = 1 and 2 replayed robots, one repeat;
+    every server's actions equal (the script checks it), a row per K and server."""
+    output = tmp_path / "load.json"
+    result = run_example("benchmarks/serving_load.py", "--tiny", "--output", output, timeout=600)
+    assert "| K | server | actions/s | vs greedy |" in result.stdout
+    rows = json.loads(output.read_text())["rows"]
+    assert sorted((r["robots"], r["kind"]) for r in rows) == sorted(
+        (k, kind) for k in (1, 2) for kind in ("greedy", "always", "adaptive")
+    )
+    for row in rows:
+        assert row["requests"] > 0 and row["actions_per_second"] > 0
+        expected = {"greedy": 0.0, "always": 1.0}.get(row["kind"], row["speculative_fraction"])
+        assert row["speculative_fraction"] == expected

@@ -116,8 +116,15 @@ def replay(url: str, robots: int, episodes: list[list[dict]], chunk_length: int)
     for index, episode in enumerate(episodes):
         pending.put((index, episode))
     records: list[dict] = []
+    errors: list[BaseException] = []
 
     def robot(number: int) -> None:
+        try:
+            run_episodes(number)
+        except BaseException as error:  # noqa: BLE001 (re-raised by the run)
+            errors.append(error)
+
+    def run_episodes(number: int) -> None:
         client = PolicyClient(url)
         while True:
             try:
@@ -143,6 +150,8 @@ def replay(url: str, robots: int, episodes: list[list[dict]], chunk_length: int)
     for thread in threads:
         thread.join()
     wall = time.perf_counter() - started
+    if errors:
+        raise RuntimeError(f"{len(errors)} of {robots} robots failed, the first with {errors[0]!r}") from errors[0]
     requests = sum(len(r["latencies_ms"]) for r in records)
     summary = {"actions_per_second": requests * chunk_length / wall, "env_steps": requests * chunk_length,
                "speculative_fraction": sum(x for r in records for x in r["speculative"]) / requests,

@@ -417,3 +417,47 @@ def test_compiled_greedy_keeps_one_graph_per_bucket_whatever_the_prompt_length(p
     finally:
         service.close()
     assert [bucket for bucket, _ in service._greedy_caches] == [2]  # one cache, one graph, for every prompt
+
+
+def test_a_lone_robot_never_waits_for_a_batch_that_will_not_come(policy):
+    """With a long batching window, one active robot is decoded at once; two active robots are batched together."""
+    observation = _observation(policy, 12)
+    with PolicyServer(_service(policy, max_wait_ms=400.0), port=0) as server:
+        alone = PolicyClient(server.url)
+        queued = [alone.act(**observation, session="alone", reset=i == 0).served.queue_ms for i in range(3)]
+        time.sleep(1.2)  # "alone" is no longer active
+        replies: list = []
+
+        def robot(session: str) -> None:
+            client = PolicyClient(server.url)
+            for step in range(3):
+                replies.append((step, client.act(**observation, session=session, reset=step == 0)))
+
+        pair = [threading.Thread(target=robot, args=(s,)) for s in ("a", "b")]
+        for thread in pair:
+            thread.start()
+        for thread in pair:
+            thread.join()
+    assert max(queued) < 100, queued  # not the 400 ms window
+    later = [reply.served.batch_size for step, reply in replies if step > 0]  # both robots active by then
+    assert sorted(later) in ([2, 2, 2, 2], [1, 2, 2, 2]), later  # out of step by one: the last request is alone
+
+
+def test_the_other_mode_is_explored_less_often_when_the_choice_is_clear(policy):
+    from hf_specvla.serving.service import CLEAR_GAP_EXPLORE_FACTOR
+
+    service = _service(policy, buckets=(1,), explore_every=4)
+    try:
+        explored = []
+        for spec_ms, greedy_ms in ((10.0, 11.0), (10.0, 20.0)):  # a 10% gap, then a clear 2x
+            service.timings[(1, True)].extend([spec_ms] * 5)
+            service.timings[(1, False)].extend([greedy_ms] * 5)
+            modes = []
+            for call in range(1, 33):
+                service.calls[1] = call
+                modes.append(service._mode_for(1))
+            explored.append(modes.count(False))
+            service.timings[(1, True)].clear(), service.timings[(1, False)].clear()
+    finally:
+        service.close()
+    assert explored == [32 // 4, 32 // (4 * CLEAR_GAP_EXPLORE_FACTOR)]

@@ -1,11 +1,13 @@
 """Forming batches on one machine: requests that arrive together are decoded in one call ([`Batcher`]).
 
-A worker thread takes the first waiting request, waits up to ``max_wait_ms`` for more (up to the largest bucket),
-drops the requests whose robots gave up meanwhile (their futures cancelled), and hands the rest to
-[`PolicyService.act`]. The queue is bounded: past ``max_queue`` waiting requests, [`submit`] raises [`Overloaded`]
-with the seconds after which a retry is likely to be served (HTTP 503 + Retry-After), rather than letting latency
-grow without bound. A batch whose call fails is retried one request at a time, so one request's failure never
-fails the others. (On Ray Serve, ``serve.batch`` forms the batches instead.)
+A worker thread takes the first waiting request and waits up to ``max_wait_ms`` for more (up to the largest bucket),
+but only for robots that may send one: not once it holds a request of every session active in the last
+``ACTIVE_WINDOW_S`` (one robot alone never waits; while requests without a session arrive, it always may). It drops
+the requests whose robots gave up meanwhile (their futures cancelled) and hands the rest to [`PolicyService.act`].
+The queue is bounded: past ``max_queue`` waiting requests, [`submit`] raises [`Overloaded`] with the seconds after
+which a retry is likely to be served (HTTP 503 + Retry-After), rather than letting latency grow without bound. A
+batch whose call fails is retried one request at a time, so one request's failure never fails the others. (On Ray
+Serve, ``serve.batch`` forms the batches instead.)
 """
 
 from __future__ import annotations
@@ -22,6 +24,9 @@ from .protocol import ActReply, ActRequest, Overloaded
 from .service import PolicyService
 
 logger = logging.getLogger(__name__)
+
+#: a session that sent a request this recently is a robot a batch may wait for
+ACTIVE_WINDOW_S = 1.0
 
 
 @dataclass
@@ -44,6 +49,7 @@ class Batcher:
         self._recent_batch_s = 0.05  # a running mean, for Retry-After
         self.batches = 0
         self.dropped = 0  # requests whose robots gave up before their batch started
+        self._last_seen: dict[str | None, float] = {}  # session (None: anonymous) -> its last request's arrival
 
     def start(self) -> Batcher:
         self._thread = threading.Thread(target=self._run, name="hf-specvla-batcher", daemon=True)
@@ -90,7 +96,7 @@ class Batcher:
                 continue
             batch = [first]
             deadline = time.perf_counter() + self.max_wait_s
-            while len(batch) < self.max_batch_size:
+            while len(batch) < min(self.max_batch_size, self._active_robots(batch)):
                 try:
                     remaining = deadline - time.perf_counter()
                     batch.append(self._queue.get(timeout=remaining) if remaining > 0 else self._queue.get_nowait())
@@ -100,6 +106,17 @@ class Batcher:
             self.dropped += len(batch) - len(live)
             if live:
                 self._decode(live)
+
+    def _active_robots(self, batch: list[_Pending]) -> int:
+        """How many requests a batch may still expect: the sessions active in the last ``ACTIVE_WINDOW_S`` (any
+        number while anonymous requests arrive), at least those in hand."""
+        now = time.perf_counter()
+        for pending in batch:
+            self._last_seen[pending.request.session] = pending.arrived
+        recent = [s for s, seen in self._last_seen.items() if now - seen < ACTIVE_WINDOW_S]
+        if len(self._last_seen) > 4 * len(recent) + 64:  # forget robots long gone
+            self._last_seen = {s: self._last_seen[s] for s in recent}
+        return self.max_batch_size if None in recent else max(len(recent), len(batch))
 
     def _decode(self, batch: list[_Pending]) -> None:
         started = time.perf_counter()

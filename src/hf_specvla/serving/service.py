@@ -58,6 +58,8 @@ TIMING_WINDOW = 16
 CALIBRATION_INSTRUCTION = "calibrate the policy server"
 #: the greedy baseline's static caches hold a multiple of this many slots (a longer prompt takes the next multiple)
 SLOT_MULTIPLE = 64
+#: a gap between the two modes' median call times past which the other mode is explored less often, and how much
+CLEAR_GAP, CLEAR_GAP_EXPLORE_FACTOR = 0.2, 4
 #: dynamo graphs allowed per bucket on the decoding thread (verification widths, prefill, greedy steps, with and
 #: without hidden states) beyond the engine's own raise, and a margin for transformers' own
 GRAPHS_PER_BUCKET, GRAPHS_MARGIN = 16, 16
@@ -289,12 +291,17 @@ class PolicyService:
 
     # ----------------------------------------------------------------------------- measuring
     def _mode_for(self, bucket: int) -> bool:
-        """This batch's mode: the chosen one, or the other every ``explore_every``-th call (measured choice only)."""
+        """This batch's mode: the chosen one, or the other every ``explore_every``-th call (measured choice only;
+        ``CLEAR_GAP_EXPLORE_FACTOR`` times less often while the two modes' medians differ by more than
+        ``CLEAR_GAP``: a clear choice needs fewer checks, and each costs that call the gap)."""
         chosen = self._choice[bucket]
         every = self.config.explore_every
-        if self.speculates and self.config.speculate_buckets is None and every and self.calls[bucket] % every == 0:
-            return not chosen
-        return chosen
+        if not (self.speculates and self.config.speculate_buckets is None and every):
+            return chosen
+        spec, greedy = self.timings[(bucket, True)], self.timings[(bucket, False)]
+        if spec and greedy and abs(statistics.median(spec) / statistics.median(greedy) - 1) > CLEAR_GAP:
+            every *= CLEAR_GAP_EXPLORE_FACTOR
+        return not chosen if self.calls[bucket] % every == 0 else chosen
 
     def _observe(self, bucket: int, speculative: bool, ms: float) -> None:
         self.timings[(bucket, speculative)].append(ms)
