@@ -8,9 +8,9 @@ from hf_specvla.metaworld.env import EnvConfig, MetaWorldEnv
 from hf_specvla.metaworld.rollout import rollout
 from hf_specvla.policies import VLAPolicy
 
-#: 4 MT10 tasks, 2 episodes each (4 robots x 2 episodes), cut at 40 steps: the served = local check
+#: 4 MT10 tasks, 2 episodes each (4 robots x 2 episodes), cut at 24 steps: the served = local check
 TASKS = ["reach-v3", "push-v3", "drawer-open-v3", "button-press-topdown-v3"]
-EPISODES, ROBOTS, SEED_START, MAX_STEPS = 2, 4, 100000, 40
+EPISODES, ROBOTS, SEED_START, MAX_STEPS = 2, 4, 100000, 24
 
 
 def greedy_episodes(policy: VLAPolicy) -> dict:
