@@ -93,3 +93,32 @@ def test_serve_answers_act_and_exits_0_on_sigterm():
         assert process.wait(timeout=60) == 0, process.stderr.read()[-3000:]
     finally:
         process.kill()
+
+
+def test_serve_on_ray_serve_answers_and_stops_on_sigterm():
+    """``serve --ray``: a local Ray cluster, one replica, the same API; SIGTERM stops the deployment and the cluster
+    (exit 0)."""
+    pytest.importorskip("ray")
+    from hf_specvla.serving import PolicyClient
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    command = [sys.executable, "-m", "hf_specvla.cli", "serve", "--policy", POLICY, "--method", "prior+jacobi",
+               "--buckets", "1", "--calibration-calls", "0", "--port", str(port), "--ray", "--replicas", "1",
+               "--threads", "1"]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "OMP_NUM_THREADS": "1"})  # fmt: skip
+    try:
+        line = process.stdout.readline()
+        assert line.startswith("serving ") and "Ray Serve, 1 replicas" in line, process.stderr.read()[-3000:]
+        url = line.split(" on ", 1)[1].split(": POST", 1)[0]
+        info = PolicyClient(url).info()
+        assert info["deployment"] == "ray" and info["method"] == "prior+jacobi"
+        size = info["image_size"]
+        reply = PolicyClient(url).act(np.zeros((size, size, 3), np.uint8), "reach the goal", np.zeros(4))
+        assert reply.action.shape == (info["chunk_length"], info["action_dim"])
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=120) == 0, process.stderr.read()[-3000:]
+    finally:
+        process.kill()
