@@ -131,6 +131,16 @@ def test_jacobi_methods_build_their_drafters(random_draft):
         DecodingMethod.parse("jacobi+tree").generate_kwargs(None)
 
 
+def test_drafted_positions_follow_the_accept_lengths():
+    from hf_specvla.metaworld.comparison.runner import drafted_positions
+
+    accepted, own = True, False
+    assert drafted_positions([3, 1, 4], 8) == [accepted, accepted, own, own, accepted, accepted, accepted, own]
+    assert drafted_positions([8], 8) == [accepted] * 7 + [own]  # every draft right: one forward
+    assert drafted_positions([1] * 8, 8) == [own] * 8  # nothing accepted (greedy's own steps)
+    assert drafted_positions([5, 5], 8) == [accepted] * 4 + [own] + [accepted] * 3  # a bonus past the call: cut
+
+
 def test_method_names():
     assert DecodingMethod.parse("prior+tree:r=4") == DecodingMethod("prior+tree", 4)
     assert DecodingMethod.parse("head:k=3").name == "head:k=3"
@@ -235,6 +245,16 @@ def test_compare_pairs_seeds_keeps_r0_identical_and_resumes(policy_dir, tmp_path
     per_dim = relaxed_row["mean_bin_deviation_per_dim"]
     assert len(per_dim) == 4 and sum(per_dim) / 4 == pytest.approx(relaxed_row["mean_bin_deviation"])
     assert summary["methods"]["prior"]["identical_to_greedy"] == 2
+    # acceptance by token position: per call, the positions taken by accepted drafts are the accepted tokens
+    for record in log:
+        calls, tokens = len(record["latencies_ms"]), 4
+        accepted = sum(int(k) - 1 for k, v in record["accept_length_counts"].items() for _ in range(v))
+        assert sum(record["accepted_by_position"]) == accepted and len(record["accepted_by_position"]) == tokens
+        assert all(0 <= n <= calls for n in record["accepted_by_position"])
+        assert record["accepted_by_position"][-1] == 0  # the last token of a call always ends its forward
+    assert summary["methods"]["greedy"]["accepted_by_position"] == [0.0] * 4
+    assert summary["action_dim"] == 4
+    assert "| method | a0.x | a0.y | a0.z | a0.gripper |" in (out / "compare.md").read_text()
     assert summary["methods"]["greedy"]["target_forwards_per_action"] == 4.0
     assert summary["methods"]["greedy"]["target_forwards_per_call"] == 4.0
     for plot in PLOTS:

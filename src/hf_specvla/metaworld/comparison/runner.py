@@ -68,6 +68,16 @@ def _greedy_action_ids(policy: VLAPolicy, obs: dict) -> list[int]:
     return output.sequences[0, -policy.config.action_tokens :].tolist()
 
 
+def drafted_positions(accept_lengths: list[int], tokens: int) -> list[bool]:
+    """Which of a call's ``tokens`` emitted tokens were drafted tokens the target accepted: each target forward emits
+    its accepted drafts and then one token of its own (``accept_lengths``: tokens per forward, in order), e.g.
+    ``[3, 1, 4]`` -> accepted, accepted, own, own, accepted, accepted, accepted, own."""
+    drafted: list[bool] = []
+    for length in accept_lengths:
+        drafted += [True] * (length - 1) + [False]
+    return drafted[:tokens] + [False] * (tokens - len(drafted))
+
+
 def check_method_rule(method: DecodingMethod, policy: VLAPolicy) -> None:
     """Builds ``method``'s acceptance rule for ``policy``'s actions, so that a tolerance with the wrong number of
     dimensions (``r=4/4/0`` for 4-dimensional actions) is refused before anything runs.
@@ -99,6 +109,7 @@ def run_method_episode(
     policy.reset()
     latencies, accept_counts, digest = [], Counter(), hashlib.sha256()
     target_forwards = new_tokens = 0
+    accepted_by_position = [0] * action_dim  # calls whose token at each position was a drafted token accepted
     distances: list[int] = []
 
     def decide(rows: list[int], observations: list[dict]) -> list:
@@ -117,6 +128,8 @@ def run_method_episode(
         else:
             target_forwards, new_tokens = target_forwards + stats.num_target_forwards, new_tokens + stats.num_new_tokens
             accept_counts.update(stats.accept_lengths)
+            for position, drafted in enumerate(drafted_positions(stats.accept_lengths, action_dim)):
+                accepted_by_position[position] += drafted
         if not method.lossless:  # off the clock: how far is this from greedy's action on the same observation?
             reference = _greedy_action_ids(policy, obs)
             distances.extend(abs(a - b) for a, b in zip(action_ids, reference))  # every token of the call, in order
@@ -133,6 +146,8 @@ def run_method_episode(
         # per action dimension (token i of a call is dimension i % action_dim)
         "bin_distance_sum_per_dim": [sum(distances[d::dims]) for d in range(dims)],
         "bin_distance_max_per_dim": [max(distances[d::dims], default=0) for d in range(dims)],
+        # per token position of a call (action 0's dimensions, then action 1's, ...): calls that took a draft there
+        "accepted_by_position": accepted_by_position,
     }  # fmt: skip
 
 
@@ -375,6 +390,7 @@ def run_comparison(
         summary["settings"] = {**settings, "tasks": config.tasks, "episodes_per_task": config.episodes_per_task,
                                "workers": config.workers, "threads": config.threads}  # fmt: skip
         summary["timing"] = _timing_summary(timing, records)
+        summary["action_dim"] = policy.config.action_dim  # names the token positions of a call
         write_json_atomic(output_dir / "summary.json", summary)
         (output_dir / "compare.md").write_text(format_comparison(summary) + "\n")
         plot_comparison(summary, output_dir)

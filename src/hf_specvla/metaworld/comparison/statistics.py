@@ -201,6 +201,8 @@ def summarize_comparison(records: list[dict], methods: list[str], timed: Callabl
             "max_bin_deviation": max(r["bin_distance_max"] for r in episodes.values()),
             # the executed action's distance from greedy's on the same observation, per action dimension
             **_deviation_per_dim(list(episodes.values())),
+            # per token position of a call: the share of calls whose token there was an accepted draft
+            **_acceptance_by_position(list(episodes.values())),
             "identical_to_greedy": sum(episodes[k]["actions_digest"] == greedy[k]["actions_digest"] for k in paired),
         }
         if paired:
@@ -225,6 +227,41 @@ def _deviation_per_dim(records: list[dict]) -> dict:
                                        for d in range(dims)],
         "max_bin_deviation_per_dim": [max(r["bin_distance_max_per_dim"][d] for r in records) for d in range(dims)],
     }  # fmt: skip
+
+
+def _acceptance_by_position(records: list[dict]) -> dict:
+    """The share of calls whose token at each position of the call was a drafted token the target accepted (the
+    rest are the target's own tokens: after a rejection, or the bonus token that ends every forward); logs written
+    before the field existed give none."""
+    records = [r for r in records if "accepted_by_position" in r]
+    calls = sum(len(r["latencies_ms"]) for r in records)
+    if not calls:
+        return {}
+    positions = len(records[0]["accepted_by_position"])
+    return {"accepted_by_position": [sum(r["accepted_by_position"][p] for r in records) / calls
+                                     for p in range(positions)]}  # fmt: skip
+
+
+def format_acceptance_by_position(summary: dict) -> str:
+    """Markdown table: per method, the share of calls that took an accepted draft at each token position of a call
+    (columns named by action and dimension, ``a0.x``, ``a0.gripper``, ``a1.x``, ..., for a known action layout;
+    ``t0``, ``t1``, ... without the summary's ``action_dim``); empty when no method recorded it."""
+    from ...policies.decoding_methods import ACTION_LAYOUTS
+
+    rows = {name: row["accepted_by_position"] for name, row in summary["methods"].items()
+            if row.get("accepted_by_position")}  # fmt: skip
+    if not rows:
+        return ""
+    positions = len(next(iter(rows.values())))
+    action_dim = summary.get("action_dim") or positions
+    names = ACTION_LAYOUTS.get(action_dim, tuple(f"d{d}" for d in range(action_dim)))
+    if "action_dim" not in summary:
+        names = tuple(f"t{p}" for p in range(positions))
+    header = [f"a{p // action_dim}.{names[p % action_dim]}" if "action_dim" in summary else names[p]
+              for p in range(positions)]  # fmt: skip
+    lines = ["| method | " + " | ".join(header) + " |", "|---|" + "---:|" * positions]
+    lines += [f"| {name} | " + " | ".join(f"{share:.0%}" for share in shares) + " |" for name, shares in rows.items()]
+    return "\n".join(lines)
 
 
 def _format_speedup(total: dict | None, episodes: int) -> str:
@@ -278,6 +315,15 @@ def format_comparison(summary: dict) -> str:
             f"| {per_dim} | {identical} |"
         )
     lines += ["", SPEEDUP_NOTE]
+    by_position = format_acceptance_by_position(summary)
+    if by_position:
+        lines += [
+            "",
+            "Accepted drafts by token position of a call (share of calls; the rest are the target's own "
+            "tokens: after a rejection, or the one that ends each forward):",
+            "",
+            by_position,
+        ]
     timing = summary.get("timing")
     if timing:
         conditions = ", ".join(f"{k}={v}" for k, v in timing["conditions"].items() if k != "machine")
