@@ -131,6 +131,27 @@ def test_jacobi_methods_build_their_drafters(random_draft):
         DecodingMethod.parse("jacobi+tree").generate_kwargs(None)
 
 
+def test_the_oracle_bound_runs_in_compare_only(policy_dir, tmp_path, capsys):
+    """``oracle`` drafts greedy's own tokens (decoded off the clock): identical to greedy, one target forward per
+    call, every position but the last of a call an accepted draft; elsewhere it is refused."""
+    from hf_specvla.policies.decoding_methods import DecodingMethod
+
+    with pytest.raises(ValueError, match="measured by `compare` only"):
+        DecodingMethod.parse("oracle")
+    with pytest.raises(ValueError, match="takes no r"):
+        DecodingMethod.parse("oracle:r=2", oracle=True)
+    out = tmp_path / "oracle"
+    args = ["compare", "--policy", policy_dir, "--tasks", "reach", "--episodes", "1", "--max-episode-steps", "4",
+            "--methods", "oracle", "--output-dir", str(out)]  # fmt: skip
+    assert main(args) == 0
+    row = json.loads((out / "summary.json").read_text())["methods"]["oracle"]
+    assert row["identical_to_greedy"] == 1 and row["target_forwards_per_call"] == 1.0
+    assert row["accepted_by_position"] == [1.0, 1.0, 1.0, 0.0]
+    with pytest.raises(SystemExit) as refused:
+        main(["eval", "--policy", policy_dir, "--method", "oracle", "--output-dir", str(tmp_path / "eval")])
+    assert refused.value.code == 2 and "measured by `compare` only" in capsys.readouterr().err
+
+
 def test_drafted_positions_follow_the_accept_lengths():
     from hf_specvla.metaworld.comparison.runner import drafted_positions
 

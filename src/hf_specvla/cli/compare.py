@@ -50,9 +50,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--methods", nargs="+", default=list(CompareConfig.methods),
                         help="<drafters>[:<option>,...][:compile], drafters one of " + ", ".join(DRAFTER_CHOICES)
                              + "; options: " + "; ".join(f"{k}= {v}" for k, v in METHOD_KEYS.items())
-                             + "; or a preset: " + ", ".join(PRESETS) + " (greedy always runs: the baseline; "
-                             ":compile = static cache + compiled verification, greedy:compile = transformers' "
-                             "compiled greedy)")  # fmt: skip
+                             + "; or a preset: " + ", ".join(PRESETS) + "; or oracle[:compile], the bound (greedy's "
+                             "own tokens, decoded off the clock, drafted: one target forward a call). Greedy always "
+                             "runs: the baseline; :compile = static cache + compiled verification, greedy:compile = "
+                             "transformers' compiled greedy")  # fmt: skip
     parser.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
     parser.add_argument("--episodes", type=POSITIVE, default=CompareConfig.episodes_per_task, help="seeds per task")
     parser.add_argument("--seed-start", type=NON_NEGATIVE, default=CompareConfig.seed_start, help="first seed")

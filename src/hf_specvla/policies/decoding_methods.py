@@ -44,6 +44,10 @@ METHOD_KEYS = {"r": "bin tolerance: an int, or one per action dimension joined b
                "m": "at most this many relaxed tokens per action",
                "gate": "relax only where the target's top-1 probability is below this (0 < p <= 1)",
                "k": "draft-head chain length (head only)"}  # fmt: skip
+#: the bound a comparison measures beside the methods: greedy's own tokens (decoded off the clock on the same
+#: observation) drafted in the prefill, so every draft is right and a call costs one target forward; only ``compare``
+#: runs it (nothing else knows greedy's tokens before decoding)
+ORACLE = "oracle"
 #: the option word that compiles a method (static cache + transformers' CompileConfig)
 COMPILE = "compile"
 
@@ -119,11 +123,13 @@ class DecodingMethod:
     confidence_gate: float | None = None
 
     @classmethod
-    def parse(cls, text: str, draft_head_given: bool = False, action_dim: int | None = None) -> DecodingMethod:
+    def parse(cls, text: str, draft_head_given: bool = False, action_dim: int | None = None,
+              oracle: bool = False) -> DecodingMethod:  # fmt: skip
         """``"prior+tree:r=4"`` -> DecodingMethod("prior+tree", 4); a preset (``exact``, ``fast``) -> the method it
         names for a policy with (``draft_head_given``) or without a draft head and with ``action_dim``-dimensional
         actions ([`Preset.resolve`]; None: this project's policies' layout). With ``action_dim``, a per-dimension r
-        of another length is refused here.
+        of another length is refused here. ``oracle``: also accept the comparison's bound, ``oracle[:compile]``
+        ([`ORACLE`]).
 
         Raises:
             ValueError: naming the bad part and listing what is valid.
@@ -135,7 +141,10 @@ class DecodingMethod:
                  f"(e.g. prior+tree:r=4, greedy:compile, prior+jacobi:r=4/4/4/0,m=1:compile), or a preset: "
                  f"{', '.join(PRESETS)}")  # fmt: skip
         drafters, _, options = text.strip().partition(":")
-        if drafters not in DRAFTER_CHOICES:
+        if drafters == ORACLE and not oracle:
+            raise ValueError(f"decoding method {text!r}: {ORACLE} (greedy's own tokens drafted, the bound) is measured "
+                             f"by `compare` only, beside greedy; {valid}")  # fmt: skip
+        if drafters not in (*DRAFTER_CHOICES, *((ORACLE,) if oracle else ())):
             raise ValueError(f"unknown decoding method {text!r}: {drafters!r} is not a drafter; {valid}")
         values: dict = {}
         parts = options.replace(":", ",").split(",")
@@ -157,8 +166,9 @@ class DecodingMethod:
         method = cls(drafters, values.get("r", 0), values.get("k"), compiled, values.get("rl"), values.get("m"),
                      values.get("gate"))  # fmt: skip
         relaxing = method.widest_tolerance or "rl" in values or "m" in values or "gate" in values
-        if method.drafters == "greedy" and (relaxing or method.num_draft_tokens):
-            raise ValueError(f"decoding method {text!r}: greedy drafts nothing, so it takes no r, rl, m, gate or k")
+        if method.drafters in ("greedy", ORACLE) and (relaxing or method.num_draft_tokens):
+            raise ValueError(f"decoding method {text!r}: {method.drafters} takes no r, rl, m, gate or k (greedy drafts "
+                             f"nothing; the oracle's drafts are greedy's own)")  # fmt: skip
         if method.num_draft_tokens is not None and "head" not in method.drafters.split("+"):
             raise ValueError(f"decoding method {text!r}: k (a chain length) needs the head chain (head, prior+head)")
         if not method.widest_tolerance and ("m" in values or "gate" in values):

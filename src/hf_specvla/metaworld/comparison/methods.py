@@ -15,6 +15,7 @@ from ...policies.decoding_methods import (  # noqa: F401 (re-exported: this modu
     DRAFTER_CHOICES,
     GREEDY,
     METHOD_KEYS,
+    ORACLE,
     PRESETS,
     DecodingMethod,
     Preset,
@@ -41,7 +42,7 @@ def parse_methods(
     [`DecodingMethod.parse`]), greedy first (added when missing: it is the baseline)."""
     methods = [GREEDY]
     for name in names:
-        method = DecodingMethod.parse(name, draft_head_given, action_dim)
+        method = DecodingMethod.parse(name, draft_head_given, action_dim, oracle=True)
         if method not in methods:
             methods.append(method)
     return methods
@@ -103,7 +104,7 @@ class CompareConfig:
         return DraftTreeConfig(**{name: value for name, value in settings.items() if value is not None})
 
     def decoding_methods(self) -> list[DecodingMethod]:
-        return [DecodingMethod.parse(name) for name in self.methods]
+        return [DecodingMethod.parse(name, oracle=True) for name in self.methods]
 
     def draft_head_methods(self) -> list[str]:
         """The methods that draft with a draft head (head, tree, prior+head, prior+tree)."""

@@ -153,7 +153,7 @@ def summarize_comparison(records: list[dict], methods: list[str], timed: Callabl
         episodes = by_method[name]
         if not episodes:
             continue
-        method = DecodingMethod.parse(name)
+        method = DecodingMethod.parse(name, oracle=True)
         paired = sorted(key for key in episodes if key in greedy)
         timed_keys = {key for key, r in episodes.items() if r["_timed"]}
         latencies = [x for key in sorted(timed_keys) for x in episodes[key]["latencies_ms"]]
