@@ -78,6 +78,8 @@ def test_bench_episodes_on_the_toy(toy_pipeline, capsys, monkeypatch):
         assert out.split(row)[1].split("\n")[0].endswith("0.00 / 0 |"), row
     # where the time goes: the parts add up to the call; greedy drafts nothing and decodes after its prefill
     split, jacobi = out.split("Where the time goes")[1].split("Jacobi guesses right")
+    jacobi, by_position = jacobi.split("Accepted drafts by token position")
+    assert "| greedy | 0% | 0% |" in by_position  # greedy drafts nothing
     assert "| jacobi r=0 | " in jacobi and "| +1 |" in jacobi  # how often the guesses were right, by position
     assert "| method | vision | prefill | later forwards | drafting | rest | total |" in split
     for line in [row for row in split.splitlines() if row.startswith("| ") and "method" not in row]:

@@ -152,16 +152,6 @@ def test_the_oracle_bound_runs_in_compare_only(policy_dir, tmp_path, capsys):
     assert refused.value.code == 2 and "measured by `compare` only" in capsys.readouterr().err
 
 
-def test_drafted_positions_follow_the_accept_lengths():
-    from hf_specvla.metaworld.comparison.runner import drafted_positions
-
-    accepted, own = True, False
-    assert drafted_positions([3, 1, 4], 8) == [accepted, accepted, own, own, accepted, accepted, accepted, own]
-    assert drafted_positions([8], 8) == [accepted] * 7 + [own]  # every draft right: one forward
-    assert drafted_positions([1] * 8, 8) == [own] * 8  # nothing accepted (greedy's own steps)
-    assert drafted_positions([5, 5], 8) == [accepted] * 4 + [own] + [accepted] * 3  # a bonus past the call: cut
-
-
 def test_method_names():
     assert DecodingMethod.parse("prior+tree:r=4") == DecodingMethod("prior+tree", 4)
     assert DecodingMethod.parse("head:k=3").name == "head:k=3"

@@ -241,7 +241,13 @@ def test_a_policy_grown_to_a_finer_image_computes_its_sources_function_on_the_up
 def test_the_episode_benchmark_replays_a_chunked_policy_with_the_prior(chunked):
     """bench-episodes remembers whole calls; the prior reads them back as actions: r=0 never moves from greedy, and
     after the first call the prior drafts (fewer forwards than greedy's 8 per call on a repeated observation)."""
-    from hf_specvla.benchmarks.speed import EpisodeMethod, ForwardClock, policy_actor, run_episode_benchmark
+    from hf_specvla.benchmarks.speed import (
+        EpisodeMethod,
+        ForwardClock,
+        format_episode_report,
+        policy_actor,
+        run_episode_benchmark,
+    )
 
     image, state = observation()
     episode = [{"image": image, "instruction": "reach the goal", "state": state}] * 4
@@ -252,3 +258,7 @@ def test_the_episode_benchmark_replays_a_chunked_policy_with_the_prior(chunked):
     assert prior.bin_distances and max(prior.bin_distances) == 0
     assert greedy.target_forwards == [8] * 4 and min(prior.target_forwards[1:]) < 8
     assert set(prior.split_seconds) == {"vision", "prefill", "later forwards", "drafting", "rest"}
+    # acceptance by token position: greedy never drafts; the prior's accepted drafts are its tokens per forward - 1
+    assert greedy.accepted_by_position == [0] * 8 and prior.accepted_by_position[-1] == 0
+    assert sum(prior.accepted_by_position) == sum(prior.new_tokens) - sum(prior.target_forwards)
+    assert "Accepted drafts by token position" in format_episode_report(results)

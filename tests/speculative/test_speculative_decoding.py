@@ -561,3 +561,14 @@ def test_prefix_allowed_tokens_fn_sees_batch_row_0_for_every_node(tiny_llama):
     candidates = torch.tensor([[[generated[0], 64, 65], generated[:3], [generated[0], generated[1], 70]]])
     out = tiny_llama.generate(input_ids=input_ids, do_sample=False, draft_ids=candidates, **kwargs)
     assert torch.equal(out, expected)
+
+
+def test_accepted_positions_follow_the_accept_lengths():
+    from hf_specvla.speculative import SpeculationStats
+
+    accepted, own = True, False
+    positions = SpeculationStats(accept_lengths=[3, 1, 4]).accepted_positions()
+    assert positions == [accepted, accepted, own, own, accepted, accepted, accepted, own]
+    assert SpeculationStats(accept_lengths=[8]).accepted_positions() == [accepted] * 7 + [own]  # one forward
+    assert SpeculationStats(accept_lengths=[1] * 8).accepted_positions() == [own] * 8  # nothing accepted
+    assert SpeculationStats(accept_lengths=[2, 1]).accepted_positions(5) == [accepted, own, own, own, own]

@@ -197,6 +197,7 @@ class EpisodeMethodResult:
     total_seconds: float = 0.0
     split_seconds: dict[str, float] = field(default_factory=dict)  # where the time goes, summed over calls
     guesses: SpeculationStats = field(default_factory=SpeculationStats)  # the Jacobi guesses' counts, summed
+    accepted_by_position: list[int] = field(default_factory=list)  # per token position: calls that took a draft
 
     @property
     def median_latency(self) -> float:
@@ -335,6 +336,9 @@ def run_episode_benchmark(
                         result.target_forwards.append(spec.num_target_forwards if spec else action_dim)
                         result.draft_forwards.append(spec.num_draft_forwards if spec else 0)
                         result.new_tokens.append(spec.num_new_tokens if spec else action_dim)
+                        taken = spec.accepted_positions(action_dim) if spec else [False] * action_dim
+                        result.accepted_by_position = [n + t for n, t in zip(result.accepted_by_position
+                                                                            or [0] * action_dim, taken)]  # fmt: skip
                         if spec is not None:
                             result.guesses.add_guesses(spec)
                             result.target_seconds += spec.target_seconds
@@ -405,7 +409,19 @@ def format_episode_report(results: list[EpisodeMethodResult]) -> str:
             cells = [f"{1000 * r.split_seconds[part] / calls:.1f}" for part in TIME_SPLIT]
             lines.append(f"| {r.name} | " + " | ".join(cells) + f" | {1000 * sum(r.latencies) / calls:.1f} |")
     jacobi = format_jacobi_report(results)
-    return "\n".join(lines + (["", jacobi] if jacobi else []))
+    lines += ["", jacobi] if jacobi else []
+    positions = len(results[0].accepted_by_position)
+    lines += [
+        "",
+        "Accepted drafts by token position of a call (share of calls; the rest are the target's own tokens):",
+        "",
+        "| method | " + " | ".join(f"t{p}" for p in range(positions)) + " |",
+        "|---|" + "---:|" * positions,
+    ]
+    for r in results:
+        cells = [f"{n / len(r.latencies):.0%}" for n in r.accepted_by_position]
+        lines.append(f"| {r.name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def episode_methods(

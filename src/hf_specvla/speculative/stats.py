@@ -62,6 +62,17 @@ class SpeculationStats:
     def num_target_forwards(self) -> int:
         return len(self.accept_lengths)
 
+    def accepted_positions(self, tokens: int | None = None) -> list[bool]:
+        """For one call (or one batch row), which emitted tokens were drafted tokens the target accepted, in order:
+        each forward emits its accepted drafts and then one token of its own, so ``accept_lengths`` ``[3, 1, 4]`` gives
+        accepted, accepted, own, own, accepted, accepted, accepted, own. ``tokens``: cut or pad (with own) to this
+        many (default: every new token)."""
+        drafted: list[bool] = []
+        for length in self.accept_lengths:
+            drafted += [True] * (length - 1) + [False]
+        tokens = len(drafted) if tokens is None else tokens
+        return drafted[:tokens] + [False] * (tokens - len(drafted))
+
     @property
     def num_new_tokens(self) -> int:
         return sum(self.accept_lengths)

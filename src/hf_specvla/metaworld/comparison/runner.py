@@ -68,16 +68,6 @@ def _greedy_action_ids(policy: VLAPolicy, obs: dict) -> list[int]:
     return output.sequences[0, -policy.config.action_tokens :].tolist()
 
 
-def drafted_positions(accept_lengths: list[int], tokens: int) -> list[bool]:
-    """Which of a call's ``tokens`` emitted tokens were drafted tokens the target accepted: each target forward emits
-    its accepted drafts and then one token of its own (``accept_lengths``: tokens per forward, in order), e.g.
-    ``[3, 1, 4]`` -> accepted, accepted, own, own, accepted, accepted, accepted, own."""
-    drafted: list[bool] = []
-    for length in accept_lengths:
-        drafted += [True] * (length - 1) + [False]
-    return drafted[:tokens] + [False] * (tokens - len(drafted))
-
-
 def check_method_rule(method: DecodingMethod, policy: VLAPolicy) -> None:
     """Builds ``method``'s acceptance rule for ``policy``'s actions, so that a tolerance with the wrong number of
     dimensions (``r=4/4/0`` for 4-dimensional actions) is refused before anything runs.
@@ -131,7 +121,7 @@ def run_method_episode(
         else:
             target_forwards, new_tokens = target_forwards + stats.num_target_forwards, new_tokens + stats.num_new_tokens
             accept_counts.update(stats.accept_lengths)
-            for position, drafted in enumerate(drafted_positions(stats.accept_lengths, action_dim)):
+            for position, drafted in enumerate(stats.accepted_positions(action_dim)):
                 accepted_by_position[position] += drafted
         if not method.lossless:  # off the clock: how far is this from greedy's action on the same observation?
             reference = _greedy_action_ids(policy, obs)
