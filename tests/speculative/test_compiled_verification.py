@@ -433,3 +433,34 @@ def test_compact_rows_moves_each_rows_valid_entries_to_the_front_in_order():
             assert torch.equal(cache.layers[0].keys[b, :, :count], keys[b][:, valid[b]])
             assert torch.equal(cache.layers[0].values[b, :, :count], values[b][:, valid[b]])
     assert static.layers[0].keys.data_ptr() == address
+
+
+def test_a_thread_that_did_not_compile_the_graphs_decodes_compiled_greedy_and_speculation():
+    """dynamo's recompile limit is per thread: graphs compiled in one thread (more than the default limit of 8 on the
+    model's forward) must not make another thread's next compile fail (a server's worker decoding what its main
+    thread warmed up): compiled greedy and compiled verification there equal greedy."""
+    import threading
+
+    model = _model("llama")
+    compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
+    input_ids = torch.randint(6, 64, (1, 6), generator=torch.Generator().manual_seed(3))
+    expected = greedy(model, input_ids)
+    for kwargs in calls_for(model, input_ids, expected)[:6]:  # the warm-up of test_no_recompilation_after_warm_up
+        greedy(model, input_ids, **compiled, **kwargs)
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] > 8
+    longer = torch.randint(6, 64, (1, 9), generator=torch.Generator().manual_seed(4))  # a new prompt length
+    results, errors = {}, []
+
+    def worker():
+        try:
+            results["greedy"] = greedy(model, longer, **compiled)  # transformers' compiled greedy: a new graph
+            results["jacobi"] = greedy(model, longer, assistant_model=JacobiDrafter(), **compiled)
+        except Exception as error:  # noqa: BLE001 (asserted below)
+            errors.append(error)
+
+    thread = threading.Thread(target=worker)
+    thread.start()
+    thread.join()
+    assert errors == []
+    expected_longer = greedy(model, longer)
+    assert torch.equal(results["greedy"], expected_longer) and torch.equal(results["jacobi"], expected_longer)

@@ -98,7 +98,7 @@ def compiled_call(model: PreTrainedModel, generation_config: GenerationConfig, b
     """The model's compiled ``__call__`` (transformers' ``get_compiled_call``, shared with its compiled greedy
     decoding), with dynamo's recompile limit raised to hold one graph per bucket (past the limit dynamo would
     silently run eagerly)."""
-    allow_graphs(2 * len(buckets) + _GRAPHS_BESIDE_OURS)  # each width with and without hidden states
+    allow_graphs(max(2 * len(buckets), _graphs_compiled) + _GRAPHS_BESIDE_OURS)  # each width with / without hidden
     return model.get_compiled_call(generation_config.compile_config)
 
 
@@ -253,8 +253,17 @@ def _count_graphs(count: int) -> None:
     allow_graphs(_graphs_compiled + _GRAPHS_BESIDE_OURS)
 
 
+def allow_graphs_compiled_so_far() -> None:
+    """Raises this thread's recompile limit to hold every graph compiled up front in the process, and transformers'
+    own beside them: dynamo's settings are per thread (a ``ContextVar``), so a model compiled in one thread and
+    decoding in another (a server's worker) would meet the default limit there, with more graphs than it allows on
+    the model's forward, and fail at its next compile (``FailOnRecompileLimitHit`` under ``fullgraph=True``)."""
+    allow_graphs(_graphs_compiled + _GRAPHS_BESIDE_OURS)
+
+
 def allow_graphs(count: int) -> None:
-    """Raises dynamo's per-function recompile limit to ``count`` graphs when it is lower (never lowers it)."""
+    """Raises dynamo's per-function recompile limit to ``count`` graphs when it is lower (never lowers it). The
+    limit is per thread: this raises the calling thread's."""
     config = torch._dynamo.config
     name = "recompile_limit" if hasattr(config, "recompile_limit") else "cache_size_limit"
     if getattr(config, name) < count:
