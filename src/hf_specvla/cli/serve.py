@@ -134,7 +134,7 @@ def _run_local(args, parser, config, method) -> int:
     draft_head = load_draft_head_for(policy, args.draft_head, parser) if method.uses_draft_head else None
     service = PolicyService(policy, config, draft_head)
     server = PolicyServer(service, args.host, args.port, args.api_key, args.max_request_bytes, sock=sock)
-    logger.info("compiling and calibrating buckets %s (a compiled method takes about a minute per bucket on a CPU)",
+    logger.info("compiling and calibrating buckets %s (a compiled method: ~30 s per bucket on 2 CPU cores)",
                 list(config.buckets))  # fmt: skip
     service.warm_up()
     print(f"serving {args.policy} ({service.method.name}) on {server.url}: POST /act, GET /info, GET /stats",
