@@ -34,8 +34,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[2]
 KINDS = ("greedy", "always", "adaptive")
 TASKS = ["reach-v3", "push-v3", "drawer-open-v3", "button-press-topdown-v3", "window-open-v3", "door-open-v3"]
@@ -176,16 +174,16 @@ def drive(url: str, robots: int, episodes: int, args, folder: Path) -> dict:
 
 def _figures(summary: dict, records: list[dict]) -> dict:
     """A run's row: throughput, latency percentiles and where a request's time went."""
+    from hf_specvla.metaworld.fleet import percentiles
+
     latency = [x for r in records for x in r["latencies_ms"]]
     server = [x for r in records for x in r["server_ms"]]
     queue = [x for r in records for x in r["queue_ms"]]
     decode = [s - q for s, q in zip(server, queue)]  # the batch's call (and building the reply)
     return {
         "actions_per_second": summary["actions_per_second"],
-        "latency_p50_ms": float(np.percentile(latency, 50)),
-        "latency_p95_ms": float(np.percentile(latency, 95)),
-        "decode_p50_ms": float(np.percentile(decode, 50)),
-        "decode_p95_ms": float(np.percentile(decode, 95)),
+        **{f"latency_{k}_ms": v for k, v in percentiles(latency, (50, 95)).items()},
+        **{f"decode_{k}_ms": v for k, v in percentiles(decode, (50, 95)).items()},
         "queue_mean_ms": statistics.mean(queue),
         "decode_mean_ms": statistics.mean(decode),
         "rest_mean_ms": statistics.mean(lat - s for lat, s in zip(latency, server)),

@@ -306,7 +306,7 @@ def run_episode_benchmark(
     At every step the methods run in a fresh random order on the same observation, so machine-load drift hits
     them alike; bin distances compare each action token with the baseline's at the same step.
     """
-    results = {m.name: EpisodeMethodResult(m.name) for m in methods}
+    results = {m.name: EpisodeMethodResult(m.name, accepted_by_position=[0] * action_dim) for m in methods}
     for method in methods:  # warm-up: allocator, lazy init, both code paths, every prompt length's compiled graphs
         for index, episode in enumerate(episodes):
             history: list[list[int]] = []
@@ -337,8 +337,7 @@ def run_episode_benchmark(
                         result.draft_forwards.append(spec.num_draft_forwards if spec else 0)
                         result.new_tokens.append(spec.num_new_tokens if spec else action_dim)
                         taken = spec.accepted_positions(action_dim) if spec else [False] * action_dim
-                        result.accepted_by_position = [n + t for n, t in zip(result.accepted_by_position
-                                                                            or [0] * action_dim, taken)]  # fmt: skip
+                        result.accepted_by_position = [n + t for n, t in zip(result.accepted_by_position, taken)]
                         if spec is not None:
                             result.guesses.add_guesses(spec)
                             result.target_seconds += spec.target_seconds

@@ -91,8 +91,9 @@ def serve_config(args, parser):
 
     with usage_errors(parser, errors=(ValueError, TypeError)):
         speculate = None if args.speculate_buckets is None else tuple(args.speculate_buckets)
-        return ServeConfig(args.method, tuple(args.buckets), args.max_wait_ms, args.max_queue, args.calibration_calls,
-                           speculate, args.explore_every)  # fmt: skip
+        return ServeConfig(method=args.method, buckets=tuple(args.buckets), max_wait_ms=args.max_wait_ms,
+                           max_queue=args.max_queue, calibration_calls=args.calibration_calls,
+                           speculate_buckets=speculate, explore_every=args.explore_every)  # fmt: skip
 
 
 def run(args, parser) -> int:

@@ -62,12 +62,13 @@ class PolicyRoutes:
     def __init__(self, backend: Backend, api_key: str | None = None,
                  max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES):  # fmt: skip
         self.backend, self.api_key, self.max_request_bytes = backend, api_key, max_request_bytes
+        self.routes = {("POST", "/act"): self.act, ("GET", "/info"): self.info, ("GET", "/stats"): self.stats,
+                       ("GET", "/health"): self.health}  # fmt: skip
 
     async def dispatch(self, request: Request) -> Response:
         """Any request -> its response (Ray Serve replicas call this from ``__call__``)."""
         path, method = request.url.path.rstrip("/") or "/", request.method
-        routes = {("POST", "/act"): self.act, ("GET", "/info"): self.info, ("GET", "/stats"): self.stats,
-                  ("GET", "/health"): self.health}  # fmt: skip
+        routes = self.routes
         handler = routes.get((method, path))
         if handler is None:
             known = ", ".join(f"{m} {p}" for m, p in routes)

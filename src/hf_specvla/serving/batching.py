@@ -94,29 +94,33 @@ class Batcher:
                 first = self._queue.get(timeout=0.1)
             except queue.Empty:
                 continue
-            batch = [first]
+            batch = [self._seen(first)]
             deadline = time.perf_counter() + self.max_wait_s
-            while len(batch) < min(self.max_batch_size, self._active_robots(batch)):
+            while len(batch) < min(self.max_batch_size, self._active_robots(len(batch))):
                 try:
                     remaining = deadline - time.perf_counter()
-                    batch.append(self._queue.get(timeout=remaining) if remaining > 0 else self._queue.get_nowait())
+                    pending = self._queue.get(timeout=remaining) if remaining > 0 else self._queue.get_nowait()
                 except queue.Empty:
                     break
+                batch.append(self._seen(pending))
             live = [p for p in batch if p.future.set_running_or_notify_cancel()]
             self.dropped += len(batch) - len(live)
             if live:
                 self._decode(live)
 
-    def _active_robots(self, batch: list[_Pending]) -> int:
+    def _seen(self, pending: _Pending) -> _Pending:
+        """Notes the request's session as active (at its arrival)."""
+        self._last_seen[pending.request.session] = pending.arrived
+        return pending
+
+    def _active_robots(self, in_hand: int) -> int:
         """How many requests a batch may still expect: the sessions active in the last ``ACTIVE_WINDOW_S`` (any
-        number while anonymous requests arrive), at least those in hand."""
+        number while anonymous requests arrive), at least the ``in_hand`` ones."""
         now = time.perf_counter()
-        for pending in batch:
-            self._last_seen[pending.request.session] = pending.arrived
         recent = [s for s, seen in self._last_seen.items() if now - seen < ACTIVE_WINDOW_S]
         if len(self._last_seen) > 4 * len(recent) + 64:  # forget robots long gone
             self._last_seen = {s: self._last_seen[s] for s in recent}
-        return self.max_batch_size if None in recent else max(len(recent), len(batch))
+        return self.max_batch_size if None in recent else max(len(recent), in_hand)
 
     def _decode(self, batch: list[_Pending]) -> None:
         started = time.perf_counter()
