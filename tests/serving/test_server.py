@@ -225,9 +225,11 @@ def test_an_oversize_body_is_refused_before_it_is_read(policy):
 
 
 def _slowed(service: PolicyService, seconds: float) -> PolicyService:
-    act = service.act
+    """``service`` whose every call sleeps ``seconds`` first; ``service.decoding`` is set once a call started."""
+    act, service.decoding = service.act, threading.Event()
 
     def slow_act(requests, arrived=None):
+        service.decoding.set()
         time.sleep(seconds)
         return act(requests, arrived)
 
@@ -235,23 +237,37 @@ def _slowed(service: PolicyService, seconds: float) -> PolicyService:
     return service
 
 
+def _wait_until(condition, what: str, timeout_s: float = 30.0) -> None:
+    deadline = time.perf_counter() + timeout_s
+    while not condition():
+        assert time.perf_counter() < deadline, f"timed out waiting until {what}"
+        time.sleep(0.01)
+
+
 def test_overload_gets_503_with_retry_after_and_the_client_retries(policy):
+    """One request is being decoded, so of five more the queue (max_queue=1) takes one and refuses four."""
     observation = _observation(policy, 6)
     expected = _greedy(policy, observation)
-    service = _slowed(_service(policy, max_queue=1, buckets=(1,), max_wait_ms=0.0), 0.4)
+    service = _slowed(_service(policy, max_queue=1, buckets=(1,), max_wait_ms=0.0), 1.0)
     results: list = []
+
+    def post():
+        results.append(_post(server.url + "/act", dumps(observation)))
+
     with PolicyServer(service, port=0) as server:
-        threads = [threading.Thread(target=lambda: results.append(_post(server.url + "/act", dumps(observation))))
-                   for _ in range(6)]  # fmt: skip
+        first = threading.Thread(target=post)
+        first.start()
+        assert service.decoding.wait(30), "the first request never reached the decoder"
+        threads = [threading.Thread(target=post) for _ in range(5)]
         for thread in threads:
             thread.start()
-        for thread in threads:
+        for thread in [first, *threads]:
             thread.join()
         client = PolicyClient(server.url, backoff_s=0.1)
         retried = [client.act(**observation) for _ in range(2)]
     refused = [r for r in results if r[0] == 503]
-    assert refused and all(int(r[2]["retry-after"]) >= 1 for r in refused)
-    assert sum(r[0] == 200 for r in results) >= 2
+    assert len(refused) == 4 and all(int(r[2]["retry-after"]) >= 1 for r in refused)
+    assert sum(r[0] == 200 for r in results) == 2
     for reply in retried:
         np.testing.assert_array_equal(reply.action, expected)
 
@@ -264,20 +280,20 @@ def test_a_robot_that_disconnects_does_not_stall_the_others(policy):
     with PolicyServer(service, port=0) as server:
         a = threading.Thread(target=_post, args=(server.url + "/act", dumps(observation)))
         a.start()
-        time.sleep(0.2)
+        assert service.decoding.wait(30), "robot A's request never reached the decoder"
         body = dumps(observation)
         with socket.create_connection(("127.0.0.1", server.port)) as b:
             b.sendall(b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
                       + f"Content-Length: {len(body)}\r\n\r\n".encode() + body)  # fmt: skip
-            time.sleep(0.1)
+            _wait_until(lambda: server.backend.batcher.waiting == 1, "robot B's request is queued")
         started = time.perf_counter()
         code, _, _ = _post(server.url + "/act", dumps(observation))  # robot C
         waited = time.perf_counter() - started
         a.join()
         stats = json.loads(urllib.request.urlopen(server.url + "/stats").read())
     assert code == 200
-    assert stats["dropped"] == 1, stats
-    assert waited < 1.5, f"robot C waited {waited:.2f} s: B's abandoned request was decoded in its way"
+    assert stats["dropped"] == 1 and stats["batches"] == 2, stats  # A and C decoded, B's request never
+    assert waited < 3.0, f"robot C waited {waited:.2f} s: B's abandoned request was decoded in its way"
 
 
 def test_sigterm_drains_the_requests_in_flight(policy, tmp_path):
@@ -314,7 +330,8 @@ print("exited cleanly", flush=True)
                    for _ in range(3)]  # fmt: skip
         for thread in threads:
             thread.start()
-        time.sleep(0.3)  # all three arrived; the first is being decoded, two wait
+        _wait_until(lambda: json.loads(urllib.request.urlopen(url + "/stats").read())["waiting"] == 2,
+                    "all three arrived: the first is being decoded, two wait")  # fmt: skip
         process.send_signal(signal.SIGTERM)
         for thread in threads:
             thread.join()
