@@ -3,7 +3,7 @@ optionally demonstration frames), validated by the engine, saved with a model ca
 
 from __future__ import annotations
 
-from ..training.configuration import DraftDataConfig, PolicyDraftTrainingConfig
+from ..training.configuration import HEAD_VERSIONS, DraftDataConfig, PolicyDraftTrainingConfig
 from .common import (
     NON_NEGATIVE,
     POSITIVE,
@@ -21,6 +21,9 @@ EXAMPLES = """
     hf-specvla train-draft --policy policies/mt10_vla --tasks MT10 --max-steps 3000 --output-dir runs/mt10_draft
     hf-specvla train-draft --policy policies/mt10_vla --tasks reach --rollout-episodes 2 --max-steps 20 \\
         --output-dir runs/reach_draft_smoke
+    # Head v2: a low, a middle and the top layer of the policy, its previous action, trained on its own drafts
+    hf-specvla train-draft --policy policies/mt10_vla --tasks reach --rollout-episodes 2 --max-steps 20 \\
+        --head v2 --output-dir runs/reach_draft_v2_smoke
 """
 
 
@@ -45,6 +48,12 @@ def add_arguments(parser) -> None:
                         help="held-out frames the engine validates on (evenly spread)")  # fmt: skip
     parser.add_argument("--num-draft-tokens", type=POSITIVE, default=None,
                         help="the head's default chain length k (default: tokens per call - 1)")  # fmt: skip
+    parser.add_argument("--head", choices=HEAD_VERSIONS, default=HEAD_VERSIONS[0],
+                        help="v1: the policy's last hidden state; v2: a low, a middle and the top layer and the "
+                             "robot's previous action (EAGLE-3 + the last action)")  # fmt: skip
+    parser.add_argument("--unroll-steps", type=POSITIVE, default=None,
+                        help="draft steps trained per example on the head's own features (training-time test; "
+                             "default: 1 for v1, the chain length for v2)")  # fmt: skip
     defaults = PolicyDraftTrainingConfig
     parser.add_argument("--max-steps", type=POSITIVE, default=defaults.max_steps, help="optimizer steps")
     parser.add_argument("--batch-size", type=POSITIVE, default=defaults.batch_size, help="sequences per step")
@@ -83,9 +92,13 @@ def run(args, parser) -> int:
         for root in args.data or []:
             dataset_info(root)
     policy = load_policy(args.policy, parser)
+    if args.unroll_steps is not None:
+        training_config.unroll_steps = args.unroll_steps
+    elif args.head == "v2":  # as deep as it drafts
+        training_config.unroll_steps = args.num_draft_tokens or policy.config.action_tokens - 1
     command = shlex.join(["hf-specvla", *args.argv])
     with usage_errors(parser, errors=(FileExistsError,)):
         head = train_policy_draft_head(policy, training_config, data_config, args.data or [], args.num_draft_tokens,
-                                       command=command)  # fmt: skip
+                                       command=command, head_version=args.head)  # fmt: skip
     print(f"draft head saved to {args.output_dir} ({head.num_parameters():,} parameters); see its README.md")
     return 0

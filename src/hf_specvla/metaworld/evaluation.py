@@ -105,8 +105,9 @@ def record_observations(
     policy: VLAPolicy, tasks: str | list[str], seeds: list[int], max_steps: int, env_config: EnvConfig | None = None
 ) -> list[list[dict]]:
     """Greedy rollouts of ``policy``, one per task and seed, cut at ``max_steps`` calls: the observations it
-    decided on (``image``, ``instruction``, ``state``; a chunked policy decides once per chunk), one list per
-    episode. What the episode benchmark replays and draft heads train on."""
+    decided on (``image``, ``instruction``, ``state``; a chunked policy decides once per chunk) and the action it had
+    taken before each (``previous_action``: its token ids, None at the first step), one list per episode. What the
+    episode benchmark replays and draft heads train on."""
     env_config = env_config or EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)
     env_config.check_renders_for(policy.config)
     episodes = []
@@ -123,7 +124,8 @@ def _decided_observations(policy: VLAPolicy, env: MetaWorldEnv, seed: int, max_s
 
     def decide(rows: list[int], current: list[dict]) -> list:
         obs = current[0]
-        observations.append({k: obs[k] for k in ("image", "instruction", "state")})
+        previous = policy.previous_action_ids[-1] if policy.previous_action_ids else None
+        observations.append({**{k: obs[k] for k in ("image", "instruction", "state")}, "previous_action": previous})
         return [policy.action_steps(policy.predict_action(obs["image"], obs["instruction"], obs["state"]))]
 
     run_rollout([env], [seed], decide, max_decisions=max_steps)

@@ -40,6 +40,7 @@ from ..speculative import (
     enable_speculation,
     named_weight_errors,
     with_action_priors,
+    with_previous_actions,
 )
 from .configuration_vla import POLICY_CONFIG_NAME, VLAPolicyConfig
 from .processing_vla import VLAProcessor
@@ -259,8 +260,8 @@ class VLAPolicy:
         if num_draft_tokens is not None and assistant is None:
             raise ValueError("num_draft_tokens needs assistant_model=<DraftHead>")
         drafter = as_drafter(assistant, num_draft_tokens)
-        if not action_prior:
-            return drafter
+        if not action_prior:  # a draft head that reads the previous action still gets it
+            return with_previous_actions(drafter, histories)
         return with_action_priors(drafter, histories, self.action_layout, self.config.chunk_length)
 
     def weights_fingerprint(self) -> str:

@@ -44,6 +44,7 @@ from .drafters import (
     jacobi_tail,
     with_action_prior,
     with_action_priors,
+    with_previous_actions,
 )
 from .drafters.draft_head import embed_tokens
 from .generation import SPECULATION_KWARGS, SpeculativeGenerationMixin, disable_speculation, enable_speculation
@@ -76,6 +77,7 @@ __all__ = [
     "softcap_logits",
     "with_action_prior",
     "with_action_priors",
+    "with_previous_actions",
     "jacobi_tail",
     "AcceptanceRule",
     "AcceptedPath",

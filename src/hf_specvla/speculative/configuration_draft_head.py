@@ -29,6 +29,13 @@ class DraftHeadConfig(PretrainedConfig):
         final_logit_softcapping: the target's cap on its output logits (Gemma-2: ``logits = cap * tanh(logits /
             cap)``), applied to the head's logits too, so that drafting and training see the target's distribution;
             None (most models): no cap.
+        feature_layers: which of the target's hidden states the head reads (indices into the ``hidden_states`` a
+            forward with ``output_hidden_states=True`` returns: 0 the embeddings, -1 the last, post-norm), fused by a
+            linear layer into one H-wide feature (EAGLE-3 reads a low, a middle and a top layer). None: the last
+            hidden state alone (EAGLE-1/2; every head saved before head v2).
+        previous_action_input: the head also reads the robot's previous action: the input that predicts the
+            generated token k carries the previous action's bin at the same dimension (``k mod action_dim``), or a
+            learned "no previous action" vector (prompt positions, an episode's first step). False: heads before v2.
         target_model_type, target_name_or_path: what the head was built for (informational + compatibility check).
         target_fingerprint: content fingerprint of the target weights the head was distilled from (set by
             ``hf-specvla train-draft``); a head whose fingerprint differs from a target's was trained for another
@@ -58,6 +65,8 @@ class DraftHeadConfig(PretrainedConfig):
         num_draft_tokens: int = 6,
         draft_action_tokens_only: bool = True,
         final_logit_softcapping: float | None = None,
+        feature_layers: list[int] | None = None,
+        previous_action_input: bool = False,
         target_model_type: str | None = None,
         target_name_or_path: str | None = None,
         target_fingerprint: str | None = None,
@@ -82,6 +91,8 @@ class DraftHeadConfig(PretrainedConfig):
         self.num_draft_tokens = num_draft_tokens
         self.draft_action_tokens_only = draft_action_tokens_only
         self.final_logit_softcapping = final_logit_softcapping
+        self.feature_layers = None if feature_layers is None else list(feature_layers)
+        self.previous_action_input = previous_action_input
         self.target_model_type = target_model_type
         self.target_name_or_path = target_name_or_path
         self.target_fingerprint = target_fingerprint
@@ -105,8 +116,27 @@ class DraftHeadConfig(PretrainedConfig):
                 f"action_vocab_size={self.action_vocab_size} exceeds vocab_size={self.vocab_size}: the action tokens "
                 f"must be ids the target's lm_head can produce"
             )
+        layers = self.feature_layers
+        if layers is not None and (
+            not layers
+            or any(isinstance(i, bool) or not isinstance(i, int) for i in layers)
+            or len(set(layers)) != len(layers)
+        ):
+            raise ValueError(
+                f"DraftHeadConfig.feature_layers must be None (the last hidden state) or distinct ints indexing the "
+                f"target's hidden_states (e.g. [2, 8, -1]), got {layers!r}"
+            )
+        if not isinstance(self.previous_action_input, bool):
+            raise ValueError(
+                f"DraftHeadConfig.previous_action_input must be True or False, got {self.previous_action_input!r}"
+            )
         # Delegates the action-layout checks (n_bins >= 2, room for text ids) to the tokenizer.
         self.action_tokenizer()
+
+    @property
+    def hidden_state_layers(self) -> tuple[int, ...]:
+        """The target hidden states the head reads (see ``feature_layers``), in order: ``(-1,)`` before head v2."""
+        return (-1,) if self.feature_layers is None else tuple(self.feature_layers)
 
     def action_tokenizer(self) -> ActionTokenizer:
         """The [`ActionTokenizer`] this head was built for."""

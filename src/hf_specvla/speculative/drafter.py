@@ -95,7 +95,8 @@ class Commit:
     Attributes:
         next_token_ids: ``[1, K]`` the token that follows each kept input (the last one is the new bonus token).
         positions: ``[1, K]`` position ids of the kept inputs.
-        target_hidden: ``[1, K, H]`` the target's last hidden state at each kept input, or None when no drafter
+        target_hidden: ``[1, K, n H]`` the target's hidden states at each kept input (the n layers of
+            ``Drafter.hidden_state_layers``, concatenated; the last one alone by default), or None when no drafter
             asked for hidden states (``Drafter.needs_hidden_states``).
         cache_length: the row's tokens in the target cache so far (its prompt, padding included, and its emitted
             tokens but the last): an index into the row's sequence. A drafter's own cache of the row holds
@@ -141,17 +142,25 @@ class Drafter:
     Attributes:
         name: how statistics name the drafter's accepted tokens.
         needs_hidden_states: whether [`Commit`] must carry the target's hidden states (draft heads do).
+        hidden_state_layers: which of them (indices into the target's ``hidden_states``; -1 the last, post-norm).
         action_layout: the action layout the drafter knows of (a draft head's config), or None.
         batch_size: the batch size the drafter is made for ([`PerRowDrafter`]), or None for any.
     """
 
     name: str = "drafter"
     needs_hidden_states: bool = False
+    hidden_state_layers: tuple[int, ...] = (-1,)
     action_layout: ActionLayout | None = None
     batch_size: int | None = None
 
     def start(self, context: DraftContext) -> DraftSession:
         raise NotImplementedError
+
+    def with_previous_action(self, previous_action: Sequence[int] | None) -> Drafter:
+        """This drafter for a robot whose previous action was ``previous_action`` (its action token ids, or None at
+        an episode's first step): a drafter that reads it (a draft head with ``previous_action_input``) returns a
+        copy that does; every other drafter returns ``self``."""
+        return self
 
     def max_tree_nodes(self, max_depth: int) -> int | None:
         """The most nodes a session proposes in one round after the prefill when no path may be deeper than
@@ -267,11 +276,16 @@ class ComposedDrafter(Drafter):
         self.drafters = flat
         self.name = "+".join(d.name for d in flat)
         self.needs_hidden_states = any(d.needs_hidden_states for d in flat)
+        self.hidden_state_layers = _common_hidden_state_layers(flat)
         self.action_layout = next((d.action_layout for d in flat if d.action_layout is not None), None)
         self.batch_size = _common_batch_size(flat)
 
     def start(self, context: DraftContext) -> DraftSession:
         return _ComposedSession([d.start(context) for d in self.drafters])
+
+    def with_previous_action(self, previous_action: Sequence[int] | None) -> Drafter:
+        drafters = [d.with_previous_action(previous_action) for d in self.drafters]
+        return self if all(a is b for a, b in zip(drafters, self.drafters)) else ComposedDrafter(drafters)
 
     def max_tree_nodes(self, max_depth: int) -> int | None:
         bounds = [d.max_tree_nodes(max_depth) for d in self.drafters]
@@ -300,6 +314,7 @@ class PerRowDrafter(Drafter):
         self.batch_size = len(drafters)
         self.name = "+".join(dict.fromkeys(d.name for d in drafters))
         self.needs_hidden_states = any(d.needs_hidden_states for d in drafters)
+        self.hidden_state_layers = _common_hidden_state_layers(drafters)
         self.action_layout = next((d.action_layout for d in drafters if d.action_layout is not None), None)
 
     def start(self, context: DraftContext) -> DraftSession:
@@ -308,6 +323,20 @@ class PerRowDrafter(Drafter):
     def max_tree_nodes(self, max_depth: int) -> int | None:
         bounds = [d.max_tree_nodes(max_depth) for d in self.drafters]
         return None if None in bounds else max(bounds)
+
+
+def _common_hidden_state_layers(drafters: Sequence[Drafter]) -> tuple[int, ...]:
+    """The target hidden states the drafters that read them read (one set: each Commit carries one)."""
+    layers = {tuple(d.hidden_state_layers) for d in drafters if d.needs_hidden_states}
+    if len(layers) > 1:
+        raise ValueError(f"these drafters read different target hidden states {sorted(layers)} (draft heads of "
+                         f"different feature_layers); one call serves one set")  # fmt: skip
+    return layers.pop() if layers else (-1,)
+
+
+def hidden_state_layers(drafter: Drafter) -> tuple[int, ...] | None:
+    """The target hidden states ``drafter`` reads (its layers), or None when it reads none."""
+    return tuple(drafter.hidden_state_layers) if drafter.needs_hidden_states else None
 
 
 def _common_batch_size(drafters: Sequence[Drafter]) -> int | None:

@@ -81,6 +81,7 @@ from .drafter import (
     DraftRound,
     DraftSession,
     PerRowDrafter,
+    hidden_state_layers,
 )
 from .drafters.draft_head import DraftHeadDrafter
 from .modeling_draft_head import DraftHead
@@ -583,7 +584,7 @@ class RoundPlan:
     max_length: int  # generate's max_length: no path drafts past it
     rule: AcceptanceRule
     layout: ActionLayout | None
-    output_hidden: bool  # the drafters read the target's hidden states
+    output_hidden: tuple[int, ...] | None  # the target's hidden states the drafters read (their layers), or None
     window: int | None  # the target cache's smallest sliding window
     capacity: int | None  # a static cache's slots: trees fit in the free ones
     compiled: Callable | None  # the compiled model call for rounds after the prefill, or None (eager)
@@ -787,7 +788,7 @@ def _compile_prefill(model, plan: RoundPlan, key: tuple, model_inputs: dict, pro
 
 
 def _compiled_prefill_key(
-    model, generation_config, capacity: int, output_hidden: bool, prompt_length: int, batch_size: int
+    model, generation_config, capacity: int, output_hidden: tuple[int, ...] | None, prompt_length: int, batch_size: int
 ):
     """What a compiled prefill graph depends on (the compile settings, the cache's slots, whether hidden states are
     returned, the batch size), or None when this call's prefill stays eager: a prompt of one token (a size-1
@@ -934,7 +935,7 @@ def speculative_generate(
         key_valid=None if prompt_padding is None else prompt_padding.bool(),
         target_cache=cache,
     )
-    capacity, output_hidden = static_capacity(cache), drafter.needs_hidden_states
+    capacity, output_hidden = static_capacity(cache), hidden_state_layers(drafter)
     # A prefix-LM prompt (PaliGemma's token_type_ids: the prompt attends to itself both ways at the prefill) needs
     # the model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies a chain.
     prefix_attention = model_inputs.get("token_type_ids") is not None

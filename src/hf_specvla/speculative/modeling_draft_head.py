@@ -8,6 +8,16 @@ Architecture (EAGLE, Li et al. 2024; Spec-VLA, arXiv 2507.22424, section 3):
 where ``h[p]`` is the target's last hidden state (after its final norm) at position p, ``embed`` and ``lm_head``
 are the *target's* modules (reused, frozen, never stored in the draft checkpoint), ``fuse`` is Linear(2H -> H).
 Deviation from EAGLE-1: a final RMSNorm, because the target's last hidden state is itself post-norm.
+
+Head v2 (config options, each off in every head saved before it):
+
+* ``feature_layers`` (EAGLE-3, Li et al. 2025): ``h[p]`` is several of the target's hidden states (a low, a middle
+  and the top layer), concatenated and fused by ``feature_fuse`` (Linear(nH -> H)); they come from the same target
+  forward the verification runs. At later draft steps the head's own H-wide output stands in for them.
+* ``previous_action_input``: ``fuse`` reads a third input, ``previous_embedding[b]`` (Linear(3H -> H)), where b is
+  the robot's previous action's bin at the dimension of the token being predicted, or a learned "none" row (a
+  prompt position, or no previous action): the head drafts "the last action, corrected" ([`slot_bins`]).
+* trained with training-time test (``training.draft_head``): later draft steps see the head's own outputs.
 """
 
 from __future__ import annotations
@@ -142,7 +152,14 @@ class DraftHead(PreTrainedModel):
         super().__init__(config)
         hidden = config.hidden_size
         layer_config = config.to_llama_config()
-        self.fuse = nn.Linear(2 * hidden, hidden, bias=True)
+        num_features = len(config.hidden_state_layers)
+        #: fuses the target's hidden states of several layers into one (EAGLE-3); None: the last one alone
+        self.feature_fuse = nn.Linear(num_features * hidden, hidden, bias=False) if num_features > 1 else None
+        #: the previous action's bins (+ a last "none" row); None: a head that does not read it
+        self.previous_embedding = (
+            nn.Embedding(config.n_action_bins + 1, hidden) if config.previous_action_input else None
+        )
+        self.fuse = nn.Linear((3 if config.previous_action_input else 2) * hidden, hidden, bias=True)
         self.layer = LlamaDecoderLayer(layer_config, layer_idx=0)
         self.norm = LlamaRMSNorm(hidden, eps=config.rms_norm_eps)
         self.rotary_emb = LlamaRotaryEmbedding(layer_config)
@@ -226,6 +243,15 @@ class DraftHead(PreTrainedModel):
         )
         settings.update(config_overrides)
         head = cls(DraftHeadConfig(**settings))
+        with torch.no_grad():
+            if head.feature_fuse is not None:  # starts as a head of the last listed layer alone
+                hidden = head.config.hidden_size
+                head.feature_fuse.weight.zero_()
+                head.feature_fuse.weight[:, -hidden:] = torch.eye(hidden)
+            if head.previous_embedding is not None:  # bin b starts as the lm_head row that scores it
+                bins = torch.arange(action_tokenizer.n_bins)
+                rows = lm_head.weight.detach().index_select(0, action_tokenizer.token_to_bin(bins).to(lm_head.weight.device))
+                head.previous_embedding.weight[:-1] = rows.to(head.previous_embedding.weight)
         return head.to(device=target.device, dtype=target.dtype)
 
     def target_handles(self, target: PreTrainedModel) -> TargetHandles:
@@ -286,6 +312,47 @@ class DraftHead(PreTrainedModel):
         candidate_ids = torch.tensor(extra + action_ids, device=lm_head.weight.device)
         return DraftScorer(lm_head, candidate_ids, self.config.final_logit_softcapping)
 
+    # ------------------------------------------------------------------ previous action
+    def no_previous_action(self, device: torch.device | None = None) -> torch.Tensor:
+        """``[D]`` int64: the "no previous action" bins (an episode's first step) for [`slot_bins`]."""
+        return torch.full((self.config.action_dim,), self.config.n_action_bins, dtype=torch.long, device=device)
+
+    def previous_action_bins(self, previous_action, device: torch.device | None = None) -> torch.Tensor:
+        """The robot's previous action (``action_dim`` action token ids, or None) -> ``[D]`` int64 bins for
+        [`slot_bins`] (None: [`no_previous_action`]).
+
+        Raises:
+            ValueError: not ``action_dim`` ids, or an id that is not an action token of the head's layout.
+        """
+        if previous_action is None:
+            return self.no_previous_action(device)
+        ids = torch.as_tensor(previous_action, dtype=torch.long, device=device).reshape(-1)
+        tokenizer = self.config.action_tokenizer()
+        if ids.shape[0] != self.config.action_dim or not bool(tokenizer.is_action_token(ids).all()):
+            raise ValueError(
+                f"this draft head reads the previous action as {self.config.action_dim} action token ids (ids "
+                f"{tokenizer.action_token_begin}..{tokenizer.vocab_size - 1}), got {ids.tolist()}"
+            )
+        return tokenizer.token_to_bin(ids)
+
+    def slot_bins(self, previous_bins: torch.Tensor, first_position, position_ids: torch.Tensor) -> torch.Tensor:
+        """Which previous-action bin each input reads: the input at position p predicts the token at ``p + 2``,
+        the generated token ``k = p + 2 - first_position``, which reads the previous action's bin at dimension
+        ``k mod action_dim``; ``k < 0`` (a prompt token) reads the "none" row.
+
+        Args:
+            previous_bins: ``[D]`` or ``[B, D]`` int64 (``n_action_bins`` = none; see [`previous_action_bins`]).
+            first_position: the position of the first generated token: an int, 0-dim or ``[B, 1]`` tensor.
+            position_ids: ``[B, q]`` the inputs' positions p.
+        Returns:
+            ``[B, q]`` int64 rows of ``previous_embedding``.
+        """
+        generated = position_ids + 2 - first_position  # [B, q]
+        dim = generated.clamp(min=0) % previous_bins.shape[-1]
+        rows = previous_bins.reshape(-1, previous_bins.shape[-1]).expand(position_ids.shape[0], -1)
+        bins = rows.gather(1, dim)
+        return torch.where(generated >= 0, bins, torch.full_like(bins, self.config.n_action_bins))
+
     # ------------------------------------------------------------------ forward
     def forward(
         self,
@@ -294,15 +361,19 @@ class DraftHead(PreTrainedModel):
         position_ids: torch.Tensor,
         attention_mask: torch.Tensor | None = None,
         cache: Cache | None = None,
+        previous_bins: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Predicts the target's next hidden states.
 
         Args:
             token_embeds: ``[B, q, H]`` target embeddings of tokens ``x[p+1]``.
-            target_hidden: ``[B, q, H]`` target (or previously drafted) hidden states ``h[p]``.
+            target_hidden: ``[B, q, n H]`` the target's hidden states ``h[p]`` of the ``feature_layers`` (n of them,
+                concatenated), or ``[B, q, H]`` features the head drafted itself.
             position_ids: ``[B, q]`` positions p.
             attention_mask: additive float ``[B, 1, q, past + q]``; default causal over the cache + new tokens.
             cache: the head's own KV cache (one layer), updated in place.
+            previous_bins: ``[B, q]`` int64, the previous action's bin each input reads ([`slot_bins`]); required
+                by a head with ``previous_action_input``, refused by one without.
 
         Returns:
             features ``[B, q, H]``, estimates of ``h[p+1]``.
@@ -310,7 +381,18 @@ class DraftHead(PreTrainedModel):
         past_len = 0 if cache is None else cache.get_seq_length()
         if attention_mask is None:
             attention_mask = causal_mask(token_embeds.shape[1], past_len, token_embeds.dtype, token_embeds.device)
-        fused = self.fuse(torch.cat([token_embeds, target_hidden], dim=-1))  # [B, q, H]
+        if self.feature_fuse is not None and target_hidden.shape[-1] != self.config.hidden_size:
+            target_hidden = self.feature_fuse(target_hidden)  # the target's layers -> [B, q, H]
+        inputs = [token_embeds, target_hidden]
+        if (previous_bins is None) != (self.previous_embedding is None):
+            raise ValueError(
+                "this draft head reads the robot's previous action: pass previous_bins (DraftHead.slot_bins)"
+                if previous_bins is None
+                else "this draft head does not read a previous action (config.previous_action_input is False)"
+            )
+        if previous_bins is not None:
+            inputs.append(self.previous_embedding(previous_bins))
+        fused = self.fuse(torch.cat(inputs, dim=-1))  # [B, q, H]
         position_embeddings = self.rotary_emb(fused, position_ids=position_ids)
         hidden = self.layer(
             fused,

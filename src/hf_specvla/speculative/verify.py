@@ -52,7 +52,7 @@ def verify_trees(
     pending_positions: torch.Tensor,
     trees: TreeBatch,
     key_valid: torch.Tensor | None,
-    output_hidden: bool,
+    output_hidden: tuple[int, ...] | None,
     sliding_window: int | None = None,
     position_offsets: torch.Tensor | None = None,
     key_length: int | None = None,
@@ -75,6 +75,8 @@ def verify_trees(
         position_offsets: ``[K, B, 1]`` for models with K-component position ids (Qwen2-VL: text, temporal,
             height, width): each component of a generated token is its text position + the offset; the prefill's
             pending tokens keep the model's prepared ``[K, B, P]`` positions (images have their own).
+        output_hidden: which of the model's ``hidden_states`` to return (indices; -1 the last), concatenated; None
+            or ``()``: none.
         key_length: the number of keys attention sees when it is not the cached and new entries (a static cache: its
             slots); an explicit mask hides the slots past the new entries.
         forward: the model call to run (a compiled one, see ``speculative.compiled``); None: ``model`` itself. A
@@ -84,7 +86,7 @@ def verify_trees(
             marked dynamic, see [`mark_length_dynamic`]); the logits kept are chosen by an index tensor (an int would
             be a constant of the graph). Needs ``P >= 2``.
     Returns:
-        [`TargetOutput`] with logits ``[B, 1 + N, V]`` and hidden states ``[B, P + N, H]``.
+        [`TargetOutput`] with logits ``[B, 1 + N, V]`` and hidden states ``[B, P + N, n H]`` (n layers).
     """
     num_pending, num_nodes = pending_ids.shape[1], trees.num_nodes
     inputs = dict(model_inputs)
@@ -121,8 +123,11 @@ def verify_trees(
     else:
         inputs["logits_to_keep"] = num_nodes + 1
     inputs["use_cache"] = True
-    outputs = (forward or model)(**inputs, output_hidden_states=output_hidden, return_dict=True)
-    logits, hidden = outputs.logits.float(), outputs.hidden_states[-1] if output_hidden else None
+    outputs = (forward or model)(**inputs, output_hidden_states=bool(output_hidden), return_dict=True)
+    logits, hidden = outputs.logits.float(), None
+    if output_hidden:  # [B, q, n H]: the asked layers' hidden states, concatenated
+        states = outputs.hidden_states
+        hidden = states[output_hidden[0]] if len(output_hidden) == 1 else torch.cat([states[i] for i in output_hidden], -1)
     if dynamic_length:
         logits = logits[:, 1:]
     if forward is not None:

@@ -13,6 +13,11 @@ from ..metaworld.env import resolve_tasks
 from ..metaworld.seeds import DRAFT_SEED_START
 
 
+#: the draft-head architectures ``train-draft`` builds: v1 (the target's last hidden state) and v2 (a low, a middle and
+#: the top layer, and the robot's previous action; see ``training.draft_head.head_v2_settings``)
+HEAD_VERSIONS = ("v1", "v2")
+
+
 @dataclass
 class TrainingConfig:
     """The training loop's settings ([`run_training`]), shared by every trainer; each trainer's config extends it
@@ -73,6 +78,8 @@ class DraftTrainingConfig(TrainingConfig):
     Args:
         feature_loss_weight / token_loss_weight: weights of the SmoothL1 feature loss and the soft cross-entropy.
         feature_noise: width of the uniform noise added to the input hidden states (U(-a/2, a/2)).
+        unroll_steps: draft steps each example is trained on (training-time test): 1 = teacher forcing only (heads
+            before v2); n > 1 = n - 1 more steps on the head's own features, as it drafts a chain of n.
     """
 
     max_steps: int = 2000
@@ -83,10 +90,12 @@ class DraftTrainingConfig(TrainingConfig):
     feature_loss_weight: float = 1.0
     token_loss_weight: float = 0.1
     feature_noise: float = 0.2
+    unroll_steps: int = 1
 
     def __post_init__(self):
         super().__post_init__()
-        check_ranges(self, non_negative=("feature_noise", "feature_loss_weight", "token_loss_weight"))
+        check_ranges(self, non_negative=("feature_noise", "feature_loss_weight", "token_loss_weight"),
+                     at_least_one=("unroll_steps",), integers=("unroll_steps",))  # fmt: skip
 
 
 @dataclass

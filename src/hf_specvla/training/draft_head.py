@@ -10,6 +10,12 @@ Recipe (Spec-VLA section 3.2, following EAGLE):
        loss = feature_loss_weight * SmoothL1(features[p], h[p+1])
             + token_loss_weight   * CE(softmax(lm_head(h[p+1])), log_softmax(lm_head(features[p])))
 
+   With ``unroll_steps`` n > 1, training-time test (EAGLE-3): the head then runs n - 1 more steps in which the input
+   at position p + j is the head's own feature from step j - 1 (as when it drafts a chain from root p), attending to
+   the teacher-forced entries up to p and to its own earlier steps from the same root; each step adds the same loss
+   against ``h[p+j+1]``, averaged over the steps. A head v2 reads several of the target's layers
+   (``feature_layers``) and the robot's previous action (each example's ``previous_action``).
+
    AdamW (betas 0.9/0.95), gradient clipping, uniform feature noise, in the one training loop
    (``training.loop``: checkpoints with the full accelerate state, exact resume, one CPU or many GPUs with
    ``accelerate launch``).
@@ -30,15 +36,18 @@ from transformers import PreTrainedModel
 
 from ..progress import progress_bar
 from ..run_folder import fingerprint, fingerprint_arrays
+from transformers.cache_utils import DynamicCache
+
 from ..speculative import (
     DraftHead,
+    DraftHeadDrafter,
     SpeculationStats,
     TargetHandles,
-    causal_mask,
     embed_tokens,
     softcap_logits,
     speculative_generate,
 )
+from ..speculative.masks import to_additive_mask
 from .checkpoints import check_output_dir, latest_checkpoint, prepare_output_dir, training_record
 from .configuration import DraftTrainingConfig
 from .loop import TrainingJob, default_accelerator, run_training
@@ -48,6 +57,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "DraftTrainingConfig",
     "build_distillation_dataset",
+    "head_v2_settings",
     "latest_checkpoint",
     "speculative_acceptance",
     "train_draft_head",
@@ -58,9 +68,11 @@ __all__ = [
 class DistillationDataset(Dataset):
     """Sequences the target generated, with its hidden states.
 
-    Each item: ``input_ids`` ``[L]`` (prompt + generated tokens), ``hidden`` ``[L, H]`` (the target's last hidden
-    state at each position), ``loss_mask`` ``[L]`` (True at positions p whose token x[p+2] is a generated action
-    token, i.e. where the draft head's prediction is used).
+    Each item: ``input_ids`` ``[L]`` (prompt + generated tokens), ``hidden`` ``[L, n H]`` (the target's hidden states
+    at each position: the head's ``feature_layers``, then the last one when they do not include it: the loss's
+    targets), ``loss_mask`` ``[L]`` (True at positions p whose token x[p+2] is a generated action token, i.e. where
+    the draft head's prediction is used), ``first_position`` (0-dim: the first generated token's position) and
+    ``previous_action`` ``[D]`` (the robot's previous action as token ids, -1 where there was none).
     """
 
     def __init__(self, examples: list[dict[str, torch.Tensor]]):
@@ -82,6 +94,17 @@ class DistillationDataset(Dataset):
         return cls(torch.load(path, weights_only=True))
 
 
+def dataset_hidden_layers(hidden_state_layers: tuple[int, ...]) -> tuple[int, ...]:
+    """The target hidden states a distillation set stores for a head reading ``hidden_state_layers``: those, then the
+    last one (what the loss's targets are made of) when they do not include it."""
+    layers = tuple(hidden_state_layers)
+    return layers if -1 in layers else (*layers, -1)
+
+
+#: a prompt dict's optional key: each example's previous action (``[B, D]`` token ids, -1: none), not a model input
+PREVIOUS_ACTION = "previous_action"
+
+
 @torch.no_grad()
 def build_distillation_dataset(
     target: PreTrainedModel,
@@ -89,21 +112,31 @@ def build_distillation_dataset(
     max_new_tokens: int,
     action_tokenizer,
     progress: bool = True,
+    hidden_state_layers: tuple[int, ...] = (-1,),
+    action_dim: int | None = None,
 ) -> DistillationDataset:
     """Runs the target greedily on each prompt and records its sequence and hidden states.
 
     Args:
         target: the frozen target (any model ``generate`` works on; images go in the prompt dicts).
-        prompts: model inputs, e.g. ``{"input_ids": [B, S], "pixel_values": [B, 3, H, W]}``. A dict may hold
-            several examples (batched generation) when it has no padding; with an ``attention_mask`` that has
-            padding, give one example per dict.
+        prompts: model inputs, e.g. ``{"input_ids": [B, S], "pixel_values": [B, 3, H, W]}``, and optionally
+            ``previous_action`` ``[B, D]`` (each example's previous action as token ids, -1: none; not a model
+            input). A dict may hold several examples (batched generation) when it has no padding; with an
+            ``attention_mask`` that has padding, give one example per dict.
         max_new_tokens: tokens the target generates (an action's worth: OpenVLA 7).
         action_tokenizer: which generated tokens count for the loss.
+        hidden_state_layers: the target hidden states the head reads (its ``config.hidden_state_layers``).
+        action_dim: D, the previous action's length when no prompt gives one (default: 1).
     """
     target.eval()
     examples = []
+    layers = dataset_hidden_layers(hidden_state_layers)
     for inputs in progress_bar(list(prompts), desc="self-distillation data", disable=not progress):
         inputs = {k: v.to(target.device) if isinstance(v, torch.Tensor) else v for k, v in inputs.items()}
+        batch_size = inputs["input_ids"].shape[0]
+        previous = inputs.pop(PREVIOUS_ACTION, None)
+        if previous is None:
+            previous = torch.full((batch_size, action_dim or 1), -1, dtype=torch.long)
         mask = inputs.get("attention_mask")
         if inputs["input_ids"].shape[0] != 1 and mask is not None and not bool(mask.all()):
             raise ValueError("prompts with padding must be given one example per dict (batch size 1)")
@@ -114,20 +147,24 @@ def build_distillation_dataset(
         forward_inputs = dict(inputs, input_ids=sequences)
         if mask is not None:
             forward_inputs["attention_mask"] = torch.cat([mask, mask.new_ones(mask.shape[0], max_new_tokens)], 1)
-        hidden = target(**forward_inputs, output_hidden_states=True).hidden_states[-1]  # [B, L, H]
+        states = target(**forward_inputs, output_hidden_states=True).hidden_states
+        hidden = torch.cat([states[i] for i in layers], dim=-1)  # [B, L, n H]
         prompt_len, length = inputs["input_ids"].shape[1], sequences.shape[1]
         positions = torch.arange(length)
-        for ids, states in zip(sequences.cpu(), hidden.cpu()):
+        for ids, row_states, row_previous in zip(sequences.cpu(), hidden.cpu(), previous.cpu()):
             generated_action = (positions >= prompt_len) & action_tokenizer.is_action_token(ids)
             loss_mask = torch.zeros(length, dtype=torch.bool)
             loss_mask[: length - 2] = generated_action[2:]  # position p predicts token p+2
-            examples.append({"input_ids": ids, "hidden": states, "loss_mask": loss_mask})
+            examples.append({"input_ids": ids, "hidden": row_states, "loss_mask": loss_mask,
+                             "first_position": torch.tensor(prompt_len), PREVIOUS_ACTION: row_previous.long()})  # fmt: skip
     return DistillationDataset(examples)
 
 
 def collate_distillation(batch: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
-    """Right-pads a list of dataset items to ``input_ids`` ``[B, L]``, ``hidden`` ``[B, L, H]``,
-    ``loss_mask`` ``[B, L]``, ``padding_mask`` ``[B, L]`` (True = real token)."""
+    """Right-pads a list of dataset items to ``input_ids`` ``[B, L]``, ``hidden`` ``[B, L, n H]``,
+    ``loss_mask`` ``[B, L]``, ``padding_mask`` ``[B, L]`` (True = real token), ``first_position`` ``[B, 1]`` and
+    ``previous_action`` ``[B, D]`` (items saved before head v2, without them: their prompt's end unknown, -1, and no
+    previous action)."""
     length = max(item["input_ids"].shape[0] for item in batch)
     hidden_size = batch[0]["hidden"].shape[-1]
     out = {
@@ -142,6 +179,12 @@ def collate_distillation(batch: list[dict[str, torch.Tensor]]) -> dict[str, torc
         out["hidden"][i, :n] = item["hidden"]
         out["loss_mask"][i, :n] = item["loss_mask"]
         out["padding_mask"][i, :n] = True
+    out["first_position"] = torch.tensor([[int(item.get("first_position", -1))] for item in batch])
+    dims = {item[PREVIOUS_ACTION].shape[0] for item in batch if PREVIOUS_ACTION in item} or {1}
+    out[PREVIOUS_ACTION] = torch.full((len(batch), max(dims)), -1, dtype=torch.long)
+    for i, item in enumerate(batch):
+        if PREVIOUS_ACTION in item:
+            out[PREVIOUS_ACTION][i, : item[PREVIOUS_ACTION].shape[0]] = item[PREVIOUS_ACTION]
     return out
 
 
@@ -153,36 +196,94 @@ def distillation_loss(
     config: DraftTrainingConfig,
     generator: torch.Generator | None = None,
 ) -> dict[str, torch.Tensor]:
-    """EAGLE objective on one batch (see module docstring). Returns ``loss``, ``feature_loss``, ``token_loss``
-    and ``token_accuracy`` (draft argmax == target argmax on the loss positions)."""
-    input_ids, hidden = batch["input_ids"], batch["hidden"]  # [B, L], [B, L, H]
-    length = input_ids.shape[1]
+    """EAGLE objective on one batch (see module docstring), unrolled ``config.unroll_steps`` draft steps. Returns
+    ``loss``, ``feature_loss``, ``token_loss`` and ``token_accuracy`` (draft argmax == target argmax on the loss
+    positions), each averaged over the steps, and ``step_accuracy`` ``[n]`` (the accuracy of each step)."""
+    input_ids, hidden = batch["input_ids"], batch["hidden"]  # [B, L], [B, L, n H (+ H)]
+    batch_size, length = input_ids.shape
     dtype = next(draft_head.parameters()).dtype
     hidden = hidden.to(dtype)
-    inputs_hidden = hidden[:, :-1]  # h[p], p = 0..L-2
+    head_config = draft_head.config
+    width, layers = head_config.hidden_size, head_config.hidden_state_layers
+    stored = dataset_hidden_layers(layers)
+    if hidden.shape[-1] != len(stored) * width:
+        raise ValueError(
+            f"the distillation set holds {hidden.shape[-1] // width} hidden states per position, but this head reads "
+            f"layers {list(layers)} (and the loss the last one): {len(stored)}; build the set for this head "
+            f"(build_distillation_dataset(..., hidden_state_layers=head.config.hidden_state_layers))"
+        )
+    top = stored.index(-1)
+    target_top = hidden[..., top * width : (top + 1) * width]  # [B, L, H] the target's last hidden state
+    inputs_hidden = hidden[:, :-1, : len(layers) * width]  # h[p], p = 0..L-2
     if config.feature_noise > 0:
         noise = torch.rand(inputs_hidden.shape, generator=generator, device="cpu").to(inputs_hidden.device)
         inputs_hidden = inputs_hidden + (noise - 0.5) * config.feature_noise
-    token_embeds = embed_tokens(handles, input_ids[:, 1:]).to(dtype)  # x[p+1]
-    positions = torch.arange(length - 1, device=input_ids.device)[None].expand(input_ids.shape[0], -1)
-    mask = causal_mask(length - 1, 0, dtype, input_ids.device, batch["padding_mask"][:, :-1])
-    features = draft_head(token_embeds, inputs_hidden, positions, mask)  # [B, L-1, H] ~ h[p+1]
+    steps = length - 1
+    positions = torch.arange(steps, device=input_ids.device)[None].expand(batch_size, -1)
+    previous = _previous_bins(draft_head, batch) if head_config.previous_action_input else None
+    first_position = batch["first_position"].to(input_ids.device)
+    valid_keys = batch["padding_mask"][:, :-1]  # [B, T]
+    cache = DynamicCache() if config.unroll_steps > 1 else None
+    cap = head_config.final_logit_softcapping  # the target caps its logits (Gemma-2): so does the loss
+    totals = {"feature_loss": 0.0, "token_loss": 0.0, "token_accuracy": 0.0}
+    step_accuracy, features = [], inputs_hidden
+    for step in range(config.unroll_steps):
+        # queries r = 0..T-1: input token x[r+step+1] at position r+step (past the sequence: padding, never scored)
+        token_ids = input_ids[:, step + 1 :]
+        token_ids = torch.cat([token_ids, token_ids.new_zeros(batch_size, step)], dim=1)
+        step_positions = positions + step
+        mask = _unrolled_mask(valid_keys, step, dtype)
+        bins = None if previous is None else draft_head.slot_bins(previous, first_position, step_positions)
+        features = draft_head(embed_tokens(handles, token_ids).to(dtype), features, step_positions, mask, cache, bins)
+        # query r predicts x[r+step+2], the target's h[r+step+1]; scored where that is a generated action token
+        # (and, past the first step, r is a root a chain is drafted from: at or after the last prompt token - 1)
+        shifted = lambda t: torch.cat([t[:, step:], t[:, :step].new_zeros(t[:, :step].shape)], dim=1)  # noqa: E731
+        loss_mask = shifted(batch["loss_mask"][:, :-1])
+        target_features = shifted(target_top[:, 1:])
+        if step:
+            loss_mask = loss_mask & (positions + 2 >= first_position)
+        n = loss_mask.sum().clamp(min=1)
+        feature_loss = torch.nn.functional.smooth_l1_loss(features, target_features, reduction="none").mean(-1)
+        feature_loss = (feature_loss * loss_mask).sum() / n
+        with torch.no_grad():
+            target_logits = softcap_logits(handles.lm_head(target_features[loss_mask]).float(), cap)
+            target_probs = target_logits.softmax(-1)
+        draft_logits = softcap_logits(handles.lm_head(features[loss_mask]).float(), cap)
+        if len(draft_logits):
+            token_loss = -(target_probs * draft_logits.log_softmax(-1)).sum(-1).mean()
+            accuracy = (draft_logits.argmax(-1) == target_logits.argmax(-1)).float().mean()
+        else:
+            token_loss = accuracy = n * 0.0
+        totals["feature_loss"] = totals["feature_loss"] + feature_loss / config.unroll_steps
+        totals["token_loss"] = totals["token_loss"] + token_loss / config.unroll_steps
+        totals["token_accuracy"] = totals["token_accuracy"] + accuracy.detach() / config.unroll_steps
+        step_accuracy.append(accuracy.detach())
+    loss = config.feature_loss_weight * totals["feature_loss"] + config.token_loss_weight * totals["token_loss"]
+    return {"loss": loss, **totals, "step_accuracy": torch.stack(step_accuracy)}
 
-    target_features = hidden[:, 1:]
-    loss_mask = batch["loss_mask"][:, :-1]  # [B, L-1]
-    n = loss_mask.sum().clamp(min=1)
-    feature_loss = torch.nn.functional.smooth_l1_loss(features, target_features, reduction="none").mean(-1)
-    feature_loss = (feature_loss * loss_mask).sum() / n
-    cap = draft_head.config.final_logit_softcapping  # the target caps its logits (Gemma-2): so does the loss
-    selected_features = features[loss_mask]  # [N, H]
-    with torch.no_grad():
-        target_logits = softcap_logits(handles.lm_head(target_features[loss_mask]).float(), cap)
-        target_probs = target_logits.softmax(-1)
-    draft_logits = softcap_logits(handles.lm_head(selected_features).float(), cap)
-    token_loss = -(target_probs * draft_logits.log_softmax(-1)).sum(-1).mean() if len(draft_logits) else n * 0.0
-    accuracy = (draft_logits.argmax(-1) == target_logits.argmax(-1)).float().mean() if len(draft_logits) else n * 0.0
-    loss = config.feature_loss_weight * feature_loss + config.token_loss_weight * token_loss
-    return {"loss": loss, "feature_loss": feature_loss, "token_loss": token_loss, "token_accuracy": accuracy}
+
+def _previous_bins(draft_head: DraftHead, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    """``[B, D]`` the examples' previous-action bins (``n_action_bins`` where an example has none)."""
+    ids = batch[PREVIOUS_ACTION]
+    action_dim = draft_head.config.action_dim
+    if ids.shape[1] != action_dim:
+        raise ValueError(f"the distillation set's previous actions have {ids.shape[1]} tokens, the head's actions "
+                         f"{action_dim}: build the set with the policy's previous actions")  # fmt: skip
+    tokenizer = draft_head.config.action_tokenizer()
+    known = tokenizer.is_action_token(ids).all(dim=1, keepdim=True)  # [B, 1]: a whole previous action
+    none = torch.full_like(ids, draft_head.config.n_action_bins)
+    return torch.where(known, tokenizer.token_to_bin(ids), none)
+
+
+def _unrolled_mask(valid_keys: torch.Tensor, step: int, dtype: torch.dtype) -> torch.Tensor:
+    """``[B, 1, T, (step + 1) T]`` additive mask of unrolled step ``step``: query r sees the teacher-forced entries
+    0..r (valid ones) and its own entries of steps 1..step (the same r), as a chain drafted from root r does."""
+    batch_size, steps = valid_keys.shape
+    causal = torch.ones(steps, steps, dtype=torch.bool, device=valid_keys.device).tril()
+    blocks = [causal[None] & valid_keys[:, None, :]]
+    diagonal = torch.eye(steps, dtype=torch.bool, device=valid_keys.device)[None].expand(batch_size, -1, -1)
+    blocks += [diagonal] * step
+    return to_additive_mask(torch.cat(blocks, dim=-1), dtype)
 
 
 # ----------------------------------------------------------------------------- training
@@ -258,6 +359,7 @@ def distil_draft_head(
     target_fingerprint: str | None = None,
     paths: dict | None = None,
     progress: bool = True,
+    head_settings: dict | None = None,
 ) -> DraftHead:
     """The draft-head recipe every target shares (a Meta-World policy, OpenVLA): an untrained head sized for
     ``target`` (seeded by ``training_config.seed``) that records what it was distilled from; the folder's
@@ -272,12 +374,14 @@ def distil_draft_head(
             ``action_tokenizer``) and default chain length.
         action_layout: the target's ``ActionLayout`` for validation (which ids are actions, tokens per action).
         target_name_or_path: recorded in the head's config (for people; never compared).
+        head_settings: more [`DraftHeadConfig`] fields of the head (e.g. head v2's ``feature_layers`` and
+            ``previous_action_input``; see [`head_v2_settings`]).
     """
     target_fingerprint = target_fingerprint or fingerprint(target)
     torch.manual_seed(training_config.seed)  # the head's initialisation
     head = DraftHead.from_target(
         target, action_tokenizer, action_dim=action_dim, num_draft_tokens=num_draft_tokens,
-        target_name_or_path=target_name_or_path, target_fingerprint=target_fingerprint,
+        target_name_or_path=target_name_or_path, target_fingerprint=target_fingerprint, **(head_settings or {}),
     )  # fmt: skip
     record = draft_training_record(head, target_fingerprint, training_config, recipe, paths)
     check_output_dir(Path(training_config.output_dir), record, training_config.resume,
@@ -285,7 +389,8 @@ def distil_draft_head(
     training_prompts, held_out_prompts = prompts()
     action_tokenizer = action_tokenizer or target.action_tokenizer  # the labels' action ids, as the head's default
     dataset = build_distillation_dataset(target, training_prompts, tokens_per_call, action_tokenizer,
-                                         progress=progress)  # fmt: skip
+                                         progress=progress, hidden_state_layers=head.config.hidden_state_layers,
+                                         action_dim=action_dim)  # fmt: skip
 
     def validate(draft_head: DraftHead) -> dict:
         return speculative_acceptance(target, draft_head, held_out_prompts, tokens_per_call,
@@ -293,6 +398,15 @@ def distil_draft_head(
 
     return train_draft_head(head, target, dataset, training_config, progress=progress, validate=validate,
                             inputs=recipe, target_fingerprint=target_fingerprint, paths=paths)  # fmt: skip
+
+
+def head_v2_settings(target: PreTrainedModel) -> dict:
+    """Head v2's [`DraftHeadConfig`] fields for ``target``: a low, a middle and the top layer of its decoder
+    (EAGLE-3: the outputs of layer 2, of the middle layer and the last hidden state; fewer on a shallower decoder) and
+    the robot's previous action as input."""
+    num_layers = target.config.get_text_config().num_hidden_layers
+    layers = list(dict.fromkeys(i for i in (min(2, num_layers), num_layers // 2) if 0 < i < num_layers))
+    return {"feature_layers": [*layers, -1], "previous_action_input": True}
 
 
 def draft_training_record(
@@ -319,7 +433,8 @@ def speculative_acceptance(
     ``generate_kwargs`` say otherwise: the engine itself runs, so these are the numbers a user will see.
 
     Args:
-        prompts: model inputs of one example each (``input_ids`` ``[1, S]``, images...).
+        prompts: model inputs of one example each (``input_ids`` ``[1, S]``, images...), and optionally its
+            ``previous_action`` (``[1, D]`` token ids, -1: none), which a head with ``previous_action_input`` reads.
         generate_kwargs: more speculation settings (``num_draft_tokens``, ``action_layout``...).
 
     Returns:
@@ -327,13 +442,18 @@ def speculative_acceptance(
         that accepted it), ``tokens_per_target_forward``, ``target_forwards_per_sequence`` and ``sequences``.
     """
     stats, sequences = SpeculationStats(), 0
+    chain = DraftHeadDrafter(draft_head, num_draft_tokens=generate_kwargs.pop("num_draft_tokens", None))
     for inputs in prompts:
         if inputs["input_ids"].shape[0] != 1:
             raise ValueError(f"speculative_acceptance takes prompts of one example, got {inputs['input_ids'].shape}")
         inputs = {k: v.to(target.device) if isinstance(v, torch.Tensor) else v for k, v in inputs.items()}
+        previous = inputs.pop(PREVIOUS_ACTION, None)
+        drafter = chain
+        if previous is not None and bool((previous >= 0).all()):
+            drafter = chain.with_previous_action(previous[0].tolist())
         output = target.generate(
             **inputs, max_new_tokens=max_new_tokens, min_new_tokens=max_new_tokens, do_sample=False,
-            custom_generate=speculative_generate, drafter=draft_head, return_dict_in_generate=True,
+            custom_generate=speculative_generate, drafter=drafter, return_dict_in_generate=True,
             **{"bin_tolerance": 0, **generate_kwargs},
         )  # fmt: skip
         stats = stats.merge(output.speculation)

@@ -87,8 +87,14 @@ def default_accelerator(config) -> Accelerator:
 
 
 def _numbers(metrics: dict) -> dict:
-    """0-d tensors as floats; other values (numbers, per-position lists) as they are."""
-    return {name: value.item() if isinstance(value, torch.Tensor) else value for name, value in metrics.items()}
+    """One-number tensors as floats, longer ones as lists (per step, per position); other values as they are."""
+
+    def number(value):
+        if not isinstance(value, torch.Tensor):
+            return value
+        return value.item() if value.numel() == 1 else [round(x, 4) for x in value.tolist()]  # per step, per position
+
+    return {name: number(value) for name, value in metrics.items()}
 
 
 def _append_jsonl(path: Path, row: dict) -> None:

@@ -28,8 +28,8 @@ from ..metaworld.evaluation import record_observations
 from ..policies import VLAPolicy
 from ..run_folder import read_jsonl
 from ..speculative import DraftHead
-from .configuration import DraftDataConfig, DraftTrainingConfig
-from .draft_head import distil_draft_head
+from .configuration import HEAD_VERSIONS, DraftDataConfig, DraftTrainingConfig
+from .draft_head import PREVIOUS_ACTION, distil_draft_head, head_v2_settings
 from .loop import VALIDATION_LOG
 
 logger = logging.getLogger(__name__)
@@ -77,7 +77,8 @@ def demonstration_frames(roots: list[str | Path], config: DraftDataConfig, polic
 
 def policy_prompts(policy: VLAPolicy, frames: list[dict], batch_size: int) -> list[dict[str, torch.Tensor]]:
     """Model inputs for ``frames``, batched by instruction (one prompt length per batch, so no padding):
-    ``input_ids`` ``[B, S]``, ``pixel_values`` ``[B, 3, H, W]``."""
+    ``input_ids`` ``[B, S]``, ``pixel_values`` ``[B, 3, H, W]``, and each frame's ``previous_action`` ``[B, D]``
+    (token ids; -1 where a frame has none: an episode's first step, a demonstration frame)."""
     by_instruction: dict[str, list[dict]] = {}
     for frame in frames:
         by_instruction.setdefault(frame["instruction"], []).append(frame)
@@ -87,7 +88,10 @@ def policy_prompts(policy: VLAPolicy, frames: list[dict], batch_size: int) -> li
             chunk = group[start : start + batch_size]
             input_ids = torch.tensor([policy.prompt_ids(f["instruction"], f["state"]) for f in chunk])
             pixel_values = policy.preprocess_images(np.stack([f["image"] for f in chunk]))
-            prompts.append({"input_ids": input_ids.to(policy.model.device), "pixel_values": pixel_values})
+            none = [-1] * policy.config.action_dim
+            previous = torch.tensor([list(f.get("previous_action") or none) for f in chunk])
+            prompts.append({"input_ids": input_ids.to(policy.model.device), "pixel_values": pixel_values,
+                            PREVIOUS_ACTION: previous})  # fmt: skip
     return prompts
 
 
@@ -107,6 +111,7 @@ def train_policy_draft_head(
     num_draft_tokens: int | None = None,
     progress: bool = True,
     command: str | None = None,
+    head_version: str = "v1",
 ) -> DraftHead:
     """Trains a [`DraftHead`] for ``policy`` (see module docstring) into ``training_config.output_dir``.
 
@@ -114,7 +119,13 @@ def train_policy_draft_head(
     a head used with another policy is refused. The folder gets the head, ``validation.jsonl`` and a model card
     (``README.md``, with the measured acceptance and ``command``). The folder rule (``run.json``: the policy's
     weights, the data recipe, the training settings) is checked before any rollout runs.
+
+    ``head_version``: "v1" (the last hidden state, no previous action: every head before v2) or "v2"
+    ([`head_v2_settings`]: a low, a middle and the top layer, and the robot's previous action; train it with
+    ``training_config.unroll_steps`` > 1, training-time test).
     """
+    if head_version not in HEAD_VERSIONS:
+        raise ValueError(f"head_version must be one of {HEAD_VERSIONS}, got {head_version!r}")
     data_config = data_config or DraftDataConfig()
     demonstrations = [str(Path(root)) for root in demonstrations]
     output_dir = Path(training_config.output_dir)
@@ -146,6 +157,7 @@ def train_policy_draft_head(
         action_tokenizer=policy.action_tokenizer, action_dim=policy.config.action_dim,
         num_draft_tokens=num_draft_tokens, action_layout=policy.action_layout, target_name_or_path=policy.name_or_path,
         target_fingerprint=policy.weights_fingerprint(), paths=paths, progress=progress,
+        head_settings=head_v2_settings(policy.model) if head_version == "v2" else None,
     )  # fmt: skip
     write_model_card(output_dir, head, training_config, data_config, demonstrations, sequences, command,
                      policy.config.action_tokens)  # fmt: skip

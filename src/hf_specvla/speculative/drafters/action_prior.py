@@ -158,12 +158,13 @@ def with_action_prior(
 
     if not previous_actions:
         return drafter
+    previous_actions = _actions_as_lists(previous_actions, action_layout.action_dim)
     if drafter is None:
         return ActionPriorDrafter(previous_actions, action_layout, chunk_length=chunk_length)
     # before another drafter: the held action alone, in the prefill only (a chain: the model's causal path)
     held = ActionPriorDrafter(previous_actions, action_layout, max_nodes=chunk_length * action_layout.action_dim,
                               chunk_length=chunk_length, later_rounds=False)  # fmt: skip
-    return ComposedDrafter([held, drafter])
+    return ComposedDrafter([held, drafter.with_previous_action(previous_actions[-1])])
 
 
 def with_action_priors(
@@ -181,3 +182,15 @@ def with_action_priors(
         return with_action_prior(drafter, histories[0], action_layout, chunk_length)
     nothing = CandidateDrafter([], name=ActionPriorDrafter.name)  # a row at its episode's first step
     return PerRowDrafter([with_action_prior(drafter, h, action_layout, chunk_length) or nothing for h in histories])
+
+
+def with_previous_actions(drafter: Drafter | None, histories: Sequence[Sequence[Sequence[int]]]) -> Drafter | None:
+    """``drafter`` told each row's previous action (``histories[b][-1]``, see [`Drafter.with_previous_action`]),
+    without the prior's drafts: one row: that row's drafter; several: a [`PerRowDrafter`] when it reads them;
+    ``drafter`` unchanged when it does not (or no row has a previous action)."""
+    if drafter is None or not any(histories):
+        return drafter
+    rows = [drafter.with_previous_action(history[-1] if history else None) for history in histories]
+    if len(rows) == 1 or all(row is drafter for row in rows):
+        return rows[0]
+    return PerRowDrafter(rows)

@@ -39,7 +39,9 @@ the target's true hidden state; tree-drafting entries are dropped at the end of 
 
 from __future__ import annotations
 
+import copy
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
 
@@ -118,6 +120,9 @@ class DraftHeadDrafter(Drafter):
                 f"num_draft_tokens must be an int >= 1 (tokens drafted per verification), got {num_draft_tokens!r}"
             )
         self.draft_head = draft_head
+        self.hidden_state_layers = draft_head.config.hidden_state_layers
+        #: ``[D]`` the robot's previous action's bins (see [`with_previous_action`]); None: none given
+        self.previous_bins: torch.Tensor | None = None
         if tree is None:
             k = num_draft_tokens or draft_head.config.num_draft_tokens
             tree = DraftTreeConfig(top_k=1, depth=k, total_tokens=k)
@@ -130,6 +135,20 @@ class DraftHeadDrafter(Drafter):
         self._static_caches: dict[tuple, StaticCache] = {}
         self._llama_config = None  # the head's config as transformers' caches read it (built at first use)
         self._architecture: str | None = None  # the head's config as JSON: what its compiled round depends on
+
+    def with_previous_action(self, previous_action: Sequence[int] | None) -> DraftHeadDrafter:
+        """This drafter for a robot whose previous action was ``previous_action`` (``action_dim`` action token ids):
+        a head with ``previous_action_input`` reads it (a copy sharing this drafter's caches and compiled graphs); any
+        other head ignores it (``self``). None: no previous action (an episode's first step), as when never given.
+
+        Raises:
+            ValueError: not ``action_dim`` action token ids of the head's layout.
+        """
+        if previous_action is None or not self.draft_head.config.previous_action_input:
+            return self
+        conditioned = copy.copy(self)
+        conditioned.previous_bins = self.draft_head.previous_action_bins(previous_action, self.draft_head.device)
+        return conditioned
 
     def static_cache(self, key_length: int) -> StaticCache:
         """The head's static cache of ``key_length`` slots, emptied: allocated once per size and reused by every later
@@ -193,6 +212,12 @@ class _DraftHeadSession(DraftSession):
         self.unfed: list[Commit] = []  # commits whose (token, hidden) pairs the head has not seen yet
         self.root_feature: torch.Tensor | None = None  # [1, 1, H] estimate of the hidden state at the root
         self.num_forwards = 0
+        # a head that reads the previous action: its bins ([D]; "none" when not given) and, from the prefill on, the
+        # position of the first generated token (0-dim), which tell each input's bin (DraftHead.slot_bins)
+        self.previous: tuple[torch.Tensor, torch.Tensor] | None = None
+        if self.head.config.previous_action_input:
+            bins = drafter.previous_bins
+            self.previous_bins = self.head.no_previous_action(self.head.device) if bins is None else bins
 
     @property
     def num_padded_pairs(self) -> int:
@@ -224,13 +249,21 @@ class _DraftHeadSession(DraftSession):
         if self.key_length is not None:  # a static cache: its free slots are masked
             free = allowed.new_zeros(1, q_len, self.key_length - allowed.shape[-1])
             allowed = torch.cat([allowed, free], dim=-1)
-        features = self.head(self.embed(tokens), hidden, positions, to_additive_mask(allowed, hidden.dtype), self.cache)
+        mask = to_additive_mask(allowed, hidden.dtype)
+        features = self.head(self.embed(tokens), hidden, positions, mask, self.cache, self._previous_bins(positions))
         self.num_forwards += 1
         self.cache_length += q_len
         self.root_feature = features[:, -1:]
 
+    def _previous_bins(self, positions: torch.Tensor) -> torch.Tensor | None:
+        """``[1, q]`` the previous-action bins of inputs at ``positions`` (None: a head that does not read them)."""
+        return None if self.previous is None else self.head.slot_bins(*self.previous, positions)
+
     def propose(self, draft_round: DraftRound) -> DraftTree:
         depth = min(self.config.depth, draft_round.max_depth)
+        if draft_round.at_prefill and self.head.config.previous_action_input:
+            first_position = (draft_round.root_position.reshape(()) + 1).clone()
+            self.previous = (self.previous_bins, first_position)
         if draft_round.at_prefill or depth < 1:
             return DraftTree.empty(draft_round.sequence.device)
         root_position = draft_round.root_position.reshape(1, 1).clone(memory_format=torch.contiguous_format)
@@ -257,7 +290,7 @@ class _DraftHeadSession(DraftSession):
             return expand_tree(
                 self.head, self.embed, self.scorer, self.root_feature, root_position, self.cache, self.cache_length,
                 None if padding is None else padding[0], self.config.top_k, depth, self.config.total_tokens,
-                key_length=self.key_length,
+                key_length=self.key_length, previous=self.previous,
             )  # fmt: skip
         finally:
             truncate_cache(self.cache, self.cache_length)
@@ -297,6 +330,7 @@ class _DraftHeadSession(DraftSession):
                     self.head, self.embed, self.scorer, *pairs, root_position, self.cache,
                     self.cache.layers[0].cumulative_length.clone(), self.key_length, self.config.top_k,
                     self.graph_depth, self.config.total_tokens, torch.tensor(depth_limit, device=device),
+                    self.previous,
                 )  # fmt: skip
             finally:
                 truncate_cache(self.cache, self.cache_length)

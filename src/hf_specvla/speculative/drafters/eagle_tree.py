@@ -90,6 +90,7 @@ def catch_up_and_expand(
     depth: int,
     total_tokens: int,
     depth_limit: torch.Tensor | None = None,
+    previous: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """One drafting round on a static cache in one graph: feeds the pairs the target committed (padded to a fixed
     count), then [`expand_tree`] from the last one's feature.
@@ -110,11 +111,13 @@ def catch_up_and_expand(
     own_slot = committed + query
     real = query < num_new
     allowed = ((slots <= own_slot) & real) | (slots == own_slot)  # padding sees itself only
-    features = head(embed(token_ids), hidden, positions, to_additive_mask(allowed[None], hidden.dtype), cache)
+    mask = to_additive_mask(allowed[None], hidden.dtype)
+    bins = None if previous is None else head.slot_bins(*previous, positions)
+    features = head(embed(token_ids), hidden, positions, mask, cache, bins)
     root_feature = features.index_select(1, (num_new - 1).reshape(1))  # [1, 1, H]
     return expand_tree(head, embed, scorer, root_feature, root_position, cache, committed + num_new, None,
                        top_k, depth, total_tokens, tree_start=committed + q_len, key_length=key_length,
-                       depth_limit=depth_limit)  # fmt: skip
+                       depth_limit=depth_limit, previous=previous)  # fmt: skip
 
 
 def expand_tree(
@@ -132,6 +135,7 @@ def expand_tree(
     tree_start: int | torch.Tensor | None = None,
     key_length: int | None = None,
     depth_limit: torch.Tensor | None = None,
+    previous: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Expands and re-ranks one EAGLE-2 tree below the root (module docstring). Batch 1.
 
@@ -149,6 +153,8 @@ def expand_tree(
         depth_limit: 0-dim int64, or None: only nodes of depth < ``depth_limit`` (0 = the root's children) compete
             for the budget, so that one graph expanded to ``depth`` serves every shallower round (its nodes below
             the limit are the shallower expansion's, in the same order: the same tree); the deeper ones rank last.
+        previous: for a head that reads the robot's previous action, ``(previous_bins [D], first_position)`` as
+            [`DraftHead.slot_bins`] takes them; None for any other head.
     Returns:
         ``(token_ids, parents)``, each ``[T]`` int64, T = ``min(total_tokens, num_created_nodes(k, depth))``:
         vocabulary ids, and each node's parent index (-1 for the root's children), parents first.
@@ -169,7 +175,8 @@ def expand_tree(
         visible = torch.cat([ancestors, eye], dim=1)  # [F, fed + F]
         mask = frontier_mask(visible, past, tree_start, key_length, committed_visible, root_feature.dtype)
         positions = (root_position.reshape(1, 1) + (level - 1)).expand(1, k)
-        features = head(embed(frontier_tokens[None]), frontier_features, positions, mask, cache)  # [1, F, H]
+        bins = None if previous is None else head.slot_bins(*previous, positions)
+        features = head(embed(frontier_tokens[None]), frontier_features, positions, mask, cache, bins)  # [1, F, H]
         child_log_probs = torch.log_softmax(scorer.logits(features[0]).float(), dim=-1)  # [F, C]
         child_scores, child_best = child_log_probs.topk(k, dim=-1)  # [F, k]
         cumulative = (frontier_scores[:, None] + child_scores).flatten()  # [F * k]
