@@ -217,6 +217,32 @@ def test_untrained_head_chain_and_tree_decode_exactly(backbone):
         assert torch.equal(greedy(backbone.model, inputs, assistant_model=assistant), expected)
 
 
+def head_v2(model) -> DraftHead:
+    """An untrained head v2 (a low and the top layer, the previous action as input), its inputs randomised."""
+    torch.manual_seed(2)
+    head = DraftHead.from_target(model, ActionTokenizer(VOCAB), action_dim=7, draft_action_tokens_only=False,
+                                 feature_layers=[1, -1], previous_action_input=True)  # fmt: skip
+    with torch.no_grad():
+        head.feature_fuse.weight.normal_(0, 0.1)
+        head.previous_embedding.weight.normal_(0, 1.0)
+    return head.eval()
+
+
+@pytest.mark.parametrize("cache_implementation", [None, "static"])
+def test_head_v2_with_a_previous_action_decodes_exactly(backbone, cache_implementation):
+    """Head v2's chain and tree, told a previous action, alone and after the target's Jacobi guesses."""
+    inputs = backbone.inputs([4], seed=5)
+    expected = greedy(backbone.model, inputs)
+    previous = [VOCAB - 1 - b for b in (3, 250, 128, 0, 17, 99, 255)]
+    head = head_v2(backbone.model)
+    chain = DraftHeadDrafter(head).with_previous_action(previous)
+    tree = DraftHeadDrafter(head, tree=DraftTreeConfig(top_k=3, depth=4, total_tokens=12))
+    tree = tree.with_previous_action(previous)
+    for assistant in (chain, tree, ComposedDrafter([JacobiDrafter(fill=False), tree])):
+        out = greedy(backbone.model, inputs, assistant_model=assistant, cache_implementation=cache_implementation)
+        assert torch.equal(out, expected), assistant
+
+
 def test_jacobi_drafts_decode_exactly(backbone):
     """The target's own guesses past a rejection: alone (from a fill chain), after wrong drafts in the prefill, and
     beside the head's tree."""

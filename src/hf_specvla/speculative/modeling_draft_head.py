@@ -249,8 +249,8 @@ class DraftHead(PreTrainedModel):
                 head.feature_fuse.weight.zero_()
                 head.feature_fuse.weight[:, -hidden:] = torch.eye(hidden)
             if head.previous_embedding is not None:  # bin b starts as the lm_head row that scores it
-                bins = torch.arange(action_tokenizer.n_bins)
-                rows = lm_head.weight.detach().index_select(0, action_tokenizer.token_to_bin(bins).to(lm_head.weight.device))
+                token_ids = action_tokenizer.token_to_bin(torch.arange(action_tokenizer.n_bins))  # bin b's id
+                rows = lm_head.weight.detach().index_select(0, token_ids.to(lm_head.weight.device))
                 head.previous_embedding.weight[:-1] = rows.to(head.previous_embedding.weight)
         return head.to(device=target.device, dtype=target.dtype)
 

@@ -127,7 +127,9 @@ def verify_trees(
     logits, hidden = outputs.logits.float(), None
     if output_hidden:  # [B, q, n H]: the asked layers' hidden states, concatenated
         states = outputs.hidden_states
-        hidden = states[output_hidden[0]] if len(output_hidden) == 1 else torch.cat([states[i] for i in output_hidden], -1)
+        hidden = (
+            torch.cat([states[i] for i in output_hidden], -1) if len(output_hidden) > 1 else states[output_hidden[0]]
+        )
     if dynamic_length:
         logits = logits[:, 1:]
     if forward is not None:

@@ -33,11 +33,10 @@ import torch
 from accelerate import Accelerator
 from torch.utils.data import Dataset
 from transformers import PreTrainedModel
+from transformers.cache_utils import DynamicCache
 
 from ..progress import progress_bar
 from ..run_folder import fingerprint, fingerprint_arrays
-from transformers.cache_utils import DynamicCache
-
 from ..speculative import (
     DraftHead,
     DraftHeadDrafter,
@@ -156,7 +155,8 @@ def build_distillation_dataset(
             loss_mask = torch.zeros(length, dtype=torch.bool)
             loss_mask[: length - 2] = generated_action[2:]  # position p predicts token p+2
             examples.append({"input_ids": ids, "hidden": row_states, "loss_mask": loss_mask,
-                             "first_position": torch.tensor(prompt_len), PREVIOUS_ACTION: row_previous.long()})  # fmt: skip
+                             "first_position": torch.tensor(prompt_len),
+                             PREVIOUS_ACTION: row_previous.long()})  # fmt: skip
     return DistillationDataset(examples)
 
 
@@ -189,6 +189,48 @@ def collate_distillation(batch: list[dict[str, torch.Tensor]]) -> dict[str, torc
 
 
 # ----------------------------------------------------------------------------- loss
+def unrolled_features(
+    draft_head: DraftHead,
+    handles: TargetHandles,
+    batch: dict[str, torch.Tensor],
+    inputs_hidden: torch.Tensor,
+    num_steps: int,
+) -> list[torch.Tensor]:
+    """The head's features over a batch, unrolled ``num_steps`` draft steps (training-time test).
+
+    Step 0 is teacher-forced: the input at position p is ``(x[p+1], h[p])``. At step j >= 1 the query of root r (one
+    per position, r = 0..T-1) is fed at position ``r + j`` with token ``x[r+j+1]`` and the head's own step-(j-1)
+    feature of root r, seeing the step-0 entries 0..r and its own entries of steps 1..j: exactly what a chain drafted
+    from root r computes when its drafts were right.
+
+    Args:
+        batch: a [`collate_distillation`] batch (``input_ids`` ``[B, L]``, ``padding_mask``, ``first_position``,
+            ``previous_action``).
+        inputs_hidden: ``[B, T, n H]`` (T = L - 1) the step-0 hidden inputs h[p] (noise added by the caller).
+    Returns:
+        ``num_steps`` tensors ``[B, T, H]``: step j's feature of root r estimates ``h[r+j+1]`` (predicts x[r+j+2]).
+    """
+    input_ids = batch["input_ids"]
+    batch_size, steps = input_ids.shape[0], input_ids.shape[1] - 1
+    dtype = inputs_hidden.dtype
+    positions = torch.arange(steps, device=input_ids.device)[None].expand(batch_size, -1)
+    previous = _previous_bins(draft_head, batch) if draft_head.config.previous_action_input else None
+    first_position = batch["first_position"].to(input_ids.device)
+    valid_keys = batch["padding_mask"][:, :-1]  # [B, T]
+    cache = DynamicCache() if num_steps > 1 else None
+    features, outputs = inputs_hidden, []
+    for step in range(num_steps):
+        # the token of root r's step: x[r+step+1] (past the sequence: padding, never scored)
+        token_ids = input_ids[:, step + 1 :]
+        token_ids = torch.cat([token_ids, token_ids.new_zeros(batch_size, step)], dim=1)
+        step_positions = positions + step
+        mask = _unrolled_mask(valid_keys, step, dtype)
+        bins = None if previous is None else draft_head.slot_bins(previous, first_position, step_positions)
+        features = draft_head(embed_tokens(handles, token_ids).to(dtype), features, step_positions, mask, cache, bins)
+        outputs.append(features)
+    return outputs
+
+
 def distillation_loss(
     draft_head: DraftHead,
     handles: TargetHandles,
@@ -196,11 +238,11 @@ def distillation_loss(
     config: DraftTrainingConfig,
     generator: torch.Generator | None = None,
 ) -> dict[str, torch.Tensor]:
-    """EAGLE objective on one batch (see module docstring), unrolled ``config.unroll_steps`` draft steps. Returns
-    ``loss``, ``feature_loss``, ``token_loss`` and ``token_accuracy`` (draft argmax == target argmax on the loss
-    positions), each averaged over the steps, and ``step_accuracy`` ``[n]`` (the accuracy of each step)."""
+    """EAGLE objective on one batch (see module docstring), unrolled ``config.unroll_steps`` draft steps
+    ([`unrolled_features`]). Returns ``loss``, ``feature_loss``, ``token_loss`` and ``token_accuracy`` (draft argmax
+    == target argmax on the loss positions), each averaged over the steps, and ``step_accuracy`` ``[n]`` (each
+    step's accuracy)."""
     input_ids, hidden = batch["input_ids"], batch["hidden"]  # [B, L], [B, L, n H (+ H)]
-    batch_size, length = input_ids.shape
     dtype = next(draft_head.parameters()).dtype
     hidden = hidden.to(dtype)
     head_config = draft_head.config
@@ -218,30 +260,18 @@ def distillation_loss(
     if config.feature_noise > 0:
         noise = torch.rand(inputs_hidden.shape, generator=generator, device="cpu").to(inputs_hidden.device)
         inputs_hidden = inputs_hidden + (noise - 0.5) * config.feature_noise
-    steps = length - 1
-    positions = torch.arange(steps, device=input_ids.device)[None].expand(batch_size, -1)
-    previous = _previous_bins(draft_head, batch) if head_config.previous_action_input else None
-    first_position = batch["first_position"].to(input_ids.device)
-    valid_keys = batch["padding_mask"][:, :-1]  # [B, T]
-    cache = DynamicCache() if config.unroll_steps > 1 else None
+    all_features = unrolled_features(draft_head, handles, batch, inputs_hidden, config.unroll_steps)
+    positions = torch.arange(input_ids.shape[1] - 1, device=input_ids.device)[None]
     cap = head_config.final_logit_softcapping  # the target caps its logits (Gemma-2): so does the loss
     totals = {"feature_loss": 0.0, "token_loss": 0.0, "token_accuracy": 0.0}
-    step_accuracy, features = [], inputs_hidden
-    for step in range(config.unroll_steps):
-        # queries r = 0..T-1: input token x[r+step+1] at position r+step (past the sequence: padding, never scored)
-        token_ids = input_ids[:, step + 1 :]
-        token_ids = torch.cat([token_ids, token_ids.new_zeros(batch_size, step)], dim=1)
-        step_positions = positions + step
-        mask = _unrolled_mask(valid_keys, step, dtype)
-        bins = None if previous is None else draft_head.slot_bins(previous, first_position, step_positions)
-        features = draft_head(embed_tokens(handles, token_ids).to(dtype), features, step_positions, mask, cache, bins)
-        # query r predicts x[r+step+2], the target's h[r+step+1]; scored where that is a generated action token
-        # (and, past the first step, r is a root a chain is drafted from: at or after the last prompt token - 1)
-        shifted = lambda t: torch.cat([t[:, step:], t[:, :step].new_zeros(t[:, :step].shape)], dim=1)  # noqa: E731
-        loss_mask = shifted(batch["loss_mask"][:, :-1])
-        target_features = shifted(target_top[:, 1:])
+    step_accuracy = []
+    for step, features in enumerate(all_features):
+        # root r's step predicts x[r+step+2], the target's h[r+step+1]; scored where that is a generated action
+        # token (and, past step 0, where r is a root a chain is drafted from: at or after the prompt's end - 2)
+        loss_mask = _shifted(batch["loss_mask"][:, :-1], step)
+        target_features = _shifted(target_top[:, 1:], step)
         if step:
-            loss_mask = loss_mask & (positions + 2 >= first_position)
+            loss_mask = loss_mask & (positions + 2 >= batch["first_position"].to(positions.device))
         n = loss_mask.sum().clamp(min=1)
         feature_loss = torch.nn.functional.smooth_l1_loss(features, target_features, reduction="none").mean(-1)
         feature_loss = (feature_loss * loss_mask).sum() / n
@@ -260,6 +290,12 @@ def distillation_loss(
         step_accuracy.append(accuracy.detach())
     loss = config.feature_loss_weight * totals["feature_loss"] + config.token_loss_weight * totals["token_loss"]
     return {"loss": loss, **totals, "step_accuracy": torch.stack(step_accuracy)}
+
+
+def _shifted(values: torch.Tensor, step: int) -> torch.Tensor:
+    """``values`` ``[B, T, ...]`` moved ``step`` positions left (root r gets position r + step's), zeros past the
+    end."""
+    return torch.cat([values[:, step:], values[:, :step].new_zeros(values[:, :step].shape)], dim=1)
 
 
 def _previous_bins(draft_head: DraftHead, batch: dict[str, torch.Tensor]) -> torch.Tensor:
