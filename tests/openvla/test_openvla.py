@@ -25,7 +25,13 @@ from hf_specvla.openvla import (
 )
 from hf_specvla.openvla.modeling_openvla import PROMPT_END_TOKEN_ID
 from hf_specvla.training.draft_head import DraftTrainingConfig
-from hf_specvla.training.openvla_draft import FRAMES_FILE, load_frames, openvla_prompts, train_openvla_draft_head
+from hf_specvla.training.openvla_draft import (
+    FRAMES_FILE,
+    distillation_prompts,
+    load_frames,
+    openvla_prompts,
+    train_openvla_draft_head,
+)
 
 HUB_7B = Path(__file__).resolve().parents[3] / "shared" / "openvla-reference" / "hub-openvla-7b"
 needs_hub_files = pytest.mark.skipif(not HUB_7B.is_dir(), reason=f"{HUB_7B} (the shared OpenVLA reference) is absent")
@@ -473,14 +479,17 @@ def test_broken_checkpoint_folders_are_named(tiny_openvla, tmp_path):
 
 
 # --- draft-head training on OpenVLA frames --------------------------------------------------------------------------
-def write_frames(folder: Path, count: int) -> None:
+def write_frames(folder: Path, count: int, previous_actions: list | None = None) -> None:
     rng = np.random.default_rng(3)
     (folder / "images").mkdir(parents=True)
     lines = []
     for index in range(count):
         Image.fromarray(rng.integers(0, 256, (30, 40, 3), dtype=np.uint8)).save(folder / "images" / f"{index:03d}.png")
         instruction = ["Pick up the red block", "open the drawer"][index % 2]
-        lines.append(json.dumps({"image": f"images/{index:03d}.png", "instruction": instruction}))
+        record = {"image": f"images/{index:03d}.png", "instruction": instruction}
+        if previous_actions is not None and previous_actions[index] is not None:
+            record["previous_action"] = previous_actions[index]
+        lines.append(json.dumps(record))
     (folder / FRAMES_FILE).write_text("\n".join(lines) + "\n")
 
 
@@ -515,6 +524,40 @@ def test_draft_head_training_on_openvla_frames(tiny_openvla, tmp_path):
         train_openvla_draft_head(
             other, processor, frames[:4], frames[4:], more, unnorm_key="tiny_dataset", progress=False
         )
+
+
+def test_a_head_v2_trains_on_openvla_frames_with_previous_actions(tiny_openvla, tmp_path):
+    """Head v2 (layers 2, middle, last; the robot's previous action; training-time test) through the OpenVLA recipe:
+    trained, saved, and lossless with the previous action it reads."""
+    processor = OpenVLAProcessor(OpenVLAImageProcessor.from_dict(PREPROCESSOR_FIELDS), FakePromptTokenizer())
+    tokens = list(tiny_openvla.action_tokenizer.action_token_ids)
+    previous = [
+        None,
+        tokens[:ACTION_DIM],
+        tokens[10 : 10 + ACTION_DIM],
+        None,
+        tokens[-ACTION_DIM:],
+        tokens[:ACTION_DIM],
+    ]
+    write_frames(tmp_path / "frames", 6, previous)
+    frames = load_frames(tmp_path / "frames")
+    assert frames[0].previous_action is None and frames[1].previous_action == tokens[:ACTION_DIM]
+    config = DraftTrainingConfig(output_dir=str(tmp_path / "head"), max_steps=2, batch_size=2, learning_rate=1e-3,
+                                 unroll_steps=3)  # fmt: skip
+    train_openvla_draft_head(tiny_openvla, processor, frames[:4], frames[4:], config, unnorm_key="tiny_dataset",
+                             progress=False, head_version="v2")  # fmt: skip
+    loaded = DraftHead.from_pretrained(tmp_path / "head").eval()
+    assert loaded.config.previous_action_input and loaded.config.feature_layers[-1] == -1
+    prompt = openvla_prompts(tiny_openvla, processor, frames[4:5])[0]
+    greedy = tiny_openvla.generate(**prompt, max_new_tokens=ACTION_DIM, do_sample=False)
+    drafter = DraftHeadDrafter(loaded, tree=DraftTreeConfig(top_k=2, depth=4, total_tokens=8))
+    drafter = drafter.with_previous_action(frames[4].previous_action)
+    with torch.no_grad():
+        drafted = tiny_openvla.generate(**prompt, max_new_tokens=ACTION_DIM, bin_tolerance=0, assistant_model=drafter)
+    assert torch.equal(drafted, greedy)
+    frames[5].previous_action = tokens[:3]
+    with pytest.raises(ValueError, match=r"frame 0: previous_action must be 7 action token ids"):
+        distillation_prompts(tiny_openvla, processor, frames[5:], "tiny_dataset")
 
 
 def test_bad_frame_folders_are_named(tmp_path):

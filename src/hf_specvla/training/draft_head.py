@@ -302,6 +302,8 @@ def _previous_bins(draft_head: DraftHead, batch: dict[str, torch.Tensor]) -> tor
     """``[B, D]`` the examples' previous-action bins (``n_action_bins`` where an example has none)."""
     ids = batch[PREVIOUS_ACTION]
     action_dim = draft_head.config.action_dim
+    if bool((ids < 0).all()):  # no example has one
+        return draft_head.no_previous_action(ids.device).expand(ids.shape[0], -1)
     if ids.shape[1] != action_dim:
         raise ValueError(f"the distillation set's previous actions have {ids.shape[1]} tokens, the head's actions "
                          f"{action_dim}: build the set with the policy's previous actions")  # fmt: skip
