@@ -7,15 +7,18 @@ interleaved in a fresh random order every round, medians reported:
 
 * ``decode``: one target decode step (1 token against the prompt's KV cache);
 * ``head step``: one level of the head's chain *as the engine runs it* (``DraftHeadDrafter`` session: head
-  forward, scorer, top-k, masks), from proposals of depth k and 1: ``(t(k) - t(1)) / (k - 1)``;
+  forward, scorer, top-k, masks), from proposals of depth k and 1: ``(t(k) - t(1)) / (k - 1)``; ``--heads v1 v2``
+  times head v1 (the last hidden state) and head v2 (layers 2, middle and last fused, the previous action as input);
 * ``prompt``: the prompt's forward with the image (the prefill); ``+16 drafted``: the same with 16 drafted
-  tokens appended (what verifying drafts inside the prefill costs);
+  tokens appended (what verifying drafts inside the prefill costs); ``+ v2 features``: the prompt's forward that
+  also returns head v2's three hidden states, concatenated (what EAGLE-3 features cost the prefill);
 * ``greedy call``: ``predict_action`` with plain greedy decoding (``chunk_length x 4`` tokens).
 
 The ratios that decide (issue 22): ``head step / decode`` (at most ~10%) and ``+16 drafted / prompt`` (at most
 ~1.15x), with ``greedy call`` at most ~150 ms.
 
     python examples/benchmarks/policy_cost.py --decoders 3x192 8x192 12x192 16x192 --chunk-length 2
+    python examples/benchmarks/policy_cost.py --decoders 16x192 --heads v1 v2
     python examples/benchmarks/policy_cost.py --tiny        # seconds: what CI runs (no timing is asserted)
 """
 
@@ -38,6 +41,7 @@ from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
 from hf_specvla.speculative import CACHE_KEY
 from hf_specvla.speculative.cache import truncate_cache
 from hf_specvla.speculative.drafter import Commit, DraftContext, DraftRound
+from hf_specvla.training import head_v2_settings
 
 
 def parse_decoder(text: str) -> tuple[int, int]:
@@ -70,9 +74,13 @@ def measurements(policy: VLAPolicy, draft_head: DraftHead, drafted: int, chain_d
         prefill = model(input_ids=input_ids, pixel_values=pixel_values, **{CACHE_KEY: cache}, use_cache=True,
                         output_hidden_states=True)  # fmt: skip
     prompt_length = input_ids.shape[1]
-    hidden = prefill.hidden_states[-1]  # [1, S, H]: post-norm, what a Commit carries
+    layers = draft_head.config.hidden_state_layers
+    hidden = torch.cat([prefill.hidden_states[i] for i in layers], dim=-1)  # [1, S, n H]: what a Commit carries
     context = DraftContext(model, policy.action_layout, [policy.tokenizer.eos_token_id], None)
-    session = DraftHeadDrafter(draft_head, num_draft_tokens=chain_depth).start(context)
+    drafter = DraftHeadDrafter(draft_head, num_draft_tokens=chain_depth).with_previous_action(action_ids[0, :4])
+    session = drafter.start(context)
+    with torch.no_grad():  # the prefill's round: a head v2 learns where the generated tokens start
+        session.propose(DraftRound(input_ids, 0, chain_depth, True, torch.tensor([[prompt_length - 1]])))
     next_ids = torch.cat([input_ids[:, 1:], action_ids[:, :1]], dim=1)
     session.observe(Commit(next_ids, torch.arange(prompt_length)[None], hidden, prompt_length))
     sequence = torch.cat([input_ids, action_ids[:, :1]], dim=1)
@@ -95,6 +103,11 @@ def measurements(policy: VLAPolicy, draft_head: DraftHead, drafted: int, chain_d
         model(input_ids=input_ids, pixel_values=pixel_values)
 
     @torch.no_grad()
+    def prompt_features():
+        states = model(input_ids=input_ids, pixel_values=pixel_values, output_hidden_states=True).hidden_states
+        torch.cat([states[i] for i in head_v2_settings(model)["feature_layers"]], dim=-1)
+
+    @torch.no_grad()
     def prompt_drafted():
         model(input_ids=torch.cat([input_ids, action_ids], dim=1), pixel_values=pixel_values)
 
@@ -103,7 +116,8 @@ def measurements(policy: VLAPolicy, draft_head: DraftHead, drafted: int, chain_d
 
     propose(1)()  # the catch-up over the prompt happens once, outside the clock
     return {"decode": decode, "propose 1": propose(1), f"propose {chain_depth}": propose(chain_depth),
-            "prompt": prompt, f"+{drafted} drafted": prompt_drafted, "greedy call": greedy_call}  # fmt: skip
+            "prompt": prompt, f"+{drafted} drafted": prompt_drafted, "greedy call": greedy_call,
+            "+ v2 features": prompt_features}  # fmt: skip
 
 
 def measure(functions: dict, repeats: int, seed: int) -> dict[str, float]:
@@ -125,6 +139,7 @@ def main() -> None:
     parser.add_argument("--decoders", nargs="+", type=parse_decoder, default=[(3, 192), (12, 192)],
                         help="decoder shapes LAYERSxWIDTH")  # fmt: skip
     parser.add_argument("--chunk-length", type=int, default=2, help="actions per policy call")
+    parser.add_argument("--heads", nargs="+", choices=("v1", "v2"), default=["v1"], help="draft-head versions timed")
     parser.add_argument("--drafted", type=int, default=16, help="drafted tokens appended to the prompt's forward")
     parser.add_argument("--chain-depth", type=int, default=5, help="depth k of the chain proposal timed")
     parser.add_argument("--repeats", type=int, default=30, help="timed rounds")
@@ -133,29 +148,32 @@ def main() -> None:
     parser.add_argument("--tiny", action="store_true", help="two tiny decoders, 2 rounds (CI: runs, asserts nothing)")
     args = parser.parse_args()
     if args.tiny:
-        args.decoders, args.repeats, args.chain_depth = [(1, 12), (2, 12)], 2, 2
+        args.decoders, args.repeats, args.chain_depth, args.heads = [(1, 12), (2, 12)], 2, 2, ["v1", "v2"]
     torch.set_num_threads(args.threads)
     rows = []
-    for layers, width in args.decoders:
+    for (layers, width), head in [(decoder, head) for decoder in args.decoders for head in args.heads]:
         policy = random_policy(layers, width, args.chunk_length, seed=0)
-        draft_head = DraftHead.from_target(policy.model, policy.action_tokenizer, 4).eval()
+        settings = head_v2_settings(policy.model) if head == "v2" else {}
+        draft_head = DraftHead.from_target(policy.model, policy.action_tokenizer, 4, **settings).eval()
         median = measure(measurements(policy, draft_head, args.drafted, args.chain_depth), args.repeats, seed=0)
         head_step = (median[f"propose {args.chain_depth}"] - median["propose 1"]) / (args.chain_depth - 1)
         rows.append({
-            "decoder": f"{layers}x{width}", "decode_ms": median["decode"], "head_step_ms": head_step,
+            "decoder": f"{layers}x{width}", "head": head, "decode_ms": median["decode"], "head_step_ms": head_step,
             "head_step_over_decode": head_step / median["decode"], "prompt_ms": median["prompt"],
             "drafted_over_prompt": median[f"+{args.drafted} drafted"] / median["prompt"],
+            "features_over_prompt": median["+ v2 features"] / median["prompt"],
             "greedy_call_ms": median["greedy call"], "first_level_ms": median["propose 1"],
         })  # fmt: skip
     print(f"\n{args.repeats} interleaved rounds, {args.threads} thread(s), chunk_length {args.chunk_length} "
           f"({4 * args.chunk_length} tokens per call), medians:\n")  # fmt: skip
-    print(f"| decoder | decode step | head step | head / decode | prompt forward | + {args.drafted} drafted | "
-          "greedy call |")  # fmt: skip
-    print("|---|---:|---:|---:|---:|---:|---:|")
+    print(f"| decoder | head | decode step | head step | head / decode | prompt forward | + {args.drafted} drafted | "
+          "+ v2 features | greedy call |")  # fmt: skip
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for row in rows:
-        print(f"| {row['decoder']} | {row['decode_ms']:.2f} ms | {row['head_step_ms']:.2f} ms | "
+        print(f"| {row['decoder']} | {row['head']} | {row['decode_ms']:.2f} ms | {row['head_step_ms']:.2f} ms | "
               f"{100 * row['head_step_over_decode']:.0f}% | {row['prompt_ms']:.2f} ms | "
-              f"{row['drafted_over_prompt']:.2f}x | {row['greedy_call_ms']:.1f} ms |")  # fmt: skip
+              f"{row['drafted_over_prompt']:.2f}x | {row['features_over_prompt']:.2f}x | "
+              f"{row['greedy_call_ms']:.1f} ms |")  # fmt: skip
     if args.output:
         Path(args.output).write_text(json.dumps({"settings": vars(args) | {"decoders": [r["decoder"] for r in rows]},
                                                  "rows": rows}, indent=2))  # fmt: skip

@@ -280,3 +280,27 @@ def test_a_distillation_set_built_for_another_head_is_refused(target, head_v2):
     batch = collate_distillation([top_only[0]])
     with pytest.raises(ValueError, match=r"reads layers \[1, 2, -1\]"):
         distillation_loss(head_v2, head_v2.target_handles(target), batch, DraftTrainingConfig("unused"))
+
+
+# ----------------------------------------------------------------------------- cost structure
+def test_head_v2_costs_at_most_12_percent_of_a_policy_v3_decode_step():
+    """Multiply-adds per token (weights touched; attention over the cache aside): a head v2 step (the fuses, its one
+    decoder layer, the action-only scorer) against a decode step of policy v3 (16 decoder layers + lm_head). What it
+    costs in time is measured by examples/benchmarks/policy_cost.py --heads v1 v2."""
+    from hf_specvla.policies import VLAPolicy
+    from hf_specvla.training import head_v2_settings
+
+    policy = VLAPolicy.from_pretrained(ROOT / "policies/mt10_vla3")
+    language_model = policy.model.model.language_model
+    head = DraftHead.from_target(policy.model, policy.action_tokenizer, 4, **head_v2_settings(policy.model))
+    assert head.config.hidden_state_layers == (2, 8, -1)
+
+    def weights(module) -> int:
+        return sum(p.numel() for name, p in module.named_parameters() if p.dim() == 2 and "embed" not in name)
+
+    decode = weights(language_model) + policy.model.lm_head.weight.numel()
+    scorer = head.scorer(policy.model.lm_head, [policy.tokenizer.eos_token_id]).weight.numel()
+    step = weights(head.layer) + weights(head.fuse) + weights(head.feature_fuse) + scorer
+    assert step / decode <= 0.12, f"a head v2 step touches {step:,} weights, a decode step {decode:,}"
+    matrices = {name.split(".")[0] for name, p in head.named_parameters() if p.dim() == 2}
+    assert matrices == {"layer", "fuse", "feature_fuse", "previous_embedding"}  # the last one is looked up, not run
