@@ -21,12 +21,25 @@ def run_example(script: str, *args, timeout: int = 300, check: bool = True) -> s
 def test_policy_cost_script_runs_and_reports_every_ratio(tmp_path):
     output = tmp_path / "cost.json"
     result = run_example("benchmarks/policy_cost.py", "--tiny", "--output", str(output))
-    assert "| decoder | decode step | head step | head / decode |" in result.stdout
+    assert "| decoder | head | decode step | head step | head / decode |" in result.stdout
     rows = json.loads(output.read_text())["rows"]
-    assert [row["decoder"] for row in rows] == ["1x12", "2x12"]
+    assert [(row["decoder"], row["head"]) for row in rows] == [("1x12", "v1"), ("1x12", "v2"), ("2x12", "v1"),
+                                                               ("2x12", "v2")]  # fmt: skip
     for row in rows:
-        for key in ("decode_ms", "head_step_over_decode", "drafted_over_prompt", "greedy_call_ms"):
+        for key in ("decode_ms", "head_step_over_decode", "drafted_over_prompt", "features_over_prompt",
+                    "greedy_call_ms"):  # fmt: skip
             assert math.isfinite(row[key]), (key, row)
+
+
+def test_head_bound_script_reports_every_generated_token(tmp_path):
+    output = tmp_path / "bound.json"
+    result = run_example("benchmarks/head_bound.py", "--tiny", "--output", str(output))
+    assert "| head | token | head top-1 | head top-4 | chain from the prefill |" in result.stdout
+    (rows,) = json.loads(output.read_text())["heads"].values()
+    assert [row["token"] for row in rows] == ["a0.y", "a0.z", "a0.grip", "a1.x", "a1.y", "a1.z", "a1.grip"]
+    for row in rows:
+        assert all(0 <= row[key] <= 1 for key in ("head_top1", "head_top4", "chain", "target_top1_probability"))
+        assert row["head_top1"] <= row["head_top4"]
 
 
 def test_policy_cost_script_refuses_a_bad_decoder_shape():

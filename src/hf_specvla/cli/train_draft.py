@@ -59,6 +59,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--batch-size", type=POSITIVE, default=defaults.batch_size, help="sequences per step")
     parser.add_argument("--learning-rate", type=float, default=defaults.learning_rate,
                         help="peak AdamW learning rate")  # fmt: skip
+    parser.add_argument("--feature-loss-weight", type=float, default=defaults.feature_loss_weight,
+                        help="weight of the SmoothL1 loss on the features (EAGLE-1/2; EAGLE-3 uses 0)")  # fmt: skip
+    parser.add_argument("--token-loss-weight", type=float, default=defaults.token_loss_weight,
+                        help="weight of the soft cross-entropy on the tokens")  # fmt: skip
     parser.add_argument("--lr-schedule", choices=("constant", "cosine"), default=defaults.lr_schedule,
                         help="after warm-up")  # fmt: skip
     parser.add_argument("--warmup-steps", type=NON_NEGATIVE, default=defaults.warmup_steps,
@@ -86,6 +90,7 @@ def run(args, parser) -> int:
         training_config = PolicyDraftTrainingConfig(
             args.output_dir, max_steps=args.max_steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
             warmup_steps=args.warmup_steps, lr_schedule=args.lr_schedule, save_every=args.save_every,
+            feature_loss_weight=args.feature_loss_weight, token_loss_weight=args.token_loss_weight,
             eval_every=args.eval_every, resume=args.resume, overwrite_output_dir=args.overwrite_output_dir,
             seed=args.seed,
         )  # fmt: skip
