@@ -54,10 +54,12 @@ def test_policy_v3_keeps_policy_v2s_cost_structure():
     assert part(v3, *tower) == part(v2, *tower)
 
 
-def test_speculation_on_policy_v3_is_lossless():
-    """Its draft head and the action prior on the shipped weights: r=0 gives greedy's actions, in fewer forwards."""
+@pytest.mark.parametrize("head_folder", ["mt10_vla3_draft", "mt10_vla3_draft_v2"])
+def test_speculation_on_policy_v3_is_lossless(head_folder):
+    """Its draft heads (v1, and v2 reading the previous action the policy remembers) and the action prior on the
+    shipped weights: r=0 gives greedy's actions, in fewer forwards."""
     policy = VLAPolicy.from_pretrained(POLICIES / "mt10_vla3")
-    head = DraftHead.from_pretrained(POLICIES / "mt10_vla3_draft")
+    head = DraftHead.from_pretrained(POLICIES / head_folder)
     policy.check_draft_head(head)
     rng = np.random.default_rng(1)
     forwards = 0
