@@ -181,6 +181,13 @@ def write_model_card(
     acceptance = final.get("acceptance_per_position", [])
     rows = "\n".join(f"| {depth + 1} | {rate:.1%} |" for depth, rate in enumerate(acceptance))
     config = head.config
+    version = ""
+    if config.feature_layers is not None or config.previous_action_input:
+        reads = [f"the policy's hidden states of layers {list(config.hidden_state_layers)} (fused)"]
+        if config.previous_action_input:
+            reads.append("the robot's previous action")
+        version = (f"\nHead v2: it reads {' and '.join(reads)}; trained on {training_config.unroll_steps} unrolled "
+                   f"draft steps of its own features (training-time test).\n")  # fmt: skip
     tasks = ", ".join(data_config.tasks)
     kept_rollouts = data_config.rollout_episodes - data_config.validation_episodes
     demo_text = (
@@ -204,7 +211,7 @@ base_model: {config.target_name_or_path}
 An EAGLE-style draft head (one decoder layer, {head.num_parameters():,} parameters) for speculative decoding of
 the vision-language-action policy `{config.target_name_or_path}` (weights fingerprint `{config.target_fingerprint}`;
 a head is refused by a policy with other weights). It borrows the policy's embedding and lm_head at run time.
-
+{version}
 ```python
 from hf_specvla import DraftHead
 from hf_specvla.policies import VLAPolicy
