@@ -49,7 +49,7 @@ from .drafters import (
 from .drafters.draft_head import embed_tokens
 from .generation import SPECULATION_KWARGS, SpeculativeGenerationMixin, disable_speculation, enable_speculation
 from .loop import as_drafter, speculative_generate
-from .masks import causal_mask
+from .masks import causal_mask, to_additive_mask
 from .modeling_draft_head import DraftHead, TargetHandles, check_draft_head_folder, is_local_path, softcap_logits
 from .outputs import SpeculativeDecoderOnlyOutput
 from .stats import SpeculationStats
@@ -71,6 +71,7 @@ __all__ = [
     "TargetHandles",
     "as_drafter",
     "causal_mask",
+    "to_additive_mask",
     "check_draft_head_folder",
     "embed_tokens",
     "is_local_path",

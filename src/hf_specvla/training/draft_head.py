@@ -45,8 +45,8 @@ from ..speculative import (
     embed_tokens,
     softcap_logits,
     speculative_generate,
+    to_additive_mask,
 )
-from ..speculative.masks import to_additive_mask
 from .checkpoints import check_output_dir, latest_checkpoint, prepare_output_dir, training_record
 from .configuration import DraftTrainingConfig
 from .loop import TrainingJob, default_accelerator, run_training
