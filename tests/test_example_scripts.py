@@ -203,3 +203,17 @@ def test_serving_load_script_drives_three_servers_and_reports_every_k(tmp_path):
         assert row["requests"] > 0 and row["actions_per_second"] > 0
         expected = {"greedy": 0.0, "always": 1.0}.get(row["kind"], row["speculative_fraction"])
         assert row["speculative_fraction"] == expected
+
+
+@pytest.mark.slow
+def test_gpu_openvla_benchmark_runs_on_the_cpu(tmp_path):
+    """Its CPU mode (a tiny random OpenVLA): every method and batch size reports its forwards and syncs; drafts that
+    are all right take one target forward."""
+    output = tmp_path / "gpu.json"
+    result = run_example("benchmarks/gpu_openvla.py", "--tiny", "--batch-sizes", "1", "--right-probabilities", "0.5",
+                         "1.0", "--json", str(output), timeout=900)  # fmt: skip
+    assert "| method | B | ms / call | ms / action | target fwd / call |" in result.stdout
+    rows = {row["method"]: row for row in json.loads(output.read_text())["rows"]}
+    assert set(rows) == {"greedy", "greedy:compile", "drafts p=0.5", "drafts p=1", "head chain"}
+    assert rows["drafts p=1"]["target_forwards_per_call"] == 1 and rows["greedy"]["target_forwards_per_call"] == 7
+    assert all(row["syncs_per_round"] > 0 and math.isfinite(row["ms_per_forward"]) for row in rows.values())
