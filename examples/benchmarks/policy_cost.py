@@ -38,7 +38,7 @@ from transformers.cache_utils import DynamicCache
 from hf_specvla import ActionNormalizer, DraftHead, DraftHeadDrafter
 from hf_specvla.metaworld.env import TASK_INSTRUCTIONS
 from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
-from hf_specvla.speculative import CACHE_KEY
+from hf_specvla.speculative import CACHE_KEY, read_hidden_states
 from hf_specvla.speculative.cache import truncate_cache
 from hf_specvla.speculative.drafter import Commit, DraftContext, DraftRound
 from hf_specvla.training import head_v2_settings
@@ -75,7 +75,7 @@ def measurements(policy: VLAPolicy, draft_head: DraftHead, drafted: int, chain_d
                         output_hidden_states=True)  # fmt: skip
     prompt_length = input_ids.shape[1]
     layers = draft_head.config.hidden_state_layers
-    hidden = torch.cat([prefill.hidden_states[i] for i in layers], dim=-1)  # [1, S, n H]: what a Commit carries
+    hidden = read_hidden_states(prefill.hidden_states, layers)  # [1, S, n H]: what a Commit carries
     context = DraftContext(model, policy.action_layout, [policy.tokenizer.eos_token_id], None)
     drafter = DraftHeadDrafter(draft_head, num_draft_tokens=chain_depth).with_previous_action(action_ids[0, :4])
     session = drafter.start(context)
@@ -105,7 +105,7 @@ def measurements(policy: VLAPolicy, draft_head: DraftHead, drafted: int, chain_d
     @torch.no_grad()
     def prompt_features():
         states = model(input_ids=input_ids, pixel_values=pixel_values, output_hidden_states=True).hidden_states
-        torch.cat([states[i] for i in head_v2_settings(model)["feature_layers"]], dim=-1)
+        read_hidden_states(states, head_v2_settings(model)["feature_layers"])
 
     @torch.no_grad()
     def prompt_drafted():

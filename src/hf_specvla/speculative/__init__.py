@@ -35,6 +35,7 @@ from .drafter import (
     DraftRound,
     DraftSession,
     PerRowDrafter,
+    read_hidden_states,
 )
 from .drafters import (
     ActionPriorDrafter,
@@ -72,6 +73,7 @@ __all__ = [
     "as_drafter",
     "causal_mask",
     "to_additive_mask",
+    "read_hidden_states",
     "check_draft_head_folder",
     "embed_tokens",
     "is_local_path",

@@ -334,9 +334,12 @@ def _common_hidden_state_layers(drafters: Sequence[Drafter]) -> tuple[int, ...]:
     return layers.pop() if layers else (-1,)
 
 
-def hidden_state_layers(drafter: Drafter) -> tuple[int, ...] | None:
-    """The target hidden states ``drafter`` reads (its layers), or None when it reads none."""
-    return tuple(drafter.hidden_state_layers) if drafter.needs_hidden_states else None
+def read_hidden_states(hidden_states: Sequence[torch.Tensor], layers: Sequence[int]) -> torch.Tensor:
+    """A forward's ``hidden_states`` (one ``[B, q, H]`` per layer) -> ``[B, q, n H]``: the n ``layers`` asked for
+    ([`Drafter.hidden_state_layers`]), concatenated in that order."""
+    if len(layers) == 1:
+        return hidden_states[layers[0]]
+    return torch.cat([hidden_states[i] for i in layers], dim=-1)
 
 
 def _common_batch_size(drafters: Sequence[Drafter]) -> int | None:

@@ -81,7 +81,6 @@ from .drafter import (
     DraftRound,
     DraftSession,
     PerRowDrafter,
-    hidden_state_layers,
 )
 from .drafters.draft_head import DraftHeadDrafter
 from .modeling_draft_head import DraftHead
@@ -935,7 +934,8 @@ def speculative_generate(
         key_valid=None if prompt_padding is None else prompt_padding.bool(),
         target_cache=cache,
     )
-    capacity, output_hidden = static_capacity(cache), hidden_state_layers(drafter)
+    capacity = static_capacity(cache)
+    output_hidden = tuple(drafter.hidden_state_layers) if drafter.needs_hidden_states else None
     # A prefix-LM prompt (PaliGemma's token_type_ids: the prompt attends to itself both ways at the prefill) needs
     # the model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies a chain.
     prefix_attention = model_inputs.get("token_type_ids") is not None

@@ -23,6 +23,7 @@ from transformers.generation.logits_process import (
 from .cache import cache_length
 from .compat import CACHE_KEY
 from .compiled import mark_length_dynamic
+from .drafter import read_hidden_states
 from .masks import to_additive_mask, tree_verification_allowed
 from .tree import TreeBatch
 
@@ -126,10 +127,7 @@ def verify_trees(
     outputs = (forward or model)(**inputs, output_hidden_states=bool(output_hidden), return_dict=True)
     logits, hidden = outputs.logits.float(), None
     if output_hidden:  # [B, q, n H]: the asked layers' hidden states, concatenated
-        states = outputs.hidden_states
-        hidden = (
-            torch.cat([states[i] for i in output_hidden], -1) if len(output_hidden) > 1 else states[output_hidden[0]]
-        )
+        hidden = read_hidden_states(outputs.hidden_states, output_hidden)
     if dynamic_length:
         logits = logits[:, 1:]
     if forward is not None:

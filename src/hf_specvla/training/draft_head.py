@@ -43,6 +43,7 @@ from ..speculative import (
     SpeculationStats,
     TargetHandles,
     embed_tokens,
+    read_hidden_states,
     softcap_logits,
     speculative_generate,
     to_additive_mask,
@@ -146,8 +147,7 @@ def build_distillation_dataset(
         forward_inputs = dict(inputs, input_ids=sequences)
         if mask is not None:
             forward_inputs["attention_mask"] = torch.cat([mask, mask.new_ones(mask.shape[0], max_new_tokens)], 1)
-        states = target(**forward_inputs, output_hidden_states=True).hidden_states
-        hidden = torch.cat([states[i] for i in layers], dim=-1)  # [B, L, n H]
+        hidden = read_hidden_states(target(**forward_inputs, output_hidden_states=True).hidden_states, layers)
         prompt_len, length = inputs["input_ids"].shape[1], sequences.shape[1]
         positions = torch.arange(length)
         for ids, row_states, row_previous in zip(sequences.cpu(), hidden.cpu(), previous.cpu()):
@@ -263,21 +263,23 @@ def distillation_loss(
     all_features = unrolled_features(draft_head, handles, batch, inputs_hidden, config.unroll_steps)
     positions = torch.arange(input_ids.shape[1] - 1, device=input_ids.device)[None]
     cap = head_config.final_logit_softcapping  # the target caps its logits (Gemma-2): so does the loss
+    target_features_all = target_top[:, 1:]  # [B, T, H]: h[p+1], what input p's feature estimates
+    with torch.no_grad():
+        target_logits_all = softcap_logits(handles.lm_head(target_features_all).float(), cap)  # [B, T, V]
     totals = {"feature_loss": 0.0, "token_loss": 0.0, "token_accuracy": 0.0}
     step_accuracy = []
     for step, features in enumerate(all_features):
         # root r's step predicts x[r+step+2], the target's h[r+step+1]; scored where that is a generated action
         # token (and, past step 0, where r is a root a chain is drafted from: at or after the prompt's end - 2)
         loss_mask = _shifted(batch["loss_mask"][:, :-1], step)
-        target_features = _shifted(target_top[:, 1:], step)
+        target_features = _shifted(target_features_all, step)
         if step:
             loss_mask = loss_mask & (positions + 2 >= batch["first_position"].to(positions.device))
         n = loss_mask.sum().clamp(min=1)
         feature_loss = torch.nn.functional.smooth_l1_loss(features, target_features, reduction="none").mean(-1)
         feature_loss = (feature_loss * loss_mask).sum() / n
-        with torch.no_grad():
-            target_logits = softcap_logits(handles.lm_head(target_features[loss_mask]).float(), cap)
-            target_probs = target_logits.softmax(-1)
+        target_logits = _shifted(target_logits_all, step)[loss_mask]
+        target_probs = target_logits.softmax(-1)
         draft_logits = softcap_logits(handles.lm_head(features[loss_mask]).float(), cap)
         if len(draft_logits):
             token_loss = -(target_probs * draft_logits.log_softmax(-1)).sum(-1).mean()

@@ -158,7 +158,6 @@ def with_action_prior(
 
     if not previous_actions:
         return drafter
-    previous_actions = _actions_as_lists(previous_actions, action_layout.action_dim)
     if drafter is None:
         return ActionPriorDrafter(previous_actions, action_layout, chunk_length=chunk_length)
     # before another drafter: the held action alone, in the prefill only (a chain: the model's causal path)

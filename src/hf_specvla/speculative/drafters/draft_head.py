@@ -212,12 +212,9 @@ class _DraftHeadSession(DraftSession):
         self.unfed: list[Commit] = []  # commits whose (token, hidden) pairs the head has not seen yet
         self.root_feature: torch.Tensor | None = None  # [1, 1, H] estimate of the hidden state at the root
         self.num_forwards = 0
-        # a head that reads the previous action: its bins ([D]; "none" when not given) and, from the prefill on, the
+        # a head that reads the previous action, from the prefill on: its bins ([D]; "none" when not given) and the
         # position of the first generated token (0-dim), which tell each input's bin (DraftHead.slot_bins)
         self.previous: tuple[torch.Tensor, torch.Tensor] | None = None
-        if self.head.config.previous_action_input:
-            bins = drafter.previous_bins
-            self.previous_bins = self.head.no_previous_action(self.head.device) if bins is None else bins
 
     @property
     def num_padded_pairs(self) -> int:
@@ -262,8 +259,9 @@ class _DraftHeadSession(DraftSession):
     def propose(self, draft_round: DraftRound) -> DraftTree:
         depth = min(self.config.depth, draft_round.max_depth)
         if draft_round.at_prefill and self.head.config.previous_action_input:
-            first_position = (draft_round.root_position.reshape(()) + 1).clone()
-            self.previous = (self.previous_bins, first_position)
+            bins = self.drafter.previous_bins
+            bins = self.head.no_previous_action(self.head.device) if bins is None else bins
+            self.previous = (bins, (draft_round.root_position.reshape(()) + 1).clone())
         if draft_round.at_prefill or depth < 1:
             return DraftTree.empty(draft_round.sequence.device)
         root_position = draft_round.root_position.reshape(1, 1).clone(memory_format=torch.contiguous_format)
