@@ -13,7 +13,7 @@ from ._lazy import lazy_exports, when_imported
 __version__ = "0.1.0"
 
 _EXPORTS = {
-    ".actions.tokenizer": ("ActionLayout", "ActionNormalizer", "ActionTokenizer"),
+    ".actions.tokenizer": ("ActionLayout", "ActionNormalizer", "ActionTokenizer", "ActionUnits"),
     ".speculative": (
         "AcceptanceRule",
         "ActionPriorDrafter",
@@ -35,6 +35,7 @@ _EXPORTS = {
         "SpeculationStats",
         "SpeculativeDecoderOnlyOutput",
         "SpeculativeGenerationMixin",
+        "StrictTailConfirmed",
         "disable_speculation",
         "enable_speculation",
         "make_acceptance_rule",

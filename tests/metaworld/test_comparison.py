@@ -113,6 +113,29 @@ def test_summary_keeps_per_call_times_and_times_only_episodes_of_the_folders_con
     )
 
 
+def test_deviation_by_phase_splits_by_the_size_of_greedys_action():
+    """Tokens whose greedy value is >= the threshold count as large motions, the others as small; per dimension the
+    mean bins, the units (bins x width), the share changed and the largest; a method without the fields has none."""
+    relaxed = "prior:rho=0.1/0.1/0.1/0"
+    records = [_record("reach-v3", 0, "greedy", [10.0, 10.0]), _record("reach-v3", 0, relaxed, [5.0, 5.0])]
+    # 2 calls x 1 action of 4 dims: x large (0.9, 0.5) and small (0.1); the gripper always 1.0 and never changed
+    records[1].update(bin_distances=[4, 0, 1, 0, 2, 0, 0, 0], reference_magnitudes=[0.9, 0.1, 0.5, 1.0,
+                      0.5, 0.2, 0.05, 1.0], bin_widths=[0.01, 0.01, 0.02, 0.5], bin_distance_count=8)  # fmt: skip
+    row = summarize_comparison(records, ["greedy", relaxed], motion_threshold=0.4)["methods"][relaxed]
+    assert row["relaxed"] and row["bin_tolerance"] == 0
+    phases = row["deviation_by_phase"]
+    assert phases["threshold"] == 0.4
+    assert phases["large"]["tokens_per_dim"] == [2, 0, 1, 2] and phases["small"]["tokens_per_dim"] == [0, 2, 1, 0]
+    assert phases["large"]["mean_bins_per_dim"] == [3.0, 0.0, 1.0, 0.0]
+    assert phases["large"]["mean_units_per_dim"] == pytest.approx([0.03, 0.0, 0.02, 0.0])
+    assert phases["large"]["changed_per_dim"] == [1.0, 0.0, 1.0, 0.0] and phases["large"]["max_bins_per_dim"][0] == 4
+    assert phases["small"]["mean_bins_per_dim"] == [0.0, 0.0, 0.0, 0.0]
+    table = format_comparison(summarize_comparison(records, ["greedy", relaxed], motion_threshold=0.4))
+    assert "large: |value| >= 0.4" in table and f"| {relaxed} | large | 3.00 (100%) / 0.00 (0%)" in table
+    greedy_row = summarize_comparison(records, ["greedy", relaxed])["methods"]["greedy"]
+    assert greedy_row["deviation_by_phase"] == {} and not greedy_row["relaxed"]
+
+
 def test_jacobi_methods_build_their_drafters(random_draft):
     from hf_specvla import ComposedDrafter, DraftHeadDrafter, JacobiDrafter
 
@@ -171,7 +194,8 @@ def test_method_names():
         DecodingMethod.parse("eagle")
     with pytest.raises(ValueError, match=re.escape("'jacobi+head' is not a drafter; valid: greedy, head")):
         DecodingMethod.parse("jacobi+head")
-    for bad, message in [("prior:k=3", "needs the head chain"), ("greedy:r=2", "takes no r, rl, m, gate or k"),
+    for bad, message in [("prior:k=3", "needs the head chain"),
+                         ("greedy:r=2", "takes no r, rl, rho, dev, m, gate, confirm or k"),
                          ("prior:x=1", "bad option 'x=1'"), ("head:k=0", "k must be an integer >= 1"),
                          ("prior:r=-1", "r must be an integer >= 0"), ("prior:r=x", "bad option 'r=x'"),
                          ("greedy:compile:compile", "'compile' given twice"),
@@ -200,7 +224,8 @@ def test_relaxed_rule_options_and_presets():
     for bad, message in [("prior:gate=0.5", "give r"), ("prior:r=4,gate=2", r"gate must be a probability in \(0, 1\]"),
                          ("prior:r=4,gate=x", "gate must be a probability"), ("prior:r=4/x", "bad option 'r=4/x'"),
                          ("prior:r=4/-1", "r must be an integer >= 0"), ("prior:r=4,m=-1", "m must be an integer"),
-                         ("prior:r=4,r=2", "r given twice"), ("greedy:m=1", "takes no r, rl, m, gate or k"),
+                         ("prior:r=4,r=2", "r given twice"),
+                         ("greedy:m=1", "takes no r, rl, rho, dev, m, gate, confirm or k"),
                          ("prior:rl=", "bad option 'rl='"), ("quick", "or a preset: exact, fast")]:  # fmt: skip
         with pytest.raises(ValueError, match=message):
             DecodingMethod.parse(bad)
@@ -309,6 +334,9 @@ def test_compare_splits_seeds_between_workers(policy_dir, tmp_path):
         (["--methods", "prior:r=-1"], "r must be an integer >= 0"),
         (["--tree-depth", "9", "--tree-total-tokens", "4"], "total_tokens=4 cannot hold a path of depth=9"),
         (["--tree-top-k", "0"], "--tree-top-k: must be >= 1, got 0"),
+        (["--motion-threshold", "0"], "--motion-threshold: must be a finite number > 0, got 0"),
+        (["--motion-threshold", "big"], "--motion-threshold: expected a number > 0, got 'big'"),
+        (["--methods", "prior:rho=0.1/0.1"], "rho=0.1/0.1 has 2 values, but the policy's actions have 4 dimensions"),
     ],
 )
 def test_compare_bad_input_is_a_usage_error(policy_dir, tmp_path, capsys, flags, message):

@@ -70,7 +70,7 @@ def test_a_per_dimension_r_must_fit_the_action():
         DecodingMethod.parse("prior:r=4/4/4", action_dim=4)
     assert str(error.value) == (
         "decoding method 'prior:r=4/4/4': r=4/4/4 has 3 values, but the policy's actions have 4 dimensions "
-        "(x y z gripper): give one r for all of them, or one per dimension (4)"
+        "(x y z gripper): give one value for all of them, or one per dimension (4)"
     )
     with pytest.raises(ValueError, match="rl=6/6 has 2 values"):
         DecodingMethod.parse("prior:r=2,rl=6/6", action_dim=7)
@@ -137,3 +137,46 @@ def test_the_compare_command_resolves_presets_to_the_policys_layout(tmp_path, mo
         main(["compare", "--policy", "unused", "--tasks", "reach", "--methods", "fast", "--threads", "1",
               "--output-dir", str(tmp_path / "out")])  # fmt: skip
     assert seen["methods"] == ["greedy", FAST[7]]
+
+
+# ----------------------------------------------------------------------------- rules that scale with the motion
+def test_motion_rules_parse_name_and_build():
+    """rho, dev and confirm parse, name themselves canonically (the name parses back) and become the engine's rule."""
+    from hf_specvla import ActionUnits, StrictTailConfirmed
+
+    text = "prior+jacobi:rho=0.25/0.25/0.25/0,dev=.08/.08/.08/0,confirm=1:compile"
+    method = DecodingMethod.parse(text, action_dim=4)
+    assert method.name == "prior+jacobi:rho=0.25/0.25/0.25/0,dev=0.08/0.08/0.08/0,confirm=1:compile"
+    assert DecodingMethod.parse(method.name, action_dim=4) == method and not method.lossless
+    kwargs = method.rule_kwargs(4)
+    assert kwargs == {"bin_tolerance": 0, "motion_scale": [0.25, 0.25, 0.25, 0.0],
+                      "max_deviation": [0.08, 0.08, 0.08, 0.0], "confirm_strict_tail": True}  # fmt: skip
+    layout = ActionLayout(ActionTokenizer(512), 4, ActionUnits((127,) * 4, (2 / 255,) * 4))
+    rule = make_acceptance_rule(action_layout=layout, **kwargs)
+    assert isinstance(rule, StrictTailConfirmed) and rule.strict_tail == (3, 3, 3, -1)
+    assert int(rule.rule.tolerance_by_bin.max()) == 10  # 0.08 units / (2/255 per bin)
+    assert DecodingMethod.parse("prior:r=4/4/4/0,gate=0.5,confirm=1").confirm_tail
+
+
+def test_rho0_is_lossless_and_restricting_options_need_a_relaxation():
+    assert DecodingMethod.parse("prior+jacobi:rho=0").lossless
+    assert DecodingMethod.parse("prior+jacobi:rho=0").rule_kwargs(4) == {}
+    for text in ("prior:dev=0.1", "prior:confirm=1", "prior:rho=0,dev=0.1"):
+        with pytest.raises(ValueError, match="only restrict relaxed acceptance; give r .* or rho > 0 too"):
+            DecodingMethod.parse(text)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [("greedy:rho=0.1", "greedy takes no r, rl, rho, dev, m, gate, confirm or k"),
+     ("prior:rho=-0.1", "bad option 'rho=-0.1'"),
+     ("prior:rho=0.1/x", "numbers >= 0 in digits 0-9"),
+     ("prior:rho=0.1/0.1", "rho=0.1/0.1 has 2 values, but the policy's actions have 4 dimensions"),
+     ("prior:r=2,dev=1/1/1", "dev=1/1/1 has 3 values"),
+     ("prior:r=2,confirm=yes", "confirm is 0 or 1"),
+     ("prior:r=2,confirm=1,confirm=1", "confirm given twice")],
+)  # fmt: skip
+def test_bad_motion_rule_options_are_named(text, message):
+    with pytest.raises(ValueError) as error:
+        DecodingMethod.parse(text, action_dim=4)
+    assert message in str(error.value)

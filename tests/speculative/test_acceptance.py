@@ -1,19 +1,24 @@
 """Acceptance rules and tree-path choice on hand-built token ids (action ids are 64..319, text ids below 64)."""
 
+import numpy as np
 import pytest
 import torch
 
 from hf_specvla import (
     ActionLayout,
+    ActionNormalizer,
+    ActionUnits,
     ConfidenceGate,
     DraftTree,
     ExactMatch,
     RelaxedBinMatch,
     RelaxedBudget,
     SpeculationConfig,
+    StrictTailConfirmed,
     make_acceptance_rule,
 )
 from hf_specvla.speculative import accept_tree
+from hf_specvla.speculative.acceptance import strict_tails
 
 
 @pytest.fixture(scope="module")
@@ -226,3 +231,126 @@ def test_bad_rule_settings_are_named(layout, kwargs, error, match):
     if "bin_tolerance" not in kwargs and kwargs:  # the generate arguments are checked before any forward
         with pytest.raises(error, match=match):
             SpeculationConfig(**kwargs)
+
+
+# ----------------------------------------------------------------------------- rules that read the action's units
+@pytest.fixture(scope="module")
+def units_layout(action_tokenizer):
+    """7-dim actions whose zero-motion bin is 127 and whose bins are 0.01 units apart (0.02 for the last)."""
+    return ActionLayout(action_tokenizer, 7, ActionUnits((127,) * 7, (0.01,) * 6 + (0.02,)))
+
+
+def test_units_from_the_normaliser(action_tokenizer):
+    """The zero-motion bin decodes to the action nearest 0; a bin is (q99 - q01) / (n_bins - 1) units wide on a
+    normalised dimension and 2 / (n_bins - 1) on a pass-through one."""
+    normalizer = ActionNormalizer([-0.02, 0.0, -1.0], [0.06, 0.5, 1.0], mask=[True, True, False])
+    units = ActionUnits.from_normalizer(action_tokenizer, normalizer, 3)
+    spacing = 2 / (action_tokenizer.n_bins - 1)
+    assert units.bin_widths == pytest.approx((0.08 / 2 * spacing, 0.5 / 2 * spacing, spacing))
+    for d, zero_bin in enumerate(units.zero_bins):
+        ids = action_tokenizer.vocab_size - 1 - torch.arange(action_tokenizer.n_bins - 1)  # every decodable bin
+        actions = normalizer.unnormalize(np.stack([action_tokenizer.decode(ids.numpy())] * 3, axis=1))[:, d]
+        assert abs(actions[zero_bin]) == pytest.approx(np.abs(actions).min())
+    assert ActionUnits.from_normalizer(action_tokenizer, None, 2).zero_bins == (127, 127)
+    with pytest.raises(ValueError, match="3 dimensions, an action 4"):
+        ActionUnits.from_normalizer(action_tokenizer, normalizer, 4)
+    with pytest.raises(ValueError, match="units describes 3 dimensions, but an action has 7"):
+        ActionLayout(action_tokenizer, 7, units)
+
+
+def test_motion_scaled_tolerance_table(units_layout, action_tokenizer):
+    """max(r, floor(rho * |t - zero|)), capped by floor(max_deviation / width), per (dimension, target bin)."""
+    rule = RelaxedBinMatch(units_layout, [1] * 6 + [0], motion_scale=[0.1] * 6 + [0], max_deviation=[0.05] * 7)
+    table = rule.tolerance_by_bin[0]  # [D, bins]
+    assert table[0, 127] == 1 and table[0, 127 + 29] == 2 and table[0, 127 + 30] == 3 and table[0, 0] == 5  # capped
+    assert table[6].max() == 0 and rule.strict_dims == (False,) * 6 + (True,)
+    bins = torch.arange(action_tokenizer.n_bins)
+    expected = torch.clamp(torch.maximum(torch.ones_like(bins), (0.1 * (bins - 127).abs()).floor().long()), max=5)
+    assert torch.equal(table[0], expected)
+    target = action_tokenizer.vocab_size - 1 - torch.tensor([[127, 187, 187, 20]])  # bins 127, 187 (60 away), 20
+    draft = target + torch.tensor([[2, 5, 6, -5]])  # r=1 near zero; 6 bins at 60 away, capped at 5
+    dims = torch.tensor([[0, 1, 2, 3]])
+    assert rule(draft, target, dims).tolist() == [[False, True, False, True]]
+
+
+def test_strict_tails():
+    assert strict_tails((False, False, False, True)) == (3, 3, 3, -1)
+    assert strict_tails((False, True, False, True, False)) == (3, 3, 3, -1, -1)
+    assert strict_tails((False, False)) == (-1, -1)
+
+
+def test_a_relaxed_token_needs_its_strict_tail_on_the_path(action_tokenizer):
+    """Chain x y z g x y z g with x relaxed: kept only with g confirmed; a chain stopping before g ends before x."""
+    layout = ActionLayout(action_tokenizer, 4)
+    rule = make_acceptance_rule([3, 3, 3, 0], layout, confirm_strict_tail=True)
+    assert isinstance(rule, StrictTailConfirmed) and rule.strict_tail == (3, 3, 3, -1)
+    chain = DraftTree.from_paths([[201, 150, 160, 100, 210, 151, 161, 101]], "test")
+    greedy = [200, 150, 160, 100, 210, 151, 161, 101, 90]  # x drafted 1 bin off, the rest right
+    path = accept_tree(chain, torch.tensor(greedy), rule, layout)
+    assert path.nodes == list(range(8)) and path.distances[0] == 1  # the gripper confirmed: all kept
+    wrong_gripper = [200, 150, 160, 102, 210, 151, 161, 101, 90]  # the target's gripper after the relaxed x differs
+    path = accept_tree(chain, torch.tensor(wrong_gripper), rule, layout)
+    assert path.nodes == [] and path.bonus_id == 200  # back to before x: the target's own x
+    relaxed_y = [200 + 1, 152, 160, 100, 210, 151, 161, 101, 90]  # x exact, y relaxed, gripper confirmed
+    assert accept_tree(chain, torch.tensor(relaxed_y), rule, layout).nodes == list(range(8))
+    short = DraftTree.from_paths([[201, 150]], "test")  # the gripper not drafted: nothing confirms it
+    assert accept_tree(short, torch.tensor([200, 150, 160]), rule, layout).nodes == []
+    second = [201, 150, 160, 100, 211, 151, 161, 99, 90]  # action 1's x relaxed, its gripper not confirmed
+    assert accept_tree(chain, torch.tensor(second), rule, layout).nodes == [0, 1, 2, 3]
+    plain = make_acceptance_rule([3, 3, 3, 0], layout)
+    assert accept_tree(chain, torch.tensor(wrong_gripper), plain, layout).nodes == [0, 1, 2]
+
+
+def test_random_trees_keep_every_rules_bound(units_layout, action_tokenizer):
+    """On random trees and random greedy tokens: every accepted token is within its tolerance (motion-scaled, capped
+    in units), and with confirm_strict_tail no accepted path ends between a relaxed token and its strict tail."""
+    generator = torch.Generator().manual_seed(5)
+    rule = make_acceptance_rule([2] * 6 + [0], units_layout, motion_scale=[0.2] * 6 + [0],
+                                max_deviation=[0.06] * 6 + [0], confirm_strict_tail=True)  # fmt: skip
+    kept = 0
+    for _ in range(200):
+        n = int(torch.randint(1, 12, (1,), generator=generator))
+        parents = [-1] + [int(torch.randint(-1, i, (1,), generator=generator)) for i in range(1, n)]
+        depth = [0] * n
+        for i, p in enumerate(parents):
+            depth[i] = 0 if p < 0 else depth[p] + 1
+        targets = torch.randint(64, 320, (1 + n,), generator=generator)
+        tokens = (targets[torch.tensor(parents) + 1] + torch.randint(-4, 5, (n,), generator=generator)).clamp(64, 319)
+        prior = int(torch.randint(0, 7, (1,), generator=generator))
+        tree = DraftTree(tokens, torch.tensor(parents))
+        path = accept_tree(tree, targets, rule, units_layout, num_prior_action_tokens=prior)
+        index = prior
+        relaxed_tails = []
+        for node, distance in zip(path.nodes, path.distances):
+            d = index % 7
+            target_bin = action_tokenizer.token_to_bin(int(targets[parents[node] + 1]))
+            tolerance = min(max(2 if d < 6 else 0, int(0.2 * abs(target_bin - 127) + 1e-9) if d < 6 else 0), 6)
+            assert distance <= tolerance and distance * 0.01 <= 0.06 + 1e-12
+            if distance and d < 6:
+                relaxed_tails.append(index - d + 6)
+            kept += distance > 0
+            index += 1
+        assert all(index - 1 >= tail for tail in relaxed_tails), (path, prior)
+    assert kept > 0
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [(dict(motion_scale=-0.1), ValueError, r"motion_scale\[0\] must be a finite number >= 0"),
+     (dict(motion_scale=[0.1] * 3), ValueError, "motion_scale has 3 entries"),
+     (dict(motion_scale="big"), TypeError, "motion_scale"),
+     (dict(max_deviation=float("nan")), ValueError, r"max_deviation\[0\]"),
+     (dict(confirm_strict_tail="yes"), TypeError, "confirm_strict_tail must be True or False")],
+)  # fmt: skip
+def test_bad_unit_rule_settings_are_named(units_layout, kwargs, error, match):
+    with pytest.raises(error, match=match):
+        make_acceptance_rule(2, units_layout, **kwargs)
+
+
+def test_rules_that_read_units_need_them(layout):
+    with pytest.raises(ValueError, match="the action layout has none: pass .*ActionUnits.from_normalizer"):
+        make_acceptance_rule(0, layout, motion_scale=0.1)
+    with pytest.raises(ValueError, match="nothing says which tokens are actions"):
+        make_acceptance_rule(0, None, motion_scale=0.1)
+    assert isinstance(make_acceptance_rule(0, None, motion_scale=0.0), ExactMatch)
+    assert isinstance(make_acceptance_rule(4, layout, max_relaxed_per_action=0, confirm_strict_tail=True), ExactMatch)

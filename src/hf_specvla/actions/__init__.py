@@ -8,6 +8,7 @@ __all__ = [
     "ActionLayout",
     "ActionNormalizer",
     "ActionTokenizer",
+    "ActionUnits",
     "build_vla_tokenizer",
     "encode_prompt",
     "openvla_prompt",
@@ -16,7 +17,7 @@ __all__ = [
 __getattr__, __dir__ = lazy_exports(
     __name__,
     {
-        ".tokenizer": ("DEFAULT_N_BINS", "ActionLayout", "ActionNormalizer", "ActionTokenizer"),
+        ".tokenizer": ("DEFAULT_N_BINS", "ActionLayout", "ActionNormalizer", "ActionTokenizer", "ActionUnits"),
         ".vla_tokenizer": ("build_vla_tokenizer", "encode_prompt", "openvla_prompt"),
     },
     globals(),

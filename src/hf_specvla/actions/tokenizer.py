@@ -113,10 +113,13 @@ class ActionLayout:
     Args:
         tokenizer: the [`ActionTokenizer`] (action ids ``vocab_size - n_bins .. vocab_size - 1``).
         action_dim: action tokens per action (OpenVLA: 7; the Meta-World policy: 4).
+        units: what a bin is in the policy's own units, per dimension ([`ActionUnits`]); needed only by acceptance
+            rules that scale with the motion or bound the deviation in action space. None: unknown.
     """
 
     tokenizer: ActionTokenizer
     action_dim: int
+    units: ActionUnits | None = None
 
     def __post_init__(self):
         if not isinstance(self.tokenizer, ActionTokenizer):
@@ -129,6 +132,55 @@ class ActionLayout:
             raise ValueError(
                 f"ActionLayout.action_dim must be an int >= 1 (tokens per action), got {self.action_dim!r}"
             )
+        if self.units is not None:
+            if not isinstance(self.units, ActionUnits):
+                raise TypeError(f"ActionLayout.units must be an ActionUnits or None, got {type(self.units).__name__}")
+            if len(self.units.zero_bins) != self.action_dim:
+                raise ValueError(
+                    f"ActionLayout.units describes {len(self.units.zero_bins)} dimensions, but an action has "
+                    f"{self.action_dim}"
+                )
+
+
+@dataclass(frozen=True)
+class ActionUnits:
+    """What the bins of each action dimension mean in the policy's own (un-normalised) units.
+
+    Args:
+        zero_bins: per dimension, the bin (0 = lowest value) whose action is closest to 0 in the policy's units: no
+            motion, for a delta action.
+        bin_widths: per dimension, the distance in the policy's units between the actions of two neighbouring bins
+            (the un-normalised bin spacing; > 0).
+    """
+
+    zero_bins: tuple[int, ...]
+    bin_widths: tuple[float, ...]
+
+    def __post_init__(self):
+        zero_bins, widths = tuple(int(b) for b in self.zero_bins), tuple(float(w) for w in self.bin_widths)
+        if not zero_bins or len(zero_bins) != len(widths):
+            raise ValueError(
+                f"ActionUnits needs one zero bin and one bin width per dimension, got {len(zero_bins)} zero bins and "
+                f"{len(widths)} widths"
+            )
+        if not all(np.isfinite(w) and w > 0 for w in widths):
+            raise ValueError(f"ActionUnits.bin_widths must be finite and > 0, got {list(widths)}")
+        object.__setattr__(self, "zero_bins", zero_bins)
+        object.__setattr__(self, "bin_widths", widths)
+
+    @classmethod
+    def from_normalizer(cls, tokenizer: ActionTokenizer, normalizer: ActionNormalizer | None, action_dim: int):
+        """The units of ``tokenizer``'s bins once un-normalised by ``normalizer`` (None: actions are already in
+        [-1, 1], e.g. a policy without statistics)."""
+        normalizer = normalizer or ActionNormalizer(-np.ones(action_dim), np.ones(action_dim))
+        if normalizer.action_dim != action_dim:
+            raise ValueError(f"the action statistics have {normalizer.action_dim} dimensions, an action {action_dim}")
+        zero = np.clip(normalizer.normalize(np.zeros(action_dim)), -1.0, 1.0)  # [D] no motion, normalised
+        zero_bins = np.abs(tokenizer.bin_centers[None, :] - zero[:, None]).argmin(axis=1)  # [D]
+        spacing = 2.0 / (tokenizer.n_bins - 1)  # between neighbouring bin centers in [-1, 1]
+        scale = np.where(normalizer.mask, (normalizer.q99 - normalizer.q01) / 2.0, 1.0)  # [D] unnormalize's slope
+        widths = np.maximum(spacing * scale, np.finfo(np.float64).tiny)  # a constant dimension: any r is 0 units
+        return cls(tuple(zero_bins.tolist()), tuple(widths.tolist()))
 
 
 @dataclass

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 from contextlib import contextmanager
 from pathlib import Path
@@ -27,6 +28,20 @@ def at_least(minimum: int):
 
 
 POSITIVE, NON_NEGATIVE = at_least(1), at_least(0)
+
+
+def positive_number(text: str) -> float:
+    """argparse ``type``: a finite number > 0, else a usage error naming the value (exit code 2)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+positive_number.__name__ = "number > 0"
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):

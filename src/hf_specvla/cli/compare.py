@@ -14,6 +14,7 @@ from .common import (
     check_draft_head_flag,
     check_output_dir_flag,
     load_policy,
+    positive_number,
     read_policy_config,
     usage_errors,
 )
@@ -41,6 +42,11 @@ EXAMPLES = """
     # relaxed rule spelled out: r per dimension (strict gripper), at most 1 relaxed token per action, a confidence gate
     hf-specvla compare --policy policies/mt10_vla2 --tasks reach --episodes 1 \\
         --methods greedy exact fast prior+jacobi:r=4/4/4/0,m=1,gate=0.5 --output-dir runs/compare_rules_smoke
+    # Rules that scale with the motion: within 10% of greedy's motion in bins (x y z), at most 0.04 units, the gripper
+    # confirmed after a relaxed token; the deviation reported apart for motions >= 0.25 units and smaller ones
+    hf-specvla compare --policy policies/mt10_vla3 --tasks reach --episodes 1 --methods greedy \\
+        prior+jacobi:rho=0.1/0.1/0.1/0,dev=0.04/0.04/0.04/0,confirm=1 --motion-threshold 0.25 \\
+        --output-dir runs/compare_motion_smoke
 """
 
 
@@ -63,6 +69,9 @@ def add_arguments(parser) -> None:
                         help="processes the seeds are split between (timings compared within a worker)")  # fmt: skip
     parser.add_argument("--threads", type=POSITIVE, default=CompareConfig.threads, help="torch CPU threads per worker")
     parser.add_argument("--seed", type=int, default=CompareConfig.order_seed, help="seeds the method order per seed")
+    parser.add_argument("--motion-threshold", type=positive_number, default=CompareConfig.motion_threshold,
+                        help="the size of greedy's action (|value|, policy's units) from which a motion is large, for "
+                             "the deviation by phase of relaxed methods")  # fmt: skip
     add_tree_arguments(parser)
     parser.add_argument("--output-dir", required=True, help="logs, summary.json, compare.md, plots (resumes)")
     parser.add_argument(
@@ -84,7 +93,7 @@ def run(args, parser) -> int:
         config = CompareConfig(args.tasks, args.episodes, args.methods, args.seed_start, args.max_episode_steps,
                                args.workers, args.threads, args.seed, args.tree_top_k, args.tree_depth,
                                args.tree_total_tokens, draft_head_given=args.draft_head is not None,
-                               action_dim=action_dim)  # fmt: skip
+                               action_dim=action_dim, motion_threshold=args.motion_threshold)  # fmt: skip
         config.check_draft_head_given(args.draft_head is not None)
     if args.draft_head and not config.draft_head_methods():
         logger.warning("--draft-head %s is not used: none of the methods %s drafts with a head (head, tree, "

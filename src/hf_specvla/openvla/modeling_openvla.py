@@ -33,7 +33,7 @@ from transformers import AutoModelForCausalLM, GenerationMixin, PreTrainedModel
 from transformers import initialization as init
 from transformers.modeling_outputs import CausalLMOutputWithPast
 
-from ..actions.tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer
+from ..actions.tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer, ActionUnits
 from ..speculative import (
     CACHE_KEY,
     Drafter,
@@ -398,8 +398,11 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         return ActionNormalizer(stats["q01"], stats["q99"], stats.get("mask"))
 
     def action_layout(self, unnorm_key: str | None = None) -> ActionLayout:
-        """What relaxed acceptance needs: the action tokens and the tokens per action."""
-        return ActionLayout(self.action_tokenizer, self.get_action_dim(unnorm_key))
+        """What relaxed acceptance needs: the action tokens, the tokens per action and what a bin is in the dataset's
+        units (for rules that scale with the motion or bound the deviation in action space)."""
+        dim = self.get_action_dim(unnorm_key)
+        units = ActionUnits.from_normalizer(self.action_tokenizer, self.action_normalizer(unnorm_key), dim)
+        return ActionLayout(self.action_tokenizer, dim, units)
 
     def action_token_ids(self, action, unnorm_key: str | None = None) -> torch.LongTensor:
         """The action tokens ``[1, action_dim]`` of an un-normalised action ``[action_dim]``: the previous action as

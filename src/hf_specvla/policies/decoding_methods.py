@@ -8,8 +8,13 @@ previous actions), ``jacobi`` (the target's own guesses past a rejection, [`Jaco
 
 Options (relaxed acceptance, see ``speculative.acceptance``): ``r=<r>`` the bin tolerance, one int or one per action
 dimension joined by ``/`` (``r=4/4/4/0``: a strict gripper); ``rl=<r>`` the tolerance of a chunk's later actions
-(default: ``r``); ``m=<int>`` at most m relaxed tokens per action; ``gate=<p>`` relax only where the target's top-1
-probability is below p; ``k=<int>`` the head chain's length. E.g. ``prior+jacobi:r=4/4/4/0,m=1:compile``.
+(default: ``r``); ``rho=<x>`` a tolerance that scales with the motion: also within x bins per bin the target's token
+lies from the zero-motion bin (one number or one per dimension: ``rho=0.1/0.1/0.1/0``); ``dev=<x>`` never accept a token
+whose action is more than x from the target's in the policy's units (one or one per dimension); ``m=<int>`` at most m
+relaxed tokens per action; ``gate=<p>`` relax only where the target's top-1 probability is below p; ``confirm=1`` keep a
+relaxed token only when its action's strict dimensions after it (the gripper) are drafted and confirmed in the same
+verification; ``k=<int>`` the head chain's length. E.g. ``prior+jacobi:r=4/4/4/0,m=1:compile``,
+``prior+jacobi:rho=0.1/0.1/0.1/0,confirm=1:compile``.
 
 Presets: ``exact`` (the fastest setting identical to greedy decoding) and ``fast`` (the relaxed setting chosen on policy
 v2; on policy v3 it flips episodes both ways beyond the fidelity criterion), resolved per policy, with or without a
@@ -41,8 +46,13 @@ DRAFTER_CHOICES = ("greedy", "head", "tree", "prior", "prior+head", "prior+tree"
                    "jacobi+tree", "prior+jacobi+tree")  # fmt: skip
 METHOD_KEYS = {"r": "bin tolerance: an int, or one per action dimension joined by / (0 = lossless)",
                "rl": "bin tolerance of a chunk's later actions (default: r)",
+               "rho": "motion-scaled tolerance: bins per bin of the target's distance from zero motion, one number or "
+                      "one per action dimension joined by /",
+               "dev": "the largest accepted deviation from the target's action in the policy's units, one number or "
+                      "one per action dimension joined by /",
                "m": "at most this many relaxed tokens per action",
                "gate": "relax only where the target's top-1 probability is below this (0 < p <= 1)",
+               "confirm": "1: keep a relaxed token only when its action's strict dimensions after it are confirmed",
                "k": "draft-head chain length (head only)"}  # fmt: skip
 #: the bound a comparison measures beside the methods: greedy's own tokens (decoded off the clock on the same
 #: observation) drafted in the prefill, so every draft is right and a call costs one target forward; only ``compare``
@@ -54,12 +64,14 @@ COMPILE = "compile"
 
 # ----------------------------------------------------------------------------- methods
 Tolerance = int | tuple[int, ...]  # one r, or one per action dimension
+Scale = float | tuple[float, ...]  # one number, or one per action dimension (rho, dev)
 
 
 #: an option's integer and probability, in ASCII digits only (``str.isdigit`` and ``int`` / ``float`` also take
 #: superscripts and other scripts' digits: ``r=²``, ``r=٣``)
 _INTEGER = re.compile(r"-?[0-9]+")
 _PROBABILITY = re.compile(r"[0-9]+(\.[0-9]*)?|\.[0-9]+")
+_NUMBER = _PROBABILITY  # a non-negative decimal
 #: the smallest value of each integer option (r, rl and m may be 0; a chain drafts at least one token)
 _MINIMUM = {"r": 0, "rl": 0, "m": 0, "k": 1}
 
@@ -92,16 +104,18 @@ def check_tolerance_dims(tolerance: Tolerance | None, action_dim: int, given: st
     Raises:
         ValueError: the number of values differs from the action's dimensions.
     """
-    if tolerance is None or isinstance(tolerance, int) or len(tolerance) == action_dim:
+    if tolerance is None or isinstance(tolerance, (int, float)) or len(tolerance) == action_dim:
         return
     raise ValueError(
         f"{given} has {len(tolerance)} values, but the policy's actions have {action_dim} dimensions"
-        f"{_layout_words(action_dim)}: give one r for all of them, or one per dimension ({action_dim})"
+        f"{_layout_words(action_dim)}: give one value for all of them, or one per dimension ({action_dim})"
     )
 
 
-def _format_tolerance(tolerance: Tolerance) -> str:
-    return str(tolerance) if isinstance(tolerance, int) else "/".join(map(str, tolerance))
+def _format_tolerance(tolerance: Tolerance | Scale) -> str:
+    if isinstance(tolerance, (int, float)):
+        return f"{tolerance:g}"
+    return "/".join(f"{v:g}" for v in tolerance)
 
 
 def _widest(tolerance: Tolerance | None) -> int:
@@ -121,6 +135,9 @@ class DecodingMethod:
     later_tolerance: Tolerance | None = None  # a chunk's later actions (None: bin_tolerance)
     max_relaxed_per_action: int | None = None
     confidence_gate: float | None = None
+    motion_scale: Scale | None = None  # rho: a tolerance that scales with the motion
+    max_deviation: Scale | None = None  # dev: the largest deviation in the policy's units
+    confirm_tail: bool = False  # confirm=1: the strict dimensions after a relaxed token confirmed in its verification
 
     @classmethod
     def parse(cls, text: str, draft_head_given: bool = False, action_dim: int | None = None,
@@ -164,22 +181,26 @@ class DecodingMethod:
         if options and not values and not compiled:
             raise ValueError(f"decoding method {text!r}: empty options after ':'; {valid}")
         method = cls(drafters, values.get("r", 0), values.get("k"), compiled, values.get("rl"), values.get("m"),
-                     values.get("gate"))  # fmt: skip
-        relaxing = method.widest_tolerance or "rl" in values or "m" in values or "gate" in values
-        if method.drafters in ("greedy", ORACLE) and (relaxing or method.num_draft_tokens):
-            raise ValueError(f"decoding method {text!r}: {method.drafters} takes no r, rl, m, gate or k (greedy drafts "
-                             f"nothing; the oracle's drafts are greedy's own)")  # fmt: skip
+                     values.get("gate"), values.get("rho"), values.get("dev"),
+                     bool(values.get("confirm", 0)))  # fmt: skip
+        restricting = [key for key in ("m", "gate", "dev", "confirm") if key in values]
+        relaxing = method.widest_tolerance or method.scales_with_motion or "rl" in values or "rho" in values
+        if method.drafters in ("greedy", ORACLE) and (relaxing or restricting or method.num_draft_tokens):
+            raise ValueError(f"decoding method {text!r}: {method.drafters} takes no r, rl, rho, dev, m, gate, "
+                             f"confirm or k (greedy drafts nothing; the oracle's drafts are greedy's own)")  # fmt: skip
         if method.num_draft_tokens is not None and "head" not in method.drafters.split("+"):
             raise ValueError(f"decoding method {text!r}: k (a chain length) needs the head chain (head, prior+head)")
-        if not method.widest_tolerance and ("m" in values or "gate" in values):
-            raise ValueError(f"decoding method {text!r}: m and gate restrict relaxed acceptance; give r (or rl) > 0")
+        if not method.widest_tolerance and not method.scales_with_motion and restricting:
+            raise ValueError(f"decoding method {text!r}: {', '.join(restricting)} only restrict relaxed acceptance; "
+                             f"give r (or rl) > 0 or rho > 0 too")  # fmt: skip
         if action_dim is not None:
             method.check_action_dim(action_dim)
         return method
 
     def check_action_dim(self, action_dim: int) -> None:
         """Refuses a per-dimension r (or rl) whose length is not ``action_dim`` (ValueError naming the method)."""
-        for key, tolerance in (("r", self.bin_tolerance), ("rl", self.later_tolerance)):
+        for key, tolerance in (("r", self.bin_tolerance), ("rl", self.later_tolerance), ("rho", self.motion_scale),
+                               ("dev", self.max_deviation)):  # fmt: skip
             if tolerance is not None:
                 given = f"decoding method {self.name!r}: {key}={_format_tolerance(tolerance)}"
                 check_tolerance_dims(tolerance, action_dim, given)
@@ -190,8 +211,11 @@ class DecodingMethod:
         options = [f"r={_format_tolerance(self.bin_tolerance)}"] if _widest(self.bin_tolerance) else []
         if self.later_tolerance is not None:
             options += [f"rl={_format_tolerance(self.later_tolerance)}"]
+        options += [f"rho={_format_tolerance(self.motion_scale)}"] if self.motion_scale is not None else []
+        options += [f"dev={_format_tolerance(self.max_deviation)}"] if self.max_deviation is not None else []
         options += [f"m={self.max_relaxed_per_action}"] if self.max_relaxed_per_action is not None else []
         options += [f"gate={self.confidence_gate:g}"] if self.confidence_gate is not None else []
+        options += ["confirm=1"] if self.confirm_tail else []
         options += [f"k={self.num_draft_tokens}"] if self.num_draft_tokens is not None else []
         return self.drafters + (":" + ",".join(options) if options else "") + (f":{COMPILE}" if self.compiled else "")
 
@@ -199,6 +223,12 @@ class DecodingMethod:
     def widest_tolerance(self) -> int:
         """The largest r of any action dimension or chunk step (0: lossless)."""
         return max(_widest(self.bin_tolerance), _widest(self.later_tolerance))
+
+    @property
+    def scales_with_motion(self) -> bool:
+        """Whether a motion-scaled tolerance (rho > 0 on some dimension) relaxes acceptance."""
+        scale = self.motion_scale
+        return scale is not None and any(v > 0 for v in ((scale,) if isinstance(scale, (int, float)) else scale))
 
     def tolerances(self) -> list[int]:
         """Every r the method names (for range checks)."""
@@ -222,6 +252,11 @@ class DecodingMethod:
             kwargs["max_relaxed_per_action"] = self.max_relaxed_per_action
         if self.confidence_gate is not None:
             kwargs["confidence_gate"] = self.confidence_gate
+        for key, value in (("motion_scale", self.motion_scale), ("max_deviation", self.max_deviation)):
+            if value is not None:
+                kwargs[key] = value if isinstance(value, (int, float)) else list(value)
+        if self.confirm_tail:
+            kwargs["confirm_strict_tail"] = True
         return kwargs
 
     @property
@@ -230,7 +265,7 @@ class DecodingMethod:
 
     @property
     def lossless(self) -> bool:
-        return self.widest_tolerance == 0 or self.max_relaxed_per_action == 0
+        return (self.widest_tolerance == 0 and not self.scales_with_motion) or self.max_relaxed_per_action == 0
 
     def generate_kwargs(
         self,
@@ -275,9 +310,21 @@ class DecodingMethod:
 
 
 def _parse_option(text: str, key: str, value: str):
-    """One option's value: a tolerance (r, rl), an int (m, k) or a probability (gate)."""
+    """One option's value: a tolerance (r, rl), numbers (rho, dev), an int (m, k), a probability (gate) or a flag
+    (confirm)."""
     if key in ("r", "rl"):
         return _parse_tolerance(text, value, key)
+    if key in ("rho", "dev"):
+        parts = value.split("/")
+        if not all(_NUMBER.fullmatch(p.strip()) for p in parts):
+            raise ValueError(f"decoding method {text!r}: bad option '{key}={value}'; {key} is {METHOD_KEYS[key]} "
+                             f"(numbers >= 0 in digits 0-9, e.g. {key}=0.1 or {key}=0.1/0.1/0.1/0)")  # fmt: skip
+        numbers = [float(p) for p in parts]
+        return numbers[0] if len(numbers) == 1 else tuple(numbers)
+    if key == "confirm":
+        if value not in ("0", "1"):
+            raise ValueError(f"decoding method {text!r}: confirm is 0 or 1 ({METHOD_KEYS[key]}), got confirm={value}")
+        return int(value)
     if key == "gate":
         gate = float(value) if _PROBABILITY.fullmatch(value) else -1.0
         if not 0 < gate <= 1:

@@ -28,7 +28,7 @@ from transformers import (
     PreTrainedTokenizerFast,
 )
 
-from ..actions.tokenizer import ActionLayout, ActionNormalizer
+from ..actions.tokenizer import ActionLayout, ActionNormalizer, ActionUnits
 from ..actions.vla_tokenizer import build_vla_tokenizer
 from ..run_folder import fingerprint
 from ..speculative import (
@@ -69,7 +69,8 @@ class VLAPolicy:
         self.action_normalizer = self.processor.action_normalizer
         self.state_normalizer = self.processor.state_normalizer
         self.scene_normalizer = self.processor.scene_normalizer
-        self.action_layout = ActionLayout(self.action_tokenizer, config.action_dim)
+        units = ActionUnits.from_normalizer(self.action_tokenizer, self.action_normalizer, config.action_dim)
+        self.action_layout = ActionLayout(self.action_tokenizer, config.action_dim, units)
         self.previous_action_ids: list[list[int]] = []
         self.name_or_path: str | None = None  # the folder it was loaded from (from_pretrained)
         self._weights_fingerprint: str | None = None

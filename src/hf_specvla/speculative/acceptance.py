@@ -20,6 +20,15 @@ then the one proposed first (lowest node index): the output stays as close to gr
   past the budget acceptance is exact. A relaxed token changes the prefix of every later token, so this bounds how
   far one action can drift from greedy's, not only each token.
 
+* Motion-scaled tolerance ([`RelaxedBinMatch`] with ``motion_scale``): a drafted action token is also accepted within
+  ``motion_scale * |target bin - zero-motion bin|`` bins of the target's (per dimension), so a transport move is
+  relaxed in proportion to its size and a fine motion near zero stays exact: a relative error bound.
+* Action-space bound ([`RelaxedBinMatch`] with ``max_deviation``): whatever the tolerance, an accepted token's action
+  is within ``max_deviation`` of the target's in the policy's own units, per dimension.
+* [`StrictTailConfirmed`]: a relaxed token is kept only when the action's strict dimensions after it (a gripper) were
+  drafted and confirmed by the target in the same verification, so a strict dimension's value never changes on a
+  relaxed prefix; otherwise the path ends before the relaxed token and the next token is the target's own.
+
 Every rule is exact where its tolerance is 0: ``bin_tolerance=0`` is greedy decoding whatever the gate or budget.
 """
 
@@ -43,6 +52,10 @@ class AcceptanceRule:
     #: at most this many relaxed tokens (accepted, not equal to the target's) per action, along the accepted path and
     #: over the call's earlier rounds ([`accept_trees`] applies it); None: no budget
     max_relaxed_per_action: int | None = None
+    #: per action dimension d, the last strict dimension after d in an action (-1: none) when a relaxed token must see
+    #: its action's strict dimensions confirmed in the same verification ([`StrictTailConfirmed`]); None: no such
+    #: condition
+    strict_tail: tuple[int, ...] | None = None
 
     def __call__(
         self,
@@ -143,44 +156,133 @@ def validate_tolerance_table(bin_tolerance, action_dim: int) -> tuple[tuple[int,
     return (validate_bin_tolerance(bin_tolerance, action_dim),)
 
 
+def validate_per_dimension(value, action_dim: int, name: str, meaning: str) -> tuple[float, ...]:
+    """Normalises a non-negative finite number, or one per action dimension, to a tuple of ``action_dim`` floats.
+
+    Raises:
+        ValueError / TypeError naming ``name``, the bad value and what would be valid (``meaning``).
+    """
+    if isinstance(value, torch.Tensor):
+        value = value.tolist()
+    values = list(value) if _is_sequence(value) else [value] * action_dim
+    if len(values) != action_dim:
+        raise ValueError(
+            f"{name} has {len(values)} entries {values}, but an action has {action_dim} dimensions: give one number "
+            f"per dimension, or a single number for all ({meaning})"
+        )
+    for i, v in enumerate(values):
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise TypeError(f"{name}[{i}] must be a number >= 0 ({meaning}), got {v!r}")
+        if not np.isfinite(v) or v < 0:
+            raise ValueError(f"{name}[{i}] must be a finite number >= 0 ({meaning}), got {v!r}")
+    return tuple(float(v) for v in values)
+
+
+MOTION_SCALE_MEANING = "the tolerance in bins per bin of the target's distance from the zero-motion bin; 0 = none"
+MAX_DEVIATION_MEANING = "the largest accepted deviation from the target's action, in the policy's units; 0 = exact"
+
+
 class RelaxedBinMatch(AcceptanceRule):
-    """Spec-VLA relaxed acceptance: action tokens within ``bin_tolerance`` bins of the target's are accepted.
+    """Spec-VLA relaxed acceptance: action tokens within a tolerance of the target's bin are accepted.
+
+    The tolerance of a drafted token at dimension d of action s of the call, when the target's token is at bin t::
+
+        min(max(r[s][d], floor(motion_scale[d] * |t - zero_bin[d]|)), floor(max_deviation[d] / bin_width[d]))
+
+    (each part only when given), computed once per (s, d, t) as an integer table.
 
     Args:
-        action_layout: the action-token range and the tokens per action.
+        action_layout: the action-token range and the tokens per action; its ``units`` (zero-motion bins, bin widths)
+            are needed by ``motion_scale`` and ``max_deviation``.
         bin_tolerance: the paper's r; an int, one int per action dimension, or one such list per action of a chunk
             (the last one serving the later actions; [`validate_tolerance_table`]).
+        motion_scale: rho, a number or one per dimension: also accept within ``rho`` bins per bin the target's token
+            lies from the zero-motion bin (a relative error bound; fine motions stay exact). None: no scaling.
+        max_deviation: a number or one per dimension: never accept a token whose action differs from the target's by
+            more than this, in the policy's units. None: no bound.
     """
 
-    def __init__(self, action_layout: ActionLayout, bin_tolerance: int | Sequence[int] | Sequence[Sequence[int]]):
+    def __init__(
+        self,
+        action_layout: ActionLayout,
+        bin_tolerance: int | Sequence[int] | Sequence[Sequence[int]],
+        motion_scale: float | Sequence[float] | None = None,
+        max_deviation: float | Sequence[float] | None = None,
+    ):
         self.action_layout = action_layout
         self.action_tokenizer = action_layout.tokenizer
-        self.tolerance_table = validate_tolerance_table(bin_tolerance, action_layout.action_dim)  # [S][D]
+        dims, n_bins = action_layout.action_dim, action_layout.tokenizer.n_bins
+        self.tolerance_table = validate_tolerance_table(bin_tolerance, dims)  # [S][D]
         #: one row (every action alike) as a tuple of ints, else the table
         self.bin_tolerance = self.tolerance_table[0] if len(self.tolerance_table) == 1 else self.tolerance_table
+        self.motion_scale = (
+            None if motion_scale is None else validate_per_dimension(motion_scale, dims, "motion_scale",
+                                                                     MOTION_SCALE_MEANING)
+        )  # fmt: skip
+        self.max_deviation = (
+            None if max_deviation is None else validate_per_dimension(max_deviation, dims, "max_deviation",
+                                                                      MAX_DEVIATION_MEANING)
+        )  # fmt: skip
+        units = action_layout.units
+        if (self.motion_scale is not None or self.max_deviation is not None) and units is None:
+            raise ValueError(
+                "motion_scale and max_deviation read what a bin is in the policy's units, but the action layout has "
+                "none: pass action_layout=ActionLayout(tokenizer, action_dim, ActionUnits.from_normalizer(tokenizer, "
+                "normalizer, action_dim)) (a VLAPolicy's and an OpenVLA model's action_layout have them)"
+            )
+        table = np.array(self.tolerance_table, dtype=np.int64)[:, :, None].repeat(n_bins, axis=2)  # [S, D, bins]
+        if self.motion_scale is not None:
+            offset = np.abs(np.arange(n_bins)[None, :] - np.array(units.zero_bins)[:, None])  # [D, bins]
+            scaled = np.floor(np.array(self.motion_scale)[:, None] * offset + 1e-9).astype(np.int64)  # [D, bins]
+            table = np.maximum(table, scaled[None])
+        if self.max_deviation is not None:
+            cap = np.floor(np.array(self.max_deviation) / np.array(units.bin_widths) + 1e-9).astype(np.int64)  # [D]
+            table = np.minimum(table, cap[None, :, None])
+        #: ``[S, D, n_bins]`` the tolerance in bins of a token at (chunk step, dimension, the target's bin)
+        self.tolerance_by_bin = torch.from_numpy(np.minimum(table, n_bins - 1))
+        self._on_device: dict = {}
+
+    def tolerances(self, target_ids: torch.Tensor, action_dims=None, action_steps=None) -> torch.Tensor:
+        """``[B, k]`` the tolerance in bins of each position, given the target's token there (0 where it is not an
+        action token)."""
+        device = target_ids.device
+        table = self._on_device.get(device)
+        if table is None:
+            table = self._on_device[device] = self.tolerance_by_bin.to(device)
+        if action_dims is None:
+            action_dims = torch.zeros_like(target_ids)
+        steps = torch.zeros_like(target_ids) if action_steps is None else action_steps.clamp(max=table.shape[0] - 1)
+        bins = self.action_tokenizer.token_to_bin(target_ids).clamp(0, table.shape[2] - 1)
+        tolerance = table[steps, action_dims, bins]  # [B, k]
+        return torch.where(self.action_tokenizer.is_action_token(target_ids), tolerance, 0)
 
     def __call__(self, draft_ids, target_ids, action_dims=None, action_steps=None, top1_probs=None):
         exact = draft_ids == target_ids
         both_actions = self.action_tokenizer.is_action_token(draft_ids) & self.action_tokenizer.is_action_token(
             target_ids
         )
-        if action_dims is None:
-            action_dims = torch.zeros_like(draft_ids)
-        table = torch.tensor(self.tolerance_table, device=draft_ids.device)  # [S, D]
-        steps = torch.zeros_like(draft_ids) if action_steps is None else action_steps.clamp(max=len(table) - 1)
-        tolerance = table[steps, action_dims]  # [B, k]
+        tolerance = self.tolerances(target_ids, action_dims, action_steps)
         within = self.action_tokenizer.bin_distance(draft_ids, target_ids) <= tolerance
         return exact | (both_actions & within)
 
     @property
+    def strict_dims(self) -> tuple[bool, ...]:
+        """Per action dimension, whether every token there must match exactly (tolerance 0 for every chunk step and
+        every target bin)."""
+        return tuple(bool(x) for x in (self.tolerance_by_bin.amax(dim=(0, 2)) == 0).tolist())
+
+    @property
     def is_lossless(self) -> bool:
-        return all(t == 0 for row in self.tolerance_table for t in row)
+        return bool((self.tolerance_by_bin == 0).all())
 
     def __repr__(self) -> str:
         rows = [row[0] if len(set(row)) == 1 else list(row) for row in self.tolerance_table]
         tol = rows[0] if len(rows) == 1 else rows
+        extra = "" if self.motion_scale is None else f", motion_scale={list(self.motion_scale)}"
+        extra += "" if self.max_deviation is None else f", max_deviation={list(self.max_deviation)}"
         return (
-            f"RelaxedBinMatch(bin_tolerance={tol}, {self.action_tokenizer}, action_dim={self.action_layout.action_dim})"
+            f"RelaxedBinMatch(bin_tolerance={tol}{extra}, {self.action_tokenizer}, "
+            f"action_dim={self.action_layout.action_dim})"
         )
 
 
@@ -231,7 +333,7 @@ class ConfidenceGate(AcceptanceRule):
 
     def __init__(self, rule: AcceptanceRule, threshold: float):
         self.rule, self.threshold = rule, check_confidence_gate(threshold)
-        self.max_relaxed_per_action = rule.max_relaxed_per_action
+        self.max_relaxed_per_action, self.strict_tail = rule.max_relaxed_per_action, rule.strict_tail
 
     def __call__(self, draft_ids, target_ids, action_dims=None, action_steps=None, top1_probs=None):
         if top1_probs is None:
@@ -258,7 +360,7 @@ class RelaxedBudget(AcceptanceRule):
     def __init__(self, rule: AcceptanceRule, max_relaxed_per_action: int):
         self.rule = rule
         self.max_relaxed_per_action = check_relaxed_budget(max_relaxed_per_action)
-        self.needs_probabilities = rule.needs_probabilities
+        self.needs_probabilities, self.strict_tail = rule.needs_probabilities, rule.strict_tail
 
     def __call__(self, draft_ids, target_ids, action_dims=None, action_steps=None, top1_probs=None):
         return self.rule(draft_ids, target_ids, action_dims, action_steps, top1_probs)
@@ -269,6 +371,50 @@ class RelaxedBudget(AcceptanceRule):
 
     def __repr__(self) -> str:
         return f"RelaxedBudget({self.rule!r}, max_relaxed_per_action={self.max_relaxed_per_action})"
+
+
+def strict_tails(strict_dims: Sequence[bool]) -> tuple[int, ...]:
+    """Per action dimension d, the last strict dimension after d (-1: none): ``(False, False, False, True)`` (a
+    strict gripper last) -> ``(3, 3, 3, -1)``."""
+    return tuple(
+        max((e for e in range(d + 1, len(strict_dims)) if strict_dims[e]), default=-1) for d in range(len(strict_dims))
+    )
+
+
+class StrictTailConfirmed(AcceptanceRule):
+    """``rule``, where a relaxed token (accepted, not the target's) is kept only when every strict dimension after it in
+    its action (e.g. the gripper after x y z) was drafted and matched by the target in the same verification
+    ([`accept_trees`] applies it); otherwise the accepted path ends before the relaxed token and the token emitted there
+    is the target's own.
+
+    Guarantee: a strict dimension's token emitted after a relaxed token of its action is the one drafted for it before
+    verification (the previous action's, for a prior): a strict dimension changes value only when decoded from an
+    exact prefix of its action.
+
+    Args:
+        rule: a rule built on [`RelaxedBinMatch`] (its ``strict_dims`` say which dimensions are strict).
+    """
+
+    def __init__(self, rule: AcceptanceRule):
+        inner = rule
+        while not isinstance(inner, RelaxedBinMatch):
+            inner = getattr(inner, "rule", None)
+            if inner is None:
+                raise TypeError(f"StrictTailConfirmed needs a rule built on RelaxedBinMatch, got {rule!r}")
+        self.rule = rule
+        self.strict_tail = strict_tails(inner.strict_dims)
+        self.needs_probabilities = rule.needs_probabilities
+        self.max_relaxed_per_action = rule.max_relaxed_per_action
+
+    def __call__(self, draft_ids, target_ids, action_dims=None, action_steps=None, top1_probs=None):
+        return self.rule(draft_ids, target_ids, action_dims, action_steps, top1_probs)
+
+    @property
+    def is_lossless(self) -> bool:
+        return self.rule.is_lossless
+
+    def __repr__(self) -> str:
+        return f"StrictTailConfirmed({self.rule!r})"
 
 
 def check_bin_tolerance_range(tolerances: Sequence[int], n_bins: int, given: str) -> None:
@@ -291,36 +437,51 @@ def make_acceptance_rule(
     action_layout: ActionLayout | None,
     confidence_gate: float | None = None,
     max_relaxed_per_action: int | None = None,
+    motion_scale: float | Sequence[float] | None = None,
+    max_deviation: float | Sequence[float] | None = None,
+    confirm_strict_tail: bool = False,
 ) -> AcceptanceRule:
-    """[`ExactMatch`] when every tolerance is 0 (whatever the gate and budget), else [`RelaxedBinMatch`] (which needs
-    the action layout), inside a [`ConfidenceGate`] when ``confidence_gate`` is given and a [`RelaxedBudget`] when
-    ``max_relaxed_per_action`` is.
+    """[`ExactMatch`] when nothing is relaxed (every tolerance 0 and no motion scale, whatever the gate, budget and
+    bound), else [`RelaxedBinMatch`] (which needs the action layout; its ``units`` for ``motion_scale`` and
+    ``max_deviation``), inside a [`ConfidenceGate`] when ``confidence_gate`` is given, a [`RelaxedBudget`] when
+    ``max_relaxed_per_action`` is and a [`StrictTailConfirmed`] when ``confirm_strict_tail``.
 
     Raises:
-        ValueError: a relaxed tolerance without an action layout, naming where one can come from.
+        ValueError / TypeError naming the bad value and what would be valid (before anything runs).
     """
     confidence_gate = check_confidence_gate(confidence_gate)
     max_relaxed_per_action = check_relaxed_budget(max_relaxed_per_action)
+    if not isinstance(confirm_strict_tail, (bool, np.bool_)):
+        raise TypeError(f"confirm_strict_tail must be True or False, got {confirm_strict_tail!r}")
+    scaling = motion_scale is not None and any(
+        v != 0 for v in (motion_scale.tolist() if isinstance(motion_scale, torch.Tensor) else
+                         motion_scale if _is_sequence(motion_scale) else [motion_scale])
+    )  # fmt: skip
     if action_layout is None:
         values = bin_tolerance.tolist() if isinstance(bin_tolerance, torch.Tensor) else bin_tolerance
         rows = values if _is_sequence(values) and len(values) and all(_is_sequence(r) for r in values) else [values]
-        if all(t == 0 for row in rows for t in validate_bin_tolerance(row, len(row) if _is_sequence(row) else 1)):
+        lossless = all(
+            t == 0 for row in rows for t in validate_bin_tolerance(row, len(row) if _is_sequence(row) else 1)
+        )
+        if lossless and not scaling:
             return ExactMatch()
         raise ValueError(
-            f"bin_tolerance={bin_tolerance!r} relaxes acceptance of action tokens, but nothing says which tokens are "
-            "actions: pass action_layout=ActionLayout(ActionTokenizer(vocab_end, n_bins), action_dim) to generate, "
-            "or use a DraftHead (its config records the layout)"
+            f"bin_tolerance={bin_tolerance!r}, motion_scale={motion_scale!r} relax acceptance of action tokens, but "
+            "nothing says which tokens are actions: pass action_layout=ActionLayout(ActionTokenizer(vocab_end, "
+            "n_bins), action_dim) to generate, or use a DraftHead (its config records the layout)"
         )
     table = validate_tolerance_table(bin_tolerance, action_layout.action_dim)
     given = f"bin_tolerance={bin_tolerance!r}"
     check_bin_tolerance_range([t for row in table for t in row], action_layout.tokenizer.n_bins, given)
-    if all(t == 0 for row in table for t in row) or max_relaxed_per_action == 0:
+    rule = RelaxedBinMatch(action_layout, table, motion_scale, max_deviation)  # validates the scale and the bound
+    if rule.is_lossless or max_relaxed_per_action == 0:
         return ExactMatch()
-    rule: AcceptanceRule = RelaxedBinMatch(action_layout, table)
     if confidence_gate is not None and confidence_gate < 1:
         rule = ConfidenceGate(rule, confidence_gate)
     if max_relaxed_per_action is not None:
         rule = RelaxedBudget(rule, max_relaxed_per_action)
+    if confirm_strict_tail:
+        rule = StrictTailConfirmed(rule)
     return rule
 
 
@@ -427,6 +588,15 @@ def accept_trees(
         count = count + torch.where(action_steps == first_step, earlier, 0)
         passes = passes & (count <= budget)
     path_passes = ~(ancestor_or_self & ~passes[:, None, :]).any(dim=-1)  # [B, N] the node and all its ancestors
+    if rule.strict_tail is not None and action_layout is not None:
+        # a relaxed node's path may end only at or past its action's last strict dimension after it (confirmed there)
+        relaxed = passes & (tokens != parent_targets) & is_action  # [B, N]
+        last_strict = torch.tensor(rule.strict_tail, device=tokens.device)[action_dims]  # [B, N] (-1: none)
+        must_reach = torch.where(
+            relaxed & (last_strict >= 0), action_steps * action_layout.action_dim + last_strict, -1
+        )
+        reach = torch.where(ancestor_or_self, must_reach[:, None, :], -1).amax(dim=-1)  # [B, N] over the path
+        path_passes = path_passes & (before >= reach)  # ``before``: the node's own index among the call's actions
     total_distance = (ancestor_or_self.long() * distances[:, None, :]).sum(-1)  # [B, N] summed along the path
     # deepest, then closest, then first: argmax returns the first of equal maxima
     rank = (trees.depths + 1) * (int(total_distance.max()) + 1) - total_distance  # >= 1 for every node

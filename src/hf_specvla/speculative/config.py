@@ -6,7 +6,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from ..actions.tokenizer import ActionLayout
-from .acceptance import check_confidence_gate, check_relaxed_budget
+from .acceptance import (
+    MAX_DEVIATION_MEANING,
+    MOTION_SCALE_MEANING,
+    check_confidence_gate,
+    check_relaxed_budget,
+    validate_per_dimension,
+)
 
 #: Appended to the AttributeError transformers' own assisted generation raises when it is handed a hf_specvla
 #: assistant because the target's ``generate`` was never speculation-enabled (it is not enabled automatically).
@@ -34,6 +40,13 @@ class SpeculationConfig:
             (the target is unsure); None = no gate.
         max_relaxed_per_action: at most this many relaxed tokens per action (past it acceptance is exact); None = no
             budget.
+        motion_scale: rho: also accept an action token within ``rho * |target bin - zero-motion bin|`` bins of the
+            target's (a number or one per dimension; a relative error bound; needs ``action_layout.units``). None = no
+            scaling.
+        max_deviation: never accept a token whose action differs from the target's by more than this, in the
+            policy's units (a number or one per dimension; needs ``action_layout.units``). None = no bound.
+        confirm_strict_tail: keep a relaxed token only when its action's strict dimensions after it (a gripper) were
+            drafted and confirmed in the same verification.
         max_drafts_per_row: each row's draft tree is cut to its first this many tokens per verification (the prefill
             included); None = as the drafter proposes. A verification's cost grows with its tokens once the forward is
             compute-bound (a batch on a CPU: docs/benchmarks.md, "The arithmetic floor"), so batches verify fewer
@@ -47,6 +60,9 @@ class SpeculationConfig:
     confidence_gate: float | None = None
     max_relaxed_per_action: int | None = None
     max_drafts_per_row: int | None = None
+    motion_scale: float | Sequence[float] | None = None
+    max_deviation: float | Sequence[float] | None = None
+    confirm_strict_tail: bool = False
 
     def __post_init__(self):
         k = self.num_draft_tokens
@@ -54,6 +70,13 @@ class SpeculationConfig:
             raise ValueError(f"num_draft_tokens must be an int >= 1 (tokens drafted per verification), got {k!r}")
         check_confidence_gate(self.confidence_gate)
         check_relaxed_budget(self.max_relaxed_per_action)
+        for name, meaning in (("motion_scale", MOTION_SCALE_MEANING), ("max_deviation", MAX_DEVIATION_MEANING)):
+            value = getattr(self, name)
+            if value is not None:  # the number of dimensions is checked against the action layout later
+                values = list(value) if isinstance(value, Sequence) and not isinstance(value, str) else [value]
+                validate_per_dimension(values, len(values), name, meaning)
+        if not isinstance(self.confirm_strict_tail, bool):
+            raise TypeError(f"confirm_strict_tail must be True or False, got {self.confirm_strict_tail!r}")
         cap = self.max_drafts_per_row
         if cap is not None and (isinstance(cap, bool) or not isinstance(cap, int) or cap < 0):
             raise ValueError(

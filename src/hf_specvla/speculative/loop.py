@@ -845,6 +845,9 @@ def speculative_generate(
     confidence_gate: float | None = SpeculationConfig.confidence_gate,
     max_relaxed_per_action: int | None = SpeculationConfig.max_relaxed_per_action,
     max_drafts_per_row: int | None = SpeculationConfig.max_drafts_per_row,
+    motion_scale: float | Sequence[float] | None = SpeculationConfig.motion_scale,
+    max_deviation: float | Sequence[float] | None = SpeculationConfig.max_deviation,
+    confirm_strict_tail: bool = SpeculationConfig.confirm_strict_tail,
     **model_kwargs,
 ) -> SpeculativeDecoderOnlyOutput | torch.LongTensor:
     """Greedy speculative decoding of a batch; a ``custom_generate`` callable for ``model.generate``.
@@ -871,15 +874,16 @@ def speculative_generate(
     check_transformers_support()
     settings = SpeculationConfig(
         bin_tolerance, num_draft_tokens, action_layout, profile_speculation, confidence_gate, max_relaxed_per_action,
-        max_drafts_per_row,
+        max_drafts_per_row, motion_scale, max_deviation, confirm_strict_tail,
     )  # fmt: skip
     batch_size = input_ids.shape[0]
     drafter, candidates = _call_drafter(model, batch_size, drafter, draft_head, draft_ids, settings)
     _validate_call(model, generation_config, logits_processor, batch_size, drafter)
     layout = settings.action_layout or drafter.action_layout
     rule = make_acceptance_rule(
-        settings.bin_tolerance, layout, settings.confidence_gate, settings.max_relaxed_per_action
-    )
+        settings.bin_tolerance, layout, settings.confidence_gate, settings.max_relaxed_per_action,
+        settings.motion_scale, settings.max_deviation, settings.confirm_strict_tail,
+    )  # fmt: skip
     if candidates is not None:
         _check_draft_ids_are_actions(candidates, rule, layout)
     eos_ids = generation_config.eos_token_id

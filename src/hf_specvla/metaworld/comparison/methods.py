@@ -82,6 +82,9 @@ class CompareConfig:
     tree_total_tokens: int | None = None
     draft_head_given: bool = False  # presets resolve to the methods of a policy with a draft head
     action_dim: int | None = None  # presets resolve to its layout
+    #: the size of greedy's action (|value| per dimension, in the policy's units) from which a motion counts as large in
+    #: the deviation by phase (a summary setting: episodes do not depend on it); Meta-World's hand moves <= 1 per step
+    motion_threshold: float = 0.25
 
     def __post_init__(self):
         self.tasks = resolve_tasks(self.tasks)
@@ -89,6 +92,10 @@ class CompareConfig:
         check_ranges(self, at_least_one=names[:3] + names[4:], non_negative=names[3:4], integers=names)
         if self.action_dim is not None:
             check_ranges(self, at_least_one=("action_dim",), integers=("action_dim",))
+        threshold = self.motion_threshold
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0 < threshold < float("inf"):
+            raise ValueError(f"motion_threshold must be a finite number > 0 (the size of greedy's action, in the "
+                             f"policy's units, from which a motion is large), got {threshold!r}")  # fmt: skip
         for name in self.methods:
             resolved = resolve_preset(name, self.draft_head_given, self.action_dim)
             if resolved is not None:

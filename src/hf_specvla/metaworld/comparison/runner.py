@@ -101,6 +101,7 @@ def run_method_episode(
     target_forwards = new_tokens = 0
     accepted_by_position = [0] * action_dim  # calls whose token at each position was a drafted token accepted
     distances: list[int] = []
+    reference_magnitudes: list[float] = []  # per token of a relaxed call: |greedy's action| there, policy's units
 
     def decide(rows: list[int], observations: list[dict]) -> list:
         nonlocal target_forwards, new_tokens
@@ -126,6 +127,10 @@ def run_method_episode(
         if not method.lossless:  # off the clock: how far is this from greedy's action on the same observation?
             reference = _greedy_action_ids(policy, obs)
             distances.extend(abs(a - b) for a, b in zip(action_ids, reference))  # every token of the call, in order
+            reference_actions = policy.action_tokenizer.decode(np.asarray(reference).reshape(-1, dims))  # [H, D]
+            if policy.action_normalizer is not None:
+                reference_actions = policy.action_normalizer.unnormalize(reference_actions)
+            reference_magnitudes.extend(round(abs(float(x)), 4) for x in np.ravel(reference_actions))
         digest.update(np.asarray(action_ids, np.int64).tobytes())
         return [policy.action_steps(action)]
 
@@ -141,6 +146,10 @@ def run_method_episode(
         "bin_distance_max_per_dim": [max(distances[d::dims], default=0) for d in range(dims)],
         # per token position of a call (action 0's dimensions, then action 1's, ...): calls that took a draft there
         "accepted_by_position": accepted_by_position,
+        # relaxed methods, per token of every call: its bin distance from greedy's and the size of greedy's action
+        # there (|value| in the policy's units), for the deviation by phase (large / small motions); bin widths in units
+        **({"bin_distances": distances, "reference_magnitudes": reference_magnitudes,
+            "bin_widths": list(policy.action_layout.units.bin_widths)} if distances else {}),
     }  # fmt: skip
 
 
@@ -381,7 +390,9 @@ def run_comparison(
                 "methods); the folder holds %d, and a run with more --episodes summarises them all",
                 len(records), len(config.tasks), config.episodes_per_task, len(methods), in_folder,
             )  # fmt: skip
-        summary = summarize_comparison(records, config.methods, timed=timing.timed)
+        summary = summarize_comparison(
+            records, config.methods, timed=timing.timed, motion_threshold=config.motion_threshold
+        )
         summary["settings"] = {**settings, "tasks": config.tasks, "episodes_per_task": config.episodes_per_task,
                                "workers": config.workers, "threads": config.threads}  # fmt: skip
         summary["timing"] = _timing_summary(timing, records)

@@ -24,7 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .methods import COMPILED_GREEDY, GREEDY, DecodingMethod
+from .methods import COMPILED_GREEDY, GREEDY, CompareConfig, DecodingMethod
+
+DEFAULT_MOTION_THRESHOLD = CompareConfig.motion_threshold
 
 BOOTSTRAP_RESAMPLES = 10_000
 #: resamples of the speed-up's paired bootstrap (a ratio of sums: each resample costs a gather over episodes)
@@ -132,12 +134,19 @@ def _speedups(baseline: dict, episodes: dict, timed_keys: set) -> tuple[float | 
     return statistics.median(ratios), total
 
 
-def summarize_comparison(records: list[dict], methods: list[str], timed: Callable[[dict], bool] | None = None) -> dict:
+def summarize_comparison(
+    records: list[dict],
+    methods: list[str],
+    timed: Callable[[dict], bool] | None = None,
+    motion_threshold: float = DEFAULT_MOTION_THRESHOLD,
+) -> dict:
     """Per-method figures (see module docstring) from episode records; ``methods[0]`` must be greedy.
 
     Args:
         timed: whether a record's wall times enter the speed figures (timed under the folder's conditions); the
             others count for every other figure. Default: all do.
+        motion_threshold: the size of greedy's action (policy's units) from which a motion is large, for
+            [`deviation_by_phase`].
     """
     if not methods or methods[0] != GREEDY.name:
         raise ValueError(f"the first method must be greedy (the baseline), got {methods[:1]}")
@@ -172,6 +181,7 @@ def summarize_comparison(records: list[dict], methods: list[str], timed: Callabl
         row = {
             "drafters": method.drafters,
             "bin_tolerance": method.widest_tolerance,  # the largest r (per dimension or chunk step)
+            "relaxed": not method.lossless,
             # the method but its r: the curves of the plots (prior+jacobi, prior+jacobi:m=1, ...)
             "family": replace(method, bin_tolerance=0, later_tolerance=None).name,
             "episodes": len(episodes),
@@ -201,6 +211,8 @@ def summarize_comparison(records: list[dict], methods: list[str], timed: Callabl
             "max_bin_deviation": max(r["bin_distance_max"] for r in episodes.values()),
             # the executed action's distance from greedy's on the same observation, per action dimension
             **_deviation_per_dim(list(episodes.values())),
+            # the same split by the size of greedy's action (where relaxation acts: transport or fine motions)
+            "deviation_by_phase": deviation_by_phase(list(episodes.values()), motion_threshold),
             # per token position of a call: the share of calls whose token there was an accepted draft
             **_acceptance_by_position(list(episodes.values())),
             "identical_to_greedy": sum(episodes[k]["actions_digest"] == greedy[k]["actions_digest"] for k in paired),
@@ -227,6 +239,62 @@ def _deviation_per_dim(records: list[dict]) -> dict:
                                        for d in range(dims)],
         "max_bin_deviation_per_dim": [max(r["bin_distance_max_per_dim"][d] for r in records) for d in range(dims)],
     }  # fmt: skip
+
+
+def deviation_by_phase(records: list[dict], threshold: float = DEFAULT_MOTION_THRESHOLD) -> dict:
+    """The deviation from greedy's action on the same observation, per action dimension, split by the size of greedy's
+    action there: ``large`` where ``|greedy's value| >= threshold`` (policy's units), ``small`` elsewhere. Per phase:
+    ``tokens_per_dim``, ``mean_bins_per_dim``, ``mean_units_per_dim`` (bins x the dimension's bin width),
+    ``max_bins_per_dim`` and ``changed_per_dim`` (the share of tokens that differ from greedy's). Logs written before
+    the per-token fields existed give none."""
+    records = [r for r in records if r.get("reference_magnitudes")]
+    if not records:
+        return {}
+    dims = len(records[0]["bin_widths"])
+    phases: dict = {}
+    for phase in ("large", "small"):
+        tokens, total, changed, largest = [0] * dims, [0] * dims, [0] * dims, [0] * dims
+        for record in records:
+            for i, (distance, size) in enumerate(zip(record["bin_distances"], record["reference_magnitudes"])):
+                if (size >= threshold) == (phase == "large"):
+                    d = i % dims
+                    tokens[d] += 1
+                    total[d] += distance
+                    changed[d] += distance > 0
+                    largest[d] = max(largest[d], distance)
+        widths = records[0]["bin_widths"]
+        phases[phase] = {
+            "tokens_per_dim": tokens,
+            "mean_bins_per_dim": [t / n if n else 0.0 for t, n in zip(total, tokens)],
+            "mean_units_per_dim": [t * w / n if n else 0.0 for t, w, n in zip(total, widths, tokens)],
+            "max_bins_per_dim": largest,
+            "changed_per_dim": [c / n if n else 0.0 for c, n in zip(changed, tokens)],
+        }
+    return {"threshold": threshold, **phases}
+
+
+def format_deviation_by_phase(summary: dict) -> str:
+    """A markdown table: per relaxed method and phase, the mean bin deviation per dimension and the share changed."""
+    rows = [(name, row["deviation_by_phase"]) for name, row in summary["methods"].items()
+            if row.get("deviation_by_phase")]  # fmt: skip
+    if not rows:
+        return ""
+    threshold = rows[0][1]["threshold"]
+    lines = [
+        f"Deviation from greedy's action on the same observation, by the size of greedy's action (large: |value| >= "
+        f"{threshold:g} in the policy's units): mean bins per dimension (share of tokens changed), tokens",
+        "",
+        "| method | phase | mean bins per dim. (changed) | mean units per dim. | tokens |",
+        "|---|---|---|---|---:|",
+    ]
+    for name, phases in rows:
+        for phase in ("large", "small"):
+            figures = phases[phase]
+            per_dim = " / ".join(f"{m:.2f} ({c:.0%})" for m, c in zip(figures["mean_bins_per_dim"],
+                                                                      figures["changed_per_dim"]))  # fmt: skip
+            units = " / ".join(f"{u:.4f}" for u in figures["mean_units_per_dim"])
+            lines.append(f"| {name} | {phase} | {per_dim} | {units} | {sum(figures['tokens_per_dim'])} |")
+    return "\n".join(lines)
 
 
 def _acceptance_by_position(records: list[dict]) -> dict:
@@ -304,10 +372,11 @@ def format_comparison(summary: dict) -> str:
                              _format_speedup(row.get("speedup_total_vs_greedy_compile"), row["episodes"]),
                              _format_ratio(row.get("speedup_vs_greedy_compile"))])  # fmt: skip
         median_ms = "-" if row.get("median_ms_per_call") is None else f"{row['median_ms_per_call']:.2f}"
-        deviation = "-" if not row["bin_tolerance"] else f"{row['mean_bin_deviation']:.2f} / {row['max_bin_deviation']}"
+        relaxed = row.get("relaxed", bool(row["bin_tolerance"]))
+        deviation = "-" if not relaxed else f"{row['mean_bin_deviation']:.2f} / {row['max_bin_deviation']}"
         identical = f"{row['identical_to_greedy']}/{paired['pairs'] if paired else 0}"
         per_dim = row.get("mean_bin_deviation_per_dim")
-        per_dim = "-" if not row["bin_tolerance"] or not per_dim else " / ".join(f"{d:.2f}" for d in per_dim)
+        per_dim = "-" if not relaxed or not per_dim else " / ".join(f"{d:.2f}" for d in per_dim)
         lines.append(
             f"| {name} | {row['episodes']} | {row['success_rate']:.1%} | {versus} | {discordant} "
             f"| {row['mean_episode_length']:.0f} | {median_ms} | {speeds} "
@@ -315,6 +384,9 @@ def format_comparison(summary: dict) -> str:
             f"| {per_dim} | {identical} |"
         )
     lines += ["", SPEEDUP_NOTE]
+    by_phase = format_deviation_by_phase(summary)
+    if by_phase:
+        lines += ["", by_phase]
     by_position = format_acceptance_by_position(summary)
     if by_position:
         lines += [
