@@ -29,6 +29,10 @@ then the one proposed first (lowest node index): the output stays as close to gr
   drafted and confirmed by the target in the same verification, so a strict dimension's value never changes on a
   relaxed prefix; otherwise the path ends before the relaxed token and the next token is the target's own.
 
+Sampling (``do_sample=True``): [`sample_trees`] verifies the drafts by speculative sampling (recursive rejection
+sampling for trees, every draft a point mass), so the output is distributed exactly as the target's own sampling;
+relaxed rules are greedy-only.
+
 Every rule is exact where its tolerance is 0: ``bin_tolerance=0`` is greedy decoding whatever the gate or budget.
 """
 
@@ -608,4 +612,58 @@ def accept_trees(
     for row_on_path, row_distances, bonus in zip(on_path.tolist(), distances.tolist(), bonus_ids.tolist()):
         nodes = [i for i, kept in enumerate(row_on_path) if kept]  # index order is depth order
         paths.append(AcceptedPath(nodes, bonus, [row_distances[i] for i in nodes]))
+    return paths
+
+
+# ----------------------------------------------------------------------------- sampling
+def sample_trees(
+    trees: TreeBatch, scores: torch.Tensor, generator: torch.Generator | None = None
+) -> list[AcceptedPath]:
+    """Lossless speculative sampling of each row's tree: the emitted tokens are distributed exactly as sampling from
+    the target token by token (``softmax`` of its processed scores: temperature, top-k, top-p, ... as ``generate``
+    applies them).
+
+    Every drafted token is a point mass (a drafter's choice, whatever distribution it came from): at a node, its
+    children are tried in order, child ``c`` accepted with probability ``p(c)`` under the current distribution ``p``;
+    a rejected child's token is removed from ``p`` (renormalised: recursive rejection sampling, SpecInfer / EAGLE's
+    for trees, with one-hot drafts) and the next child tried. An accepted child continues the path from its own
+    distribution; where no child is accepted (or at a leaf) the bonus token is sampled from what is left.
+
+    Args:
+        trees: the verified trees, padded to N nodes.
+        scores: ``[B, 1 + N, V]`` the target's processed scores after each row's root (column 0) and each node
+            (1 + i), each given that node's own path as prefix.
+        generator: the random source (a CPU generator; default: torch's global one, seeded by ``torch.manual_seed``).
+    Returns:
+        one [`AcceptedPath`] per row (distances 0: sampling never relaxes).
+    """
+    probs = scores.float().softmax(dim=-1).cpu()  # [B, 1 + N, V] one copy to the host per round
+    parents, real = trees.parents.tolist(), trees.is_real.tolist()
+    tokens = trees.token_ids.tolist()
+    paths = []
+    for b in range(len(tokens)):
+        children: dict[int, list[int]] = {}
+        for node, parent in enumerate(parents[b]):
+            if real[b][node]:
+                children.setdefault(parent, []).append(node)
+        nodes, at = [], -1  # at: the node whose next token is decided (-1: the root)
+        while True:
+            p = probs[b, at + 1].clone()
+            chosen = None
+            for child in children.get(at, []):
+                token = tokens[b][child]
+                if float(torch.rand((), generator=generator)) < float(p[token]):
+                    chosen = child
+                    break
+                p[token] = 0.0
+                total = float(p.sum())
+                if total <= 0.0:  # every token with mass was drafted and rejected: cannot happen (p(c) = 1 accepts)
+                    break
+                p /= total
+            if chosen is None:
+                bonus = int(torch.multinomial(p, 1, generator=generator))
+                break
+            nodes.append(chosen)
+            at = chosen
+        paths.append(AcceptedPath(nodes, bonus, [0] * len(nodes)))
     return paths

@@ -40,7 +40,7 @@ from transformers.cache_utils import Cache
 from transformers.generation.logits_process import PrefixConstrainedLogitsProcessor
 
 from ..actions.tokenizer import ActionLayout
-from .acceptance import AcceptanceRule, AcceptedPath, accept_trees, make_acceptance_rule
+from .acceptance import AcceptanceRule, AcceptedPath, accept_trees, make_acceptance_rule, sample_trees
 from .cache import (
     ROLLBACK_LAYER_TYPES,
     cache_batch_size,
@@ -312,11 +312,6 @@ def _leave_cache_as_greedy(cache: Cache, rows: list[RowState], offset: int) -> N
 
 
 def _validate_call(model, generation_config: GenerationConfig, logits_processor, batch_size: int, drafter) -> None:
-    if generation_config.do_sample:
-        raise ValueError(
-            "speculative decoding is greedy only (do_sample=False); got do_sample=True. Drop do_sample / "
-            "temperature, or generate without assistant_model / draft_ids to sample"
-        )
     if (generation_config.num_beams or 1) > 1 or (generation_config.num_return_sequences or 1) > 1:
         raise ValueError(
             f"speculative decoding needs num_beams=1 and num_return_sequences=1, got "
@@ -593,6 +588,7 @@ class RoundPlan:
     max_drafts: int | None  # each row's tree is cut to its first this many nodes (``max_drafts_per_row``), or None
     keep_scores: bool
     keep_logits: bool
+    sampling: bool = False  # do_sample: the drafts are verified by speculative sampling ([`sample_trees`])
 
 
 def propose(state: DecodeState, plan: RoundPlan, at_prefill: bool) -> list[DraftTree]:
@@ -695,7 +691,8 @@ def verify(
 def accept(
     state: DecodeState, plan: RoundPlan, trees: TreeBatch, output: TargetOutput, logits_processor: LogitsProcessorList
 ) -> tuple[list[AcceptedPath], torch.Tensor, torch.Tensor]:
-    """3. Per row, the longest passing path; its bonus token is the target's greedy choice after it.
+    """3. Per row, the longest passing path; its bonus token is the target's greedy choice after it (sampling: the path
+    and bonus token drawn by speculative sampling, [`sample_trees`]).
 
     Returns:
         (the accepted paths, the target's greedy ids ``[B, 1 + N]``, the processed scores ``[B, 1 + N, V]``)."""
@@ -704,6 +701,8 @@ def accept(
     )
     action_counts = [row.num_action_tokens for row in state.rows]
     top1_probs = target_scores.softmax(dim=-1).amax(dim=-1) if plan.rule.needs_probabilities else None  # [B, 1 + N]
+    if plan.sampling:  # the target's distribution, exactly: every draft a point mass, recursive rejection sampling
+        return sample_trees(trees, target_scores), target_ids, target_scores
     budgeted = plan.rule.max_relaxed_per_action is not None  # the rule counts relaxed tokens per action
     relaxed = [_relaxed_in_action(row, plan.layout) for row in state.rows] if budgeted else None
     paths = accept_trees(trees, target_ids, plan.rule, plan.layout, action_counts, top1_probs, relaxed)
@@ -884,6 +883,12 @@ def speculative_generate(
         settings.bin_tolerance, layout, settings.confidence_gate, settings.max_relaxed_per_action,
         settings.motion_scale, settings.max_deviation, settings.confirm_strict_tail,
     )  # fmt: skip
+    if generation_config.do_sample and not rule.is_lossless:
+        raise ValueError(
+            f"relaxed acceptance ({rule!r}) is greedy only: with do_sample=True the drafts are verified by speculative "
+            "sampling, which keeps the target's distribution exactly; drop bin_tolerance / motion_scale, or sample "
+            "with do_sample=False's relaxed rules off"
+        )
     if candidates is not None:
         _check_draft_ids_are_actions(candidates, rule, layout)
     eos_ids = generation_config.eos_token_id
@@ -961,6 +966,7 @@ def speculative_generate(
         max_drafts=settings.max_drafts_per_row,
         keep_scores=keep_scores,
         keep_logits=keep_logits,
+        sampling=bool(generation_config.do_sample),
     )
     prompt = (prompt_ids, prompt_positions)  # the prefill's pending tokens
     at_prefill = True
