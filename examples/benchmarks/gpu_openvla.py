@@ -30,31 +30,15 @@ import time
 from pathlib import Path
 
 import torch
-from torch.overrides import TorchFunctionMode
 
 from hf_specvla import DraftHead, DraftHeadDrafter
 from hf_specvla.openvla import OpenVLAConfig, OpenVLAForActionPrediction, VisionTowerSpec, register_vision_tower
 from hf_specvla.speculative import compiled_decoding_kwargs, enable_speculation
+from hf_specvla.speculative.syncs import HostSyncCounter
 
 #: "In: What action should the robot take to pick up the red block?\nOut:" (Llama-2 tokenizer)
 PROMPT_IDS = [1, 512, 29901, 1724, 3158, 881, 278, 19964, 2125, 304, 5839, 701, 278, 2654, 2908, 29973, 13, 3744, 29901]
 ACTION_DIM = 7
-#: the tensor methods that wait for the device (a host sync on CUDA)
-SYNCS = {torch.Tensor.item, torch.Tensor.tolist, torch.Tensor.cpu, torch.Tensor.numpy, torch.Tensor.__bool__,
-         torch.Tensor.__int__, torch.Tensor.__float__, torch.Tensor.__index__}  # fmt: skip
-
-
-class SyncCounter(TorchFunctionMode):
-    """Counts the host syncs (``SYNCS``) made while it is active."""
-
-    def __init__(self):
-        super().__init__()
-        self.count = 0
-
-    def __torch_function__(self, func, types, args=(), kwargs=None):
-        if func in SYNCS:
-            self.count += 1
-        return func(*args, **(kwargs or {}))
 
 
 def tiny_config() -> OpenVLAConfig:
@@ -172,7 +156,7 @@ def main() -> None:
     forwards, syncs = {}, {}
     for key, run in runs.items():  # warm-up (compiles), then the syncs of one call, untimed
         forwards[key] = forwards_of(run(), ACTION_DIM)
-        with SyncCounter() as counter:
+        with HostSyncCounter() as counter:
             run()
         syncs[key] = counter.count
     order, rng, rounds_run = list(runs), random.Random(0), 0

@@ -244,6 +244,7 @@ class RelaxedBinMatch(AcceptanceRule):
             table = np.minimum(table, cap[None, :, None])
         #: ``[S, D, n_bins]`` the tolerance in bins of a token at (chunk step, dimension, the target's bin)
         self.tolerance_by_bin = torch.from_numpy(np.minimum(table, n_bins - 1))
+        self._lossless = bool((table == 0).all())
         self._on_device: dict = {}
 
     def tolerances(self, target_ids: torch.Tensor, action_dims=None, action_steps=None) -> torch.Tensor:
@@ -277,7 +278,7 @@ class RelaxedBinMatch(AcceptanceRule):
 
     @property
     def is_lossless(self) -> bool:
-        return bool((self.tolerance_by_bin == 0).all())
+        return self._lossless
 
     def __repr__(self) -> str:
         rows = [row[0] if len(set(row)) == 1 else list(row) for row in self.tolerance_table]
@@ -498,11 +499,14 @@ class AcceptedPath(NamedTuple):
         bonus_id: the target's greedy token after the path (always emitted after the path's tokens).
         distances: bin distance of each accepted drafted token to the target's greedy token at its place
             (0 for an exact match or a non-action token).
+        target_ids: the target's greedy token after the root and after each of the tree's nodes (``1 + n`` of the
+            row's own tree), on the host; None when not read.
     """
 
     nodes: list[int]
     bonus_id: int
     distances: list[int]
+    target_ids: list[int] | None = None
 
 
 def accept_tree(
@@ -560,7 +564,7 @@ def accept_trees(
     tokens, ancestor_or_self = trees.token_ids, trees.ancestor_or_self  # [B, N], [B, N, N]
     batch_size, num_nodes = tokens.shape
     if num_nodes == 0:
-        return [AcceptedPath([], bonus, []) for bonus in target_ids[:, 0].tolist()]
+        return [AcceptedPath([], bonus, [], [bonus]) for bonus in target_ids[:, 0].tolist()]
     parent_targets = target_ids.gather(1, trees.parents + 1)  # [B, N] greedy token at each node's place
     if action_layout is not None:
         tokenizer = action_layout.tokenizer
@@ -602,16 +606,24 @@ def accept_trees(
         reach = torch.where(ancestor_or_self, must_reach[:, None, :], -1).amax(dim=-1)  # [B, N] over the path
         path_passes = path_passes & (before >= reach)  # ``before``: the node's own index among the call's actions
     total_distance = (ancestor_or_self.long() * distances[:, None, :]).sum(-1)  # [B, N] summed along the path
-    # deepest, then closest, then first: argmax returns the first of equal maxima
-    rank = (trees.depths + 1) * (int(total_distance.max()) + 1) - total_distance  # >= 1 for every node
+    # deepest, then closest, then first: argmax returns the first of equal maxima. Any bound above every path's total
+    # distance orders the same; this one is known on the host (no read of the device's maximum)
+    widest = (action_layout.tokenizer.n_bins - 1) * num_nodes if action_layout is not None else 0
+    rank = (trees.depths + 1) * (widest + 1) - total_distance  # >= 1 for every node
     best = torch.where(path_passes, rank, 0).argmax(dim=-1)  # [B]
     accepted = path_passes.any(dim=-1)  # [B]
     bonus_ids = torch.where(accepted, target_ids.gather(1, best[:, None] + 1)[:, 0], target_ids[:, 0])
     on_path = ancestor_or_self[torch.arange(batch_size, device=tokens.device), best] & accepted[:, None]  # [B, N]
+    # one read from the device per verification: the paths, distances, bonus tokens, drafted and target tokens
+    packed = torch.cat([on_path.long(), distances, bonus_ids[:, None], tokens, target_ids], dim=1).tolist()
     paths = []
-    for row_on_path, row_distances, bonus in zip(on_path.tolist(), distances.tolist(), bonus_ids.tolist()):
+    for row, tree in zip(packed, trees.trees):
+        row_on_path, row_distances, bonus = row[:num_nodes], row[num_nodes : 2 * num_nodes], row[2 * num_nodes]
+        if tree.token_list is None:  # drafted on the device: now known on the host too
+            tree.token_list = row[2 * num_nodes + 1 : 2 * num_nodes + 1 + tree.num_nodes]
         nodes = [i for i, kept in enumerate(row_on_path) if kept]  # index order is depth order
-        paths.append(AcceptedPath(nodes, bonus, [row_distances[i] for i in nodes]))
+        row_targets = row[3 * num_nodes + 1 : 3 * num_nodes + 2 + tree.num_nodes]
+        paths.append(AcceptedPath(nodes, bonus, [row_distances[i] for i in nodes], row_targets))
     return paths
 
 
@@ -638,20 +650,18 @@ def sample_trees(
         one [`AcceptedPath`] per row (distances 0: sampling never relaxes).
     """
     probs = scores.float().softmax(dim=-1).cpu()  # [B, 1 + N, V] one copy to the host per round
-    parents, real = trees.parents.tolist(), trees.is_real.tolist()
-    tokens = trees.token_ids.tolist()
     paths = []
-    for b in range(len(tokens)):
+    for b, tree in enumerate(trees.trees):
+        tokens = tree.host_tokens
         children: dict[int, list[int]] = {}
-        for node, parent in enumerate(parents[b]):
-            if real[b][node]:
-                children.setdefault(parent, []).append(node)
+        for node, parent in enumerate(tree.parent_list):
+            children.setdefault(parent, []).append(node)
         nodes, at = [], -1  # at: the node whose next token is decided (-1: the root)
         while True:
             p = probs[b, at + 1].clone()
             chosen = None
             for child in children.get(at, []):
-                token = tokens[b][child]
+                token = tokens[child]
                 if float(torch.rand((), generator=generator)) < float(p[token]):
                     chosen = child
                     break
@@ -665,5 +675,5 @@ def sample_trees(
                 break
             nodes.append(chosen)
             at = chosen
-        paths.append(AcceptedPath(nodes, bonus, [0] * len(nodes)))
+        paths.append(AcceptedPath(nodes, bonus, [0] * len(nodes), None))
     return paths

@@ -106,6 +106,7 @@ class Commit:
             given that node's own path: past the accepted path these are the target's guesses on rejected prefixes
             (what [`JacobiDrafter`] drafts next).
         path_nodes: the accepted path's node indices in ``tree`` (root's child first).
+        tree_target_list: ``tree_target_ids`` on the host (read with the accepted path: no read of its own), or None.
     """
 
     next_token_ids: torch.Tensor
@@ -115,6 +116,7 @@ class Commit:
     tree: DraftTree | None = None
     tree_target_ids: torch.Tensor | None = None
     path_nodes: list[int] = field(default_factory=list)
+    tree_target_list: list[int] | None = None
 
 
 class DraftSession:

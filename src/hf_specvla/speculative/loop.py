@@ -27,6 +27,7 @@ Entry point: [`speculative_generate`], a ``custom_generate`` callable for ``mode
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 import weakref
@@ -38,6 +39,7 @@ import torch
 from transformers import GenerationConfig, LogitsProcessorList, PreTrainedModel, StoppingCriteriaList
 from transformers.cache_utils import Cache
 from transformers.generation.logits_process import PrefixConstrainedLogitsProcessor
+from transformers.generation.stopping_criteria import EosTokenCriteria, MaxLengthCriteria, MaxTimeCriteria
 
 from ..actions.tokenizer import ActionLayout
 from .acceptance import AcceptanceRule, AcceptedPath, accept_trees, make_acceptance_rule, sample_trees
@@ -455,6 +457,9 @@ def commit_paths(
     if valid_before is None:
         valid_before = torch.ones(batch_size, base, dtype=torch.bool, device=device)
     key_valid = torch.cat([valid_before, path_valid], dim=1)  # [B, base + A]
+    # every key valid: known on the host when no key was invalid before (else the device says)
+    same_length = all(len(p.nodes) == longest for p in paths)
+    all_valid = same_length and (state.key_valid is None or bool(key_valid.all()))
     commits = []
     for b, (row, path) in enumerate(zip(state.rows, paths)):
         accepted = len(path.nodes)
@@ -475,11 +480,12 @@ def commit_paths(
                 tree=trees.trees[b],
                 tree_target_ids=None if target_ids is None else target_ids[b, : 1 + trees.trees[b].num_nodes],
                 path_nodes=path.nodes,
+                tree_target_list=path.target_ids,
             )
         )
     state.pending_ids = torch.cat([c.next_token_ids[:, -1:] for c in commits])  # [B, 1] the bonus tokens
     state.pending_positions = torch.cat([c.positions[:, -1:] + 1 for c in commits])
-    state.key_valid = None if bool(key_valid.all()) else torch.cat([key_valid, key_valid.new_ones(batch_size, 1)], 1)
+    state.key_valid = None if all_valid else torch.cat([key_valid, key_valid.new_ones(batch_size, 1)], 1)
     return commits
 
 
@@ -529,12 +535,21 @@ def emit_tokens(rows: list[RowState], emitted: list[list[int]], stopping_criteri
         for count in range(1, len(tokens) + 1):
             by_length.setdefault(lengths[b] + count, []).append(b)
     stop_length: list[int | None] = [None] * len(rows)  # the shortest prefix the criteria stop at
-    for length in sorted(by_length):
-        group = [b for b in by_length[length] if stop_length[b] is None]
-        if group:
-            done = stopping_criteria(torch.stack([extended[b][:length] for b in group]), None)
-            for b, stop in zip(group, done.tolist()):
-                if stop:
+    asked = [(length, by_length[length]) for length in sorted(by_length)]
+    on_host = _host_stopping(stopping_criteria)
+    if on_host is not None:  # generate's own criteria (length, EOS, time), answered from the host's tokens
+        for length, group in asked:
+            for b in group:
+                if stop_length[b] is None and on_host(length, emitted[b][length - lengths[b] - 1]):
+                    stop_length[b] = length
+    elif asked:  # every prefix asked (the criteria are functions of the ids), then one read of all the answers
+        answers = torch.cat([
+            stopping_criteria(torch.stack([extended[b][:length] for b in group]), None).reshape(-1)
+            for length, group in asked
+        ]).tolist()  # fmt: skip
+        for (length, group), start in zip(asked, itertools.accumulate([0] + [len(g) for _, g in asked])):
+            for b, stop in zip(group, answers[start : start + len(group)]):
+                if stop and stop_length[b] is None:
                     stop_length[b] = length
     num_kept = []
     for b, row in enumerate(rows):
@@ -544,6 +559,31 @@ def emit_tokens(rows: list[RowState], emitted: list[list[int]], stopping_criteri
         row.num_generated += end - lengths[b]
         num_kept.append(end - lengths[b])
     return num_kept
+
+
+def _host_stopping(stopping_criteria: StoppingCriteriaList) -> Callable[[int, int], bool] | None:
+    """``stop(prefix_length, last_token)`` answering ``stopping_criteria`` on the host, exactly as they answer on the
+    ids, when they are all transformers' length, EOS and time criteria (what ``generate`` builds); None otherwise."""
+    known = (MaxLengthCriteria, EosTokenCriteria, MaxTimeCriteria)
+    if not all(type(criteria) in known for criteria in stopping_criteria):
+        return None
+    max_lengths = [c.max_length for c in stopping_criteria if type(c) is MaxLengthCriteria]
+    eos_ids = set()
+    for criteria in stopping_criteria:
+        if type(criteria) is EosTokenCriteria:
+            if getattr(criteria, "_host_eos_ids", None) is None:  # read once per call, not once per round
+                criteria._host_eos_ids = criteria.eos_token_id.reshape(-1).tolist()
+            eos_ids.update(criteria._host_eos_ids)
+    timers = [c for c in stopping_criteria if type(c) is MaxTimeCriteria]
+
+    def stop(length: int, last_token: int) -> bool:
+        return (
+            any(length >= m for m in max_lengths)
+            or last_token in eos_ids
+            or any(time.time() - c.initial_timestamp > c.max_time for c in timers)
+        )
+
+    return stop
 
 
 def _padded_rows(rows: list[RowState], pad_token_id: int | None) -> torch.Tensor:
@@ -731,10 +771,10 @@ def emit(
     emitted = []
     for row, tree, path in zip(state.rows, trees.trees, paths):
         row.stats.record_verification(tree.max_depth, tree.num_nodes, [tree.sources[n] for n in path.nodes])
-        emitted.append(tree.token_ids[path.nodes].tolist() + [path.bonus_id])
+        emitted.append([tree.host_tokens[n] for n in path.nodes] + [path.bonus_id])
     num_kept = emit_tokens(state.rows, emitted, stopping_criteria)
     for b, (row, tree, path, count) in enumerate(zip(state.rows, trees.trees, paths, num_kept)):
-        parents = tree.parents.tolist()
+        parents = tree.parent_list
         logit_rows = [parents[n] + 1 for n in path.nodes] + [path.nodes[-1] + 1 if path.nodes else 0]
         for token, logit_row, distance in zip(emitted[b][:count], logit_rows, path.distances + [0]):
             if plan.layout is not None and plan.layout.tokenizer.is_action_token(token):

@@ -27,15 +27,22 @@ import torch
 class DraftTree:
     """Drafted tokens arranged as a tree below the root (see module docstring).
 
+    The structure (parents, depths) is also kept on the host, so that deriving masks, cutting or merging trees never
+    waits for the device; the drafted tokens too when the tree was built from host lists ([`from_lists`]).
+
     Args:
         token_ids: ``[N]`` int64 drafted token ids.
         parents: ``[N]`` int64 parent node index, ``-1`` for the root's children; ``parents[i] < i``.
         sources: ``N`` names of the drafter that proposed each node (for statistics).
+        parent_list: ``parents`` on the host (read from ``parents`` when not given: one device read).
+        token_list: ``token_ids`` on the host, or None (read when first needed: [`host_tokens`]).
     """
 
     token_ids: torch.Tensor
     parents: torch.Tensor
     sources: list[str] = field(default_factory=list)
+    parent_list: list[int] | None = field(default=None, repr=False, compare=False)
+    token_list: list[int] | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         if self.token_ids.ndim != 1 or self.parents.shape != self.token_ids.shape:
@@ -48,14 +55,29 @@ class DraftTree:
             self.sources = ["draft"] * n
         if len(self.sources) != n:
             raise ValueError(f"DraftTree has {n} nodes but {len(self.sources)} sources")
-        if n and bool((self.parents >= torch.arange(n, device=self.parents.device)).any() | (self.parents < -1).any()):
-            raise ValueError(f"DraftTree parents must satisfy -1 <= parents[i] < i, got {self.parents.tolist()}")
+        if self.parent_list is None:
+            self.parent_list = self.parents.tolist()
+        if any(not -1 <= parent < i for i, parent in enumerate(self.parent_list)):
+            raise ValueError(f"DraftTree parents must satisfy -1 <= parents[i] < i, got {self.parent_list}")
 
     # ----------------------------------------------------------------- building
     @classmethod
+    def from_lists(
+        cls, token_ids: Sequence[int], parents: Sequence[int], sources: list[str], device: torch.device | str = "cpu"
+    ) -> DraftTree:
+        """A tree from host lists (kept as its host copies: nothing is read back from the device)."""
+        tokens, parent_list = [int(t) for t in token_ids], [int(p) for p in parents]
+        return cls(
+            torch.tensor(tokens, dtype=torch.long, device=device),
+            torch.tensor(parent_list, dtype=torch.long, device=device),
+            sources,
+            parent_list,
+            tokens,
+        )
+
+    @classmethod
     def empty(cls, device: torch.device | str = "cpu") -> DraftTree:
-        none = torch.empty(0, dtype=torch.long, device=device)
-        return cls(none, none.clone(), [])
+        return cls.from_lists([], [], [], device)
 
     @classmethod
     def from_paths(cls, paths: Iterable[Sequence[int]], source: str, device: torch.device | str = "cpu") -> DraftTree:
@@ -72,11 +94,7 @@ class DraftTree:
                     parents.append(parent)
                     sources.append(source)
                 parent = index[key]
-        return cls(
-            torch.tensor(tokens, dtype=torch.long, device=device),
-            torch.tensor(parents, dtype=torch.long, device=device),
-            sources,
-        )
+        return cls.from_lists(tokens, parents, sources, device)
 
     @property
     def num_nodes(self) -> int:
@@ -85,39 +103,51 @@ class DraftTree:
     def __len__(self) -> int:
         return self.num_nodes
 
+    @property
+    def host_tokens(self) -> list[int]:
+        """The drafted tokens on the host (read from the device once, the first time, for a tree built there)."""
+        if self.token_list is None:
+            self.token_list = self.token_ids.tolist()
+        return self.token_list
+
     # ----------------------------------------------------------------- derived buffers
+    @cached_property
+    def depth_list(self) -> list[int]:
+        """Depth of each node (0 = child of the root), on the host."""
+        depths: list[int] = []
+        for parent in self.parent_list:
+            depths.append(0 if parent < 0 else depths[parent] + 1)
+        return depths
+
     @cached_property
     def depths(self) -> torch.Tensor:
         """``[N]`` int64 depth of each node (0 = child of the root)."""
-        parents = self.parents.tolist()
-        depths: list[int] = []
-        for parent in parents:
-            depths.append(0 if parent < 0 else depths[parent] + 1)
-        return torch.tensor(depths, dtype=torch.long, device=self.token_ids.device)
+        return torch.tensor(self.depth_list, dtype=torch.long, device=self.token_ids.device)
 
     @cached_property
     def ancestor_or_self(self) -> torch.Tensor:
         """``[N, N]`` bool: ``[i, j]`` is True when node j is node i or one of its ancestors."""
         n = self.num_nodes
-        rows = torch.eye(n, dtype=torch.bool, device=self.token_ids.device)
-        for i, parent in enumerate(self.parents.tolist()):
+        rows = [[False] * n for _ in range(n)]
+        for i, parent in enumerate(self.parent_list):
             if parent >= 0:
-                rows[i] |= rows[parent]
-        return rows
+                rows[i] = list(rows[parent])
+            rows[i][i] = True
+        return torch.tensor(rows, dtype=torch.bool, device=self.token_ids.device).reshape(n, n)
 
     @cached_property
     def is_chain(self) -> bool:
         """True when the tree is one path (node i's parent is node i-1): its tree mask is the causal mask."""
-        return self.parents.tolist() == list(range(-1, self.num_nodes - 1))
+        return self.parent_list == list(range(-1, self.num_nodes - 1))
 
     @property
     def max_depth(self) -> int:
         """Depth of the deepest node + 1 (the longest path's length), 0 for an empty tree."""
-        return int(self.depths.max()) + 1 if self.num_nodes else 0
+        return max(self.depth_list) + 1 if self.num_nodes else 0
 
     def path_to(self, node: int) -> list[int]:
         """Node indices from the root's child down to ``node`` (ascending, parents first)."""
-        path, parents = [], self.parents.tolist()
+        path, parents = [], self.parent_list
         while node >= 0:
             path.append(node)
             node = parents[node]
@@ -125,19 +155,19 @@ class DraftTree:
 
     def paths(self) -> list[list[int]]:
         """Every root-to-leaf path, as node indices."""
-        has_child = set(p for p in self.parents.tolist() if p >= 0)
+        has_child = set(p for p in self.parent_list if p >= 0)
         return [self.path_to(i) for i in range(self.num_nodes) if i not in has_child]
 
     def token_paths(self) -> list[list[int]]:
         """Every root-to-leaf path, as token ids."""
-        tokens = self.token_ids.tolist()
+        tokens = self.host_tokens
         return [[tokens[i] for i in path] for path in self.paths()]
 
     # ----------------------------------------------------------------- editing (each returns a new tree)
-    def select(self, keep: torch.Tensor) -> DraftTree:
+    def select(self, keep: torch.Tensor | Sequence[bool]) -> DraftTree:
         """The sub-tree of the nodes where ``keep`` (``[N]`` bool) is True; a kept node's ancestors must be kept."""
-        keep_list = keep.tolist()
-        new_index, parents = {}, self.parents.tolist()
+        keep_list = keep.tolist() if isinstance(keep, torch.Tensor) else list(keep)
+        new_index, parents = {}, self.parent_list
         for i, kept in enumerate(keep_list):
             if kept:
                 if parents[i] >= 0 and parents[i] not in new_index:
@@ -150,27 +180,28 @@ class DraftTree:
             self.token_ids.index_select(0, index),
             torch.tensor(new_parents, dtype=torch.long, device=self.token_ids.device),
             [self.sources[i] for i in nodes],
+            new_parents,
+            None if self.token_list is None else [self.token_list[i] for i in nodes],
         )
 
     def first_path(self) -> DraftTree:
         """The chain of the tree's first root-to-leaf path (the tree itself when it is a chain)."""
         if self.is_chain:
             return self
-        keep = torch.zeros(self.num_nodes, dtype=torch.bool, device=self.token_ids.device)
-        keep[self.paths()[0]] = True
-        return self.select(keep)
+        first = set(self.paths()[0])
+        return self.select([i in first for i in range(self.num_nodes)])
 
     def truncate_depth(self, max_depth: int) -> DraftTree:
         """Drops every node at depth >= ``max_depth`` (so that no path drafts past a length limit)."""
         if self.num_nodes == 0 or self.max_depth <= max_depth:
             return self
-        return self.select(self.depths < max_depth)
+        return self.select([depth < max_depth for depth in self.depth_list])
 
     def truncate_nodes(self, max_nodes: int) -> DraftTree:
         """The first ``max_nodes`` nodes (a sub-tree: parents come first), e.g. to fit a fixed number of cache slots."""
         if self.num_nodes <= max_nodes:
             return self
-        return self.select(torch.arange(self.num_nodes, device=self.token_ids.device) < max(max_nodes, 0))
+        return self.select([i < max(max_nodes, 0) for i in range(self.num_nodes)])
 
     def merge(self, other: DraftTree) -> DraftTree:
         """Union of two trees: nodes with the same token path become one (the first tree's source is kept)."""
@@ -178,9 +209,9 @@ class DraftTree:
             return self
         if self.num_nodes == 0:
             return other
-        tokens, parents, sources = self.token_ids.tolist(), self.parents.tolist(), list(self.sources)
+        tokens, parents, sources = list(self.host_tokens), list(self.parent_list), list(self.sources)
         index = {(parents[i], tokens[i]): i for i in range(len(tokens))}  # (parent node, token) -> node
-        other_tokens, other_parents = other.token_ids.tolist(), other.parents.tolist()
+        other_tokens, other_parents = other.host_tokens, other.parent_list
         mapped: list[int] = []
         for j, token in enumerate(other_tokens):
             parent = mapped[other_parents[j]] if other_parents[j] >= 0 else -1
@@ -191,12 +222,7 @@ class DraftTree:
                 parents.append(parent)
                 sources.append(other.sources[j])
             mapped.append(index[key])
-        device = self.token_ids.device
-        return DraftTree(
-            torch.tensor(tokens, dtype=torch.long, device=device),
-            torch.tensor(parents, dtype=torch.long, device=device),
-            sources,
-        )
+        return DraftTree.from_lists(tokens, parents, sources, self.token_ids.device)
 
     def __repr__(self) -> str:
         return f"DraftTree(nodes={self.num_nodes}, depth={self.max_depth}, paths={self.token_paths()})"

@@ -207,8 +207,15 @@ def _apply_by_prefix_length(
     path_tokens = trees.path_token_ids  # [B, N, D]
     path_tokens = torch.cat([path_tokens.new_zeros(batch_size, 1, path_tokens.shape[2]), path_tokens], dim=1)
     by_row = any(isinstance(p, PrefixConstrainedLogitsProcessor) for p in logits_processor)
-    for length in prefix_lengths[scored].unique().tolist():
-        rows, columns = ((prefix_lengths == length) & scored).nonzero(as_tuple=True)  # [n] each
+    # which (row, column) has which prefix length, from the host's lengths and tree depths (no read of the device)
+    by_length: dict[int, tuple[list[int], list[int]]] = {}
+    for b, (sequence, tree) in enumerate(zip(sequences, trees.trees)):
+        for column, length in enumerate([0] + [1 + depth for depth in tree.depth_list]):
+            rows_of, columns_of = by_length.setdefault(sequence.shape[1] + length, ([], []))
+            rows_of.append(b)
+            columns_of.append(column)
+    for length in sorted(by_length):
+        rows, columns = (torch.tensor(v, dtype=torch.long, device=device) for v in by_length[length])  # [n] each
         # each (row, column)'s prefix: the row's sequence, then the node's path tokens
         offsets = torch.arange(length, device=device)[None]  # [1, length]
         row_lengths = lengths[rows]  # [n, 1]

@@ -150,10 +150,8 @@ class _JacobiSession(DraftSession):
         if commit.tree is None or commit.tree_target_ids is None:
             return
         tree = commit.tree
-        self.tail = jacobi_tail(
-            tree.parents.tolist(), tree.token_ids.tolist(), commit.tree_target_ids.tolist(), commit.path_nodes,
-            self.layout,
-        )  # fmt: skip
+        targets = commit.tree_target_list if commit.tree_target_list is not None else commit.tree_target_ids.tolist()
+        self.tail = jacobi_tail(tree.parent_list, tree.host_tokens, targets, commit.path_nodes, self.layout)
         self.tail_at = commit.cache_length + 1
         if self.tail:
             self.tails.append((self.tail_at, self.tail))

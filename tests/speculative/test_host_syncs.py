@@ -1,0 +1,65 @@
+"""Host syncs per round (issue 54, item 2): the engine reads the device once per verification (the accepted paths,
+bonus tokens and the target's tokens, packed), answers generate's stopping criteria on the host and keeps the trees'
+structure on the host; a draft head's tree adds one read (its structure, built on the device). Counted through a
+``TorchFunctionMode`` ([`HostSyncCounter`]) on eager calls on a ``DynamicCache``; a static cache (compiled) still
+reads its length counter a few times a round (not bounded here)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from hf_specvla import (
+    ActionLayout,
+    ActionPriorDrafter,
+    ComposedDrafter,
+    DraftHeadDrafter,
+    DraftTreeConfig,
+    JacobiDrafter,
+)
+from hf_specvla.speculative.syncs import HostSyncCounter
+
+#: reads once per call, whatever the rounds: transformers' own generate around our loop (input preparation, 4), the
+#: EOS ids for the host's stopping criteria, a Jacobi fill's root token and its statistics at the end
+PER_CALL = 7
+
+
+def _count(model, input_ids, **kwargs) -> tuple[int, int, HostSyncCounter]:
+    """(host syncs, target forwards = rounds, the counter) of one eager call after a warm one."""
+    model.generate(input_ids=input_ids, max_new_tokens=8, do_sample=False, **kwargs)
+    with HostSyncCounter() as counter:
+        out = model.generate(input_ids=input_ids, max_new_tokens=8, do_sample=False, return_dict_in_generate=True,
+                             **kwargs)  # fmt: skip
+    return counter.count, out.speculation.num_target_forwards, counter
+
+
+def test_model_free_drafters_read_the_device_once_a_round(tiny_llama, action_tokenizer):
+    layout = ActionLayout(action_tokenizer, 4)
+    input_ids = torch.tensor([[5, 17, 42, 99, 7]])
+    actions_only = list(range(action_tokenizer.action_token_begin))
+    greedy = tiny_llama.generate(input_ids=input_ids, max_new_tokens=8, do_sample=False, suppress_tokens=actions_only)
+    history = [greedy[0, 5:9].tolist(), [t + 1 for t in greedy[0, 9:13].tolist()]]  # the second action wrong
+    for drafter in (JacobiDrafter(), ComposedDrafter([ActionPriorDrafter(history, layout, chunk_length=2),
+                                                     JacobiDrafter()])):  # fmt: skip
+        syncs, rounds, counter = _count(tiny_llama, input_ids, assistant_model=drafter, action_layout=layout,
+                                        suppress_tokens=actions_only)  # fmt: skip
+        accept_reads = sum(n for site, n in counter.sites.items() if site.startswith("speculative/acceptance.py"))
+        assert accept_reads == rounds and syncs <= rounds + PER_CALL, (rounds, counter.sites.most_common())
+
+
+@pytest.mark.parametrize("tree", [None, DraftTreeConfig(top_k=2, depth=3, total_tokens=6)])
+def test_a_draft_head_adds_one_read_a_round(tiny_llama, random_draft, tree):
+    drafter = random_draft if tree is None else DraftHeadDrafter(random_draft, tree=tree)
+    syncs, rounds, counter = _count(tiny_llama, torch.tensor([[5, 17, 42, 99, 7]]), assistant_model=drafter)
+    assert syncs <= 2 * rounds + PER_CALL, (rounds, counter.sites.most_common())
+
+
+def test_the_counter_counts_what_waits_for_the_device():
+    x = torch.arange(4)
+    with HostSyncCounter() as counter:
+        x.tolist()
+        int(x[0])
+        bool(x.any())
+        x.nonzero()
+        x + 1  # no read
+    assert counter.count == 4 and counter.sites["elsewhere"] == 4
