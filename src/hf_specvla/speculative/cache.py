@@ -26,6 +26,7 @@ here and is refused before the first forward.
 
 from __future__ import annotations
 
+import os
 import weakref
 from contextlib import contextmanager
 
@@ -150,9 +151,49 @@ def static_capacity(cache: Cache) -> int | None:
     return min(sizes) if sizes else None
 
 
+#: the attribute a cache's entry count is mirrored in on the host while a speculative call works on it
+#: ([`host_length`]): a static layer counts on the device, and reading its counter waits for the device
+_HOST_LENGTH = "_hf_specvla_host_length"
+#: set to 1 (the tests do) to check the host's count against the cache's own counter at every read
+CHECK_HOST_LENGTH = os.environ.get("HF_SPECVLA_CHECK_CACHE_LENGTH") == "1"
+
+
 def cache_length(cache: Cache) -> int:
-    """The number of entries the cache holds (a static layer's counter read on the host)."""
-    return int(cache.get_seq_length())
+    """The number of entries the cache holds: the host's count inside [`host_length`], else the cache's own (a
+    static layer's counter read from the device)."""
+    known = getattr(cache, _HOST_LENGTH, None)
+    if known is None:
+        return int(cache.get_seq_length())
+    if CHECK_HOST_LENGTH and known != int(cache.get_seq_length()):
+        raise RuntimeError(f"the host counts {known} cache entries, the cache holds {int(cache.get_seq_length())}")
+    return known
+
+
+@contextmanager
+def host_length(cache: Cache):
+    """Counts ``cache``'s entries on the host inside the block (a static cache: no read of its device counter per
+    use); every change of the entries inside goes through this module's functions or [`note_appended`] (a forward
+    that wrote new entries). Read once from the cache on entry; forgotten on exit."""
+    if static_capacity(cache) is None:  # a dynamic cache counts on the host already
+        yield
+        return
+    setattr(cache, _HOST_LENGTH, int(cache.get_seq_length()))
+    try:
+        yield
+    finally:
+        delattr(cache, _HOST_LENGTH)
+
+
+def _note_length(cache: Cache, length: int) -> None:
+    if getattr(cache, _HOST_LENGTH, None) is not None:
+        setattr(cache, _HOST_LENGTH, length)
+
+
+def note_appended(cache: Cache, count: int) -> None:
+    """A forward wrote ``count`` new entries after the cache's (what [`host_length`] counts)."""
+    known = getattr(cache, _HOST_LENGTH, None)
+    if known is not None:
+        setattr(cache, _HOST_LENGTH, known + count)
 
 
 def holds_buffers(cache: Cache) -> bool:
@@ -240,6 +281,7 @@ def set_static_length(cache: Cache, length: int) -> None:
         if not 0 <= length <= layer.max_cache_len:
             raise ValueError(f"a static layer of {layer.max_cache_len} slots cannot hold {length} entries")
         _set_static_length(layer, length)
+    _note_length(cache, length)
 
 
 @contextmanager
@@ -255,10 +297,14 @@ def preserved_entries(cache: Cache):
     finally:
         for layer, keys, values in saved:
             _stored(layer, keys, values)
+        _note_length(cache, length)
 
 
 def truncate_cache(cache: Cache, length: int) -> None:
     """Keeps the first ``length`` positions of every layer, in place (a static layer: its counter moves back)."""
+    known = getattr(cache, _HOST_LENGTH, None)
+    if known is not None:
+        _note_length(cache, min(known, length))
     for layer in _stored_layers(cache):
         if type(layer) in STATIC_LAYER_TYPES:  # the counter only moves back, on the device (no host read)
             layer.cumulative_length.clamp_(max=length)
@@ -282,6 +328,7 @@ def select_cache_positions(cache: Cache, positions: torch.Tensor) -> None:
             heads, dim = layer.keys.shape[1], layer.keys.shape[-1]
             index = positions[:, None, :, None].expand(-1, heads, -1, dim)  # [B, H_kv, K, D]
             _stored(layer, layer.keys.gather(2, index), layer.values.gather(2, index))
+    _note_length(cache, positions.shape[-1])
 
 
 def keep_cache_path(cache: Cache, base: int, path: torch.Tensor) -> None:
@@ -304,6 +351,7 @@ def keep_cache_path(cache: Cache, base: int, path: torch.Tensor) -> None:
         else:
             prefix_keys, prefix_values = layer.keys[..., :base, :], layer.values[..., :base, :]
             _stored(layer, torch.cat([prefix_keys, keys], dim=-2), torch.cat([prefix_values, values], dim=-2))
+    _note_length(cache, base + length)
 
 
 def compact_rows(cache: Cache, valid: torch.Tensor) -> torch.Tensor:
@@ -324,6 +372,7 @@ def compact_rows(cache: Cache, valid: torch.Tensor) -> torch.Tensor:
         heads, dim = layer.keys.shape[1], layer.keys.shape[-1]
         index = order[:, None, :, None].expand(-1, heads, -1, dim)  # [B, H_kv, C', D]
         _stored(layer, layer.keys.gather(2, index), layer.values.gather(2, index))  # copies: then written in place
+    _note_length(cache, length)
     return torch.arange(length, device=valid.device)[None] < counts[:, None]
 
 

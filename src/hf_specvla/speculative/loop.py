@@ -50,6 +50,7 @@ from .cache import (
     check_rollback_cache,
     compact_rows,
     holds_buffers,
+    host_length,
     keep_cache_path,
     open_sliding_windows,
     select_cache_positions,
@@ -1010,7 +1011,7 @@ def speculative_generate(
     )
     prompt = (prompt_ids, prompt_positions)  # the prefill's pending tokens
     at_prefill = True
-    with open_sliding_windows(cache):  # exact: the generation fits the window (checked)
+    with open_sliding_windows(cache), host_length(cache):  # exact: the generation fits the window (checked)
         while state.rows:
             with stopwatch.section("draft_seconds"):
                 proposed = propose(state, plan, at_prefill)

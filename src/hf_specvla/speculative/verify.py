@@ -20,7 +20,7 @@ from transformers.generation.logits_process import (
     PrefixConstrainedLogitsProcessor,
 )
 
-from .cache import cache_length
+from .cache import cache_length, note_appended
 from .compat import CACHE_KEY
 from .compiled import mark_length_dynamic
 from .drafter import read_hidden_states
@@ -125,6 +125,7 @@ def verify_trees(
         inputs["logits_to_keep"] = num_nodes + 1
     inputs["use_cache"] = True
     outputs = (forward or model)(**inputs, output_hidden_states=bool(output_hidden), return_dict=True)
+    note_appended(model_inputs[CACHE_KEY], num_pending + num_nodes)
     logits, hidden = outputs.logits.float(), None
     if output_hidden:  # [B, q, n H]: the asked layers' hidden states, concatenated
         hidden = read_hidden_states(outputs.hidden_states, output_hidden)
