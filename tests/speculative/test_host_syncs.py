@@ -63,3 +63,17 @@ def test_the_counter_counts_what_waits_for_the_device():
         x.nonzero()
         x + 1  # no read
     assert counter.count == 4 and counter.sites["elsewhere"] == 4
+
+
+def test_a_compiled_call_counts_its_static_cache_on_the_host(tiny_llama, action_tokenizer, monkeypatch):
+    """On a static cache (compiled verification), the cache's length is counted on the host: no read of its device
+    counter per round (the check the tests turn on, which reads it, is off here)."""
+    from hf_specvla.speculative import cache, compiled_decoding_kwargs
+
+    monkeypatch.setattr(cache, "CHECK_HOST_LENGTH", False)
+    input_ids = torch.tensor([[5, 17, 42, 99, 7]])
+    syncs, rounds, counter = _count(tiny_llama, input_ids, assistant_model=JacobiDrafter(),
+                                    **compiled_decoding_kwargs("cpu"))  # fmt: skip
+    reads_of_the_counter = sum(n for site, n in counter.sites.items() if site.startswith("speculative/cache.py"))
+    assert reads_of_the_counter <= 2, counter.sites  # per call: the entries before it, and where the count starts
+    assert syncs <= rounds + PER_CALL + 3, (rounds, counter.sites.most_common())  # + the counter twice, the inputs
