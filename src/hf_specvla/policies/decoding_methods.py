@@ -368,6 +368,8 @@ class Preset:
         rotation_tolerance: r on the rotation dimensions (roll pitch yaw, or a quaternion's four).
         gripper_tolerance: r on the gripper.
         confidence_gate: relax only where the target's top-1 probability is below this (None: wherever r allows).
+        confirm_strict_tail: keep a relaxed token only when its action's strict dimensions after it (the gripper) are
+            drafted and confirmed in the same verification (``confirm=1``).
         compiled: decode on a static cache with compiled forwards (``:compile``).
     """
 
@@ -378,6 +380,7 @@ class Preset:
     rotation_tolerance: int = 0
     gripper_tolerance: int = 0
     confidence_gate: float | None = None
+    confirm_strict_tail: bool = False
     compiled: bool = True
 
     @property
@@ -396,7 +399,8 @@ class Preset:
         if layout is None:
             known = "; ".join(f"{size}: {' '.join(dims)}" for size, dims in ACTION_LAYOUTS.items())
             guess = tuple(self.position_tolerance if i < 3 else 0 for i in range(action_dim))  # x y z first, a guess
-            spelled = DecodingMethod(self.drafters, guess, compiled=self.compiled, confidence_gate=self.confidence_gate)
+            spelled = DecodingMethod(self.drafters, guess, compiled=self.compiled, confidence_gate=self.confidence_gate,
+                                     confirm_tail=self.confirm_strict_tail)  # fmt: skip
             raise ValueError(
                 f"preset {self.name!r} relaxes by kind of action dimension, but the policy's {action_dim}-dimensional "
                 f"actions have no known layout (known: {known}); spell the method out with one r per dimension, "
@@ -419,6 +423,7 @@ class Preset:
             self.tolerance(action_dim),
             compiled=self.compiled,
             confidence_gate=None if self.lossless else self.confidence_gate,
+            confirm_tail=self.confirm_strict_tail and not self.lossless,
         )
 
 

@@ -158,6 +158,20 @@ class Drafter:
     def start(self, context: DraftContext) -> DraftSession:
         raise NotImplementedError
 
+    def as_drafter(self, num_draft_tokens: int | None = None) -> Drafter:
+        """What ``generate`` drafts with when this is the ``assistant_model``: itself (a [`DraftHead`] returns the
+        drafter of its chain). ``num_draft_tokens`` is a bare head's option: a drafter carries its own settings.
+
+        Raises:
+            ValueError: ``num_draft_tokens`` given to a drafter.
+        """
+        if num_draft_tokens is not None:
+            raise ValueError(
+                "num_draft_tokens applies to a bare DraftHead assistant; a Drafter carries its own settings "
+                "(e.g. DraftHeadDrafter(head, num_draft_tokens=k))"
+            )
+        return self
+
     def with_previous_action(self, previous_action: Sequence[int] | None) -> Drafter:
         """This drafter for a robot whose previous action was ``previous_action`` (its action token ids, or None at
         an episode's first step): a drafter that reads it (a draft head with ``previous_action_input``) returns a

@@ -34,6 +34,7 @@ import weakref
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import torch
 from transformers import GenerationConfig, LogitsProcessorList, PreTrainedModel, StoppingCriteriaList
@@ -85,12 +86,13 @@ from .drafter import (
     DraftSession,
     PerRowDrafter,
 )
-from .drafters.draft_head import DraftHeadDrafter
-from .modeling_draft_head import DraftHead
 from .outputs import SpeculativeDecoderOnlyOutput
 from .stats import SpeculationStats
 from .tree import DraftTree, TreeBatch
 from .verify import TargetOutput, prefill_inputs, target_greedy_ids, verify_trees
+
+if TYPE_CHECKING:
+    from .modeling_draft_head import DraftHead
 
 logger = logging.getLogger(__name__)
 
@@ -106,6 +108,7 @@ class RowState:
     stats: SpeculationStats
     num_generated: int = 0  # tokens emitted in this row
     num_action_tokens: int = 0  # action tokens emitted in this row (for action dimensions)
+    relaxed_in_action: int = 0  # relaxed tokens (accepted at a bin distance > 0) in the action being emitted
     committed_length: int = 0  # entries the row has kept (its prompt and emitted tokens but the last)
     finished: bool = False
     scores: list = field(default_factory=list)  # [V] processed logits per emitted token (output_scores)
@@ -169,15 +172,8 @@ def as_drafter(assistant, num_draft_tokens: int | None) -> Drafter | None:
     """
     if assistant is None:
         return None
-    if isinstance(assistant, DraftHead):
-        return DraftHeadDrafter(assistant, num_draft_tokens=num_draft_tokens)
-    if isinstance(assistant, Drafter):
-        if num_draft_tokens is not None:
-            raise ValueError(
-                "num_draft_tokens applies to a bare DraftHead assistant; a Drafter carries its own settings "
-                "(e.g. DraftHeadDrafter(head, num_draft_tokens=k))"
-            )
-        return assistant
+    if isinstance(assistant, Drafter) or callable(getattr(assistant, "as_drafter", None)):
+        return assistant.as_drafter(num_draft_tokens)  # a DraftHead drafts a chain; a Drafter is one
     raise TypeError(
         f"the assistant must be a hf_specvla DraftHead or Drafter (DraftHeadDrafter, ActionPriorDrafter, "
         f"ComposedDrafter, ...), got {type(assistant).__name__}"
@@ -744,18 +740,11 @@ def accept(
     top1_probs = target_scores.softmax(dim=-1).amax(dim=-1) if plan.rule.needs_probabilities else None  # [B, 1 + N]
     if plan.sampling:  # the target's distribution, exactly: every draft a point mass, recursive rejection sampling
         return sample_trees(trees, target_scores), target_ids, target_scores
-    budgeted = plan.rule.max_relaxed_per_action is not None  # the rule counts relaxed tokens per action
-    relaxed = [_relaxed_in_action(row, plan.layout) for row in state.rows] if budgeted else None
+    budgeted = plan.rule.max_relaxed_per_action is not None and plan.layout is not None  # counted per action
+    dim = plan.layout.action_dim if plan.layout is not None else 1
+    relaxed = [row.relaxed_in_action if row.num_action_tokens % dim else 0 for row in state.rows] if budgeted else None
     paths = accept_trees(trees, target_ids, plan.rule, plan.layout, action_counts, top1_probs, relaxed)
     return paths, target_ids, target_scores
-
-
-def _relaxed_in_action(row: RowState, layout: ActionLayout | None) -> int:
-    """Relaxed tokens (accepted at a bin distance > 0) the row emitted in the action it is generating now."""
-    if layout is None:
-        return 0
-    emitted = row.num_action_tokens % layout.action_dim  # tokens of the current action already emitted
-    return sum(d > 0 for d in row.stats.action_bin_distances[len(row.stats.action_bin_distances) - emitted :])
 
 
 def emit(
@@ -779,7 +768,10 @@ def emit(
         logit_rows = [parents[n] + 1 for n in path.nodes] + [path.nodes[-1] + 1 if path.nodes else 0]
         for token, logit_row, distance in zip(emitted[b][:count], logit_rows, path.distances + [0]):
             if plan.layout is not None and plan.layout.tokenizer.is_action_token(token):
+                if row.num_action_tokens % plan.layout.action_dim == 0:  # the first token of an action
+                    row.relaxed_in_action = 0
                 row.num_action_tokens += 1
+                row.relaxed_in_action += distance > 0
                 row.stats.action_bin_distances.append(distance)
             if plan.keep_scores:
                 row.scores.append(target_scores[b, logit_row])
