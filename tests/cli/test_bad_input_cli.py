@@ -138,7 +138,7 @@ def _seven_dimensional_policy(tmp_path) -> Path:
 
 @pytest.mark.parametrize(
     "method, resolved",
-    [("fast", "prior+jacobi:r=4/4/4/0/0/0/0,gate=0.5:compile"), ("exact", "prior+jacobi:compile")],
+    [("fast", "prior+jacobi:r=4/4/4/0/0/0/0,gate=0.5,confirm=1:compile"), ("exact", "prior+jacobi:compile")],
 )
 def test_eval_resolves_presets_to_the_policys_layout(tmp_path, method, resolved):
     from hf_specvla.cli.common import read_policy_config

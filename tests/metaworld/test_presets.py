@@ -10,9 +10,9 @@ from hf_specvla.metaworld.comparison import PRESETS, DecodingMethod, parse_metho
 from hf_specvla.metaworld.comparison.methods import CompareConfig
 
 FAST = {
-    4: "prior+jacobi:r=4/4/4/0,gate=0.5:compile",  # x y z gripper
-    7: "prior+jacobi:r=4/4/4/0/0/0/0,gate=0.5:compile",  # OpenVLA: x y z roll pitch yaw gripper
-    8: "prior+jacobi:r=4/4/4/0/0/0/0/0,gate=0.5:compile",  # x y z, a quaternion, gripper
+    4: "prior+jacobi:r=4/4/4/0,gate=0.5,confirm=1:compile",  # x y z gripper
+    7: "prior+jacobi:r=4/4/4/0/0/0/0,gate=0.5,confirm=1:compile",  # OpenVLA: x y z roll pitch yaw gripper
+    8: "prior+jacobi:r=4/4/4/0/0/0/0/0,gate=0.5,confirm=1:compile",  # x y z, a quaternion, gripper
 }
 
 

@@ -908,6 +908,39 @@ def speculative_generate(
         bin_tolerance, num_draft_tokens, action_layout, profile_speculation, confidence_gate, max_relaxed_per_action,
         max_drafts_per_row, motion_scale, max_deviation, confirm_strict_tail,
     )  # fmt: skip
+    call = prepare(model, input_ids, logits_processor, generation_config, settings, drafter, draft_head, draft_ids,
+                   model_kwargs)  # fmt: skip
+    cache = call.state.target_cache
+    with open_sliding_windows(cache), host_length(cache):  # exact: the generation fits the window (checked)
+        prefill(model, call, logits_processor, stopping_criteria, generation_config)
+        while call.state.rows:
+            decode_round(model, call, logits_processor, stopping_criteria)
+    return finish(call, generation_config)
+
+
+# ----------------------------------------------------------------------------- the call's steps
+@dataclass
+class SpeculativeCall:
+    """One ``generate`` call's decode, as [`prepare`] sets it up: the rows' state, what every round reads, the
+    prefill's inputs, the statistics."""
+
+    state: DecodeState
+    plan: RoundPlan
+    all_rows: list[RowState]  # every row of the call, finished or not, in the caller's order
+    stats: SpeculationStats
+    stopwatch: _Stopwatch
+    model_inputs: dict  # the prefill's prepared inputs (images, cache, ...)
+    prompt: tuple[torch.Tensor, torch.Tensor]  # the prefill's pending ids and positions
+    prefill_key: tuple | None  # the compiled prefill graph this call can use, or None (an eager prefill)
+    past_length: int  # entries the cache held before the call
+    cached_tokens: int  # the rows' first tokens the cache held before the call
+    pad_token_id: int | None
+    total_start: float
+
+
+def _checked_call(model, input_ids, logits_processor, generation_config, settings, drafter, draft_head, draft_ids):
+    """Every argument of the call checked (before any forward): the drafter, the acceptance rule and its layout, and
+    the candidates of ``draft_ids``."""
     batch_size = input_ids.shape[0]
     drafter, candidates = _call_drafter(model, batch_size, drafter, draft_head, draft_ids, settings)
     _validate_call(model, generation_config, logits_processor, batch_size, drafter)
@@ -924,11 +957,19 @@ def speculative_generate(
         )
     if candidates is not None:
         _check_draft_ids_are_actions(candidates, rule, layout)
+    return drafter, rule, layout
+
+
+def prepare(
+    model, input_ids, logits_processor, generation_config, settings, drafter, draft_head, draft_ids, model_kwargs
+) -> SpeculativeCall:
+    """1. The call checked and set up: the prefill's inputs on a cache with room for the trees, each row's drafter
+    session, the round plan (compiled or eager, widths, rule)."""
+    drafter, rule, layout = _checked_call(model, input_ids, logits_processor, generation_config, settings, drafter,
+                                          draft_head, draft_ids)  # fmt: skip
+    batch_size = input_ids.shape[0]
     eos_ids = generation_config.eos_token_id
     eos_ids = [] if eos_ids is None else ([eos_ids] if isinstance(eos_ids, int) else list(eos_ids))
-    pad_token_id = generation_config.pad_token_id if generation_config.pad_token_id is not None else (
-        eos_ids[0] if eos_ids else None
-    )  # fmt: skip
     prompt_padding = model_kwargs.get("attention_mask")  # [B, past + new] or None (no padding)
     check_left_padded(prompt_padding)
     if model_kwargs.get(CACHE_KEY) is not None:
@@ -938,12 +979,7 @@ def speculative_generate(
         prompt_padding = None
     prompt_ids = input_ids[:, input_ids.shape[1] - num_new :]  # [B, new] what the prefill feeds
     stats = SpeculationStats()
-    stopwatch = _Stopwatch(stats, input_ids.device, settings.profile_speculation)
-    return_dict = generation_config.return_dict_in_generate
-    keep_scores = return_dict and generation_config.output_scores
-    keep_logits = return_dict and generation_config.output_logits
     total_start = time.perf_counter()
-
     # generate's own static cache holds the tokens greedy decoding stores; a tree needs slots beside them
     model_kwargs[CACHE_KEY] = with_draft_slots(
         model, model_kwargs.get(CACHE_KEY), NODE_BUCKETS[-1], SLOT_MULTIPLE, batch_size
@@ -967,23 +1003,33 @@ def speculative_generate(
         RowState(b, input_ids[b : b + 1], drafter.start(context), SpeculationStats(), committed_length=cached_tokens)
         for b, context in enumerate(contexts)
     ]
-    all_rows = list(rows)
-    state = DecodeState(
-        rows=rows,
-        pending_ids=prompt_ids,
-        pending_positions=prompt_positions,
-        position_offsets=position_offsets,
-        key_valid=None if prompt_padding is None else prompt_padding.bool(),
-        target_cache=cache,
-    )
+    state = DecodeState(rows, prompt_ids, prompt_positions, position_offsets,
+                        None if prompt_padding is None else prompt_padding.bool(), cache)  # fmt: skip
+    plan, prefill_key = _round_plan(model, generation_config, settings, drafter, rule, layout, compiled, model_inputs,
+                                    position_offsets, past_length, num_new, input_ids)  # fmt: skip
+    return SpeculativeCall(
+        state, plan, list(rows), stats, _Stopwatch(stats, input_ids.device, settings.profile_speculation),
+        model_inputs, (prompt_ids, prompt_positions), prefill_key, past_length, cached_tokens,
+        generation_config.pad_token_id if generation_config.pad_token_id is not None else (
+            eos_ids[0] if eos_ids else None
+        ), total_start,
+    )  # fmt: skip
+
+
+def _round_plan(model, generation_config, settings, drafter, rule, layout, compiled, model_inputs, position_offsets,
+                past_length: int, num_new: int, input_ids) -> tuple[RoundPlan, tuple | None]:  # fmt: skip
+    """What every round reads ([`RoundPlan`]), and the compiled prefill graph this call can use (None: eager)."""
+    cache = model_inputs[CACHE_KEY]
     capacity = static_capacity(cache)
     output_hidden = tuple(drafter.hidden_state_layers) if drafter.needs_hidden_states else None
     # A prefix-LM prompt (PaliGemma's token_type_ids: the prompt attends to itself both ways at the prefill) needs
     # the model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies a chain.
     prefix_attention = model_inputs.get("token_type_ids") is not None
-    prefill_key = None  # the compiled prefill graph this call can use, or None (an eager prefill)
+    prefill_key = None
     if compiled is not None and not prefix_attention and position_offsets is None and not past_length:
-        prefill_key = _compiled_prefill_key(model, generation_config, capacity, output_hidden, num_new, batch_size)
+        prefill_key = _compiled_prefill_key(model, generation_config, capacity, output_hidden, num_new,
+                                            input_ids.shape[0])  # fmt: skip
+    return_dict = generation_config.return_dict_in_generate
     plan = RoundPlan(
         max_length=generation_config.max_length,
         rule=rule,
@@ -997,51 +1043,72 @@ def speculative_generate(
         buckets=buckets_up_to(_widest_tree(drafter, generation_config.max_length - input_ids.shape[1] - 1, settings)),
         prefix_attention=prefix_attention,
         max_drafts=settings.max_drafts_per_row,
-        keep_scores=keep_scores,
-        keep_logits=keep_logits,
+        keep_scores=bool(return_dict and generation_config.output_scores),
+        keep_logits=bool(return_dict and generation_config.output_logits),
         sampling=bool(generation_config.do_sample),
     )
-    prompt = (prompt_ids, prompt_positions)  # the prefill's pending tokens
-    at_prefill = True
-    with open_sliding_windows(cache), host_length(cache):  # exact: the generation fits the window (checked)
-        while state.rows:
-            with stopwatch.section("draft_seconds"):
-                proposed = propose(state, plan, at_prefill)
-            trees = fit_trees(proposed, state, plan, at_prefill, stats)
-            with stopwatch.section("target_seconds"):
-                output = verify(model, state, plan, trees, model_inputs if at_prefill else None)
-            stats.num_batch_forwards += 1
-            stats.compiled_prefills += at_prefill and plan.compiled_prefill is not None
-            paths, target_ids, target_scores = accept(state, plan, trees, output, logits_processor)
-            emit(state, plan, trees, paths, output, target_scores, stopping_criteria)
-            commits = commit_paths(state, trees, paths, output.hidden, target_ids)
-            with stopwatch.section("draft_seconds"):
-                observe(state, commits)
-            if compiled is not None and at_prefill:  # every width compiled before the first compiled round
-                stats.compile_seconds = _compile_every_width(model, plan, generation_config.compile_config, state)
-                if prefill_key is not None and plan.compiled_prefill is None:  # the next call's prefill, compiled
-                    stats.compile_seconds += _compile_prefill(model, plan, prefill_key, model_inputs, prompt, trees)
-            drop_finished_rows(state, fixed_batch=plan.capacity is not None)
-            at_prefill = False
+    return plan, prefill_key
 
-    _leave_cache_as_greedy(state.target_cache, all_rows, past_length - cached_tokens)
+
+def _round(model, call: SpeculativeCall, at_prefill: bool, logits_processor, stopping_criteria) -> TreeBatch:
+    """One round's steps (propose, fit, verify, accept, emit, commit, observe); returns the verified trees."""
+    state, plan, stats, stopwatch = call.state, call.plan, call.stats, call.stopwatch
+    with stopwatch.section("draft_seconds"):
+        proposed = propose(state, plan, at_prefill)
+    trees = fit_trees(proposed, state, plan, at_prefill, stats)
+    with stopwatch.section("target_seconds"):
+        output = verify(model, state, plan, trees, call.model_inputs if at_prefill else None)
+    stats.num_batch_forwards += 1
+    stats.compiled_prefills += at_prefill and plan.compiled_prefill is not None
+    paths, target_ids, target_scores = accept(state, plan, trees, output, logits_processor)
+    emit(state, plan, trees, paths, output, target_scores, stopping_criteria)
+    commits = commit_paths(state, trees, paths, output.hidden, target_ids)
+    with stopwatch.section("draft_seconds"):
+        observe(state, commits)
+    return trees
+
+
+def prefill(model, call: SpeculativeCall, logits_processor, stopping_criteria, generation_config) -> None:
+    """2. The prompt and the drafts known up front, verified in one forward; then, for a compiled call, every
+    verification width compiled (and the next call's prefill graph), before any compiled round."""
+    plan, stats = call.plan, call.stats
+    trees = _round(model, call, True, logits_processor, stopping_criteria)
+    if plan.compiled is not None:
+        stats.compile_seconds = _compile_every_width(model, plan, generation_config.compile_config, call.state)
+        if call.prefill_key is not None and plan.compiled_prefill is None:  # the next call's prefill, compiled
+            stats.compile_seconds += _compile_prefill(model, plan, call.prefill_key, call.model_inputs, call.prompt,
+                                                      trees)  # fmt: skip
+    drop_finished_rows(call.state, fixed_batch=plan.capacity is not None)
+
+
+def decode_round(model, call: SpeculativeCall, logits_processor, stopping_criteria) -> None:
+    """3. One round after the prefill: the rows' trees verified in one (compiled) forward; finished rows leave."""
+    _round(model, call, False, logits_processor, stopping_criteria)
+    drop_finished_rows(call.state, fixed_batch=call.plan.capacity is not None)
+
+
+def finish(call: SpeculativeCall, generation_config) -> SpeculativeDecoderOnlyOutput | torch.LongTensor:
+    """4. The cache left as greedy decoding would leave it, the statistics gathered, the output."""
+    state, stats, all_rows = call.state, call.stats, call.all_rows
+    _leave_cache_as_greedy(state.target_cache, all_rows, call.past_length - call.cached_tokens)
     for row in all_rows:
         row.stats.num_draft_forwards = row.session.num_forwards
         row.session.report(row.stats, row.sequence)
         stats.rows.append(row.stats)
     stats.absorb_rows()
     stats.compile_seconds += sum(row.session.compile_seconds for row in all_rows)
-    stats.total_seconds = time.perf_counter() - total_start
+    stats.total_seconds = time.perf_counter() - call.total_start
     logger.debug("speculation: %s", stats)
-    sequences = all_rows[0].sequence if batch_size == 1 else _padded_rows(all_rows, pad_token_id)
-    if not return_dict:
+    batch_size = len(all_rows)
+    sequences = all_rows[0].sequence if batch_size == 1 else _padded_rows(all_rows, call.pad_token_id)
+    if not generation_config.return_dict_in_generate:
         return sequences
     if batch_size == 1:
         stats.rows = []
     return SpeculativeDecoderOnlyOutput(
         sequences=sequences,
-        scores=_per_step(all_rows, "scores") if keep_scores else None,
-        logits=_per_step(all_rows, "logits") if keep_logits else None,
+        scores=_per_step(all_rows, "scores") if call.plan.keep_scores else None,
+        logits=_per_step(all_rows, "logits") if call.plan.keep_logits else None,
         speculation=stats,
         **{CACHE_KEY: state.target_cache if batch_size == 1 else None},
     )

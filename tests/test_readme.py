@@ -1,0 +1,87 @@
+"""The README's examples cannot rot: its Python example runs as written, every ``hf-specvla`` command of the README
+and of the getting-started page parses with today's flags, and the comparison it shows runs on the smallest
+arguments (one task, one seed, a few steps). The two setup commands are the tox commands CI runs
+(tests/speculative/test_transformers_compat.py)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hf_specvla.cli.main import build_parser
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "README.md", ROOT / "docs" / "index.md"]
+
+
+def _blocks(page: Path, language: str) -> list[str]:
+    return re.findall(rf"```{language}\n(.*?)```", page.read_text(), flags=re.S)
+
+
+def _commands(page: Path) -> list[list[str]]:
+    """Every ``hf-specvla`` command of the page's bash blocks, continuation lines joined, comments dropped."""
+    commands = []
+    for block in _blocks(page, "bash"):
+        for line in block.replace("\\\n", " ").splitlines():
+            line = line.split("  #")[0].strip()
+            if line.startswith("hf-specvla "):
+                commands.append(line.split()[1:])
+    return commands
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_every_command_parses_with_todays_flags(page):
+    commands = _commands(page)
+    assert commands, f"{page.name} shows no hf-specvla command"
+    parser = build_parser()
+    for words in commands:
+        parser.parse_args(words)  # a renamed or removed flag exits 2 here
+
+
+def test_the_readme_is_a_short_page_with_its_parts():
+    readme = (ROOT / "README.md").read_text()
+    assert len(readme.splitlines()) <= 120
+    for part in ("## Two commands", "python3 -m tox -e demo", "```python", "## Measured", "../shared", "docs/results"):
+        assert part in readme, part
+
+
+@pytest.mark.slow  # a minute: the policy compiles its graphs
+def test_the_readme_python_example_runs_as_written(tmp_path):
+    (example,) = _blocks(ROOT / "README.md", "python")
+    script = tmp_path / "readme_example.py"
+    script.write_text(example)
+    result = subprocess.run([sys.executable, str(script)], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "target forward(s) for 8 tokens" in result.stdout
+
+
+@pytest.mark.slow  # a minute: one short episode per method, compiled methods compile first
+def test_the_readme_comparison_runs_on_the_smallest_arguments(tmp_path):
+    (compare,) = [words for words in _commands(ROOT / "README.md") if words[0] == "compare"]
+    parser = build_parser()
+    args = parser.parse_args(compare)
+    small = [
+        "compare",
+        "--policy",
+        args.policy,
+        "--tasks",
+        "reach-v3",
+        "--episodes",
+        "1",
+        "--max-episode-steps",
+        "6",
+        "--seed-start",
+        str(args.seed_start),
+        "--methods",
+        *args.methods,
+        "--output-dir",
+        str(tmp_path / "c"),
+    ]
+    result = subprocess.run([sys.executable, "-m", "hf_specvla.cli", *small], cwd=ROOT, capture_output=True,
+                            text=True, timeout=900)  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert (tmp_path / "c" / "summary.json").exists()
