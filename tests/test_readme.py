@@ -49,39 +49,36 @@ def test_the_readme_is_a_short_page_with_its_parts():
         assert part in readme, part
 
 
-@pytest.mark.slow  # a minute: the policy compiles its graphs
-def test_the_readme_python_example_runs_as_written(tmp_path):
-    (example,) = _blocks(ROOT / "README.md", "python")
-    script = tmp_path / "readme_example.py"
+def _small(words: list[str], output_dir: Path) -> list[str]:
+    """An ``eval`` / ``compare`` command of the pages on the smallest arguments that exercise it: its own policy,
+    method(s) and seeds, one task, one episode of a few steps, a fresh folder."""
+    args = build_parser().parse_args(words)
+    small = [words[0], "--policy", args.policy, "--tasks", "reach-v3", "--episodes", "1", "--max-episode-steps", "6",
+             "--output-dir", str(output_dir)]  # fmt: skip
+    if words[0] == "compare":
+        small += ["--seed-start", str(args.seed_start), "--methods", *args.methods]
+    elif args.method:
+        small += ["--method", args.method]
+    return small
+
+
+@pytest.mark.slow  # a minute each: the policy compiles its graphs
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_the_python_example_runs_as_written(page, tmp_path):
+    (example,) = _blocks(page, "python")
+    script = tmp_path / "example.py"
     script.write_text(example)
     result = subprocess.run([sys.executable, str(script)], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert "target forward(s) for 8 tokens" in result.stdout
 
 
-@pytest.mark.slow  # a minute: one short episode per method, compiled methods compile first
-def test_the_readme_comparison_runs_on_the_smallest_arguments(tmp_path):
-    (compare,) = [words for words in _commands(ROOT / "README.md") if words[0] == "compare"]
-    parser = build_parser()
-    args = parser.parse_args(compare)
-    small = [
-        "compare",
-        "--policy",
-        args.policy,
-        "--tasks",
-        "reach-v3",
-        "--episodes",
-        "1",
-        "--max-episode-steps",
-        "6",
-        "--seed-start",
-        str(args.seed_start),
-        "--methods",
-        *args.methods,
-        "--output-dir",
-        str(tmp_path / "c"),
-    ]
-    result = subprocess.run([sys.executable, "-m", "hf_specvla.cli", *small], cwd=ROOT, capture_output=True,
-                            text=True, timeout=900)  # fmt: skip
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert (tmp_path / "c" / "summary.json").exists()
+@pytest.mark.slow  # a minute each: one short episode per method, compiled methods compile first
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_eval_and_compare_run_on_the_smallest_arguments(page, tmp_path):
+    commands = [words for words in _commands(page) if words[0] in ("eval", "compare")]
+    assert commands
+    for n, words in enumerate(commands):
+        small = _small(words, tmp_path / f"run{n}")
+        result = subprocess.run([sys.executable, "-m", "hf_specvla.cli", *small], cwd=ROOT, capture_output=True,
+                                text=True, timeout=900)  # fmt: skip
+        assert result.returncode == 0, (small, result.stderr[-3000:])
