@@ -139,6 +139,10 @@ class VLAPolicy:
         """[`VLAProcessor.action_token_ids`]: raw actions ``[..., action_dim]`` -> their token ids."""
         return self.processor.action_token_ids(actions)
 
+    def actions_from_token_ids(self, action_ids) -> np.ndarray:
+        """The inverse of [`action_token_ids`]: token ids ``[..., action_dim]`` -> un-normalised actions."""
+        return self.action_normalizer.unnormalize(self.action_tokenizer.decode(action_ids))
+
     def training_batch(self, images, states, actions, instructions: list[str], scene_states=None) -> dict:
         """[`VLAProcessor.training_batch`] on the model's device."""
         batch = self.processor.training_batch(images, states, actions, instructions, scene_states)
@@ -250,7 +254,7 @@ class VLAPolicy:
                 history[:] = [*history, *ids.tolist()][-self.HISTORY_LENGTH :]
             else:
                 history.clear()
-        actions = self.action_normalizer.unnormalize(self.action_tokenizer.decode(action_ids))  # [B, H, A]
+        actions = self.actions_from_token_ids(action_ids)  # [B, H, A]
         return (actions[:, 0] if chunk == 1 else actions), output
 
     def _drafter(

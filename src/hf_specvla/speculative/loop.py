@@ -736,10 +736,10 @@ def accept(
     target_ids, target_scores = target_greedy_ids(
         logits_processor, [row.sequence for row in state.rows], trees, output.logits
     )
-    action_counts = [row.num_action_tokens for row in state.rows]
-    top1_probs = target_scores.softmax(dim=-1).amax(dim=-1) if plan.rule.needs_probabilities else None  # [B, 1 + N]
     if plan.sampling:  # the target's distribution, exactly: every draft a point mass, recursive rejection sampling
         return sample_trees(trees, target_scores), target_ids, target_scores
+    action_counts = [row.num_action_tokens for row in state.rows]
+    top1_probs = target_scores.softmax(dim=-1).amax(dim=-1) if plan.rule.needs_probabilities else None  # [B, 1 + N]
     budgeted = plan.rule.max_relaxed_per_action is not None and plan.layout is not None  # counted per action
     dim = plan.layout.action_dim if plan.layout is not None else 1
     relaxed = [row.relaxed_in_action if row.num_action_tokens % dim else 0 for row in state.rows] if budgeted else None

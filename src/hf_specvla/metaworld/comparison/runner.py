@@ -127,9 +127,7 @@ def run_method_episode(
         if not method.lossless:  # off the clock: how far is this from greedy's action on the same observation?
             reference = _greedy_action_ids(policy, obs)
             distances.extend(abs(a - b) for a, b in zip(action_ids, reference))  # every token of the call, in order
-            reference_actions = policy.action_tokenizer.decode(np.asarray(reference).reshape(-1, dims))  # [H, D]
-            if policy.action_normalizer is not None:
-                reference_actions = policy.action_normalizer.unnormalize(reference_actions)
+            reference_actions = policy.actions_from_token_ids(np.asarray(reference).reshape(-1, dims))  # [H, D]
             reference_magnitudes.extend(round(abs(float(x)), 4) for x in np.ravel(reference_actions))
         digest.update(np.asarray(action_ids, np.int64).tobytes())
         return [policy.action_steps(action)]
