@@ -614,13 +614,17 @@ def accept_trees(
     accepted = path_passes.any(dim=-1)  # [B]
     bonus_ids = torch.where(accepted, target_ids.gather(1, best[:, None] + 1)[:, 0], target_ids[:, 0])
     on_path = ancestor_or_self[torch.arange(batch_size, device=tokens.device), best] & accepted[:, None]  # [B, N]
-    # one read from the device per verification: the paths, distances, bonus tokens, drafted and target tokens
-    packed = torch.cat([on_path.long(), distances, bonus_ids[:, None], tokens, target_ids], dim=1).tolist()
+    # one read from the device per verification: the paths, distances, bonus tokens, drafted and target tokens, the
+    # parents (a tree drafted on the device is then known on the host too)
+    packed = torch.cat([on_path.long(), distances, bonus_ids[:, None], tokens, target_ids, trees.parents],
+                       dim=1).tolist()  # fmt: skip
     paths = []
     for row, tree in zip(packed, trees.trees):
         row_on_path, row_distances, bonus = row[:num_nodes], row[num_nodes : 2 * num_nodes], row[2 * num_nodes]
-        if tree.token_list is None:  # drafted on the device: now known on the host too
+        if tree.token_list is None:
             tree.token_list = row[2 * num_nodes + 1 : 2 * num_nodes + 1 + tree.num_nodes]
+        if tree.host_parents is None:
+            tree.host_parents = row[4 * num_nodes + 2 : 4 * num_nodes + 2 + tree.num_nodes]
         nodes = [i for i, kept in enumerate(row_on_path) if kept]  # index order is depth order
         row_targets = row[3 * num_nodes + 1 : 3 * num_nodes + 2 + tree.num_nodes]
         paths.append(AcceptedPath(nodes, bonus, [row_distances[i] for i in nodes], row_targets))

@@ -33,7 +33,10 @@ import torch
 from transformers import GenerationConfig, PreTrainedModel
 from transformers.cache_utils import Cache
 
-from .cache import STATIC_LAYER_TYPES, preserved_entries
+from .cache import STATIC_LAYER_TYPES, cache_batch_size, cache_length, preserved_entries, truncate_cache
+from .compat import CACHE_KEY
+from .tree import DraftTree, TreeBatch
+from .verify import verify_trees
 
 logger = logging.getLogger(__name__)
 
@@ -94,14 +97,6 @@ def compiles_verification(model: PreTrainedModel, generation_config: GenerationC
     return quantizer is None or bool(getattr(quantizer, "is_compileable", False))
 
 
-def compiled_call(model: PreTrainedModel, generation_config: GenerationConfig, buckets: Sequence[int]) -> Callable:
-    """The model's compiled ``__call__`` (transformers' ``get_compiled_call``, shared with its compiled greedy
-    decoding), with dynamo's recompile limit raised to hold one graph per bucket (past the limit dynamo would
-    silently run eagerly)."""
-    allow_graphs(max(2 * len(buckets), _graphs_compiled) + _GRAPHS_BESIDE_OURS)  # each width with / without hidden
-    return model.get_compiled_call(generation_config.compile_config)
-
-
 def compile_settings(compile_config) -> str:
     """A hashable description of a ``CompileConfig`` (what its compiled graphs depend on)."""
     return repr(sorted(compile_config.to_dict().items()))
@@ -141,44 +136,12 @@ def compile_once(key: tuple, compile_all: Callable[[], None]) -> float:
 def reset_compilation() -> None:
     """``torch._dynamo.reset()`` and forgets what hf_specvla compiled up front (so that the next call compiles every
     width and depth again, before its first compiled round)."""
-    global _graphs_compiled
+    global _graphs_compiled, _compilation_epoch
     torch._dynamo.reset()
     _graphs_compiled = 0
-    _COMPILED_WIDTHS.clear()
-    _COMPILED_PREFILLS.clear()
-    _EAGER_PREFILLS.clear()
+    _compilation_epoch += 1  # every model's CompiledVerifier forgets its graphs
     _COMPILED_DRAFTING.clear()
     _COMPILED_FUNCTIONS.clear()
-
-
-#: per model, the (compile settings, slots, hidden states returned) keys whose every width has been compiled
-_COMPILED_WIDTHS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def compile_every_width(model: PreTrainedModel, key: tuple, verify_width: Callable[[int], None], free_slots: int,
-                        buckets: Sequence[int] = NODE_BUCKETS) -> float:  # fmt: skip
-    """Runs one throw-away verification at every bucket width that fits ``free_slots`` the first time ``model``'s
-    compiled call meets ``key`` (the compile settings, the cache's slot count, whether hidden states are returned,
-    the buckets: what the graphs depend on), so that every graph is compiled before the first action, never
-    mid-episode. ``buckets``: the widths the call can meet ([`buckets_up_to`] its drafter's largest tree).
-
-    Args:
-        verify_width: runs a filler-only verification of the given width and rolls the cache back.
-    Returns:
-        the seconds it took (0 when ``key`` was met before).
-    """
-    done = _COMPILED_WIDTHS.setdefault(model, set())
-    if key in done:
-        return 0.0
-    start = time.perf_counter()
-    widths = [b for b in buckets if b <= free_slots]
-    _count_graphs(len(widths))
-    for width in widths:
-        verify_width(width)
-    done.add(key)
-    seconds = time.perf_counter() - start
-    logger.info("compiled verification widths %s (%d slots, hidden states %s) in %.1f s", widths, *key[1:3], seconds)
-    return seconds
 
 
 #: the model inputs with a sequence dimension in a prefill, and that dimension, from the end ([`mark_length_dynamic`])
@@ -195,54 +158,147 @@ def mark_length_dynamic(inputs: dict) -> None:
             torch._dynamo.mark_dynamic(value, value.ndim + dim)
 
 
-#: per model, the (compile settings, slots, hidden states returned) keys whose prefill graph is compiled
-_COMPILED_PREFILLS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-#: per model, the same keys whose forward over the prompt did not compile into one graph (the prefill stays eager)
-_EAGER_PREFILLS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def prefill_is_compiled(model: PreTrainedModel, key: tuple) -> bool:
-    """Whether ``model``'s prefill graph for ``key`` was compiled by an earlier call ([`compile_prefill`])."""
-    return key in _COMPILED_PREFILLS.get(model, ())
-
-
-def prefill_stays_eager(model: PreTrainedModel, key: tuple) -> bool:
-    """Whether compiling ``model``'s prefill for ``key`` was tried and failed (its prefill stays eager)."""
-    return key in _EAGER_PREFILLS.get(model, ())
-
-
-def compile_prefill(model: PreTrainedModel, key: tuple, cache: Cache, run_prefill: Callable[[], None]) -> float:
-    """Compiles ``model``'s prefill graph for ``key`` (compile settings, slots, hidden states returned) with a
-    throw-away compiled prefill, the cache's entries saved and put back ([`preserved_entries`]). A model whose
-    forward does not compile into one graph is remembered and keeps an eager prefill (a warning, once per key).
+class PrefillCall:
+    """A compiled model call run over a prefill as **one graph for every prompt length and node count**: the
+    sequence dimensions of its inputs are marked dynamic ([`mark_length_dynamic`]) and the logits it keeps are chosen
+    by an index tensor over one row more than asked (an int would be a constant of the graph, a dimension of size 1
+    would be specialised), that row dropped from the outputs. Needs a prompt of 2 tokens or more.
 
     Args:
-        run_prefill: runs the compiled prefill on the call's own prefill inputs (writing from slot 0).
-    Returns:
-        the seconds it took.
+        forward: the compiled model call (transformers' ``get_compiled_call``).
     """
-    from torch._dynamo.exc import TorchDynamoException
-    from torch._inductor.exc import InductorError
-    from torch.fx.experimental.symbolic_shapes import ConstraintViolationError
 
-    start = time.perf_counter()
-    _count_graphs(1)
-    try:
-        with preserved_entries(cache):
-            run_prefill()
-    # dynamo / inductor refusing the model's forward, or the model's code fixing the prompt's length (a Python branch
-    # on it specialises the dimension marked dynamic)
-    except (TorchDynamoException, InductorError, ConstraintViolationError) as error:
-        _EAGER_PREFILLS.setdefault(model, set()).add(key)
-        logger.warning(
-            "the prefill of %s stays eager: its forward over the prompt does not compile into one graph (%s: %s)",
-            type(model).__name__, type(error).__name__, str(error).splitlines()[0] if str(error) else "",
-        )  # fmt: skip
-        return time.perf_counter() - start
-    _COMPILED_PREFILLS.setdefault(model, set()).add(key)
-    seconds = time.perf_counter() - start
-    logger.info("compiled the prefill (every prompt length, %d slots, hidden states %s) in %.1f s", *key[1:3], seconds)
-    return seconds
+    def __init__(self, forward: Callable):
+        self.forward = forward
+
+    def __call__(self, *, logits_to_keep: int, **inputs):
+        total = inputs["input_ids"].shape[-1]
+        inputs["logits_to_keep"] = torch.arange(total - logits_to_keep - 1, total, device=inputs["input_ids"].device)
+        mark_length_dynamic(inputs)
+        outputs = self.forward(**inputs)
+        outputs.logits = outputs.logits[:, 1:]
+        return outputs
+
+
+#: bumped by [`reset_compilation`]: a [`CompiledVerifier`] made before forgets what it compiled
+_compilation_epoch = 0
+
+
+class CompiledVerifier:
+    """One model's compiled verification under one ``CompileConfig``: transformers' compiled model call (shared with
+    its compiled greedy decoding) and what was compiled up front for it, by what the graphs depend on (cache slots,
+    hidden states returned, buckets, batch size): every verification width, the prefill's graph, the prefills that
+    stay eager. Kept on the model, as transformers keeps its compiled call ([`for_model`]); a call compiles what it
+    needs right after its first prefill, outside the round loop ([`compile_widths`], [`compile_prefill`]).
+
+    On a CUDA device transformers' ``CompileConfig`` compiles with ``mode="reduce-overhead"``: each (batch size,
+    width) graph is captured as a CUDA graph, its inputs copied into static buffers at each replay (the outputs, which
+    the next replay overwrites, are copied by [`verify_trees`]); elsewhere inductor's default mode."""
+
+    def __init__(self, model: PreTrainedModel, compile_config):
+        self.model = weakref.proxy(model)  # the verifier is kept on the model
+        self.model_name = type(model).__name__
+        self.compile_config = compile_config
+        self.call: Callable = model.get_compiled_call(compile_config)
+        self.epoch = _compilation_epoch
+        self.widths_compiled: set[tuple] = set()  # (slots, hidden states, buckets, batch size)
+        self.prefills_compiled: set[tuple] = set()  # (slots, hidden states, batch size)
+        self.prefills_eager: set[tuple] = set()  # the same keys, whose forward over the prompt did not compile
+
+    @classmethod
+    def for_model(cls, model: PreTrainedModel, generation_config: GenerationConfig) -> CompiledVerifier:
+        """``model``'s verifier for ``generation_config.compile_config`` (made at its first use), its model call
+        fetched again (a caller may have wrapped ``get_compiled_call``, as the benchmarks' clock does), dynamo's
+        recompile limit raised to hold one graph per bucket (past the limit dynamo would silently run eagerly)."""
+        allow_graphs(max(2 * len(NODE_BUCKETS), _graphs_compiled) + _GRAPHS_BESIDE_OURS)  # with / without hidden
+        verifiers = model.__dict__.setdefault("_hf_specvla_verifiers", {})
+        settings = compile_settings(generation_config.compile_config)
+        verifier = verifiers.get(settings)
+        if verifier is None or verifier.epoch != _compilation_epoch:
+            verifier = verifiers[settings] = cls(model, generation_config.compile_config)
+        else:
+            verifier.call = model.get_compiled_call(generation_config.compile_config)
+        return verifier
+
+    # ----------------------------------------------------------------- the prefill
+    def prefill_key(self, slots: int, output_hidden: tuple[int, ...] | None, prompt_length: int, batch_size: int):
+        """What this call's compiled prefill graph depends on, or None when its prefill stays eager: a prompt of one
+        token (a size-1 dimension would be specialised), or a forward that did not compile over the prompt. The
+        caller checks the rest: 2D positions, a causal prompt, a fresh cache."""
+        key = (slots, output_hidden, batch_size)
+        return None if prompt_length < 2 or key in self.prefills_eager else key
+
+    def prefill_call(self, key: tuple | None) -> PrefillCall | None:
+        """The compiled prefill for ``key`` when an earlier call compiled its graph, else None (an eager prefill)."""
+        return PrefillCall(self.call) if key in self.prefills_compiled else None
+
+    def compile_prefill(self, key: tuple, model_inputs: dict, prompt_ids, prompt_positions, trees: TreeBatch,
+                        output_hidden, sliding_window: int | None, slots: int) -> float:  # fmt: skip
+        """Compiles the prefill graph for ``key``: the call's own prefill (``prompt_ids`` / ``prompt_positions``
+        ``[B, P]``, the prepared ``model_inputs`` with its images, its ``trees``) once more through the compiled call,
+        from slot 0, the cache's entries saved and put back ([`preserved_entries`]). A forward that does not compile
+        into one graph keeps an eager prefill (a warning, once per key).
+
+        Returns:
+            the seconds it took.
+        """
+        from torch._dynamo.exc import TorchDynamoException
+        from torch._inductor.exc import InductorError
+        from torch.fx.experimental.symbolic_shapes import ConstraintViolationError
+
+        start = time.perf_counter()
+        _count_graphs(1)
+        try:
+            with preserved_entries(model_inputs[CACHE_KEY]):
+                verify_trees(
+                    self.model, model_inputs, prompt_ids, prompt_positions, trees, None, output_hidden,
+                    sliding_window=sliding_window, key_length=slots, forward=PrefillCall(self.call),
+                )  # fmt: skip
+        # dynamo / inductor refusing the model's forward, or the model's code fixing the prompt's length (a Python
+        # branch on it specialises the dimension marked dynamic)
+        except (TorchDynamoException, InductorError, ConstraintViolationError) as error:
+            self.prefills_eager.add(key)
+            logger.warning(
+                "the prefill of %s stays eager: its forward over the prompt does not compile into one graph (%s: %s)",
+                self.model_name, type(error).__name__, str(error).splitlines()[0] if str(error) else "",
+            )  # fmt: skip
+            return time.perf_counter() - start
+        self.prefills_compiled.add(key)
+        seconds = time.perf_counter() - start
+        logger.info("compiled the prefill (every prompt length, %d slots, hidden states %s) in %.1f s",
+                    *key[:2], seconds)  # fmt: skip
+        return seconds
+
+    # ----------------------------------------------------------------- the rounds
+    def compile_widths(
+        self, cache: Cache, pending_ids, pending_positions, key_valid, position_offsets, output_hidden,
+        sliding_window: int | None, slots: int, buckets: Sequence[int],
+    ) -> float:  # fmt: skip
+        """Compiles every bucket width that fits the free slots the first time this model meets ``(slots, hidden
+        states, buckets, batch size)``: one throw-away filler-only verification each, after the committed entries
+        (``pending_ids`` / ``pending_positions`` ``[B, P]``, ``key_valid`` ``[B, C + P]`` or None, as the next round
+        feeds them), each rolled back, so that every graph is compiled before the first action, never mid-episode.
+
+        Returns:
+            the seconds it took (0 when the key was met before).
+        """
+        key = (slots, output_hidden, tuple(buckets), cache_batch_size(cache))
+        if key in self.widths_compiled:
+            return 0.0
+        start, length = time.perf_counter(), cache_length(cache)
+        widths = [b for b in buckets if b <= slots - length - pending_ids.shape[1]]
+        _count_graphs(len(widths))
+        empty = [DraftTree.empty(pending_ids.device)] * pending_ids.shape[0]
+        for width in widths:
+            verify_trees(self.model, {CACHE_KEY: cache}, pending_ids, pending_positions,
+                         TreeBatch(empty, min_nodes=width), key_valid, output_hidden, sliding_window=sliding_window,
+                         position_offsets=position_offsets, key_length=slots, forward=self.call)  # fmt: skip
+            truncate_cache(cache, length)
+        self.widths_compiled.add(key)
+        seconds = time.perf_counter() - start
+        logger.info("compiled verification widths %s (%d slots, hidden states %s) in %.1f s", widths, slots,
+                    output_hidden, seconds)  # fmt: skip
+        return seconds
 
 
 def _count_graphs(count: int) -> None:

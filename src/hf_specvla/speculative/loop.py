@@ -1,12 +1,19 @@
 """The speculative decode loop: drafters propose trees, the target verifies each in one forward.
 
-Reads as a ladder (gpt-fast style), the same steps every round, the prefill included:
+One call reads as four steps (gpt-fast style), [`speculative_generate`]:
 
-    propose (drafters) -> fit_trees -> verify (one target forward) -> accept -> emit -> commit_paths -> observe
-    (drafters) -> drop finished rows -> repeat until every row has stopped -> report (drafters' statistics)
+    prepare (every argument checked, the rows' drafter sessions, the [`RoundPlan`]) -> prefill -> decode_round until
+    every row has stopped -> finish (the cache left as greedy leaves it, statistics, the output)
 
-each step a short function below; what every round reads is decided once, before the prefill ([`RoundPlan`]: the
-acceptance rule, the static cache's slots, the compiled model call when ``compile_config`` asks for one).
+The prefill and every round run the same ladder, each step a short function below:
+
+    propose (drafters) -> fit (fit_prefill_trees / fit_trees) -> one target forward (the prefill's over the model's
+    prepared inputs; a round's [`verify`], compiled at a fixed width) -> settle: accept -> emit -> commit_paths ->
+    observe (drafters) -> drop finished rows
+
+What every round reads is decided once, before the prefill ([`RoundPlan`]: the acceptance rule, the static cache's
+slots, the compiled model call when ``compile_config`` asks for one); the compiled widths are compiled right after the
+prefill, outside the round loop.
 
 Invariants kept between rounds, per batch row (each row has its own drafter session, tree, accepted path):
 
@@ -30,6 +37,7 @@ from __future__ import annotations
 import itertools
 import logging
 import time
+import warnings
 import weakref
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
@@ -65,14 +73,10 @@ from .compat import CACHE_KEY, check_transformers_support
 from .compiled import (
     NODE_BUCKETS,
     SLOT_MULTIPLE,
+    CompiledVerifier,
+    PrefillCall,
     buckets_up_to,
-    compile_every_width,
-    compile_prefill,
-    compile_settings,
-    compiled_call,
     compiles_verification,
-    prefill_is_compiled,
-    prefill_stays_eager,
     verification_width,
 )
 from .config import SpeculationConfig
@@ -216,6 +220,13 @@ def _call_drafter(
     Raises:
         ValueError: both ``drafter`` and ``draft_head``, or nothing to draft with; bad ``draft_ids``.
     """
+    if draft_head is not None:
+        warnings.warn(
+            "speculative_generate(draft_head=...) is deprecated and will be removed: pass drafter= (or "
+            "model.generate(assistant_model=...)), which takes a DraftHead too",
+            FutureWarning,
+            stacklevel=4,
+        )
     if drafter is not None and draft_head is not None:
         raise ValueError("pass drafter= or draft_head=, not both")
     drafter = as_drafter(drafter if drafter is not None else draft_head, settings.num_draft_tokens)
@@ -618,8 +629,8 @@ class RoundPlan:
     output_hidden: tuple[int, ...] | None  # the target's hidden states the drafters read (their layers), or None
     window: int | None  # the target cache's smallest sliding window
     capacity: int | None  # a static cache's slots: trees fit in the free ones
-    compiled: Callable | None  # the compiled model call for rounds after the prefill, or None (eager)
-    compiled_prefill: Callable | None  # the compiled call for the prefill (its graph compiled by an earlier call)
+    verifier: CompiledVerifier | None  # the compiled verification of rounds after the prefill, or None (eager)
+    compiled_prefill: PrefillCall | None  # the compiled prefill (its graph compiled by an earlier call), or None
     buckets: tuple[int, ...]  # the widths a compiled verification is padded to (up to the drafter's largest tree)
     prefix_attention: bool  # a prefix-LM prompt: the prefill verifies one chain
     max_drafts: int | None  # each row's tree is cut to its first this many nodes (``max_drafts_per_row``), or None
@@ -628,43 +639,52 @@ class RoundPlan:
     sampling: bool = False  # do_sample: the drafts are verified by speculative sampling ([`sample_trees`])
 
 
-def propose(state: DecodeState, plan: RoundPlan, at_prefill: bool) -> list[DraftTree]:
-    """1. Each row's drafter proposes a tree below its root; no path drafts past ``max_length`` (the bonus token takes
-    the last slot)."""
+def propose(state: DecodeState, plan: RoundPlan) -> list[DraftTree]:
+    """1. Each row's drafter proposes a tree below its root (at the prefill: before any token of the call was emitted);
+    no path drafts past ``max_length`` (the bonus token takes the last slot)."""
     trees = []
     for b, row in enumerate(state.rows):
         draft_round = DraftRound(
             sequence=row.sequence,
             num_generated=row.num_generated,
             max_depth=max(0, plan.max_length - row.sequence.shape[1] - 1),
-            at_prefill=at_prefill,
+            at_prefill=row.num_generated == 0,  # the prefill emits at least its bonus token
             root_position=state.pending_positions[b : b + 1, -1:],
         )
         trees.append(row.session.propose(draft_round).truncate_depth(draft_round.max_depth))
     return trees
 
 
-def fit_trees(
-    trees: list[DraftTree], state: DecodeState, plan: RoundPlan, at_prefill: bool, stats: SpeculationStats
-) -> TreeBatch:
-    """The rows' trees as one [`TreeBatch`]: a prefix-LM prefill keeps one chain, ``max_drafts_per_row`` cuts every
-    tree to its first nodes; on a static cache the pending tokens and the tree fit in the free slots (a batch's rows
-    are compacted first when invalid entries take the slots the trees need), and a compiled round is padded (or cut)
-    to its width bucket."""
-    if at_prefill and plan.prefix_attention:
+def fit_prefill_trees(trees: list[DraftTree], state: DecodeState, plan: RoundPlan) -> TreeBatch:
+    """The prefill's trees as one [`TreeBatch`]: a prefix-LM prompt keeps one chain; ``max_drafts_per_row`` and, on a
+    static cache, its free slots cut each tree to its first nodes (the prefill's width is free: its compiled graph
+    has a dynamic length)."""
+    if plan.prefix_attention:
         trees = [tree.first_path() for tree in trees]
+    if plan.max_drafts is not None:
+        trees = [tree.truncate_nodes(plan.max_drafts) for tree in trees]
+    if plan.capacity is not None:
+        free = plan.capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
+        trees = [tree.truncate_nodes(free) for tree in trees]
+    return TreeBatch(trees)
+
+
+def fit_trees(trees: list[DraftTree], state: DecodeState, plan: RoundPlan, stats: SpeculationStats) -> TreeBatch:
+    """A round's trees as one [`TreeBatch`]: ``max_drafts_per_row`` cuts every tree to its first nodes; on a static
+    cache the pending token and the tree fit in the free slots (a batch's rows are compacted first when invalid
+    entries take the slots the trees need), and a compiled round is padded (or cut) to its width bucket."""
     if plan.max_drafts is not None:
         trees = [tree.truncate_nodes(plan.max_drafts) for tree in trees]
     width = 0  # the node count a compiled verification is padded to
     if plan.capacity is not None:
         free = plan.capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
         widest = max(tree.num_nodes for tree in trees)
-        wanted = verification_width(widest, plan.buckets[-1], plan.buckets) if plan.compiled is not None else widest
-        if free < wanted and state.key_valid is not None and not at_prefill:
+        wanted = verification_width(widest, plan.buckets[-1], plan.buckets) if plan.verifier is not None else widest
+        if free < wanted and state.key_valid is not None:
             _compact(state)
             free = plan.capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
-        if plan.compiled is not None and not at_prefill:  # one width per bucket: padded, or cut to fit
-            free = width = verification_width(max(tree.num_nodes for tree in trees), free, plan.buckets)
+        if plan.verifier is not None:  # one width per bucket: padded, or cut to fit
+            free = width = verification_width(widest, free, plan.buckets)
             stats.compiled_widths.append(width)
         trees = [tree.truncate_nodes(free) for tree in trees]
     return TreeBatch(trees, min_nodes=width)
@@ -683,12 +703,10 @@ def _compact(state: DecodeState) -> None:
     state.key_valid = None if bool(key_valid.all()) else key_valid
 
 
-def verify(
-    model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: TreeBatch, prefill_model_inputs: dict | None
-) -> TargetOutput:
-    """2. Every row's tree in one target forward: the prefill's (with the model's prepared inputs), else a
-    verification on the cache (compiled when the plan has a compiled call). A static cache's idle rows (finished,
-    kept in its batch) are fed a filler token and an empty tree, their outputs dropped."""
+def verify(model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: TreeBatch) -> TargetOutput:
+    """2. Every row's tree in one target forward on the cache (compiled when the plan has a compiled call). A static
+    cache's idle rows (finished, kept in its batch) are fed a filler token and an empty tree, their outputs
+    dropped."""
     pending_ids, positions, key_valid, offsets = (
         state.pending_ids, state.pending_positions, state.key_valid, state.position_offsets
     )  # fmt: skip
@@ -707,7 +725,7 @@ def verify(
         trees = TreeBatch(rows, min_nodes=trees.num_nodes)
     output = verify_trees(
         model,
-        prefill_model_inputs if prefill_model_inputs is not None else {CACHE_KEY: state.target_cache},
+        {CACHE_KEY: state.target_cache},
         pending_ids,
         positions,
         trees,
@@ -716,8 +734,7 @@ def verify(
         sliding_window=plan.window,
         position_offsets=offsets,
         key_length=plan.capacity,
-        forward=plan.compiled_prefill if prefill_model_inputs is not None else plan.compiled,
-        dynamic_length=prefill_model_inputs is not None and plan.compiled_prefill is not None,
+        forward=None if plan.verifier is None else plan.verifier.call,
     )
     if state.cache_rows is None:
         return output
@@ -787,48 +804,6 @@ def observe(state: DecodeState, commits: list[Commit]) -> None:
             row.session.observe(kept)
 
 
-def _compile_every_width(model, plan: RoundPlan, compile_config, state: DecodeState) -> float:
-    """[`compile_every_width`] on this call's cache: filler-only verifications after the committed entries, each
-    rolled back (the cache's entries and counter are as they were)."""
-    settings = compile_settings(compile_config) if compile_config is not None else None
-    cache = state.target_cache
-    length = cache_length(cache)
-
-    def verify_width(width: int) -> None:
-        empty = [DraftTree.empty(state.pending_ids.device)] * len(state.rows)
-        verify(model, state, plan, TreeBatch(empty, min_nodes=width), None)
-        truncate_cache(cache, length)
-
-    free = plan.capacity - length - state.pending_ids.shape[1]
-    key = (settings, plan.capacity, plan.output_hidden, plan.buckets, cache_batch_size(cache))
-    return compile_every_width(model, key, verify_width, free, plan.buckets)
-
-
-def _compile_prefill(model, plan: RoundPlan, key: tuple, model_inputs: dict, prompt, trees: TreeBatch) -> float:
-    """[`compile_prefill`]: the call's own prefill (``prompt``: its ids and positions ``[1, P]`` each, the prepared
-    ``model_inputs`` with its images, its ``trees``) once more through the compiled call, from slot 0, the cache's
-    entries saved and put back."""
-
-    def run_prefill() -> None:
-        verify_trees(
-            model, model_inputs, *prompt, trees, None, plan.output_hidden, sliding_window=plan.window,
-            key_length=plan.capacity, forward=plan.compiled, dynamic_length=True,
-        )  # fmt: skip
-
-    return compile_prefill(model, key, model_inputs[CACHE_KEY], run_prefill)
-
-
-def _compiled_prefill_key(
-    model, generation_config, capacity: int, output_hidden: tuple[int, ...] | None, prompt_length: int, batch_size: int
-):
-    """What a compiled prefill graph depends on (the compile settings, the cache's slots, whether hidden states are
-    returned, the batch size), or None when this call's prefill stays eager: a prompt of one token (a size-1
-    dimension would be specialised), or a model whose forward did not compile over the prompt. The caller checks the
-    rest: a compiled call (a static cache), 2D positions, a causal prompt."""
-    key = (compile_settings(generation_config.compile_config), capacity, output_hidden, batch_size)
-    return None if prompt_length < 2 or prefill_stays_eager(model, key) else key
-
-
 def _widest_tree(drafter: Drafter, max_depth: int, settings: SpeculationConfig) -> int | None:
     """The most nodes a round's tree can hold: the drafter's largest tree ``max_depth`` deep (None: unknown), cut to
     ``max_drafts_per_row``."""
@@ -895,7 +870,7 @@ def speculative_generate(
 
     Args:
         drafter: a [`Drafter`] (the same for every row, or a [`PerRowDrafter`]) or a [`DraftHead`]
-            (``draft_head=`` is the same, kept for older callers).
+            (``draft_head=`` is the same, deprecated: a ``FutureWarning``).
         draft_ids: ``[B, k]`` or ``[B, C, k]`` drafts of the first generated tokens of each row, known up front:
             verified inside the prefill forward, with or without a drafter.
     Returns:
@@ -984,19 +959,21 @@ def prepare(
     model_kwargs[CACHE_KEY] = with_draft_slots(
         model, model_kwargs.get(CACHE_KEY), NODE_BUCKETS[-1], SLOT_MULTIPLE, batch_size
     )
-    if model_kwargs.get(CACHE_KEY) is not None:
-        check_rollback_cache(model_kwargs[CACHE_KEY], generation_config.max_length)
+    given_cache = model_kwargs.get(CACHE_KEY)
+    if given_cache is not None:
+        check_rollback_cache(given_cache, generation_config.max_length)
     model_inputs = prefill_inputs(model, prompt_ids, model_kwargs)
-    check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length)
+    if model_inputs[CACHE_KEY] is not given_cache:  # one the model's input preparation made
+        check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length)
     prompt_positions, position_offsets = _prompt_positions(model_inputs, prompt_ids, prompt_padding, past_length)
     cache = model_inputs[CACHE_KEY]
-    compiled = None  # the compiled model call verifying every round after the prefill (fixed widths), or eager
+    verifier = None  # the compiled verification of every round after the prefill (fixed widths), or eager
     if compiles_verification(model, generation_config, cache):
-        compiled = compiled_call(model, generation_config, NODE_BUCKETS)
+        verifier = CompiledVerifier.for_model(model, generation_config)
     cached_tokens = input_ids.shape[1] - num_new  # the rows' first tokens the cache held before the call
     contexts = _draft_contexts(
         model, batch_size, layout, eos_ids, None if prompt_padding is None else prompt_padding[:, -num_new:],
-        generation_config.max_length, generation_config.compile_config if compiled is not None else None,
+        generation_config.max_length, generation_config.compile_config if verifier is not None else None,
         cached_tokens,
     )  # fmt: skip
     rows = [
@@ -1005,7 +982,7 @@ def prepare(
     ]
     state = DecodeState(rows, prompt_ids, prompt_positions, position_offsets,
                         None if prompt_padding is None else prompt_padding.bool(), cache)  # fmt: skip
-    plan, prefill_key = _round_plan(model, generation_config, settings, drafter, rule, layout, compiled, model_inputs,
+    plan, prefill_key = _round_plan(model, generation_config, settings, drafter, rule, layout, verifier, model_inputs,
                                     position_offsets, past_length, num_new, input_ids)  # fmt: skip
     return SpeculativeCall(
         state, plan, list(rows), stats, _Stopwatch(stats, input_ids.device, settings.profile_speculation),
@@ -1016,7 +993,7 @@ def prepare(
     )  # fmt: skip
 
 
-def _round_plan(model, generation_config, settings, drafter, rule, layout, compiled, model_inputs, position_offsets,
+def _round_plan(model, generation_config, settings, drafter, rule, layout, verifier, model_inputs, position_offsets,
                 past_length: int, num_new: int, input_ids) -> tuple[RoundPlan, tuple | None]:  # fmt: skip
     """What every round reads ([`RoundPlan`]), and the compiled prefill graph this call can use (None: eager)."""
     cache = model_inputs[CACHE_KEY]
@@ -1026,9 +1003,8 @@ def _round_plan(model, generation_config, settings, drafter, rule, layout, compi
     # the model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies a chain.
     prefix_attention = model_inputs.get("token_type_ids") is not None
     prefill_key = None
-    if compiled is not None and not prefix_attention and position_offsets is None and not past_length:
-        prefill_key = _compiled_prefill_key(model, generation_config, capacity, output_hidden, num_new,
-                                            input_ids.shape[0])  # fmt: skip
+    if verifier is not None and not prefix_attention and position_offsets is None and not past_length:
+        prefill_key = verifier.prefill_key(capacity, output_hidden, num_new, input_ids.shape[0])
     return_dict = generation_config.return_dict_in_generate
     plan = RoundPlan(
         max_length=generation_config.max_length,
@@ -1037,8 +1013,8 @@ def _round_plan(model, generation_config, settings, drafter, rule, layout, compi
         output_hidden=output_hidden,
         window=sliding_window(cache),
         capacity=capacity,
-        compiled=compiled,
-        compiled_prefill=compiled if prefill_key is not None and prefill_is_compiled(model, prefill_key) else None,
+        verifier=verifier,
+        compiled_prefill=None if prefill_key is None else verifier.prefill_call(prefill_key),
         # the deepest a round after the prefill can draft: max_new_tokens - 1 (the bonus token takes the last slot)
         buckets=buckets_up_to(_widest_tree(drafter, generation_config.max_length - input_ids.shape[1] - 1, settings)),
         prefix_attention=prefix_attention,
@@ -1050,40 +1026,54 @@ def _round_plan(model, generation_config, settings, drafter, rule, layout, compi
     return plan, prefill_key
 
 
-def _round(model, call: SpeculativeCall, at_prefill: bool, logits_processor, stopping_criteria) -> TreeBatch:
-    """One round's steps (propose, fit, verify, accept, emit, commit, observe); returns the verified trees."""
-    state, plan, stats, stopwatch = call.state, call.plan, call.stats, call.stopwatch
-    with stopwatch.section("draft_seconds"):
-        proposed = propose(state, plan, at_prefill)
-    trees = fit_trees(proposed, state, plan, at_prefill, stats)
-    with stopwatch.section("target_seconds"):
-        output = verify(model, state, plan, trees, call.model_inputs if at_prefill else None)
-    stats.num_batch_forwards += 1
-    stats.compiled_prefills += at_prefill and plan.compiled_prefill is not None
+def settle(call: SpeculativeCall, trees: TreeBatch, output: TargetOutput, logits_processor, stopping_criteria) -> None:
+    """A verification's outcome: accept, emit, commit each row's path, tell the drafters (the prefill's and every
+    round's)."""
+    state, plan = call.state, call.plan
+    call.stats.num_batch_forwards += 1
     paths, target_ids, target_scores = accept(state, plan, trees, output, logits_processor)
     emit(state, plan, trees, paths, output, target_scores, stopping_criteria)
     commits = commit_paths(state, trees, paths, output.hidden, target_ids)
-    with stopwatch.section("draft_seconds"):
+    with call.stopwatch.section("draft_seconds"):
         observe(state, commits)
-    return trees
 
 
 def prefill(model, call: SpeculativeCall, logits_processor, stopping_criteria, generation_config) -> None:
-    """2. The prompt and the drafts known up front, verified in one forward; then, for a compiled call, every
-    verification width compiled (and the next call's prefill graph), before any compiled round."""
-    plan, stats = call.plan, call.stats
-    trees = _round(model, call, True, logits_processor, stopping_criteria)
-    if plan.compiled is not None:
-        stats.compile_seconds = _compile_every_width(model, plan, generation_config.compile_config, call.state)
-        if call.prefill_key is not None and plan.compiled_prefill is None:  # the next call's prefill, compiled
-            stats.compile_seconds += _compile_prefill(model, plan, call.prefill_key, call.model_inputs, call.prompt,
-                                                      trees)  # fmt: skip
+    """2. The prompt and the drafts known up front, verified in one forward (the model's prepared inputs, images
+    included; compiled when an earlier call compiled its graph); then, for a compiled call, every verification width
+    compiled (and the next call's prefill graph), before any compiled round."""
+    state, plan, stats = call.state, call.plan, call.stats
+    with call.stopwatch.section("draft_seconds"):
+        proposed = propose(state, plan)
+    trees = fit_prefill_trees(proposed, state, plan)
+    with call.stopwatch.section("target_seconds"):
+        output = verify_trees(model, call.model_inputs, state.pending_ids, state.pending_positions, trees,
+                              state.key_valid, plan.output_hidden, sliding_window=plan.window,
+                              position_offsets=state.position_offsets, key_length=plan.capacity,
+                              forward=plan.compiled_prefill)  # fmt: skip
+    stats.compiled_prefills += plan.compiled_prefill is not None
+    settle(call, trees, output, logits_processor, stopping_criteria)
+    if plan.verifier is not None:  # every width compiled now, and the next call's prefill graph
+        stats.compile_seconds = plan.verifier.compile_widths(
+            state.target_cache, state.pending_ids, state.pending_positions, state.key_valid, state.position_offsets,
+            plan.output_hidden, plan.window, plan.capacity, plan.buckets,
+        )  # fmt: skip
+        if call.prefill_key is not None and plan.compiled_prefill is None:
+            stats.compile_seconds += plan.verifier.compile_prefill(
+                call.prefill_key, call.model_inputs, *call.prompt, trees, plan.output_hidden, plan.window, plan.capacity
+            )  # fmt: skip
     drop_finished_rows(call.state, fixed_batch=plan.capacity is not None)
 
 
 def decode_round(model, call: SpeculativeCall, logits_processor, stopping_criteria) -> None:
     """3. One round after the prefill: the rows' trees verified in one (compiled) forward; finished rows leave."""
-    _round(model, call, False, logits_processor, stopping_criteria)
+    state, plan = call.state, call.plan
+    with call.stopwatch.section("draft_seconds"):
+        proposed = propose(state, plan)
+    trees = fit_trees(proposed, state, plan, call.stats)
+    with call.stopwatch.section("target_seconds"):
+        output = verify(model, state, plan, trees)
+    settle(call, trees, output, logits_processor, stopping_criteria)
     drop_finished_rows(call.state, fixed_batch=call.plan.capacity is not None)
 
 

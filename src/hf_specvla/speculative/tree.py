@@ -28,21 +28,31 @@ class DraftTree:
     """Drafted tokens arranged as a tree below the root (see module docstring).
 
     The structure (parents, depths) is also kept on the host, so that deriving masks, cutting or merging trees never
-    waits for the device; the drafted tokens too when the tree was built from host lists ([`from_lists`]).
+    waits for the device; the drafted tokens too when the tree was built from host lists ([`from_lists`]). A tree
+    built on the device (a draft head's) may leave its parents there (``host_parents`` None): what verification needs
+    (depths, the tree mask) is then derived on the device, and the host copies arrive with the verification's one read
+    ([`accept_trees`]); ``depth_bound`` tells, meanwhile, how deep it can be.
 
     Args:
         token_ids: ``[N]`` int64 drafted token ids.
         parents: ``[N]`` int64 parent node index, ``-1`` for the root's children; ``parents[i] < i``.
         sources: ``N`` names of the drafter that proposed each node (for statistics).
-        parent_list: ``parents`` on the host (read from ``parents`` when not given: one device read).
+        host_parents: ``parents`` on the host, or None (read from ``parents`` here, or with ``structure_on_device``
+            when first needed: [`parent_list`]).
         token_list: ``token_ids`` on the host, or None (read when first needed: [`host_tokens`]).
+        structure_on_device: leave the parents on the device (a drafter's tree: verification derives what it needs
+            there and the verification's read brings them to the host).
+        depth_bound: for a tree whose parents stay on the device, at most how deep it is (its longest path's length);
+            None: ``N``.
     """
 
     token_ids: torch.Tensor
     parents: torch.Tensor
     sources: list[str] = field(default_factory=list)
-    parent_list: list[int] | None = field(default=None, repr=False, compare=False)
+    host_parents: list[int] | None = field(default=None, repr=False, compare=False)
     token_list: list[int] | None = field(default=None, repr=False, compare=False)
+    structure_on_device: bool = field(default=False, repr=False, compare=False)
+    depth_bound: int | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         if self.token_ids.ndim != 1 or self.parents.shape != self.token_ids.shape:
@@ -55,10 +65,28 @@ class DraftTree:
             self.sources = ["draft"] * n
         if len(self.sources) != n:
             raise ValueError(f"DraftTree has {n} nodes but {len(self.sources)} sources")
-        if self.parent_list is None:
-            self.parent_list = self.parents.tolist()
-        if any(not -1 <= parent < i for i, parent in enumerate(self.parent_list)):
-            raise ValueError(f"DraftTree parents must satisfy -1 <= parents[i] < i, got {self.parent_list}")
+        if self.host_parents is not None:
+            self._check_parents(self.host_parents)
+        elif not self.structure_on_device:
+            self.parent_list  # noqa: B018 (read and checked now)
+
+    @staticmethod
+    def _check_parents(parents: list[int]) -> None:
+        if any(not -1 <= parent < i for i, parent in enumerate(parents)):
+            raise ValueError(f"DraftTree parents must satisfy -1 <= parents[i] < i, got {parents}")
+
+    @property
+    def parent_list(self) -> list[int]:
+        """The parents on the host (read from the device once, the first time, for a tree that left them there)."""
+        if self.host_parents is None:
+            parents = self.parents.tolist()
+            self._check_parents(parents)
+            self.host_parents = parents
+        return self.host_parents
+
+    def knows_structure(self) -> bool:
+        """Whether the parents are on the host (deriving the structure reads nothing from the device)."""
+        return self.host_parents is not None
 
     # ----------------------------------------------------------------- building
     @classmethod
@@ -122,12 +150,21 @@ class DraftTree:
     @cached_property
     def depths(self) -> torch.Tensor:
         """``[N]`` int64 depth of each node (0 = child of the root)."""
+        if not self.knows_structure():  # on the device: the ancestors each node has
+            return self.ancestor_or_self.sum(dim=-1) - 1
         return torch.tensor(self.depth_list, dtype=torch.long, device=self.token_ids.device)
 
     @cached_property
     def ancestor_or_self(self) -> torch.Tensor:
         """``[N, N]`` bool: ``[i, j]`` is True when node j is node i or one of its ancestors."""
         n = self.num_nodes
+        if not self.knows_structure():  # on the device: a node's row is itself or its parent's row, ``depth`` times
+            eye = torch.eye(n, dtype=torch.bool, device=self.token_ids.device)
+            has_parent = (self.parents >= 0)[:, None]  # [N, 1]
+            rows = eye
+            for _ in range(max((self.depth_bound or n) - 1, 0)):
+                rows = eye | (has_parent & rows[self.parents.clamp(min=0)])
+            return rows
         rows = [[False] * n for _ in range(n)]
         for i, parent in enumerate(self.parent_list):
             if parent >= 0:
@@ -137,8 +174,9 @@ class DraftTree:
 
     @cached_property
     def is_chain(self) -> bool:
-        """True when the tree is one path (node i's parent is node i-1): its tree mask is the causal mask."""
-        return self.parent_list == list(range(-1, self.num_nodes - 1))
+        """True when the tree is one path (node i's parent is node i-1): its tree mask is the causal mask. A tree
+        whose parents are on the device counts as no chain (its explicit tree mask is exact either way)."""
+        return self.knows_structure() and self.host_parents == list(range(-1, self.num_nodes - 1))
 
     @property
     def max_depth(self) -> int:
@@ -193,7 +231,9 @@ class DraftTree:
 
     def truncate_depth(self, max_depth: int) -> DraftTree:
         """Drops every node at depth >= ``max_depth`` (so that no path drafts past a length limit)."""
-        if self.num_nodes == 0 or self.max_depth <= max_depth:
+        if self.num_nodes == 0 or (not self.knows_structure() and (self.depth_bound or self.num_nodes) <= max_depth):
+            return self
+        if self.max_depth <= max_depth:
             return self
         return self.select([depth < max_depth for depth in self.depth_list])
 
@@ -201,6 +241,12 @@ class DraftTree:
         """The first ``max_nodes`` nodes (a sub-tree: parents come first), e.g. to fit a fixed number of cache slots."""
         if self.num_nodes <= max_nodes:
             return self
+        if not self.knows_structure():  # parents come first: the first nodes are a tree, cut on the device
+            keep = max(max_nodes, 0)
+            return DraftTree(
+                self.token_ids[:keep], self.parents[:keep], self.sources[:keep], None,
+                None if self.token_list is None else self.token_list[:keep], True, self.depth_bound,
+            )  # fmt: skip
         return self.select([i < max(max_nodes, 0) for i in range(self.num_nodes)])
 
     def merge(self, other: DraftTree) -> DraftTree:

@@ -22,7 +22,6 @@ from transformers.generation.logits_process import (
 
 from .cache import cache_length, note_appended
 from .compat import CACHE_KEY
-from .compiled import mark_length_dynamic
 from .drafter import read_hidden_states
 from .masks import to_additive_mask, tree_verification_allowed
 from .tree import TreeBatch
@@ -58,7 +57,6 @@ def verify_trees(
     position_offsets: torch.Tensor | None = None,
     key_length: int | None = None,
     forward: Callable | None = None,
-    dynamic_length: bool = False,
 ) -> TargetOutput:
     """One target forward over ``[pending tokens ; each row's tree nodes]`` on top of the target cache.
 
@@ -80,12 +78,10 @@ def verify_trees(
             or ``()``: none.
         key_length: the number of keys attention sees when it is not the cached and new entries (a static cache: its
             slots); an explicit mask hides the slots past the new entries.
-        forward: the model call to run (a compiled one, see ``speculative.compiled``); None: ``model`` itself. A
-            compiled call always gets the explicit tree mask (one mask kind, one shape per width) and its outputs are
-            copied (a CUDA graph's outputs are overwritten by its next replay).
-        dynamic_length: the compiled prefill: one graph for every prompt length and node count (their dimensions are
-            marked dynamic, see [`mark_length_dynamic`]); the logits kept are chosen by an index tensor (an int would
-            be a constant of the graph). Needs ``P >= 2``.
+        forward: the model call to run (a compiled one, see ``speculative.compiled``, or the compiled prefill's
+            [`PrefillCall`]); None: ``model`` itself. A compiled call always gets the explicit tree mask (one mask
+            kind, one shape per width) and its outputs are copied (a CUDA graph's outputs are overwritten by its next
+            replay).
     Returns:
         [`TargetOutput`] with logits ``[B, 1 + N, V]`` and hidden states ``[B, P + N, n H]`` (n layers).
     """
@@ -117,20 +113,13 @@ def verify_trees(
         if key_length is not None:  # [B, q, key_length]: the free slots after the new entries are hidden
             allowed = torch.nn.functional.pad(allowed, (0, key_length - allowed.shape[-1]), value=False)
         inputs["attention_mask"] = to_additive_mask(allowed, model.dtype)
-    if dynamic_length:  # 2 + N rows (a dimension of size 1 would be specialised), the first dropped below
-        total = num_pending + num_nodes
-        inputs["logits_to_keep"] = torch.arange(num_pending - 2, total, device=pending_ids.device)
-        mark_length_dynamic(inputs)
-    else:
-        inputs["logits_to_keep"] = num_nodes + 1
+    inputs["logits_to_keep"] = num_nodes + 1
     inputs["use_cache"] = True
     outputs = (forward or model)(**inputs, output_hidden_states=bool(output_hidden), return_dict=True)
     note_appended(model_inputs[CACHE_KEY], num_pending + num_nodes)
     logits, hidden = outputs.logits.float(), None
     if output_hidden:  # [B, q, n H]: the asked layers' hidden states, concatenated
         hidden = read_hidden_states(outputs.hidden_states, output_hidden)
-    if dynamic_length:
-        logits = logits[:, 1:]
     if forward is not None:
         logits, hidden = logits.clone(), None if hidden is None else hidden.clone()
     return TargetOutput(logits, hidden)

@@ -278,7 +278,16 @@ class _DraftHeadSession(DraftSession):
             if self.root_feature is None:  # proposed twice without a new commit after a compiled round
                 return DraftTree.empty(draft_round.sequence.device)
             token_ids, parents = self._expand(depth, root_position)
-        return DraftTree(token_ids, parents, [self.name] * token_ids.shape[0])
+        return self._tree(token_ids, parents, depth)
+
+    def _tree(self, token_ids: torch.Tensor, parents: torch.Tensor, depth: int) -> DraftTree:
+        """The drafted tree, its structure left on the device (nothing read back while drafting); a chain's is known
+        on the host (node i below node i - 1): one candidate per level, or a budget the backbone fills."""
+        num_nodes = token_ids.shape[0]
+        is_chain = self.config.top_k == 1 or self.config.total_tokens <= depth
+        chain = list(range(-1, num_nodes - 1)) if is_chain else None
+        return DraftTree(token_ids, parents, [self.name] * num_nodes, chain, structure_on_device=chain is None,
+                         depth_bound=min(depth, num_nodes))  # fmt: skip
 
     def _expand(self, depth: int, root_position: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """One eager expansion ([`expand_tree`]) below the root; the head's cache keeps only its committed entries."""
@@ -341,7 +350,10 @@ class _DraftHeadSession(DraftSession):
         self.cache_length, self.root_feature = committed, None
         set_static_length(self.cache, committed)  # the real pairs' entries, written by the round, are kept
         if depth < self.graph_depth:  # the nodes below the limit outranked the deeper ones: drop those
-            tree = DraftTree(token_ids, parents).truncate_depth(depth)
+            if self.config.top_k == 1:  # a chain: its first nodes
+                tree = self._tree(token_ids, parents, self.graph_depth).truncate_nodes(depth)
+            else:  # the kept nodes of a tree limited in depth (a read of its structure, in a call's last rounds)
+                tree = DraftTree(token_ids, parents).truncate_depth(depth)
             token_ids, parents = tree.token_ids, tree.parents
         return token_ids, parents
 
