@@ -464,3 +464,24 @@ def test_a_thread_that_did_not_compile_the_graphs_decodes_compiled_greedy_and_sp
     assert errors == []
     expected_longer = greedy(model, longer)
     assert torch.equal(results["greedy"], expected_longer) and torch.equal(results["jacobi"], expected_longer)
+
+
+def test_the_compiled_path_is_chosen_by_device_with_cuda_graphs_on_cuda(monkeypatch):
+    """A target on CUDA verifies through the compiled call when a static cache and a CompileConfig are given, as
+    transformers' compiled greedy does, with CUDA graphs (``mode="reduce-overhead"``); on the CPU only when told
+    (``_compile_all_devices``, inductor's default mode). The capture itself needs a GPU (gpu_openvla.py)."""
+    from transformers import GenerationConfig
+
+    from hf_specvla.speculative import compiled_decoding_kwargs
+    from hf_specvla.speculative.compiled import compiles_verification
+
+    model = _model("llama")
+    cache = StaticCache(config=model.config, max_cache_len=64)
+    on_cuda = compiled_decoding_kwargs("cuda")["compile_config"]
+    on_cpu = compiled_decoding_kwargs("cpu")["compile_config"]
+    assert on_cuda.mode == "reduce-overhead" and on_cpu.mode == "default"
+    assert not compiles_verification(model, GenerationConfig(compile_config=on_cuda), cache)  # a CPU model, not told
+    assert compiles_verification(model, GenerationConfig(compile_config=on_cpu), cache)
+    monkeypatch.setattr(type(model), "device", property(lambda self: torch.device("cuda")))
+    assert compiles_verification(model, GenerationConfig(compile_config=on_cuda), cache)
+    assert not compiles_verification(model, GenerationConfig(compile_config=on_cuda), None)  # no static cache

@@ -164,3 +164,25 @@ def test_a_compiled_round_on_a_static_cache_drafts_what_the_eager_run_drafts(hea
         assert int(static.layers[0].cumulative_length) == written
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 1
     torch._dynamo.reset()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_tree_left_on_the_device_derives_what_its_host_copy_does(seed):
+    """A drafter's tree may keep its parents on the device (no read while drafting): its depths, tree mask and cuts
+    equal those derived from the host copy, and reading it back gives the same structure."""
+    generator = torch.Generator().manual_seed(seed)
+    num_nodes = int(torch.randint(1, 20, (1,), generator=generator))
+    parents = [-1] + [int(torch.randint(-1, i, (1,), generator=generator)) for i in range(1, num_nodes)]
+    tokens = torch.randint(0, 100, (num_nodes,), generator=generator)
+    host = DraftTree(tokens, torch.tensor(parents))
+    on_device = DraftTree(tokens, torch.tensor(parents), structure_on_device=True, depth_bound=host.max_depth)
+    assert not on_device.knows_structure() and not on_device.is_chain  # read nothing yet
+    assert torch.equal(on_device.ancestor_or_self, host.ancestor_or_self)
+    assert torch.equal(on_device.depths, host.depths)
+    for keep in (0, num_nodes // 2, num_nodes):
+        cut = on_device.truncate_nodes(keep)
+        assert not cut.knows_structure() or keep >= num_nodes
+        assert torch.equal(cut.ancestor_or_self, host.truncate_nodes(keep).ancestor_or_self)
+    assert on_device.truncate_depth(host.max_depth) is on_device  # within its bound: nothing to cut, nothing read
+    assert on_device.parent_list == parents and on_device.knows_structure()  # read back once
+    assert on_device.truncate_depth(1).token_paths() == host.truncate_depth(1).token_paths()
