@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import logging
 import time
-import weakref
 from collections.abc import Callable, Sequence
 
 import torch
@@ -196,8 +195,6 @@ class CompiledVerifier:
     the next replay overwrites, are copied by [`verify_trees`]); elsewhere inductor's default mode."""
 
     def __init__(self, model: PreTrainedModel, compile_config):
-        self.model = weakref.proxy(model)  # the verifier is kept on the model
-        self.model_name = type(model).__name__
         self.compile_config = compile_config
         self.call: Callable = model.get_compiled_call(compile_config)
         self.epoch = _compilation_epoch
@@ -232,8 +229,10 @@ class CompiledVerifier:
         """The compiled prefill for ``key`` when an earlier call compiled its graph, else None (an eager prefill)."""
         return PrefillCall(self.call) if key in self.prefills_compiled else None
 
-    def compile_prefill(self, key: tuple, model_inputs: dict, prompt_ids, prompt_positions, trees: TreeBatch,
-                        output_hidden, sliding_window: int | None, slots: int) -> float:  # fmt: skip
+    def compile_prefill(
+        self, model: PreTrainedModel, key: tuple, model_inputs: dict, prompt_ids, prompt_positions, trees: TreeBatch,
+        output_hidden, sliding_window: int | None, slots: int,
+    ) -> float:  # fmt: skip
         """Compiles the prefill graph for ``key``: the call's own prefill (``prompt_ids`` / ``prompt_positions``
         ``[B, P]``, the prepared ``model_inputs`` with its images, its ``trees``) once more through the compiled call,
         from slot 0, the cache's entries saved and put back ([`preserved_entries`]). A forward that does not compile
@@ -251,7 +250,7 @@ class CompiledVerifier:
         try:
             with preserved_entries(model_inputs[CACHE_KEY]):
                 verify_trees(
-                    self.model, model_inputs, prompt_ids, prompt_positions, trees, None, output_hidden,
+                    model, model_inputs, prompt_ids, prompt_positions, trees, None, output_hidden,
                     sliding_window=sliding_window, key_length=slots, forward=PrefillCall(self.call),
                 )  # fmt: skip
         # dynamo / inductor refusing the model's forward, or the model's code fixing the prompt's length (a Python
@@ -260,7 +259,7 @@ class CompiledVerifier:
             self.prefills_eager.add(key)
             logger.warning(
                 "the prefill of %s stays eager: its forward over the prompt does not compile into one graph (%s: %s)",
-                self.model_name, type(error).__name__, str(error).splitlines()[0] if str(error) else "",
+                type(model).__name__, type(error).__name__, str(error).splitlines()[0] if str(error) else "",
             )  # fmt: skip
             return time.perf_counter() - start
         self.prefills_compiled.add(key)
@@ -271,8 +270,8 @@ class CompiledVerifier:
 
     # ----------------------------------------------------------------- the rounds
     def compile_widths(
-        self, cache: Cache, pending_ids, pending_positions, key_valid, position_offsets, output_hidden,
-        sliding_window: int | None, slots: int, buckets: Sequence[int],
+        self, model: PreTrainedModel, cache: Cache, pending_ids, pending_positions, key_valid, position_offsets,
+        output_hidden, sliding_window: int | None, slots: int, buckets: Sequence[int],
     ) -> float:  # fmt: skip
         """Compiles every bucket width that fits the free slots the first time this model meets ``(slots, hidden
         states, buckets, batch size)``: one throw-away filler-only verification each, after the committed entries
@@ -290,7 +289,7 @@ class CompiledVerifier:
         _count_graphs(len(widths))
         empty = [DraftTree.empty(pending_ids.device)] * pending_ids.shape[0]
         for width in widths:
-            verify_trees(self.model, {CACHE_KEY: cache}, pending_ids, pending_positions,
+            verify_trees(model, {CACHE_KEY: cache}, pending_ids, pending_positions,
                          TreeBatch(empty, min_nodes=width), key_valid, output_hidden, sliding_window=sliding_window,
                          position_offsets=position_offsets, key_length=slots, forward=self.call)  # fmt: skip
             truncate_cache(cache, length)

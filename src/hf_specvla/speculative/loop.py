@@ -1055,12 +1055,13 @@ def prefill(model, call: SpeculativeCall, logits_processor, stopping_criteria, g
     settle(call, trees, output, logits_processor, stopping_criteria)
     if plan.verifier is not None:  # every width compiled now, and the next call's prefill graph
         stats.compile_seconds = plan.verifier.compile_widths(
-            state.target_cache, state.pending_ids, state.pending_positions, state.key_valid, state.position_offsets,
-            plan.output_hidden, plan.window, plan.capacity, plan.buckets,
+            model, state.target_cache, state.pending_ids, state.pending_positions, state.key_valid,
+            state.position_offsets, plan.output_hidden, plan.window, plan.capacity, plan.buckets,
         )  # fmt: skip
         if call.prefill_key is not None and plan.compiled_prefill is None:
             stats.compile_seconds += plan.verifier.compile_prefill(
-                call.prefill_key, call.model_inputs, *call.prompt, trees, plan.output_hidden, plan.window, plan.capacity
+                model, call.prefill_key, call.model_inputs, *call.prompt, trees, plan.output_hidden, plan.window,
+                plan.capacity,
             )  # fmt: skip
     drop_finished_rows(call.state, fixed_batch=plan.capacity is not None)
 
