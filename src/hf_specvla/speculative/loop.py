@@ -220,13 +220,6 @@ def _call_drafter(
     Raises:
         ValueError: both ``drafter`` and ``draft_head``, or nothing to draft with; bad ``draft_ids``.
     """
-    if draft_head is not None:
-        warnings.warn(
-            "speculative_generate(draft_head=...) is deprecated and will be removed: pass drafter= (or "
-            "model.generate(assistant_model=...)), which takes a DraftHead too",
-            FutureWarning,
-            stacklevel=4,
-        )
     if drafter is not None and draft_head is not None:
         raise ValueError("pass drafter= or draft_head=, not both")
     drafter = as_drafter(drafter if drafter is not None else draft_head, settings.num_draft_tokens)
@@ -879,6 +872,13 @@ def speculative_generate(
         [`SpeculationStats`] (summed over rows; ``.rows`` per row when B > 1).
     """
     check_transformers_support()
+    if draft_head is not None:
+        warnings.warn(
+            "speculative_generate(draft_head=...) is deprecated and will be removed: pass drafter= (or "
+            "model.generate(assistant_model=...)), which takes a DraftHead too",
+            FutureWarning,
+            stacklevel=2,
+        )
     settings = SpeculationConfig(
         bin_tolerance, num_draft_tokens, action_layout, profile_speculation, confidence_gate, max_relaxed_per_action,
         max_drafts_per_row, motion_scale, max_deviation, confirm_strict_tail,
