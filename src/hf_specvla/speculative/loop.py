@@ -657,9 +657,13 @@ def fit_prefill_trees(trees: list[DraftTree], state: DecodeState, plan: RoundPla
     if plan.max_drafts is not None:
         trees = [tree.truncate_nodes(plan.max_drafts) for tree in trees]
     if plan.capacity is not None:
-        free = plan.capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
-        trees = [tree.truncate_nodes(free) for tree in trees]
+        trees = [tree.truncate_nodes(_free_slots(state, plan)) for tree in trees]
     return TreeBatch(trees)
+
+
+def _free_slots(state: DecodeState, plan: RoundPlan) -> int:
+    """A static cache's slots left for a tree after its entries and the pending tokens."""
+    return plan.capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
 
 
 def fit_trees(trees: list[DraftTree], state: DecodeState, plan: RoundPlan, stats: SpeculationStats) -> TreeBatch:
@@ -670,12 +674,12 @@ def fit_trees(trees: list[DraftTree], state: DecodeState, plan: RoundPlan, stats
         trees = [tree.truncate_nodes(plan.max_drafts) for tree in trees]
     width = 0  # the node count a compiled verification is padded to
     if plan.capacity is not None:
-        free = plan.capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
+        free = _free_slots(state, plan)
         widest = max(tree.num_nodes for tree in trees)
         wanted = verification_width(widest, plan.buckets[-1], plan.buckets) if plan.verifier is not None else widest
         if free < wanted and state.key_valid is not None:
             _compact(state)
-            free = plan.capacity - cache_length(state.target_cache) - state.pending_ids.shape[1]
+            free = _free_slots(state, plan)
         if plan.verifier is not None:  # one width per bucket: padded, or cut to fit
             free = width = verification_width(widest, free, plan.buckets)
             stats.compiled_widths.append(width)
@@ -887,7 +891,7 @@ def speculative_generate(
                    model_kwargs)  # fmt: skip
     cache = call.state.target_cache
     with open_sliding_windows(cache), host_length(cache):  # exact: the generation fits the window (checked)
-        prefill(model, call, logits_processor, stopping_criteria, generation_config)
+        prefill(model, call, logits_processor, stopping_criteria)
         while call.state.rows:
             decode_round(model, call, logits_processor, stopping_criteria)
     return finish(call, generation_config)
@@ -1038,7 +1042,7 @@ def settle(call: SpeculativeCall, trees: TreeBatch, output: TargetOutput, logits
         observe(state, commits)
 
 
-def prefill(model, call: SpeculativeCall, logits_processor, stopping_criteria, generation_config) -> None:
+def prefill(model, call: SpeculativeCall, logits_processor, stopping_criteria) -> None:
     """2. The prompt and the drafts known up front, verified in one forward (the model's prepared inputs, images
     included; compiled when an earlier call compiled its graph); then, for a compiled call, every verification width
     compiled (and the next call's prefill graph), before any compiled round."""

@@ -17,7 +17,7 @@ What verification needs is derived here, once per tree (Medusa's ``generate_medu
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 from functools import cached_property
 
 import torch
@@ -51,10 +51,10 @@ class DraftTree:
     sources: list[str] = field(default_factory=list)
     host_parents: list[int] | None = field(default=None, repr=False, compare=False)
     token_list: list[int] | None = field(default=None, repr=False, compare=False)
-    structure_on_device: bool = field(default=False, repr=False, compare=False)
+    structure_on_device: InitVar[bool] = False
     depth_bound: int | None = field(default=None, repr=False, compare=False)
 
-    def __post_init__(self):
+    def __post_init__(self, structure_on_device: bool):
         if self.token_ids.ndim != 1 or self.parents.shape != self.token_ids.shape:
             raise ValueError(
                 f"DraftTree needs token_ids and parents of the same shape [N], got {tuple(self.token_ids.shape)} and "
@@ -67,7 +67,7 @@ class DraftTree:
             raise ValueError(f"DraftTree has {n} nodes but {len(self.sources)} sources")
         if self.host_parents is not None:
             self._check_parents(self.host_parents)
-        elif not self.structure_on_device:
+        elif not structure_on_device:
             self.parent_list  # noqa: B018 (read and checked now)
 
     @staticmethod
@@ -102,6 +102,14 @@ class DraftTree:
             parent_list,
             tokens,
         )
+
+    @classmethod
+    def chain(cls, token_ids: torch.Tensor, source: str) -> DraftTree:
+        """A chain of the drafted ``token_ids`` ``[N]`` (node i below node i - 1), tokens left on the device (the
+        verification's read brings them to the host), its structure known on the host."""
+        num_nodes = token_ids.shape[0]
+        parents = torch.arange(-1, num_nodes - 1, device=token_ids.device)
+        return cls(token_ids, parents, [source] * num_nodes, list(range(-1, num_nodes - 1)))
 
     @classmethod
     def empty(cls, device: torch.device | str = "cpu") -> DraftTree:

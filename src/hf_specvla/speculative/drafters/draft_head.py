@@ -284,9 +284,9 @@ class _DraftHeadSession(DraftSession):
         """The drafted tree, its structure left on the device (nothing read back while drafting); a chain's is known
         on the host (node i below node i - 1): one candidate per level, or a budget the backbone fills."""
         num_nodes = token_ids.shape[0]
-        is_chain = self.config.top_k == 1 or self.config.total_tokens <= depth
-        chain = list(range(-1, num_nodes - 1)) if is_chain else None
-        return DraftTree(token_ids, parents, [self.name] * num_nodes, chain, structure_on_device=chain is None,
+        if self.config.top_k == 1 or self.config.total_tokens <= depth:
+            return DraftTree.chain(token_ids, self.name)
+        return DraftTree(token_ids, parents, [self.name] * num_nodes, structure_on_device=True,
                          depth_bound=min(depth, num_nodes))  # fmt: skip
 
     def _expand(self, depth: int, root_position: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -142,10 +142,7 @@ class _JacobiSession(DraftSession):
         if self.drafter.initial_ids is not None:
             guesses = self.drafter.initial_ids[draft_round.num_generated :][:limit]
         else:  # the root's token repeated, on the device (the verification's read brings it to the host)
-            root = draft_round.sequence[0, -1:]
-            chain = list(range(-1, limit - 1))
-            return DraftTree(root.expand(limit).clone(), torch.tensor(chain, device=root.device),
-                             [self.drafter.name] * limit, chain)  # fmt: skip
+            return DraftTree.chain(draft_round.sequence[0, -1:].expand(limit).clone(), self.drafter.name)
         return DraftTree.from_paths([guesses] if guesses else [], self.drafter.name, self.device)
 
     def observe(self, commit: Commit) -> None:
