@@ -173,6 +173,39 @@ def test_a_bad_previous_action_is_refused_with_what_is_valid(head_v2):
         head_v2(embeds, embeds, torch.arange(2)[None])
 
 
+def test_a_previous_action_that_is_not_a_flat_sequence_of_ints_is_refused_not_coerced(head_v2):
+    # issue 64: floats were truncated to ids and nested lists flattened, silently
+    drafter = DraftHeadDrafter(head_v2)
+    ids = _action(1, 2, 3, 4)  # [318, 317, 316, 315]
+    valid = r"4 action token ids \(ids 64\.\.319\), a flat sequence of ints, got "
+    bad = {
+        "floats": ([i + 0.7 for i in ids], r"\[318\.7, 317\.7, 316\.7, 315\.7\] \(torch\.float32 values, not ints\)"),
+        "whole floats": ([float(i) for i in ids], r"\[318\.0, 317\.0, 316\.0, 315\.0\] \(torch\.float32 values"),
+        "a float tensor": (torch.tensor(ids, dtype=torch.float64), r"\[318\.0, .*\(torch\.float64 values"),
+        "a float array": (np.asarray(ids, dtype=np.float32), r".*\(torch\.float32 values"),
+        "one float among ints": ([*ids[:3], 315.5], r"\[318, 317, 316, 315\.5\] \(torch\.float32 values"),
+        "nested": ([ids[:2], ids[2:]], r"\[\[318, 317\], \[316, 315\]\] \(nested\)"),
+        "a [1, D] tensor": (torch.tensor([ids]), r".*\(nested\)"),
+        "ragged": ([ids[:1], ids[1:]], r"\[\[318\], \[317, 316, 315\]\]$"),
+        "bools": ([True, False, True, False], r"\[True, False, True, False\] \(bools\)"),
+        "one id": (ids[0], r"318 \(not a sequence\)"),
+        "too many": ([*ids, ids[0]], r"\[318, 317, 316, 315, 318\]$"),
+        "out of range": ([*ids[:3], 320], r"\[318, 317, 316, 320\]$"),
+    }
+    for value, shown in bad.values():  # (the keys name the cases)
+        with pytest.raises(ValueError, match=valid + shown):
+            drafter.with_previous_action(value)
+        with pytest.raises(ValueError, match=valid):
+            head_v2.previous_action_bins(value)
+    # what is valid: a list, a tuple, an int tensor or array (of any int dtype), one action of D ids
+    expected = head_v2.previous_action_bins(ids).tolist()
+    assert expected == [1, 2, 3, 4]
+    for value in (tuple(ids), torch.tensor(ids), torch.tensor(ids, dtype=torch.int32), np.asarray(ids, np.int16),
+                  [np.int64(i) for i in ids]):  # fmt: skip
+        assert head_v2.previous_action_bins(value).tolist() == expected
+        assert drafter.with_previous_action(value).previous_bins.tolist() == expected
+
+
 def test_a_head_without_the_input_ignores_the_previous_action_and_refuses_its_bins(target):
     torch.manual_seed(0)
     head = DraftHead.from_target(target, ActionTokenizer(VOCAB), action_dim=ACTION_DIM).eval()

@@ -328,18 +328,34 @@ class DraftHead(PreTrainedModel):
         """The robot's previous action (``action_dim`` action token ids, or None) -> ``[D]`` int64 bins for
         [`slot_bins`] (None: [`no_previous_action`]).
 
+        Args:
+            previous_action: a flat sequence of ``action_dim`` integer token ids: a list or tuple of ints, or a 1-D
+                integer tensor or array. Floats (a bin is not truncated from them), bools and nested sequences are
+                refused, not flattened.
+
         Raises:
-            ValueError: not ``action_dim`` ids, or an id that is not an action token of the head's layout.
+            ValueError: not a flat sequence of ``action_dim`` integer ids, or an id that is not an action token of
+                the head's layout.
         """
         if previous_action is None:
             return self.no_previous_action(device)
-        ids = torch.as_tensor(previous_action, dtype=torch.long, device=device).reshape(-1)
         tokenizer = self.config.action_tokenizer()
+        valid = (
+            f"this draft head reads the previous action as {self.config.action_dim} action token ids (ids "
+            f"{tokenizer.action_token_begin}..{tokenizer.vocab_size - 1}), a flat sequence of ints"
+        )
+        try:
+            ids = torch.as_tensor(previous_action, device=device)
+        except (TypeError, ValueError, RuntimeError) as error:  # ragged, strings, objects
+            raise ValueError(f"{valid}, got {previous_action!r}") from error
+        if ids.ndim != 1 or ids.dtype == torch.bool or ids.is_floating_point() or ids.is_complex():
+            shown = previous_action if isinstance(previous_action, (list, tuple)) else ids.tolist()  # as given
+            kind = ("nested" if ids.ndim > 1 else "not a sequence" if ids.ndim == 0
+                    else "bools" if ids.dtype == torch.bool else f"{ids.dtype} values, not ints")  # fmt: skip
+            raise ValueError(f"{valid}, got {shown} ({kind})")
+        ids = ids.long()
         if ids.shape[0] != self.config.action_dim or not bool(tokenizer.is_action_token(ids).all()):
-            raise ValueError(
-                f"this draft head reads the previous action as {self.config.action_dim} action token ids (ids "
-                f"{tokenizer.action_token_begin}..{tokenizer.vocab_size - 1}), got {ids.tolist()}"
-            )
+            raise ValueError(f"{valid}, got {ids.tolist()}")
         return tokenizer.token_to_bin(ids)
 
     def slot_bins(self, previous_bins: torch.Tensor, first_position, position_ids: torch.Tensor) -> torch.Tensor:
