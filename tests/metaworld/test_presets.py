@@ -3,6 +3,8 @@ digits only, with one wording per option's range (item 5). No model is loaded.""
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from hf_specvla import ActionLayout, ActionTokenizer, make_acceptance_rule
@@ -49,6 +51,21 @@ def test_fast_on_an_unknown_layout_names_the_rule_to_spell_out(action_dim):
     assert "7: x y z roll pitch yaw gripper" in message
     spelled = message.rsplit("e.g. ", 1)[1]
     assert DecodingMethod.parse(spelled, action_dim=action_dim).widest_tolerance == 4  # the hint parses
+
+
+@pytest.mark.parametrize("action_dim", [0, -4, 4.0, True, "4"])
+def test_an_action_dim_that_is_not_a_positive_int_is_refused_naming_it(action_dim):
+    # issue 64: action_dim=0 failed inside the preset's hint with "max() arg is an empty sequence"
+    expected = rf"action_dim must be a positive int .*got {re.escape(repr(action_dim))}$"
+    for text in ("fast", "exact", "prior:r=4"):
+        with pytest.raises(ValueError, match=expected):
+            DecodingMethod.parse(text, action_dim=action_dim)
+    with pytest.raises(ValueError, match=expected):
+        PRESETS["fast"].resolve(action_dim=action_dim)
+    with pytest.raises(ValueError, match=expected):
+        resolve_preset("fast", False, action_dim)
+    with pytest.raises(ValueError, match=expected):
+        DecodingMethod.parse("prior:r=4,rl=2").generate_kwargs(None, action_dim=action_dim)
 
 
 def test_without_an_action_dim_presets_resolve_for_this_projects_policies():

@@ -112,6 +112,22 @@ def check_tolerance_dims(tolerance: Tolerance | None, action_dim: int, given: st
     )
 
 
+def _check_action_dim(action_dim: int | None) -> None:
+    """Refuses an ``action_dim`` (tokens per action, for presets and per-dimension options) that is not a positive int;
+    None (this project's policies' layout) passes.
+
+    Raises:
+        ValueError: naming the value.
+    """
+    if action_dim is None:
+        return
+    if isinstance(action_dim, bool) or not isinstance(action_dim, int) or action_dim < 1:
+        raise ValueError(
+            f"action_dim must be a positive int (the policy's tokens per action, e.g. 4 for x y z gripper, 7 for "
+            f"OpenVLA), or None for this project's policies' {VLAPolicyConfig.action_dim}; got {action_dim!r}"
+        )
+
+
 def _format_tolerance(tolerance: Tolerance | Scale) -> str:
     if isinstance(tolerance, (int, float)):
         return f"{tolerance:g}"
@@ -149,8 +165,9 @@ class DecodingMethod:
         ([`ORACLE`]).
 
         Raises:
-            ValueError: naming the bad part and listing what is valid.
+            ValueError: naming the bad part and listing what is valid (or the bad ``action_dim``).
         """
+        _check_action_dim(action_dim)
         preset = PRESETS.get(text.strip())
         if preset is not None:
             return preset.resolve(draft_head_given, action_dim)
@@ -198,7 +215,9 @@ class DecodingMethod:
         return method
 
     def check_action_dim(self, action_dim: int) -> None:
-        """Refuses a per-dimension r (or rl) whose length is not ``action_dim`` (ValueError naming the method)."""
+        """Refuses a per-dimension r (or rl) whose length is not ``action_dim`` (ValueError naming the method), and an
+        ``action_dim`` that is not a positive int."""
+        _check_action_dim(action_dim)
         for key, tolerance in (("r", self.bin_tolerance), ("rl", self.later_tolerance), ("rho", self.motion_scale),
                                ("dev", self.max_deviation)):  # fmt: skip
             if tolerance is not None:
@@ -285,6 +304,7 @@ class DecodingMethod:
             compiled_decoding_kwargs,
         )
 
+        _check_action_dim(action_dim)
         parts = self.drafters.split("+")
         kwargs: dict = compiled_decoding_kwargs(device_type) if self.compiled else {}
         # Jacobi drafts fill a round that nothing else drafts (the first); beside a tree, the tree drafts every round
@@ -416,7 +436,12 @@ class Preset:
 
     def resolve(self, draft_head_given: bool = False, action_dim: int | None = None) -> DecodingMethod:
         """The [`DecodingMethod`] for a policy with (``draft_head_given``) or without a draft head and with
-        ``action_dim``-dimensional actions (None: this project's policies', ``VLAPolicyConfig.action_dim``)."""
+        ``action_dim``-dimensional actions (None: this project's policies', ``VLAPolicyConfig.action_dim``).
+
+        Raises:
+            ValueError: ``action_dim`` not a positive int, or a relaxed preset and a layout it cannot resolve to.
+        """
+        _check_action_dim(action_dim)
         action_dim = VLAPolicyConfig.action_dim if action_dim is None else action_dim
         return DecodingMethod(
             self.drafters_with_head if draft_head_given else self.drafters,
