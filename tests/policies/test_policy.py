@@ -5,6 +5,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from transformers import GenerationConfig
 
 from hf_specvla import ActionNormalizer, DraftHead
 from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
@@ -114,6 +115,42 @@ def test_speculative_decoding_on_the_policy_is_lossless(policy):
         spec, out = policy.predict_action(image, "reach the goal", state, return_output=True, assistant_model=draft)
         np.testing.assert_array_equal(plain, spec)
         assert out.speculation.num_new_tokens == 4
+
+
+def test_a_generation_config_that_samples_is_honoured_and_do_sample_false_still_wins(policy):
+    """Issue 64: predict_action's greedy default (do_sample=False) overrode a caller's
+    ``generation_config=GenerationConfig(do_sample=True)``, which silently returned greedy's action."""
+    sampling = GenerationConfig(do_sample=True, temperature=1.0, top_k=None)
+    sampled_differently = 0
+    for seed in range(3):
+        image, state = observation(seed)
+        policy.reset()
+        _, greedy = policy.predict_action(image, "reach the goal", state, return_output=True)
+        draws = []
+        for _ in range(2):  # the same seed, the same draw: sampling is honoured, and reproducible
+            torch.manual_seed(seed)
+            policy.reset()
+            _, out = policy.predict_action(image, "reach the goal", state, return_output=True,
+                                           generation_config=sampling)  # fmt: skip
+            draws.append(out.sequences[0, -4:].tolist())
+        assert draws[0] == draws[1]
+        sampled_differently += draws[0] != greedy.sequences[0, -4:].tolist()  # an untrained model: nearly uniform
+        # an explicit do_sample=False beside the config decodes greedily
+        policy.reset()
+        _, out = policy.predict_action(image, "reach the goal", state, return_output=True, generation_config=sampling,
+                                       do_sample=False)  # fmt: skip
+        assert out.sequences[0, -4:].tolist() == greedy.sequences[0, -4:].tolist()
+    assert sampled_differently == 3
+    assert sampling.max_new_tokens is None and sampling.do_sample  # the caller's config is left as it was
+    with pytest.raises(TypeError, match="generation_config must be a transformers GenerationConfig, got dict"):
+        policy.predict_action(image, "reach the goal", state, generation_config={"do_sample": True})
+    # a generation_config that does not sample is greedy decoding
+    image, state = observation(0)
+    np.testing.assert_array_equal(
+        policy.predict_action(image, "reach the goal", state, generation_config=GenerationConfig(do_sample=False)),
+        policy.predict_action(image, "reach the goal", state),
+    )
+    policy.reset()
 
 
 def test_action_prior_remembers_the_episode_and_is_lossless(policy):

@@ -14,6 +14,7 @@ One folder is a complete policy: ``save_pretrained`` writes the model, the token
 
 from __future__ import annotations
 
+import copy
 import json
 from dataclasses import asdict
 from pathlib import Path
@@ -22,6 +23,7 @@ import numpy as np
 import torch
 from transformers import (
     CLIPVisionConfig,
+    GenerationConfig,
     LlamaConfig,
     LlavaConfig,
     LlavaForConditionalGeneration,
@@ -181,6 +183,9 @@ class VLAPolicy:
                 first): read by ``action_prior`` and updated in place with the new actions. A single observation
                 uses the policy's own ``previous_action_ids`` (cleared by ``reset``).
             generate_kwargs: anything ``generate`` accepts, e.g. ``assistant_model=draft_head, bin_tolerance=2``.
+                Decoding is greedy unless asked otherwise: ``generation_config=GenerationConfig(do_sample=True, ...)``
+                (or ``do_sample=True``) samples, verified by speculative sampling when drafts are given (lossless
+                acceptance only); ``max_new_tokens`` / ``min_new_tokens`` are always the action's tokens.
 
         Returns:
             the un-normalised action, float64 ``[action_dim]`` (``[B, action_dim]`` for a batch), and the generate
@@ -232,10 +237,7 @@ class VLAPolicy:
         if any(len(p) < width for p in prompts):
             mask = [[0] * (width - len(p)) + [1] * len(p) for p in prompts]
             inputs["attention_mask"] = torch.tensor(mask, device=self.model.device)
-        tokens = self.config.action_tokens
-        kwargs = dict(max_new_tokens=tokens, min_new_tokens=tokens, do_sample=False, pad_token_id=pad_id)
-        if return_output:
-            kwargs["return_dict_in_generate"] = True
+        kwargs = self._generation_settings(generate_kwargs.pop("generation_config", None), pad_id, return_output)
         kwargs.update(generate_kwargs)
         drafter = self._drafter(kwargs.pop("assistant_model", None), action_prior, kwargs.pop("num_draft_tokens", None),
                                 histories)  # fmt: skip
@@ -256,6 +258,28 @@ class VLAPolicy:
                 history.clear()
         actions = self.actions_from_token_ids(action_ids)  # [B, H, A]
         return (actions[:, 0] if chunk == 1 else actions), output
+
+    def _generation_settings(self, generation_config: GenerationConfig | None, pad_id: int, return_output: bool):
+        """``generate``'s settings: the action's tokens, and greedy decoding (whatever the model's saved generation
+        config says), unless the caller's ``generation_config`` says how to decode (its ``do_sample=True`` samples):
+        then a copy of it, given the action's tokens.
+
+        Raises:
+            TypeError: a ``generation_config`` that is not a ``GenerationConfig``.
+        """
+        tokens = self.config.action_tokens
+        settings = dict(max_new_tokens=tokens, min_new_tokens=tokens, pad_token_id=pad_id)
+        if return_output:
+            settings["return_dict_in_generate"] = True
+        if generation_config is None:
+            return dict(settings, do_sample=False)
+        if not isinstance(generation_config, GenerationConfig):
+            raise TypeError(
+                f"generation_config must be a transformers GenerationConfig, got {type(generation_config).__name__}"
+            )
+        generation_config = copy.deepcopy(generation_config)  # the caller's is left as it was
+        generation_config.update(**settings)
+        return {"generation_config": generation_config}
 
     def _drafter(
         self, assistant: DraftHead | Drafter | None, action_prior: bool, num_draft_tokens, histories
