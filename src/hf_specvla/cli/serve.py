@@ -32,7 +32,14 @@ EXAMPLES = """
 
 
 def add_arguments(parser) -> None:
-    from ..serving.config import API_KEY_VARIABLE, DEFAULT_HOST, DEFAULT_MAX_REQUEST_BYTES, DEFAULT_PORT, ServeConfig
+    from ..serving.config import (
+        API_KEY_VARIABLE,
+        DEFAULT_HOST,
+        DEFAULT_MAX_REQUEST_BYTES,
+        DEFAULT_PORT,
+        MAX_WAIT_MS,
+        ServeConfig,
+    )
 
     defaults = ServeConfig()
     parser.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
@@ -52,7 +59,11 @@ def add_arguments(parser) -> None:
                         help="batch sizes decoding runs at (one compiled shape each); the largest is the most "
                              "requests decoded together")  # fmt: skip
     parser.add_argument("--max-wait-ms", type=float, default=defaults.max_wait_ms,
-                        help="how long a batch waits for more requests after its first")  # fmt: skip
+                        help=f"ms a batch waits for more after its first request (0..{MAX_WAIT_MS:g})")  # fmt: skip
+    parser.add_argument("--max-prompt-tokens", type=POSITIVE, default=defaults.max_prompt_tokens,
+                        help="the longest prompt served, in tokens, for a compiled method: start-up compiles graphs "
+                             "for every length up to it (default: what the shortest prompt's cache holds; GET /info "
+                             "states it); longer requests get 422")  # fmt: skip
     parser.add_argument(
         "--max-queue",
         type=POSITIVE,
@@ -93,7 +104,8 @@ def serve_config(args, parser):
         speculate = None if args.speculate_buckets is None else tuple(args.speculate_buckets)
         return ServeConfig(method=args.method, buckets=tuple(args.buckets), max_wait_ms=args.max_wait_ms,
                            max_queue=args.max_queue, calibration_calls=args.calibration_calls,
-                           speculate_buckets=speculate, explore_every=args.explore_every)  # fmt: skip
+                           speculate_buckets=speculate, explore_every=args.explore_every,
+                           max_prompt_tokens=args.max_prompt_tokens)  # fmt: skip
 
 
 def run(args, parser) -> int:
@@ -114,6 +126,10 @@ def run(args, parser) -> int:
         method = DecodingMethod.parse(args.method, bool(args.draft_head), policy_config.action_dim)
     if method.uses_draft_head and not args.draft_head:
         parser.error(f"--method {method.name} drafts with the draft head: give --draft-head")
+    if args.draft_head and not method.uses_draft_head:  # as compare does: said, not silently dropped
+        logger.warning("--draft-head %s is not used: --method %s does not draft with a head (head, tree, prior+head, "
+                       "prior+tree do); it is ignored", args.draft_head, method.name)  # fmt: skip
+        args.draft_head = None
     if args.method.strip() != method.name:
         logger.info("--method %s = %s", args.method.strip(), method.name)
     if args.ray:
@@ -133,7 +149,8 @@ def _run_local(args, parser, config, method) -> int:
     with usage_errors(parser, "--method", (ValueError, TypeError)):
         check_method_rule(method, policy)
     draft_head = load_draft_head_for(policy, args.draft_head, parser) if method.uses_draft_head else None
-    service = PolicyService(policy, config, draft_head)
+    with usage_errors(parser, errors=(ValueError,)):  # e.g. --max-prompt-tokens shorter than any prompt
+        service = PolicyService(policy, config, draft_head)
     server = PolicyServer(service, args.host, args.port, args.api_key, args.max_request_bytes, sock=sock)
     logger.info("compiling and calibrating buckets %s (a compiled method: ~30 s per bucket on 2 CPU cores)",
                 list(config.buckets))  # fmt: skip

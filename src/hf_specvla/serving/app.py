@@ -5,15 +5,17 @@
 | ``POST /act`` | an observation -> the action (OpenVLA's ``deploy.py`` API and ours on top, see ``protocol``) |
 | ``GET /info`` | the policy (name, fingerprint, image size, camera, dims), the method, buckets, calibration |
 | ``GET /stats`` | what the server did: requests, batches per bucket and mode, median decode times, queue |
-| ``GET /health`` | ``{"status": "ok"}`` |
+| ``GET /health`` | ``{"status": "ok"}``, or 503 ``{"status": "unavailable", "error": ...}`` when it cannot serve |
 
 **Security.** With an API key, every route but ``/health`` needs it, as ``Authorization: Bearer <key>``,
-``X-API-Key: <key>`` or the body's ``api_key`` field (401 otherwise). A body larger than ``max_request_bytes`` is
-refused (413) before it is read whole. A malformed request gets a 4xx JSON error naming the field
-(``{"error": ..., "field": ...}``) before it reaches a batch, so it never fails or delays the others.
+``X-API-Key: <key>`` or the body's ``api_key`` field (401 otherwise, whatever the body: the key is checked before
+the request is). A body larger than ``max_request_bytes`` is refused (413) before it is read whole. A malformed
+request gets a 4xx JSON error naming the field (``{"error": ..., "field": ...}``) before it reaches a batch, so it
+never fails or delays the others.
 
 **Faults.** A robot that disconnects before its batch starts is dropped from it; one that disconnects later does
-not hold the batch up (its reply is discarded). A full queue answers 503 with ``Retry-After``.
+not hold the batch up (its reply is discarded). A robot that hangs up (mid-body or while it waits) is counted in
+``/stats`` (``client_hangups``) and logged at INFO, not as an error. A full queue answers 503 with ``Retry-After``.
 
 The routes are served the same way by the server on one machine (``server``) and by each Ray Serve replica
 (``ray_deployment``): a *backend* ([`Backend`]) decodes, the app only speaks HTTP.
@@ -29,7 +31,7 @@ import time
 from typing import Protocol
 
 from starlette.applications import Starlette
-from starlette.requests import Request
+from starlette.requests import ClientDisconnect, Request
 from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 
@@ -51,6 +53,10 @@ class Backend(Protocol):
 
     def stats(self) -> dict: ...
 
+    def unhealthy(self) -> str | None:
+        """Why the backend cannot serve now (None: it can)."""
+        ...
+
     def parse(self, payload) -> ActRequest: ...
 
     async def act(self, request: ActRequest, arrived: float) -> ActReply: ...
@@ -62,6 +68,7 @@ class PolicyRoutes:
     def __init__(self, backend: Backend, api_key: str | None = None,
                  max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES):  # fmt: skip
         self.backend, self.api_key, self.max_request_bytes = backend, api_key, max_request_bytes
+        self.client_hangups = 0  # robots that hung up before their reply (mid-body, or while their request waited)
         self.routes = {("POST", "/act"): self.act, ("GET", "/info"): self.info, ("GET", "/stats"): self.stats,
                        ("GET", "/health"): self.health}  # fmt: skip
 
@@ -78,6 +85,10 @@ class PolicyRoutes:
             return await handler(request)
         except RequestError as error:
             return _error(error)
+        except ClientDisconnect:  # the robot hung up mid-body: nobody to answer, nothing wrong here
+            self.client_hangups += 1
+            logger.info("a robot hung up before its request's body arrived (%s %s)", method, path)
+            return Response(status_code=CLIENT_CLOSED_REQUEST)
         except Overloaded as error:
             return JSONResponse({"error": str(error), "field": None}, 503,
                                 headers={"Retry-After": str(error.retry_after_s)})  # fmt: skip
@@ -91,6 +102,9 @@ class PolicyRoutes:
         return Starlette(routes=[Route("/{path:path}", self.dispatch, methods=methods)], lifespan=lifespan)
 
     async def health(self, request: Request) -> Response:
+        problem = self.backend.unhealthy()
+        if problem is not None:
+            return JSONResponse({"status": "unavailable", "error": problem}, 503)
         return JSONResponse({"status": "ok"})
 
     async def info(self, request: Request) -> Response:
@@ -99,15 +113,21 @@ class PolicyRoutes:
 
     async def stats(self, request: Request) -> Response:
         self._authorize(request)
-        return JSONResponse(self.backend.stats())
+        return JSONResponse({**self.backend.stats(), "client_hangups": self.client_hangups})
 
     async def act(self, request: Request) -> Response:
         arrived = time.perf_counter()
         header_key = self._header_key(request)
         if self.api_key is not None and header_key is not None:
             self._check_key(header_key)
-        payload = loads(await self._body(request))
-        if self.api_key is not None and header_key is None:
+        key_in_body = self.api_key is not None and header_key is None
+        try:
+            payload = loads(await self._body(request), arrays=False)  # arrays: decoded field by field in parse
+        except RequestError:
+            if key_in_body:  # a body that is not JSON carries no key: refused as such, not for its form
+                self._check_key(None)
+            raise
+        if key_in_body:
             self._check_key(payload.get("api_key") if isinstance(payload, dict) else None)
         act_request = self.backend.parse(payload)
         task = asyncio.ensure_future(self.backend.act(act_request, arrived))
@@ -116,6 +136,7 @@ class PolicyRoutes:
                 await asyncio.wait({task}, timeout=DISCONNECT_POLL_S)
                 if not task.done() and await request.is_disconnected():
                     task.cancel()
+                    self.client_hangups += 1
                     logger.info("a robot (session %s) disconnected before its action", act_request.session)
                     return Response(status_code=CLIENT_CLOSED_REQUEST)
         except asyncio.CancelledError:  # the server gave up on the request (Ray Serve's proxy: the robot hung up)

@@ -2,7 +2,9 @@
 
 A worker thread takes the first waiting request and waits up to ``max_wait_ms`` for more (up to the largest bucket),
 but only for robots that may send one: not once it holds a request of every session active in the last
-``ACTIVE_WINDOW_S`` (one robot alone never waits; while requests without a session arrive, it always may). It drops
+``ACTIVE_WINDOW_S`` (one robot alone never waits; while requests without a session arrive, it always may). Requests
+already queued always join (a backlog behind a slow batch is drained in full batches, not one by one), and a robot
+counts as active from its request's arrival until ``ACTIVE_WINDOW_S`` after its reply (however long it queued). It drops
 the requests whose robots gave up meanwhile (their futures cancelled) and hands the rest to [`PolicyService.act`].
 The queue is bounded: past ``max_queue`` waiting requests, [`submit`] raises [`Overloaded`] with the seconds after
 which a retry is likely to be served (HTTP 503 + Retry-After), rather than letting latency grow without bound. A
@@ -49,7 +51,8 @@ class Batcher:
         self._recent_batch_s = 0.05  # a running mean, for Retry-After
         self.batches = 0
         self.dropped = 0  # requests whose robots gave up before their batch started
-        self._last_seen: dict[str | None, float] = {}  # session (None: anonymous) -> its last request's arrival
+        self._last_seen: dict[str | None, float] = {}  # session (None: anonymous) -> its last request or reply
+        self.failure: BaseException | None = None  # what stopped the worker thread, if anything did
 
     def start(self) -> Batcher:
         self._thread = threading.Thread(target=self._run, name="hf-specvla-batcher", daemon=True)
@@ -66,6 +69,14 @@ class Batcher:
     def waiting(self) -> int:
         return self._queue.qsize()
 
+    def unhealthy(self) -> str | None:
+        """Why requests would not be served now (None: the worker is running)."""
+        if self.failure is not None:
+            return f"the batching thread failed: {type(self.failure).__name__}: {self.failure}"
+        if self._thread is None or not self._thread.is_alive():
+            return "the batching thread is not running" + (" (stopping)" if self._stopping.is_set() else "")
+        return None
+
     def submit(self, request: ActRequest, arrived: float | None = None) -> Future:
         """Queues ``request`` (``arrived``: its ``time.perf_counter()`` at arrival, default now); its future gets
         the [`ActReply`] (cancel it to drop a request not yet decoded).
@@ -76,6 +87,8 @@ class Batcher:
         """
         if self._stopping.is_set():
             raise RuntimeError("the server is shutting down")
+        if self.failure is not None:
+            raise RuntimeError(self.unhealthy())
         pending = _Pending(request) if arrived is None else _Pending(request, arrived)
         try:
             self._queue.put_nowait(pending)
@@ -89,6 +102,20 @@ class Batcher:
         return pending.future
 
     def _run(self) -> None:
+        try:
+            self._serve()
+        except BaseException as error:  # noqa: BLE001 (a bug: /health says so, the queued requests get the error)
+            self.failure = error
+            logger.exception("the batching thread failed: no more requests are served")
+            while True:
+                try:
+                    pending = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if pending.future.set_running_or_notify_cancel():
+                    pending.future.set_exception(RuntimeError(self.unhealthy()))
+
+    def _serve(self) -> None:
         while not (self._stopping.is_set() and self._queue.empty()):
             try:
                 first = self._queue.get(timeout=0.1)
@@ -96,7 +123,7 @@ class Batcher:
                 continue
             batch = [self._seen(first)]
             deadline = time.perf_counter() + self.max_wait_s
-            while len(batch) < min(self.max_batch_size, self._active_robots(len(batch))):
+            while len(batch) < min(self.max_batch_size, self._active_robots(len(batch)) + self._queue.qsize()):
                 try:
                     remaining = deadline - time.perf_counter()
                     pending = self._queue.get(timeout=remaining) if remaining > 0 else self._queue.get_nowait()
@@ -108,9 +135,10 @@ class Batcher:
             if live:
                 self._decode(live)
 
-    def _seen(self, pending: _Pending) -> _Pending:
-        """Notes the request's session as active (at its arrival)."""
-        self._last_seen[pending.request.session] = pending.arrived
+    def _seen(self, pending: _Pending, at: float | None = None) -> _Pending:
+        """Notes the request's session as active (``at``: its reply's time; default its arrival)."""
+        session = pending.request.session
+        self._last_seen[session] = max(self._last_seen.get(session, -math.inf), at or pending.arrived)
         return pending
 
     def _active_robots(self, in_hand: int) -> int:
@@ -128,12 +156,20 @@ class Batcher:
             replies = self.service.act([p.request for p in batch], [p.arrived for p in batch])
         except Exception:  # one request at a time: a failing one fails alone
             logger.exception("a batch of %d failed; decoding its requests one at a time", len(batch))
+            self._count(batch, started)
             for pending in batch:
                 self._decode_alone(pending)
         else:
+            self._count(batch, started)
             self._finish(batch, replies)
+
+    def _count(self, batch: list[_Pending], started: float) -> None:
+        """Books a decoded batch (before its robots get their replies, so that ``/stats`` after a reply counts it)."""
+        done = time.perf_counter()
+        for pending in batch:  # a robot is active until a while after its reply, however long it queued
+            self._seen(pending, done)
         self.batches += 1
-        self._recent_batch_s = 0.8 * self._recent_batch_s + 0.2 * (time.perf_counter() - started)
+        self._recent_batch_s = 0.8 * self._recent_batch_s + 0.2 * (done - started)
 
     def _decode_alone(self, pending: _Pending) -> None:
         try:

@@ -5,11 +5,15 @@ the CLI reads its defaults here."""
 from __future__ import annotations
 
 import ipaddress
+import math
 from dataclasses import dataclass
 
 from .._validation import check_ranges
 
 DEFAULT_BUCKETS = (1, 2, 4, 8, 16)
+#: the largest bucket (batch size) and batching window accepted: beyond them a setting is a typo, not a plan (a
+#: bucket's graphs and caches are built at start-up; a window past the timeout of any robot's client serves no one)
+MAX_BUCKET, MAX_WAIT_MS = 1024, 60_000.0
 DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8000
 #: the largest request body read (an OpenVLA 224 x 224 image is ~200 KB as json_numpy)
 DEFAULT_MAX_REQUEST_BYTES = 4 * 2**20
@@ -33,6 +37,11 @@ class ServeConfig:
         speculate_buckets: the buckets to decode speculatively, fixed (None: measured).
         explore_every: every n-th batch of a bucket runs the mode not chosen, to keep its timing current (0: never).
         max_sessions: robots whose drafts are kept.
+        max_prompt_tokens: the longest prompt served (tokens: image, instruction and state), for a compiled method:
+            start-up compiles graphs for every prompt length up to it (None: as long as the shortest prompt's
+            verification cache holds, about 50 instruction tokens on policy v3; longer costs start-up time, one
+            more set of graphs per bucket every 64 tokens). ``GET /info`` states the limit in force; a longer request
+            is refused (422, field ``instruction``) before any forward. An eager method has no such limit.
     """
 
     method: str = "exact"
@@ -43,17 +52,24 @@ class ServeConfig:
     speculate_buckets: tuple[int, ...] | None = None
     explore_every: int = 16
     max_sessions: int = 10_000
+    max_prompt_tokens: int | None = None
 
     def __post_init__(self):
         self.buckets = tuple(self.buckets)
-        if not self.buckets or any(isinstance(b, bool) or not isinstance(b, int) or b < 1 for b in self.buckets):
-            raise ValueError(f"buckets must be batch sizes >= 1, got {list(self.buckets)}")
+        if not self.buckets or any(isinstance(b, bool) or not isinstance(b, int) or not 1 <= b <= MAX_BUCKET
+                                   for b in self.buckets):  # fmt: skip
+            raise ValueError(f"buckets must be batch sizes 1..{MAX_BUCKET}, got {list(self.buckets)}")
         if list(self.buckets) != sorted(set(self.buckets)):
             raise ValueError(f"buckets must be increasing without repeats, got {list(self.buckets)} "
                              f"(e.g. 1,2,4,8,16)")  # fmt: skip
         check_ranges(self, at_least_one=("max_queue", "max_sessions"),
                      non_negative=("max_wait_ms", "calibration_calls", "explore_every"),
                      integers=("max_queue", "max_sessions", "calibration_calls", "explore_every"))  # fmt: skip
+        if not math.isfinite(self.max_wait_ms) or self.max_wait_ms > MAX_WAIT_MS:
+            raise ValueError(f"ServeConfig.max_wait_ms must be a finite number of milliseconds 0..{MAX_WAIT_MS:g}, "
+                             f"got {self.max_wait_ms!r}")  # fmt: skip
+        if self.max_prompt_tokens is not None:
+            check_ranges(self, at_least_one=("max_prompt_tokens",), integers=("max_prompt_tokens",))
         if self.speculate_buckets is not None:
             self.speculate_buckets = tuple(self.speculate_buckets)
             unknown = sorted(set(self.speculate_buckets) - set(self.buckets))

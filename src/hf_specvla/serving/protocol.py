@@ -2,7 +2,8 @@
 
 **Arrays** travel as json_numpy writes them: ``{"__numpy__": <base64 of the C-order bytes>, "dtype": "<u1",
 "shape": [64, 64, 3]}``. Only boolean and numeric dtypes are read (an object or structured dtype is refused: numpy
-would unpickle or misread it), and the byte count must match the shape.
+would unpickle or misread it), at most ``MAX_ARRAY_DIMS`` dimensions, and the byte count must match the shape. A
+request's arrays are decoded field by field, so an error names the field (``image``, ``state``, ``draft_state``).
 
 **``POST /act``** takes a JSON object:
 
@@ -46,6 +47,10 @@ ARRAY_KINDS = "biuf"
 MAX_SESSION_LENGTH = 128
 #: the longest instruction, in characters
 MAX_INSTRUCTION_LENGTH = 1000
+#: the most dimensions an array on the wire may have (a request's have at most 3)
+MAX_ARRAY_DIMS = 8
+#: the largest token id ``draft_state`` may hold (token ids are int64 on the policy's side)
+MAX_TOKEN_ID = 2**63 - 1
 #: the fields of ``POST /act``
 REQUEST_FIELDS = ("image", "instruction", "unnorm_key", "state", "session", "reset", "draft_state", "api_key")
 
@@ -89,12 +94,14 @@ def decode_array(payload: dict, name: str = "array") -> np.ndarray:
     descr, shape = payload.get("dtype"), payload.get("shape")
     try:
         dtype = np.dtype(descr) if isinstance(descr, str) else None
-    except TypeError:
+    except Exception:  # noqa: BLE001 (numpy raises TypeError, ValueError, SyntaxError... for text it cannot read)
         dtype = None
     if dtype is None or dtype.kind not in ARRAY_KINDS or dtype.fields is not None or dtype.subdtype is not None:
-        raise RequestError(f"{name}: dtype {descr!r} is not read here; send bool, int or float arrays", name)
-    if not isinstance(shape, list | tuple) or not all(isinstance(n, int) and n >= 0 for n in shape):
-        raise RequestError(f"{name}: shape must be a list of non-negative ints, got {shape!r}", name)
+        raise RequestError(f"{name}: dtype {str(descr)[:40]!r} is not read here; send bool, int or float arrays", name)
+    if (not isinstance(shape, list | tuple) or len(shape) > MAX_ARRAY_DIMS
+            or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)):  # fmt: skip
+        raise RequestError(f"{name}: shape must be a list of at most {MAX_ARRAY_DIMS} non-negative ints, got "
+                           f"{str(shape)[:80]}", name)  # fmt: skip
     data = payload.get("__numpy__")
     try:
         raw = base64.b64decode(data, validate=True) if isinstance(data, str) else None
@@ -102,6 +109,8 @@ def decode_array(payload: dict, name: str = "array") -> np.ndarray:
         raw = None
     if raw is None:
         raise RequestError(f"{name}: '__numpy__' must be base64 text", name)
+    if max(shape, default=0) > len(raw):  # also an empty array's: numpy refuses absurd dimensions (>= 2**63)
+        raise RequestError(f"{name}: shape {str(shape)[:80]} has a dimension larger than its {len(raw)} bytes", name)
     expected = math.prod(shape) * dtype.itemsize
     if len(raw) != expected:
         raise RequestError(f"{name}: {len(raw)} bytes do not fill shape {list(shape)} of {dtype} ({expected} bytes)",
@@ -120,20 +129,39 @@ def dumps(value: Any) -> bytes:
     return json.dumps(value, default=_json_default).encode()
 
 
-def loads(body: bytes | str) -> Any:
-    """JSON text -> Python values, json_numpy's array objects as numpy arrays (see [`decode_array`]).
+def loads(body: bytes | str, arrays: bool = True) -> Any:
+    """JSON text -> Python values, json_numpy's array objects as numpy arrays (see [`decode_array`]; ``arrays``
+    False: left as the dicts they are, for [`ActRequest.parse`] to decode field by field).
 
     Raises:
-        RequestError: not JSON, or an array object that [`decode_array`] refuses.
+        RequestError: not JSON (400), nested too deeply for the parser (400), or an array object that
+            [`decode_array`] refuses.
     """
     try:
-        return json.loads(body, object_hook=_array_hook)
-    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        return json.loads(body, object_hook=_array_hook if arrays else None)
+    except ValueError as error:  # not JSON, not UTF-8, or a number past Python's 4300 digits
         raise RequestError(f"the body is not JSON: {error}", None, 400) from None
+    except RecursionError:
+        raise RequestError("the body is JSON nested too deeply to read (a request nests 3 levels)", None, 400) from None
 
 
 def _array_hook(payload: dict):
     return decode_array(payload) if "__numpy__" in payload else payload
+
+
+def _field_array(value, name: str):
+    """A field's value with a json_numpy array object decoded (errors name the field)."""
+    return decode_array(value, name) if isinstance(value, dict) and "__numpy__" in value else value
+
+
+def _check_text(value: str, name: str) -> None:
+    """Refuses text that is not valid Unicode (a lone surrogate, as JSON's ``\\ud800`` writes it): no tokenizer
+    reads it."""
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError as error:
+        raise RequestError(f"{name} is not valid Unicode text: {error.reason} at character {error.start}",
+                           name) from None  # fmt: skip
 
 
 # ----------------------------------------------------------------------------- requests
@@ -162,8 +190,9 @@ class ActRequest:
 
     @classmethod
     def parse(cls, payload: Any, image_size: int, state_dim: int, needs_state: bool) -> ActRequest:
-        """A decoded request body -> an ActRequest, for a policy that takes ``image_size``-pixel images and
-        ``state_dim`` proprio numbers (``needs_state``: the state is required).
+        """A decoded request body (``loads(body, arrays=False)``, or with its arrays decoded) -> an ActRequest, for a
+        policy that takes ``image_size``-pixel images and ``state_dim`` proprio numbers (``needs_state``: the state
+        is required).
 
         Raises:
             RequestError: naming the field at fault and what it must be.
@@ -172,11 +201,11 @@ class ActRequest:
         if double_encoded:
             if len(payload) != 1 or not isinstance(payload["encoded"], str):
                 raise RequestError("a double-encoded request holds only 'encoded': json_numpy text", "encoded")
-            payload = loads(payload["encoded"])
+            payload = loads(payload["encoded"], arrays=False)
         if not isinstance(payload, dict):
             raise RequestError(f"the body must be a JSON object with {', '.join(REQUEST_FIELDS)}, "
                                f"got {type(payload).__name__}", None, 400)  # fmt: skip
-        image = payload.get("image")
+        image = _field_array(payload.get("image"), "image")
         expected = (image_size, image_size, 3)
         if not isinstance(image, np.ndarray):
             raise RequestError(f"image is required: a json_numpy uint8 array of shape {list(expected)}", "image")
@@ -189,12 +218,14 @@ class ActRequest:
         if len(instruction) > MAX_INSTRUCTION_LENGTH:
             raise RequestError(f"instruction has {len(instruction)} characters, at most {MAX_INSTRUCTION_LENGTH}",
                                "instruction")  # fmt: skip
+        _check_text(instruction, "instruction")
         unnorm_key = payload.get("unnorm_key")
         if unnorm_key is not None and not isinstance(unnorm_key, str):
             raise RequestError(f"unnorm_key must be a string, got {type(unnorm_key).__name__}", "unnorm_key")
-        return cls(image, instruction, _state(payload.get("state"), state_dim, needs_state),
-                   _session(payload.get("session")), _flag(payload.get("reset", False), "reset"),
-                   _draft_state(payload.get("draft_state")), double_encoded)  # fmt: skip
+        state = _state(_field_array(payload.get("state"), "state"), state_dim, needs_state)
+        draft_state = _draft_state(_field_array(payload.get("draft_state"), "draft_state"))
+        return cls(image, instruction, state, _session(payload.get("session")),
+                   _flag(payload.get("reset", False), "reset"), draft_state, double_encoded)  # fmt: skip
 
 
 def _state(value, state_dim: int, needs_state: bool) -> np.ndarray | None:
@@ -203,11 +234,16 @@ def _state(value, state_dim: int, needs_state: bool) -> np.ndarray | None:
             raise RequestError(f"state is required by this policy: {state_dim} numbers (the proprio reading)", "state")
         return None
     if isinstance(value, list) and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):
-        value = np.asarray(value, dtype=np.float64)
+        try:
+            value = np.asarray(value, dtype=np.float64)
+        except OverflowError:  # an int past float64's range
+            raise RequestError(f"state must hold finite numbers, got an integer of "
+                               f"{max(len(str(v)) for v in value)} digits", "state") from None  # fmt: skip
     if not isinstance(value, np.ndarray) or value.dtype.kind not in "iuf" or value.shape != (state_dim,):
         shown = f"{value.dtype} {list(value.shape)}" if isinstance(value, np.ndarray) else type(value).__name__
         raise RequestError(f"state must be {state_dim} numbers (a list or a numeric array), got {shown}", "state")
-    state = value.astype(np.float64)
+    with np.errstate(over="ignore"):  # float128 past float64's range: inf, refused below
+        state = value.astype(np.float64)
     if not np.isfinite(state).all():
         raise RequestError(f"state must hold finite numbers, got {state.tolist()}", "state")
     return state
@@ -219,6 +255,7 @@ def _session(value) -> str | None:
     if not isinstance(value, str) or not 0 < len(value) <= MAX_SESSION_LENGTH:
         raise RequestError(f"session must be a string of 1..{MAX_SESSION_LENGTH} characters (the robot's id), got "
                            f"{type(value).__name__} {str(value)[:40]!r}", "session")  # fmt: skip
+    _check_text(value, "session")
     return value
 
 
@@ -238,6 +275,9 @@ def _draft_state(value) -> list[list[int]] | None:
     ):
         raise RequestError("draft_state must be what the last reply's 'served.draft_state' held: a list of actions, "
                            "each a list of token ids (ints)", "draft_state")  # fmt: skip
+    if not all(0 <= v <= MAX_TOKEN_ID for row in value for v in row):
+        raise RequestError(f"draft_state must hold token ids 0..{MAX_TOKEN_ID} (as the last reply sent), got "
+                           f"{str(value)[:80]}", "draft_state")  # fmt: skip
     return value
 
 

@@ -143,6 +143,10 @@ class PolicyDeployment:
         return {**self.service.stats(), "deployment": "ray", "replica": self.replica, "batches": self.batches,
                 "failed_batches": self.failed_batches, "uptime_s": round(time.time() - self.started, 1)}  # fmt: skip
 
+    def unhealthy(self) -> str | None:
+        """None: a replica that answers is serving (Ray replaces one that is not, see ``HEALTH_CHECK_PERIOD_S``)."""
+        return None
+
     def parse(self, payload) -> ActRequest:
         return self.service.parse(payload)
 

@@ -48,6 +48,9 @@ class LocalBackend:
         return {**self.service.stats(), "batches": self.batcher.batches, "waiting": self.batcher.waiting,
                 "dropped": self.batcher.dropped, "uptime_s": round(time.time() - self.started, 1)}  # fmt: skip
 
+    def unhealthy(self) -> str | None:
+        return self.batcher.unhealthy()
+
     def parse(self, payload) -> ActRequest:
         return self.service.parse(payload)
 

@@ -19,8 +19,16 @@ default limit and fail (``FailOnRecompileLimitHit``, seen in the first load run)
 
 **The greedy baseline's cache.** transformers' compiled greedy decoding sizes its static cache to each call's prompt
 length plus the new tokens, so every new prompt length (another instruction, another batch's widest prompt) compiles
-a new graph mid-traffic. The service passes it a static cache of its own per bucket instead, ``SLOT_MULTIPLE`` slots
-at a time (emptied before each call): one graph per bucket for every prompt, the same tokens.
+a new graph mid-traffic. The service passes it a static cache of its own per bucket and prompt tier instead (below),
+with room for the tier's longest prompt (emptied before each call): one graph per bucket and tier, the same tokens.
+
+**Prompt tiers: no compile under load.** A compiled method's graphs hold its static caches' slot counts, and those
+grow with the batch's widest prompt (64 slots at a time: the target's cache with room for a draft tree, a draft
+head's own). A prompt that needs more slots than any warmed-up call compiled new graphs mid-traffic: minutes on a
+CPU, every robot waiting. So the prompt lengths served are bounded: [`PolicyService.prompt_tiers`] groups the lengths
+from this policy's shortest prompt up to ``max_prompt_tokens`` (default: as far as the shortest prompt's slot counts
+go) by the slot counts they need, [`PolicyService.warm_up`] compiles every tier, and [`PolicyService.parse`] refuses a
+longer prompt (422, field ``instruction``, the limit named; ``GET /info`` states it) before any forward.
 
 **Speculate only where it pays.** For each bucket the service decodes either speculatively (the method, e.g.
 ``exact`` = previous action + Jacobi drafts, compiled) or with the greedy baseline (transformers' compiled greedy
@@ -45,7 +53,7 @@ import numpy as np
 
 from ..policies.decoding_methods import COMPILED_GREEDY, GREEDY, DecodingMethod
 from .config import ServeConfig
-from .protocol import ActReply, ActRequest, RequestError, ServedFigures
+from .protocol import MAX_INSTRUCTION_LENGTH, ActReply, ActRequest, RequestError, ServedFigures
 
 if TYPE_CHECKING:
     from ..policies import VLAPolicy
@@ -97,6 +105,8 @@ class PolicyService:
         if self.config.speculate_buckets is not None:
             self._choice = {b: self.speculates and b in self.config.speculate_buckets for b in self.config.buckets}
         self._greedy_caches: dict[tuple[int, int], object] = {}  # (bucket, slots) -> the baseline's static cache
+        self.shortest_prompt = len(policy.prompt_ids("", self._zero_state()))  # image, state and the prompt's words
+        self.prompt_tiers = self._prompt_tiers(draft_head)
         self._decoder = ThreadPoolExecutor(1, "hf-specvla-decode", initializer=self._allow_graphs)
 
     @classmethod
@@ -137,7 +147,15 @@ class PolicyService:
             "buckets": list(self.config.buckets),
             "speculate": {str(b): self._choice[b] for b in self.config.buckets},
             "calibration": self.calibration,
+            "max_instruction_chars": MAX_INSTRUCTION_LENGTH,
+            "max_prompt_tokens": self.max_prompt_tokens,
+            "prompt_tiers": [list(tier) for tier in self.prompt_tiers],
         }
+
+    @property
+    def max_prompt_tokens(self) -> int | None:
+        """The longest prompt served, in tokens (None: no limit beyond the instruction's characters: eager)."""
+        return self.prompt_tiers[-1][1] if self.prompt_tiers else None
 
     def parse(self, payload) -> ActRequest:
         """A decoded request body -> a checked [`ActRequest`] for this policy (its image size, state, and drafts
@@ -150,7 +168,117 @@ class PolicyService:
         request = ActRequest.parse(payload, layout.image_size, layout.state_dim, layout.use_state)
         if request.draft_state is not None:
             self._check_draft_state(request.draft_state)
+        self._check_prompt(request)
         return request
+
+    def _check_prompt(self, request: ActRequest) -> None:
+        """The request's prompt tokenizes, and fits the graphs compiled at start-up (``max_prompt_tokens``)."""
+        try:
+            tokens = len(self.policy.prompt_ids(request.instruction, request.state))
+        except Exception as error:  # noqa: BLE001 (the tokenizer's refusal, reported to the robot)
+            raise RequestError(f"instruction could not be tokenized: {type(error).__name__}: {error}",
+                               "instruction") from None  # fmt: skip
+        limit = self.max_prompt_tokens
+        if limit is not None and tokens > limit:
+            raise RequestError(f"instruction makes a prompt of {tokens} tokens; this server compiled its graphs for "
+                               f"prompts of at most {limit} tokens ({limit - self.shortest_prompt} for the "
+                               f"instruction; GET /info: max_prompt_tokens): send a shorter instruction, or start "
+                               f"the server with a larger max_prompt_tokens", "instruction")  # fmt: skip
+
+    # ----------------------------------------------------------------------------- prompt tiers
+    def _zero_state(self) -> np.ndarray | None:
+        return np.zeros(self.policy.config.state_dim) if self.policy.config.use_state else None
+
+    def _slot_rules(self, draft_head) -> list[tuple[int, int]]:
+        """``(extra, multiple)`` per static cache a compiled call decodes on: a prompt of ``P`` tokens needs
+        ``multiple * ceil((P + extra) / multiple)`` slots in it (the graphs hold that count). Empty: eager, no graphs.
+        The engine's own sizing, restated (tests check it against the engine's): generate's cache holds the prompt
+        and the action tokens, the engine adds room for the widest verification and rounds up; a draft head's cache
+        adds its padded catch-up pairs and its tree's entries."""
+        from ..speculative.compiled import SLOT_MULTIPLE as ENGINE_SLOT_MULTIPLE
+        from ..speculative.drafters.eagle_tree import num_head_entries
+
+        tokens = self.policy.config.action_tokens
+        rules = []
+        if self.method.compiled and self.speculates:
+            rules.append(self._verification_rule())
+            for tree in self._head_trees(draft_head):  # the head's own cache (DraftHeadSession.key_length)
+                rules.append((tokens + tree.depth + 1 + num_head_entries(tree.top_k, tree.depth), ENGINE_SLOT_MULTIPLE))
+        if self.baseline.compiled and not rules:  # greedy only: its cache's own tiers (else it follows the method's)
+            rules.append((tokens, SLOT_MULTIPLE))
+        return rules
+
+    def _verification_rule(self) -> tuple[int, int]:
+        """The target's cache in a compiled speculative call (``_slot_rules``)."""
+        from ..speculative.compiled import NODE_BUCKETS
+        from ..speculative.compiled import SLOT_MULTIPLE as ENGINE_SLOT_MULTIPLE
+
+        return self.policy.config.action_tokens + NODE_BUCKETS[-1], ENGINE_SLOT_MULTIPLE
+
+    def _head_trees(self, draft_head) -> list:
+        """The tree settings of the draft-head drafters the method runs (a chain is a tree of top-k 1)."""
+        from ..speculative import DraftHead, DraftHeadDrafter
+        from ..speculative.drafter import ComposedDrafter
+
+        if draft_head is None:
+            return []
+        kwargs, trees = self._kwargs[True], []
+        pending = [kwargs.get("assistant_model")]
+        while pending:
+            drafter = pending.pop()
+            if isinstance(drafter, ComposedDrafter):
+                pending += drafter.drafters
+            elif isinstance(drafter, DraftHead):
+                trees.append(DraftHeadDrafter(drafter, kwargs.get("num_draft_tokens")).tree_config)
+            elif isinstance(drafter, DraftHeadDrafter):
+                trees.append(drafter.tree_config)
+        return trees
+
+    def _prompt_tiers(self, draft_head) -> list[tuple[int, int]]:
+        """The prompt lengths served, grouped by the slot counts they decode on: ``[(first, last), ...]`` tokens,
+        from the shortest prompt to ``max_prompt_tokens`` (default: as far as the shortest prompt's verification
+        cache goes: 64 slots hold the prompt, the action and the widest verification); each tier's graphs
+        are compiled by [`warm_up`]. Empty for an eager method (no graphs: any prompt is served).
+
+        Raises:
+            ValueError: ``max_prompt_tokens`` shorter than this policy's shortest prompt.
+        """
+        rules, shortest, longest = self._slot_rules(draft_head), self.shortest_prompt, self.config.max_prompt_tokens
+        if longest is not None and longest < shortest:
+            raise ValueError(f"max_prompt_tokens {longest} is shorter than this policy's shortest prompt ({shortest} "
+                             f"tokens: image, state and the prompt's words without an instruction)")  # fmt: skip
+        if not rules:
+            return [] if longest is None else [(shortest, longest)]
+
+        def slots(length: int) -> tuple[int, ...]:
+            return tuple(multiple * math.ceil((length + extra) / multiple) for extra, multiple in rules)
+
+        if longest is None:  # as far as the shortest prompt's verification cache goes (whatever the method)
+            extra, multiple = self._verification_rule()
+            longest = multiple * math.ceil((shortest + extra) / multiple) - extra
+        tiers = [(shortest, shortest)]
+        for length in range(shortest + 1, longest + 1):
+            first, _ = tiers[-1]
+            tiers[-1:] = [(first, length)] if slots(length) == slots(first) else [tiers[-1], (length, length)]
+        return tiers
+
+    def tier_instruction(self, tier: tuple[int, int]) -> str:
+        """A synthetic instruction whose prompt falls in ``tier`` (for [`warm_up`]): the calibration's, else as many
+        words as it takes."""
+        first, last = tier
+        state = self._zero_state()
+
+        def length(instruction: str) -> int:
+            return len(self.policy.prompt_ids(instruction, state))
+
+        if first <= length(CALIBRATION_INSTRUCTION) <= last:
+            return CALIBRATION_INSTRUCTION
+        words = ["go"]
+        while length(" ".join(words)) < first and len(words) <= last:
+            words.append("go")
+        if not first <= length(" ".join(words)) <= last:
+            raise RuntimeError(f"no synthetic instruction makes a prompt of {first}..{last} tokens for the warm-up")
+        return " ".join(words)
 
     def _check_draft_state(self, draft_state: list[list[int]]) -> None:
         dim, tokenizer = self.policy.config.action_dim, self.policy.action_tokenizer
@@ -164,16 +292,20 @@ class PolicyService:
 
     def stats(self) -> dict:
         """What ``GET /stats`` returns: per bucket, batches and rows decoded in each mode, the median ms per call
-        of the recent calls, and the mode chosen now; the robots remembered."""
-        buckets = {}
+        of the recent calls, the mode chosen now (``mode``, ``speculate``) and the share of its batches decoded
+        speculatively; the same share over every bucket; the robots remembered."""
+        buckets, counts = {}, {True: 0, False: 0}
         for bucket in self.config.buckets:
-            row = {"speculate": self._choice[bucket]}
+            row = {"speculate": self._choice[bucket], "mode": "speculative" if self._choice[bucket] else "greedy"}
             for speculative, mode in ((True, "speculative"), (False, "greedy")):
                 recent = self.timings[(bucket, speculative)]
                 row[f"{mode}_batches"], row[f"{mode}_rows"] = self.batches[(bucket, speculative)]
                 row[f"{mode}_median_ms"] = round(statistics.median(recent), 2) if recent else None
+                counts[speculative] += row[f"{mode}_batches"]
+            row["speculative_share"] = _share(row["speculative_batches"], row["greedy_batches"])
             buckets[str(bucket)] = row
-        return {"buckets": buckets, "sessions": len(self.sessions)}
+        return {"buckets": buckets, "speculative_share": _share(counts[True], counts[False]),
+                "sessions": len(self.sessions)}  # fmt: skip
 
     # ----------------------------------------------------------------------------- deciding
     def speculate(self, bucket: int) -> bool:
@@ -246,6 +378,7 @@ class PolicyService:
 
         rows = states if states is not None else [None] * len(instructions)
         width = max(len(self.policy.prompt_ids(i, s)) for i, s in zip(instructions, rows))
+        width = next((last for first, last in self.prompt_tiers if first <= width <= last), width)  # the tier's
         slots = SLOT_MULTIPLE * math.ceil((width + self.policy.config.action_tokens) / SLOT_MULTIPLE)
         cache = self._greedy_caches.get((bucket, slots))
         if cache is None:
@@ -330,15 +463,27 @@ class PolicyService:
         table = []
         measure = calibrate and self.speculates and self.config.calibration_calls > 0
         measure = measure and self.config.speculate_buckets is None
+        instructions = [self.tier_instruction(tier) for tier in self.prompt_tiers] or [CALIBRATION_INSTRUCTION]
+        calibration = CALIBRATION_INSTRUCTION if CALIBRATION_INSTRUCTION in instructions else instructions[0]
         for bucket in self.config.buckets:
             sessions = [f"calibration-{bucket}-{i}" for i in range(bucket)]
             times: dict[bool, list[float]] = {True: [], False: []}
             modes = (False, True) if self.speculates else (False,)
+            for instruction in instructions:  # every prompt tier's graphs, without and with drafts
+                if instruction != calibration:
+                    for call in range(2):
+                        images = np.repeat(base[None], bucket, axis=0)
+                        requests = [ActRequest(images[i], instruction, np.zeros(dim), sessions[i], reset=call == 0)
+                                    for i in range(bucket)]  # fmt: skip
+                        for speculative in modes:
+                            self._choice[bucket], saved = speculative, self._choice[bucket]
+                            self._decode_unexplored(requests)
+                            self._choice[bucket] = saved
             calls = 1 + (self.config.calibration_calls if measure else 0)
             for call in range(calls + 1):  # call 0 compiles (and leaves each session its first action)
                 drift = rng.integers(-2, 3, (bucket, size, size, 3))
                 images = np.clip(base.astype(np.int64) + drift, 0, 255).astype(np.uint8)
-                requests = [ActRequest(images[i], CALIBRATION_INSTRUCTION, np.zeros(dim), sessions[i], reset=call == 0)
+                requests = [ActRequest(images[i], calibration, np.zeros(dim), sessions[i], reset=call == 0)
                             for i in range(bucket)]  # fmt: skip
                 for speculative in modes if call % 2 else modes[::-1]:  # interleaved, alternating which goes first
                     self._choice[bucket], saved = speculative, self._choice[bucket]
@@ -369,6 +514,11 @@ class PolicyService:
     def close(self) -> None:
         """Stops the decoding thread (after the decodes it holds)."""
         self._decoder.shutdown(wait=True)
+
+
+def _share(part: int, rest: int) -> float | None:
+    """``part / (part + rest)``, rounded (None before anything was counted)."""
+    return round(part / (part + rest), 4) if part + rest else None
 
 
 def format_calibration(table: list[dict]) -> str:
