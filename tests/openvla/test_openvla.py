@@ -325,6 +325,98 @@ def test_compiled_speculation_on_the_port_equals_greedy(tiny_openvla, caplog):
 
 
 @torch.no_grad()
+@pytest.mark.parametrize("preset", ["exact", "fast"])
+def test_presets_work_end_to_end_on_the_port(tiny_openvla, preset, monkeypatch):
+    """Issue 64: a preset's options (the previous actions + Jacobi drafts, compiled) went to generate as
+    ``action_prior=True``, which the port refused. With the episode's memory (``previous_action_ids``) ``exact`` gives
+    greedy's action at every step, the prior drafting from the memory; ``fast`` gives greedy's action whenever the
+    previous action is greedy's (every draft right), and any action otherwise."""
+    from hf_specvla.policies import DecodingMethod
+    from hf_specvla.speculative.compiled import reset_compilation
+    from tests.speculative.test_compiled_verification import eager_compile_config
+
+    model, ids = tiny_openvla, prompt_ids()
+    method = DecodingMethod.parse(preset, action_dim=ACTION_DIM)
+    kwargs = method.generate_kwargs(None, action_dim=ACTION_DIM)
+    assert kwargs["action_prior"] and kwargs["cache_implementation"] == "static"
+    kwargs["compile_config"] = eager_compile_config()  # dynamo's eager backend: the same calls, compiled in seconds
+    frames = [pixel_values(seed=seed) for seed in (0, 0, 1, 1, 2)]  # an observation seen twice: the prior is right
+    greedy = [model.predict_action(input_ids=ids, pixel_values=p, unnorm_key="tiny_dataset") for p in frames]
+    outputs = []  # what each call's generate returned (its speculation statistics)
+    generate = model.generate
+
+    def recorded_generate(*args, **options):
+        outputs.append(generate(*args, **options))
+        return outputs[-1]
+
+    monkeypatch.setattr(model, "generate", recorded_generate)
+    kwargs["return_dict_in_generate"] = True
+    reset_compilation()
+    try:
+        memory: list[list[int]] = []  # the episode's, kept by the caller
+        for step, pixels in enumerate(frames):
+            previous = list(memory)
+            action = model.predict_action(input_ids=ids, pixel_values=pixels, unnorm_key="tiny_dataset",
+                                          previous_action_ids=memory, **kwargs)  # fmt: skip
+            assert memory[-1] == model.action_token_ids(action, "tiny_dataset")[0].tolist()
+            assert memory[:-1] == previous[-1:]  # the last two actions, oldest first
+            repeated = step and np.array_equal(greedy[step - 1], greedy[step])
+            if preset == "exact" or repeated:
+                np.testing.assert_array_equal(action, greedy[step])
+            stats = outputs[-1].speculation
+            if repeated:  # the prior drafted greedy's action inside the prefill: one target forward
+                assert stats.num_target_forwards == 1 and stats.accepted_by_drafter["prior"] == ACTION_DIM - 1
+            elif step == 0:  # nothing to draft from but Jacobi guesses, verified through the compiled call
+                assert stats.accepted_by_drafter["prior"] == 0 and stats.compiled_widths
+            assert action.shape == (ACTION_DIM,) and np.isfinite(action).all()
+    finally:
+        reset_compilation()
+
+
+def test_the_episode_memory_is_checked_before_decoding(tiny_openvla):
+    model, ids, pixels = tiny_openvla, prompt_ids(), pixel_values()
+    call = dict(input_ids=ids, pixel_values=pixels, unnorm_key="tiny_dataset")
+    with pytest.raises(ValueError, match=r"action_prior=True drafts from the episode's previous actions.*pass "
+                                         r"previous_action_ids="):  # fmt: skip
+        model.predict_action(**call, action_prior=True)
+    with pytest.raises(TypeError, match="previous_action_ids must be a list of actions .*got tuple"):
+        model.predict_action(**call, previous_action_ids=())
+    with pytest.raises(ValueError, match=r"previous action \[31800, 31801\] is not 7 action token ids"):
+        model.predict_action(**call, previous_action_ids=[[31800, 31801]])
+    with pytest.raises(TypeError, match="a flat list of ids is one action, wrap it in a list"):
+        model.predict_action(**call, previous_action_ids=[31800] * ACTION_DIM)
+    with pytest.raises(TypeError, match="action_prior must be True or False, got 1"):
+        model.predict_action(**call, action_prior=1, previous_action_ids=[])
+    with pytest.raises(ValueError, match="decodes one action, its action_dim=7 tokens: drop max_new_tokens=3"):
+        model.predict_action(**call, max_new_tokens=3)
+    # no previous action yet: nothing drafts, the options of a speculative call are harmless
+    memory: list[list[int]] = []
+    action = model.predict_action(**call, action_prior=True, previous_action_ids=memory, bin_tolerance=2)
+    np.testing.assert_array_equal(action, model.predict_action(**call))
+    assert len(memory) == 1
+
+
+@torch.no_grad()
+def test_a_sampling_generation_config_is_honoured_on_the_port(tiny_openvla):
+    from transformers import GenerationConfig
+
+    model, ids, pixels = tiny_openvla, prompt_ids(), pixel_values()
+    call = dict(input_ids=ids, pixel_values=pixels, unnorm_key="tiny_dataset")
+    greedy = model.predict_action(**call)
+    sampling = GenerationConfig(do_sample=True, temperature=100.0, top_k=None)  # all but uniform
+    draws = []
+    for _ in range(2):
+        torch.manual_seed(0)
+        draws.append(model.predict_action(**call, generation_config=sampling))
+    np.testing.assert_array_equal(draws[0], draws[1])  # seeded: the same draw
+    assert not np.array_equal(draws[0], greedy)
+    assert sampling.max_new_tokens is None  # the caller's config is left as it was
+    np.testing.assert_array_equal(model.predict_action(**call, generation_config=sampling, do_sample=False), greedy)
+    with pytest.raises(TypeError, match="generation_config must be a transformers GenerationConfig, got dict"):
+        model.predict_action(**call, generation_config={"do_sample": True})
+
+
+@torch.no_grad()
 def test_relaxed_tokens_stay_within_r_bins_of_greedy_given_their_prefix(tiny_openvla):
     model, ids, pixels, tolerance = tiny_openvla, prompt_ids(), pixel_values(), 6
     greedy = model.generate(ids, pixel_values=pixels, max_new_tokens=ACTION_DIM, do_sample=False)[0, -ACTION_DIM:]

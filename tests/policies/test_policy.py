@@ -144,6 +144,9 @@ def test_a_generation_config_that_samples_is_honoured_and_do_sample_false_still_
     assert sampling.max_new_tokens is None and sampling.do_sample  # the caller's config is left as it was
     with pytest.raises(TypeError, match="generation_config must be a transformers GenerationConfig, got dict"):
         policy.predict_action(image, "reach the goal", state, generation_config={"do_sample": True})
+    # the action's length is the policy's: a length given beside it is refused, not obeyed into a wrong action
+    with pytest.raises(ValueError, match="decodes the policy's 4 action tokens: drop max_new_tokens=2"):
+        policy.predict_action(image, "reach the goal", state, max_new_tokens=2)
     # a generation_config that does not sample is greedy decoding
     image, state = observation(0)
     np.testing.assert_array_equal(

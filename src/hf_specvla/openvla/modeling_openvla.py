@@ -21,6 +21,7 @@ Speculation: ``generate(..., assistant_model=draft_head | drafter, draft_ids=...
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 from dataclasses import dataclass
@@ -29,19 +30,23 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
-from transformers import AutoModelForCausalLM, GenerationMixin, PreTrainedModel
+from transformers import AutoModelForCausalLM, GenerationConfig, GenerationMixin, PreTrainedModel
 from transformers import initialization as init
 from transformers.modeling_outputs import CausalLMOutputWithPast
 
 from ..actions.tokenizer import ActionLayout, ActionNormalizer, ActionTokenizer, ActionUnits
 from ..speculative import (
     CACHE_KEY,
+    SPECULATION_KWARGS,
+    ActionPriorDrafter,
     Drafter,
     DraftHead,
     SpeculativeGenerationMixin,
     cache_of,
+    episode_drafter,
     is_local_path,
     named_weight_errors,
+    remember_actions,
 )
 from .configuration_openvla import OpenVLAConfig
 from .vision import AttentionPoolLatent, LayerScale, OpenVLAProjector, OpenVLAVisionBackbone, VisionTransformer
@@ -418,6 +423,8 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         image=None,
         instruction: str | None = None,
         processor=None,
+        action_prior: bool = False,
+        previous_action_ids: list[list[int]] | None = None,
         **kwargs,
     ) -> np.ndarray:
         """One action, ``[action_dim]`` float64, un-normalised with the dataset's q01/q99 (where its mask is True).
@@ -430,7 +437,21 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
           which builds the official prompt with the [`OpenVLAProcessor`].
 
         Every other keyword goes to ``generate``, speculation included: ``assistant_model=draft_head`` (or a
-        drafter), ``draft_ids=`` (e.g. ``self.action_token_ids(previous_action)``), ``bin_tolerance=r``.
+        drafter), ``draft_ids=`` (e.g. ``self.action_token_ids(previous_action)``), ``bin_tolerance=r``; a
+        ``generation_config`` is honoured (copied, given the action's tokens). A decoding method's or preset's
+        options work as they are (``DecodingMethod.parse("exact", action_dim=7).generate_kwargs(None)``), given the
+        episode's memory:
+
+        Args:
+            previous_action_ids: the episode's previous actions as token ids, oldest first: a list the caller keeps
+                per episode (``[]`` at its start; the model keeps no state), updated in place with this action. A
+                draft head that reads the previous action reads its last.
+            action_prior: draft this action from ``previous_action_ids`` ([`ActionPriorDrafter`], verified inside
+                the prefill), before the ``assistant_model`` when one is given; no drafts at an episode's first step.
+
+        Raises:
+            ValueError / TypeError: ``action_prior`` without ``previous_action_ids``, a memory that is not a list of
+                actions of ``action_dim`` action token ids, bad prompts or images (before any forward).
 
         Differences from the official code (bugs there): ``attention_mask`` is extended with the appended 29871
         token (the official call passes a mask one token short); the action tokens are always ``action_dim`` new
@@ -438,6 +459,13 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         """
         unnorm_key = self.check_unnorm_key(unnorm_key)
         action_dim = self.get_action_dim(unnorm_key)
+        if "max_new_tokens" in kwargs:
+            raise ValueError(
+                f"predict_action decodes one action, its action_dim={action_dim} tokens: drop "
+                f"max_new_tokens={kwargs['max_new_tokens']!r}"
+            )
+        layout = self.action_layout(unnorm_key)
+        self._check_episode_memory(action_prior, previous_action_ids, layout)
         if image is not None or instruction is not None:
             if input_ids is not None or "pixel_values" in kwargs:
                 raise ValueError("pass either input_ids / pixel_values or image / instruction, not both")
@@ -456,11 +484,62 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         input_ids, mask = self.end_prompt(input_ids, kwargs.get("attention_mask"))
         if mask is not None:
             kwargs["attention_mask"] = mask
+        if previous_action_ids is not None:  # the episode's drafter: the prior's drafts and / or the assistant's
+            assistant, num_draft_tokens = kwargs.pop("assistant_model", None), kwargs.pop("num_draft_tokens", None)
+            drafter = episode_drafter(assistant, num_draft_tokens, action_prior, [previous_action_ids], layout)
+            if drafter is not None:
+                kwargs["assistant_model"] = drafter
+            elif action_prior and kwargs.get("draft_ids") is None:  # an episode's first step: plain decoding
+                for name in SPECULATION_KWARGS:
+                    kwargs.pop(name, None)
         if isinstance(kwargs.get("assistant_model"), (DraftHead, Drafter)) or kwargs.get("draft_ids") is not None:
-            kwargs.setdefault("action_layout", self.action_layout(unnorm_key))
-        kwargs.setdefault("min_new_tokens", action_dim)
-        generated = self.generate(input_ids, max_new_tokens=action_dim, **kwargs)
+            kwargs.setdefault("action_layout", layout)
+        kwargs.update(self._action_length(action_dim, kwargs.pop("min_new_tokens", action_dim),
+                                          kwargs.pop("generation_config", None)))  # fmt: skip
+        generated = self.generate(input_ids, **kwargs)
         sequences = generated if isinstance(generated, torch.Tensor) else generated.sequences
-        action_token_ids = sequences[0, -action_dim:].cpu().numpy()
-        normalized = self.action_tokenizer.decode(action_token_ids)
+        action_token_ids = sequences[0, -action_dim:]
+        if previous_action_ids is not None:
+            remember_actions(previous_action_ids, action_token_ids[None], layout)
+        normalized = self.action_tokenizer.decode(action_token_ids.cpu().numpy())
         return self.action_normalizer(unnorm_key).unnormalize(normalized)
+
+    @staticmethod
+    def _check_episode_memory(action_prior: bool, previous_action_ids, layout: ActionLayout) -> None:
+        """Refuses, naming the value, an ``action_prior`` that is not a bool or has no memory to draft from, and a
+        memory that is not a list of actions (each ``action_dim`` action token ids)."""
+        if not isinstance(action_prior, bool):
+            raise TypeError(f"action_prior must be True or False, got {action_prior!r}")
+        if previous_action_ids is None:
+            if action_prior:
+                raise ValueError(
+                    "action_prior=True drafts from the episode's previous actions, which the model does not keep: "
+                    "pass previous_action_ids=<a list kept per episode, [] at its start>, updated in place with each "
+                    "action"
+                )
+            return
+        if not isinstance(previous_action_ids, list):
+            raise TypeError(
+                f"previous_action_ids must be a list of actions (token ids, oldest first; [] at an episode's start), "
+                f"updated in place with each action; got {type(previous_action_ids).__name__}"
+            )
+        ActionPriorDrafter(previous_action_ids, layout)  # each a list of action_dim action token ids, or it names it
+
+    @staticmethod
+    def _action_length(action_dim: int, min_new_tokens: int, generation_config: GenerationConfig | None) -> dict:
+        """``generate``'s length settings (``action_dim`` new tokens): as keywords, or in a copy of the caller's
+        ``generation_config`` (which decides how to decode, e.g. its ``do_sample=True`` samples).
+
+        Raises:
+            TypeError: a ``generation_config`` that is not a ``GenerationConfig``.
+        """
+        length = dict(max_new_tokens=action_dim, min_new_tokens=min_new_tokens)
+        if generation_config is None:
+            return length
+        if not isinstance(generation_config, GenerationConfig):
+            raise TypeError(
+                f"generation_config must be a transformers GenerationConfig, got {type(generation_config).__name__}"
+            )
+        generation_config = copy.deepcopy(generation_config)  # the caller's is left as it was
+        generation_config.update(**length)
+        return {"generation_config": generation_config}

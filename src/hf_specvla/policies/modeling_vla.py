@@ -36,13 +36,11 @@ from ..run_folder import fingerprint
 from ..speculative import (
     SPECULATION_KWARGS,
     ActionPriorDrafter,
-    Drafter,
     DraftHead,
-    as_drafter,
     enable_speculation,
+    episode_drafter,
     named_weight_errors,
-    with_action_priors,
-    with_previous_actions,
+    remember_actions,
 )
 from .configuration_vla import POLICY_CONFIG_NAME, VLAPolicyConfig
 from .processing_vla import VLAProcessor
@@ -237,10 +235,16 @@ class VLAPolicy:
         if any(len(p) < width for p in prompts):
             mask = [[0] * (width - len(p)) + [1] * len(p) for p in prompts]
             inputs["attention_mask"] = torch.tensor(mask, device=self.model.device)
+        length = [f"{name}={generate_kwargs[name]!r}" for name in ("max_new_tokens", "min_new_tokens", "max_length")
+                  if name in generate_kwargs]  # fmt: skip
+        if length:
+            raise ValueError(f"predict_action decodes the policy's {self.config.action_tokens} action tokens: drop "
+                             f"{', '.join(length)}")  # fmt: skip
         kwargs = self._generation_settings(generate_kwargs.pop("generation_config", None), pad_id, return_output)
         kwargs.update(generate_kwargs)
-        drafter = self._drafter(kwargs.pop("assistant_model", None), action_prior, kwargs.pop("num_draft_tokens", None),
-                                histories)  # fmt: skip
+        assistant, num_draft_tokens = kwargs.pop("assistant_model", None), kwargs.pop("num_draft_tokens", None)
+        drafter = episode_drafter(assistant, num_draft_tokens, action_prior, histories, self.action_layout,
+                                  self.config.chunk_length)  # fmt: skip
         if drafter is not None:
             kwargs["assistant_model"] = drafter
             kwargs.setdefault("action_layout", self.action_layout)
@@ -252,10 +256,7 @@ class VLAPolicy:
         chunk, dim = self.config.chunk_length, self.config.action_dim
         action_ids = sequences[:, -chunk * dim :].reshape(-1, chunk, dim)  # [B, H, A]
         for history, ids in zip(histories, action_ids):
-            if bool(self.action_tokenizer.is_action_token(ids).all()):  # an untrained model may emit text ids
-                history[:] = [*history, *ids.tolist()][-self.HISTORY_LENGTH :]
-            else:
-                history.clear()
+            remember_actions(history, ids, self.action_layout)
         actions = self.actions_from_token_ids(action_ids)  # [B, H, A]
         return (actions[:, 0] if chunk == 1 else actions), output
 
@@ -280,18 +281,6 @@ class VLAPolicy:
         generation_config = copy.deepcopy(generation_config)  # the caller's is left as it was
         generation_config.update(**settings)
         return {"generation_config": generation_config}
-
-    def _drafter(
-        self, assistant: DraftHead | Drafter | None, action_prior: bool, num_draft_tokens, histories
-    ) -> Drafter | None:
-        """The drafter for this step: the assistant's, the action prior's, or both composed (prior first); one
-        per row (a [`PerRowDrafter`]) when the rows' memories differ."""
-        if num_draft_tokens is not None and assistant is None:
-            raise ValueError("num_draft_tokens needs assistant_model=<DraftHead>")
-        drafter = as_drafter(assistant, num_draft_tokens)
-        if not action_prior:  # a draft head that reads the previous action still gets it
-            return with_previous_actions(drafter, histories)
-        return with_action_priors(drafter, histories, self.action_layout, self.config.chunk_length)
 
     def weights_fingerprint(self) -> str:
         """Content fingerprint of the model's weights (computed once; a policy's weights do not change at

@@ -193,3 +193,45 @@ def with_previous_actions(drafter: Drafter | None, histories: Sequence[Sequence[
     if len(rows) == 1 or all(row is drafter for row in rows):
         return rows[0]
     return PerRowDrafter(rows)
+
+
+# ----------------------------------------------------------------------------- an episode's step
+def episode_drafter(
+    assistant,
+    num_draft_tokens: int | None,
+    action_prior: bool,
+    histories: Sequence[Sequence[Sequence[int]]],
+    action_layout: ActionLayout,
+    chunk_length: int = 1,
+) -> Drafter | None:
+    """The drafter of one step of B episodes (what ``predict_action`` drafts with, on a policy or the OpenVLA port):
+    the ``assistant_model``'s (a bare DraftHead drafts a chain of ``num_draft_tokens``), told each row's previous
+    action (``histories[b][-1]``); with ``action_prior``, preceded by the action prior over ``histories[b]``
+    ([`with_action_priors`]). None: nothing drafts (no assistant, and no previous action or no prior).
+
+    Raises:
+        ValueError: ``num_draft_tokens`` without an assistant.
+        TypeError: an assistant that is neither a DraftHead nor a Drafter.
+    """
+    from ..loop import as_drafter  # the loop builds on the drafters
+
+    if num_draft_tokens is not None and assistant is None:
+        raise ValueError("num_draft_tokens needs assistant_model=<DraftHead>")
+    drafter = as_drafter(assistant, num_draft_tokens)
+    if not action_prior:  # a draft head that reads the previous action still gets it
+        return with_previous_actions(drafter, histories)
+    return with_action_priors(drafter, histories, action_layout, chunk_length)
+
+
+def remember_actions(history: list[list[int]], action_ids, action_layout: ActionLayout) -> None:
+    """Adds one call's actions to an episode's memory (``history``, token ids oldest first, changed in place), keeping
+    the last [`ActionPriorDrafter.history_length`]. An output that is not all action tokens (an untrained model may
+    emit text ids) clears the memory: text ids never become drafts.
+
+    Args:
+        action_ids: ``[H, action_dim]`` int tensor: the call's H actions (H = 1 without chunks).
+    """
+    if bool(action_layout.tokenizer.is_action_token(action_ids).all()):
+        history[:] = [*history, *action_ids.tolist()][-ActionPriorDrafter.history_length :]
+    else:
+        history.clear()
