@@ -48,6 +48,10 @@ def _run(*flags: str, env: dict | None = None) -> subprocess.CompletedProcess:
         (["--buckets", "0"], "argument --buckets: must be >= 1, got 0"),
         (["--speculate-buckets", "3"], "speculate_buckets [3] are not buckets"),
         (["--calibration-calls", "-1"], "calibration_calls"),
+        (["--max-wait-ms", "inf"], "max_wait_ms must be a finite number of milliseconds 0..60000, got inf"),
+        (["--max-wait-ms", "nan"], "max_wait_ms must be >= 0, got nan"),
+        (["--buckets", "1", "5000"], "buckets must be batch sizes 1..1024, got [1, 5000]"),
+        (["--max-prompt-tokens", "0"], "argument --max-prompt-tokens: must be >= 1, got 0"),
         (["--port", "99999"], "must be a TCP port 0..65535"),
         (["--replicas", "2"], "--replicas / --ray-address are for Ray Serve: add --ray"),
         (["--policy", "no/such/policy"], "no/such/policy"),
@@ -69,6 +73,19 @@ def test_a_taken_port_is_a_usage_error_naming_it():
         port = taken.getsockname()[1]
         result = _run("--policy", POLICY, "--port", str(port))
     assert result.returncode == 2 and f"cannot listen on 127.0.0.1:{port}" in result.stderr
+
+
+def test_an_unused_draft_head_is_said_not_dropped_silently():
+    """``--draft-head`` with a method that drafts without one: a warning naming both (as ``compare`` does); the
+    taken port then stops the command before the policy loads."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        head = str(ROOT / "policies" / "mt10_vla3_draft_v2")
+        result = _run("--policy", POLICY, "--method", "exact", "--draft-head", head, "--port",
+                      str(taken.getsockname()[1]))  # fmt: skip
+    assert result.returncode == 2
+    assert f"--draft-head {head} is not used: --method exact does not draft with a head" in result.stderr
 
 
 def test_serve_answers_act_and_exits_0_on_sigterm():

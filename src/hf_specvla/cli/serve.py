@@ -128,7 +128,7 @@ def run(args, parser) -> int:
         parser.error(f"--method {method.name} drafts with the draft head: give --draft-head")
     if args.draft_head and not method.uses_draft_head:  # as compare does: said, not silently dropped
         logger.warning("--draft-head %s is not used: --method %s does not draft with a head (head, tree, prior+head, "
-                       "prior+tree do); it is ignored", args.draft_head, method.name)  # fmt: skip
+                       "prior+tree do); it is ignored", args.draft_head, args.method.strip())  # fmt: skip
         args.draft_head = None
     if args.method.strip() != method.name:
         logger.info("--method %s = %s", args.method.strip(), method.name)

@@ -53,6 +53,7 @@ class Batcher:
         self.dropped = 0  # requests whose robots gave up before their batch started
         self._last_seen: dict[str | None, float] = {}  # session (None: anonymous) -> its last request or reply
         self.failure: BaseException | None = None  # what stopped the worker thread, if anything did
+        self._in_hand: list[_Pending] = []  # the batch being formed or decoded (failed with the thread, if it fails)
 
     def start(self) -> Batcher:
         self._thread = threading.Thread(target=self._run, name="hf-specvla-batcher", daemon=True)
@@ -107,12 +108,15 @@ class Batcher:
         except BaseException as error:  # noqa: BLE001 (a bug: /health says so, the queued requests get the error)
             self.failure = error
             logger.exception("the batching thread failed: no more requests are served")
+            stranded = list(self._in_hand)
             while True:
                 try:
-                    pending = self._queue.get_nowait()
+                    stranded.append(self._queue.get_nowait())
                 except queue.Empty:
                     break
-                if pending.future.set_running_or_notify_cancel():
+            for pending in stranded:  # their robots get a 500 saying why, rather than waiting forever
+                if not pending.future.done() and (pending.future.running()
+                                                  or pending.future.set_running_or_notify_cancel()):  # fmt: skip
                     pending.future.set_exception(RuntimeError(self.unhealthy()))
 
     def _serve(self) -> None:
@@ -121,7 +125,7 @@ class Batcher:
                 first = self._queue.get(timeout=0.1)
             except queue.Empty:
                 continue
-            batch = [self._seen(first)]
+            batch = self._in_hand = [self._seen(first)]
             deadline = time.perf_counter() + self.max_wait_s
             while len(batch) < min(self.max_batch_size, self._active_robots(len(batch)) + self._queue.qsize()):
                 try:

@@ -1,0 +1,279 @@
+"""The policy server under hostile input and bad luck (issue 64's probe), a real HTTP server on 127.0.0.1 per test:
+prompts longer than the graphs compiled at start-up, settings out of range, a dead batching thread, a backlog behind
+a slow batch, malformed bodies, the API key before the body, robots that hang up mid-body."""
+
+from __future__ import annotations
+
+import json
+import logging
+import socket
+import threading
+import time
+import urllib.error
+import urllib.request
+
+import numpy as np
+import pytest
+
+from hf_specvla.policies import VLAPolicy
+from hf_specvla.serving import ServeConfig
+from hf_specvla.serving.protocol import dumps, encode_array
+from hf_specvla.serving.server import PolicyServer
+
+from .test_server import POLICY, _observation, _post, _service, _wait_until
+
+
+@pytest.fixture(scope="module")
+def policy() -> VLAPolicy:
+    return VLAPolicy.from_pretrained(POLICY)
+
+
+def _get(url: str) -> tuple[int, dict]:
+    try:
+        with urllib.request.urlopen(url, timeout=10) as response:
+            return response.status, json.loads(response.read())
+    except urllib.error.HTTPError as error:
+        return error.code, json.loads(error.read() or b"null")
+
+
+def _spy_on_decoding(policy) -> list:
+    """Replaces ``policy.predict_action`` (undo with ``del policy.predict_action``) by one that records each call's
+    instructions and returns zeros, as fast as a test wants."""
+    calls = []
+
+    def fake(images, instructions, states=None, return_output=False, previous_action_ids=None, **kwargs):
+        calls.append(list(instructions))
+        shape = (len(images), policy.config.chunk_length, policy.config.action_dim)
+        actions = np.zeros(shape if policy.config.chunk_length > 1 else shape[::2])
+        return (actions, None) if return_output else actions
+
+    policy.predict_action = fake
+    return calls
+
+
+# ----------------------------------------------------------------------------- prompts and compiled graphs
+def test_a_prompt_longer_than_the_compiled_graphs_is_refused_before_any_forward(policy):
+    """A 230-token prompt (600 characters, within the character limit) once compiled new verification widths under
+    load (110 s, every robot waiting): now a compiled server states its limit in /info and refuses it (422 naming the
+    instruction and the limit) without a forward; a prompt within the limit is accepted."""
+    calls = _spy_on_decoding(policy)
+    try:
+        service = _service(policy, method="exact")  # compiled; nothing is compiled until a call (none here)
+        with PolicyServer(service, port=0) as server:
+            _, info = _get(server.url + "/info")
+            long = {**_observation(policy, 0), "instruction": "go " * 200}
+            code, body, _ = _post(server.url + "/act", dumps(long))
+    finally:
+        del policy.predict_action
+        service.close()
+    limit = info["max_prompt_tokens"]
+    assert info["prompt_tiers"] == [[service.shortest_prompt, limit]] and limit > service.shortest_prompt
+    assert len(policy.prompt_ids(long["instruction"], long["state"])) > limit  # the probe's case
+    assert (code, body["field"]) == (422, "instruction") and f"at most {limit} tokens" in body["error"], body
+    assert calls == []
+    within = service.tier_instruction((limit, limit))  # the longest prompt served: it parses
+    assert service.parse({**_observation(policy, 0), "instruction": within}).instruction == within
+
+
+def test_the_slot_counts_the_service_plans_for_are_the_engines(policy):
+    """The service restates how the engine sizes a compiled call's static cache (prompt + action tokens + the widest
+    verification, rounded up): checked against the engine's own ``with_draft_slots`` at every prompt length of a
+    tier and its neighbours."""
+    from transformers import StaticCache
+
+    from hf_specvla.speculative.cache import with_draft_slots
+    from hf_specvla.speculative.compiled import NODE_BUCKETS, SLOT_MULTIPLE
+
+    service = _service(policy, method="exact")
+    service.close()
+    (extra, multiple), *_ = service._slot_rules(None)
+    first, last = service.prompt_tiers[0]
+    text_config = policy.model.config.get_text_config(decoder=True)
+    slots = set()
+    for length in range(first - 2, last + 3):
+        generates = StaticCache(config=text_config, max_cache_len=length + policy.config.action_tokens)
+        engines = with_draft_slots(policy.model, generates, NODE_BUCKETS[-1], SLOT_MULTIPLE, 1)
+        planned = multiple * -(-(length + extra) // multiple)
+        assert max(layer.max_cache_len for layer in engines.layers) == planned, length
+        if first <= length <= last:
+            slots.add(planned)
+    assert len(slots) == 1, "a tier must decode on one slot count (one set of graphs)"
+
+
+def test_warm_up_compiles_every_prompt_tier_and_the_limit_follows_max_prompt_tokens(policy):
+    calls = _spy_on_decoding(policy)
+    try:
+        service = _service(policy, method="exact", buckets=(1, 2), max_prompt_tokens=150)
+        service.warm_up()
+    finally:
+        del policy.predict_action
+        service.close()
+    assert service.max_prompt_tokens == 150 and len(service.prompt_tiers) == 2
+    state = np.zeros(policy.config.state_dim)
+    for bucket in (1, 2):
+        widths = {len(policy.prompt_ids(rows[0], state)) for rows in calls if len(rows) == bucket}
+        for first, last in service.prompt_tiers:
+            assert any(first <= w <= last for w in widths), (bucket, (first, last), widths)
+    with pytest.raises(ValueError, match="max_prompt_tokens 10 is shorter than this policy's shortest prompt"):
+        _service(policy, method="exact", max_prompt_tokens=10)
+
+
+# ----------------------------------------------------------------------------- settings
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        (dict(max_wait_ms=float("inf")), "max_wait_ms must be a finite number of milliseconds 0..60000, got inf"),
+        (dict(max_wait_ms=float("nan")), "max_wait_ms must be >= 0, got nan"),
+        (dict(max_wait_ms=1e9), "max_wait_ms must be a finite number"),
+        (dict(buckets=(1, 10**6)), "buckets must be batch sizes 1..1024"),
+        (dict(max_prompt_tokens=0), "max_prompt_tokens must be >= 1, got 0"),
+        (dict(max_prompt_tokens=12.5), "max_prompt_tokens must be an integer"),
+    ],
+)
+def test_a_setting_out_of_range_is_refused_naming_it(settings, message):
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(".", r"\.")):
+        ServeConfig(**settings)
+
+
+def test_health_is_not_ok_once_the_batcher_died_and_requests_fail_instead_of_hanging(policy):
+    """The probe's ``--max-wait-ms inf`` killed the batching thread (``OverflowError``) while /health said ok and
+    every request hung; the setting is refused now, so the same death is forced here."""
+    with PolicyServer(_service(policy), port=0) as server:
+        assert _get(server.url + "/health") == (200, {"status": "ok"})
+        server.backend.batcher.max_wait_s = float("inf")  # what max_wait_ms=inf did: queue.get(timeout=inf) raises
+        started = time.perf_counter()
+        code, body, _ = _post(server.url + "/act", dumps(_observation(policy, 1)))
+        waited = time.perf_counter() - started
+        health = _get(server.url + "/health")
+        again = _post(server.url + "/act", dumps(_observation(policy, 2)))[0]
+    assert code == 500 and "batching thread failed" in body["error"] and waited < 10, (code, body)
+    assert health[0] == 503 and health[1]["status"] == "unavailable" and "OverflowError" in health[1]["error"]
+    assert again == 500
+
+
+# ----------------------------------------------------------------------------- batching under a backlog
+def test_a_backlog_behind_a_slow_batch_is_decoded_in_full_batches(policy):
+    """The first batch takes longer than the "active robot" window while 12 robots queue a request each: they are
+    decoded 4 at a time (the largest bucket), not one by one."""
+    service = _service(policy)
+    act, first_started = service.act, threading.Event()
+
+    def slow_first(requests, arrived=None):
+        if not first_started.is_set():
+            first_started.set()
+            time.sleep(1.5)  # > ACTIVE_WINDOW_S: every queued request is "old" by the time it is dequeued
+        return act(requests, arrived)
+
+    service.act = slow_first
+    replies: dict = {}
+    with PolicyServer(service, port=0) as server:
+
+        def robot(i: int) -> None:
+            observation = {**_observation(policy, i), "session": f"robot-{i}"}
+            replies[i] = _post(server.url + "/act", dumps(observation))
+
+        threads = [threading.Thread(target=robot, args=(0,))]
+        threads[0].start()
+        assert first_started.wait(30)
+        threads += [threading.Thread(target=robot, args=(i,)) for i in range(1, 13)]
+        for thread in threads[1:]:
+            thread.start()
+        _wait_until(lambda: server.backend.batcher.waiting == 12, "the 12 robots' requests are queued")
+        for thread in threads:
+            thread.join()
+        _, stats = _get(server.url + "/stats")
+    sizes = [replies[i][1]["served"]["batch_size"] for i in range(1, 13)]
+    assert all(replies[i][0] == 200 for i in replies) and sizes == [4] * 12, sizes
+    assert stats["batches"] == 4 and stats["buckets"]["4"]["mode"] == "speculative"
+    assert stats["speculative_share"] == 1.0 and stats["buckets"]["4"]["speculative_share"] == 1.0
+
+
+# ----------------------------------------------------------------------------- malformed bodies
+def _array(dtype: str, shape: list, data: bytes = b"") -> dict:
+    import base64
+
+    return {"__numpy__": base64.b64encode(data).decode(), "dtype": dtype, "shape": shape}
+
+
+def _malformed(policy) -> list[tuple[str, bytes, str | None, int]]:
+    """(what, body, the field named, status): each once a 500 (or named the field "array")."""
+    good = _observation(policy, 4)
+    image, state = encode_array(good["image"]), good["state"].tolist()
+
+    def body(**fields) -> bytes:
+        return json.dumps({"image": image, "instruction": good["instruction"], "state": state, **fields}).encode()
+
+    deep = b'{"image": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"
+    return [
+        ("an unsupported image dtype", body(image=_array("<U1", [1], b"a\0\0\0")), "image", 422),
+        ("an unsupported state dtype", body(state=_array("|O", [4], b"\0" * 32)), "state", 422),
+        ("an unreadable dtype", body(image=_array("not a dtype", [1], b"a")), "image", 422),
+        ("100 dimensions", body(image=_array("|u1", [1] * 100, b"a")), "image", 422),
+        ("an absurd empty shape", body(image=_array("|u1", [0, 2**70])), "image", 422),
+        ("an absurd state shape", body(state=_array("<f8", [2**62, 0])), "state", 422),
+        ("very deep JSON", deep, None, 400),
+        ("a huge integer in state", body(state=[10**400, 0, 0, 0]), "state", 422),
+        ("a 5000-digit number", body(state=[0, 0, 0]).replace(b"[0, 0, 0]", b"[" + b"9" * 5000 + b"]"), None, 400),
+        ("a huge integer in draft_state", body(draft_state=[[10**30] * 4]), "draft_state", 422),
+        ("an int64 draft_state past any token", body(draft_state=_array("<u8", [1, 4], b"\xff" * 32)), "draft_state",
+         422),
+        ("a lone surrogate in the instruction", body(instruction="reach the goal \ud800"), "instruction", 422),
+        ("a lone surrogate in the session", body(session="robot-\udfff"), "session", 422),
+    ]  # fmt: skip
+
+
+def test_every_malformed_body_is_a_4xx_naming_its_field(policy):
+    cases = _malformed(policy)
+    with PolicyServer(_service(policy), port=0) as server:
+        results = [(what, field, status, *_post(server.url + "/act", raw)[:2]) for what, raw, field, status in cases]
+        _, stats = _get(server.url + "/stats")
+    for what, field, status, code, body in results:
+        assert (code, body["field"]) == (status, field), (what, code, body)
+        assert body["error"] and "internal error" not in body["error"], (what, body)
+    assert stats["batches"] == 0  # refused before batching
+
+
+def test_a_lone_surrogate_never_fails_the_batch_it_would_have_joined(policy, caplog):
+    """It once reached the tokenizer inside a batch: the batch failed and its other robots were decoded twice."""
+    good = [_observation(policy, 40 + i) for i in range(2)]
+    bad = {**_observation(policy, 42), "instruction": "open the drawer \ud800"}
+    results: dict = {}
+    with caplog.at_level(logging.INFO, logger="hf_specvla"), PolicyServer(_service(policy, max_wait_ms=300.0),
+                                                                          port=0) as server:  # fmt: skip
+
+        def send(key, body):
+            results[key] = _post(server.url + "/act", dumps(body))
+
+        threads = [threading.Thread(target=send, args=(key, body)) for key, body in (*enumerate(good), ("bad", bad))]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+    assert results["bad"][0] == 422 and results["bad"][1]["field"] == "instruction"
+    assert results[0][0] == results[1][0] == 200
+    assert not [r for r in caplog.records if "failed" in r.getMessage()], [r.getMessage() for r in caplog.records]
+
+
+# ----------------------------------------------------------------------------- the key first; robots that hang up
+def test_the_api_key_is_checked_before_the_body(policy):
+    with PolicyServer(_service(policy), port=0, api_key="s3cret") as server:
+        keyless = _post(server.url + "/act", b"{not json")
+        keyed = _post(server.url + "/act", b"{not json", {"Authorization": "Bearer s3cret"})
+        wrong_in_body = _post(server.url + "/act", json.dumps({"api_key": "wrong", "image": 3}).encode())
+    assert keyless[0] == 401 and keyless[1]["field"] == "api_key"  # was 400: the body was parsed first
+    assert keyed[0] == 400 and "not JSON" in keyed[1]["error"]
+    assert wrong_in_body[0] == 401
+
+
+def test_a_robot_that_hangs_up_mid_body_is_counted_not_logged_as_an_error(policy, caplog):
+    with caplog.at_level(logging.DEBUG, logger="hf_specvla"), PolicyServer(_service(policy), port=0) as server:
+        with socket.create_connection(("127.0.0.1", server.port)) as robot:
+            robot.sendall(b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                          b"Content-Length: 100000\r\n\r\n" + b'{"image": ' + b"1" * 1000)  # fmt: skip
+            time.sleep(0.2)  # the server is reading the body
+        _wait_until(lambda: _get(server.url + "/stats")[1]["client_hangups"] == 1, "the hang-up is counted")
+        code, _, _ = _post(server.url + "/act", dumps(_observation(policy, 5)))  # and the server serves on
+    assert code == 200
+    serving = [r for r in caplog.records if r.name.startswith("hf_specvla.serving")]
+    assert not [r for r in serving if r.levelno >= logging.WARNING or r.exc_info], [r.getMessage() for r in serving]
+    assert any("hung up" in r.getMessage() for r in serving)
