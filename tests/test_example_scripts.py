@@ -217,3 +217,20 @@ def test_gpu_openvla_benchmark_runs_on_the_cpu(tmp_path):
     assert set(rows) == {"greedy", "greedy:compile", "drafts p=0.5", "drafts p=1", "head chain"}
     assert rows["drafts p=1"]["target_forwards_per_call"] == 1 and rows["greedy"]["target_forwards_per_call"] == 7
     assert all(row["syncs_per_round"] > 0 and math.isfinite(row["ms_per_forward"]) for row in rows.values())
+    report = json.loads(output.read_text())
+    assert report["complete"] and report["batches"] == [{"batch_size": 1, "rounds_run": 2, "skipped": []}]
+    assert all(row["tokens_unlike_greedy"] == 0 and len(row["samples_ms"]) == 2 for row in rows.values())
+
+
+@pytest.mark.slow
+def test_gpu_openvla_benchmark_keeps_to_its_budget(tmp_path):
+    """One-shot safe: with no budget left after the baselines' warm-ups, every other method is skipped and listed,
+    the baselines are still timed (a few rounds), and the JSON holds every batch size."""
+    output = tmp_path / "gpu.json"
+    run_example("benchmarks/gpu_openvla.py", "--tiny", "--batch-sizes", "1", "2", "--right-probabilities", "1.0",
+                "--budget-s", "0.01", "--json", str(output), timeout=900)  # fmt: skip
+    report = json.loads(output.read_text())
+    assert report["complete"] and [b["batch_size"] for b in report["batches"]] == [1, 2]
+    assert all(b["skipped"] == ["drafts p=1", "head chain"] and b["rounds_run"] >= 1 for b in report["batches"])
+    assert sorted((r["method"], r["batch_size"]) for r in report["rows"]) == [
+        ("greedy", 1), ("greedy", 2), ("greedy:compile", 1), ("greedy:compile", 2)]  # fmt: skip

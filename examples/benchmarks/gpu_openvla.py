@@ -1,22 +1,29 @@
-"""One-shot benchmark of speculative decoding on OpenVLA-7B against the greedy baselines a user has (issue 54).
+"""One-shot benchmark of speculative decoding on OpenVLA-7B against the greedy baselines a user has (issues 54, 66).
 
-OpenVLA-7B through the port (``hf_specvla.openvla``), built from the real ``openvla/openvla-7b`` config with random
-weights (times only; ``--checkpoint`` loads a local checkpoint folder instead), in bf16 on CUDA. In one process,
-interleaved (every round runs every (method, batch size) once, in a fresh random order; medians over the rounds):
+OpenVLA-7B through the port (``hf_specvla.openvla``) with openvla/openvla-7b's shapes, built in code (no file
+needed; ``--config`` reads a config.json instead, ``--checkpoint`` loads a local checkpoint folder), random weights
+(times only), bf16 on CUDA. Per batch size, in one process, interleaved (every round runs every method once, in a
+fresh random order; medians over the rounds):
 
 * ``greedy``: ``generate`` with plain greedy decoding (eager);
-* ``greedy:compile``: transformers' compiled greedy (static cache + ``CompileConfig``);
+* ``greedy:compile``: transformers' compiled greedy (static cache + ``CompileConfig``: CUDA graphs on a GPU);
 * ``drafts p=<p>``: the call's own greedy tokens drafted with each token right with probability p (the others
   replaced by a wrong action token), verified inside the prefill, compiled: what ``exact``'s previous-action drafts
   cost when they are right that often;
 * ``head chain``: an (untrained, unless ``--draft-head``) draft head's chain, compiled.
 
 Per (method, batch size): ms per call, ms per action (a call decodes one action per row), target forwards per call,
-ms per target forward, and host syncs per round (``Tensor.item / tolist / cpu / numpy / __bool__ / __int__ /
-__float__ / __index__`` counted by a ``TorchFunctionMode`` in one extra, untimed call). Whatever does not fit in
-``--budget-s`` (rounds after the warm-up) is skipped, and the output says how many rounds ran.
+ms per target forward, host syncs per round (``Tensor.item / tolist / ...`` counted by a ``TorchFunctionMode`` in
+one extra call of the same method, uncompiled: a compiled call's syncs are hidden in its graphs), and how many
+tokens differ from eager greedy's and from compiled greedy's (fp32: none may, the script fails; bf16: reported,
+as kernels round differently: a static cache and CUDA graphs are another rounding than eager decoding).
 
-    python examples/benchmarks/gpu_openvla.py --config ../shared/openvla-reference/hub-openvla-7b --json out.json
+One-shot safe: ``--budget-s`` covers everything after the model is built (warm-ups and compiles included); each
+batch size gets an equal share of what is left when it starts, a method whose warm-up would not fit is skipped and
+listed, and the JSON is rewritten after every batch size (``"complete": false`` until the end).
+
+    python examples/benchmarks/gpu_openvla.py --json gpu.json                  # OpenVLA-7B shapes, B 1 and 4
+    python examples/benchmarks/gpu_openvla.py --batch-sizes 1 4 8 16 --budget-s 1500 --json gpu.json
     python examples/benchmarks/gpu_openvla.py --tiny      # a tiny random OpenVLA on the CPU (~1 min: what CI runs)
 """
 
@@ -27,9 +34,12 @@ import json
 import random
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
+import transformers
 
 from hf_specvla import DraftHead, DraftHeadDrafter
 from hf_specvla.openvla import OpenVLAConfig, OpenVLAForActionPrediction, VisionTowerSpec, register_vision_tower
@@ -39,6 +49,20 @@ from hf_specvla.speculative.syncs import HostSyncCounter
 #: "In: What action should the robot take to pick up the red block?\nOut:" (Llama-2 tokenizer)
 PROMPT_IDS = [1, 512, 29901, 1724, 3158, 881, 278, 19964, 2125, 304, 5839, 701, 278, 2654, 2908, 29973, 13, 3744, 29901]
 ACTION_DIM = 7
+#: every call decodes one action per row, greedily
+#: the part of a batch size's share of the budget that warm-ups may start in (the rest times them)
+WARM_UP_SHARE = 0.7
+#: rounds timed whatever the budget says, once the warm-ups are done (a round costs far less than a compile)
+MIN_ROUNDS = 3
+COMMON = dict(max_new_tokens=ACTION_DIM, min_new_tokens=ACTION_DIM, do_sample=False, return_dict_in_generate=True)
+
+
+def openvla_7b_config() -> OpenVLAConfig:
+    """openvla/openvla-7b's shapes without its files: config.json differs from the port's defaults (the Prismatic
+    ``dinosiglip-vit-so-224px`` towers, the Llama-2-7B decoder) only in its padded vocabulary and its statistics; the
+    statistics here are placeholders (the times do not depend on them)."""
+    stats = {"bridge_orig": {"action": {"q01": [-1.0] * ACTION_DIM, "q99": [1.0] * ACTION_DIM}}}
+    return OpenVLAConfig(norm_stats=stats, text_config={"vocab_size": 32064, "pad_token_id": 32000})
 
 
 def tiny_config() -> OpenVLAConfig:
@@ -56,7 +80,10 @@ def tiny_config() -> OpenVLAConfig:
 def build_model(args, device: torch.device, dtype: torch.dtype) -> OpenVLAForActionPrediction:
     if args.checkpoint:
         return OpenVLAForActionPrediction.from_pretrained(args.checkpoint, dtype=dtype).to(device).eval()
-    config = tiny_config() if args.tiny else OpenVLAConfig.from_pretrained(args.config)
+    if args.tiny:
+        config = tiny_config()
+    else:
+        config = OpenVLAConfig.from_pretrained(args.config) if args.config else openvla_7b_config()
     config.text_config._attn_implementation = "sdpa"
     with torch.device(device):
         torch.set_default_dtype(dtype)
@@ -84,12 +111,17 @@ def wrong_where(drafts: torch.Tensor, p: float, generator: torch.Generator) -> t
     return torch.where(keep, drafts.cpu(), moved).to(drafts.device)
 
 
-def methods(model, inputs: dict, args, device) -> dict:
-    """name -> a function running one call (returns generate's output)."""
+class Method(NamedTuple):
+    """One way to decode: ``run()`` times a call; ``run_uncompiled()`` is the same call without compilation (for
+    counting host syncs, which compiled graphs hide)."""
+
+    run: Callable[[], object]
+    run_uncompiled: Callable[[], object]
+
+
+def methods(model, inputs: dict, greedy_ids: torch.Tensor, args, device) -> dict[str, Method]:
+    """name -> [`Method`], in the order their warm-ups run (the baselines first, the most telling drafts next)."""
     compiled = compiled_decoding_kwargs(device.type)
-    common = dict(max_new_tokens=ACTION_DIM, min_new_tokens=ACTION_DIM, do_sample=False, return_dict_in_generate=True)
-    with torch.no_grad():
-        greedy_ids = model.generate(**inputs, **common).sequences[:, inputs["input_ids"].shape[1] : -1]
     generator = torch.Generator().manual_seed(0)
     if args.draft_head:
         head = DraftHead.from_pretrained(args.draft_head)
@@ -97,17 +129,21 @@ def methods(model, inputs: dict, args, device) -> dict:
         head = DraftHead.from_target(model, model.action_tokenizer, ACTION_DIM)
     chain = DraftHeadDrafter(head.to(device=device, dtype=model.dtype).eval(), num_draft_tokens=ACTION_DIM - 1)
 
-    def call(**kwargs):
-        def run():
-            with torch.no_grad():
-                return model.generate(**inputs, **common, **kwargs)
+    def method(compile_it: bool, **kwargs) -> Method:
+        def run(**extra):
+            def call():
+                with torch.no_grad():
+                    return model.generate(**inputs, **COMMON, **kwargs, **extra)
 
-        return run
+            return call
 
-    table = {"greedy": call(), "greedy:compile": call(**compiled)}
-    for p in args.right_probabilities:
-        table[f"drafts p={p:g}"] = call(draft_ids=wrong_where(greedy_ids, p, generator), **compiled)
-    table["head chain"] = call(assistant_model=chain, **compiled)
+        return Method(run(**compiled) if compile_it else run(), run())
+
+    speculation_compiled = not args.eager_speculation
+    table = {"greedy": method(False), "greedy:compile": method(True)}
+    for p in sorted(args.right_probabilities, reverse=True):
+        table[f"drafts p={p:g}"] = method(speculation_compiled, draft_ids=wrong_where(greedy_ids[:, :-1], p, generator))
+    table["head chain"] = method(speculation_compiled, assistant_model=chain)
     return table
 
 
@@ -116,86 +152,161 @@ def forwards_of(output, tokens: int) -> int:
     return tokens if speculation is None else speculation.num_batch_forwards
 
 
-def main() -> None:
+def new_tokens(output, prompt_length: int) -> torch.Tensor:
+    """``[B, ACTION_DIM]`` the action tokens a call decoded."""
+    return output.sequences[:, prompt_length : prompt_length + ACTION_DIM]
+
+
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", default="../shared/openvla-reference/hub-openvla-7b",
-                        help="openvla-7b's folder or config.json (random weights of that shape)")  # fmt: skip
+    parser.add_argument("--config", default=None,
+                        help="a config.json or its folder (default: openvla-7b's shapes, built in code)")  # fmt: skip
     parser.add_argument("--checkpoint", default=None, help="a local OpenVLA checkpoint folder (real weights)")
     parser.add_argument("--draft-head", default=None, help="a DraftHead folder for the head chain (default: untrained)")
     parser.add_argument("--batch-sizes", nargs="+", type=int, default=None,
-                        help="robots per call (default: 1 4 8 16; with --tiny 1 2)")  # fmt: skip
+                        help="robots per call (default: 1 4; with --tiny 1 2)")  # fmt: skip
     parser.add_argument("--right-probabilities", nargs="+", type=float, default=[0.5, 0.7, 0.9, 1.0],
                         help="per-token probability that a prefill draft is right")  # fmt: skip
-    parser.add_argument("--rounds", type=int, default=20, help="timed rounds (after one warm-up round)")
-    parser.add_argument("--budget-s", type=float, default=480.0, help="stop starting rounds past this many seconds")
+    parser.add_argument("--rounds", type=int, default=20, help="timed rounds per batch size (after the warm-up)")
+    parser.add_argument("--budget-s", type=float, default=420.0,
+                        help="seconds for all after the model is built, warm-ups and compiles included")  # fmt: skip
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    parser.add_argument("--json", default=None, help="also write the results here")
+    parser.add_argument("--json", default=None, help="also write the results here (after every batch size)")
+    parser.add_argument("--eager-speculation", action="store_true",
+                        help="speculative methods uncompiled (greedy:compile stays compiled)")  # fmt: skip
     parser.add_argument("--tiny", action="store_true", help="a tiny random OpenVLA on the CPU, 2 rounds, B 1 and 2")
     args = parser.parse_args()
     for p in args.right_probabilities:
         if not 0.0 <= p <= 1.0:
             parser.error(f"--right-probabilities are probabilities in [0, 1], got {p}")
+    for b in args.batch_sizes or []:
+        if b < 1:
+            parser.error(f"--batch-sizes are robots per call (>= 1), got {b}")
+    if args.rounds < 1:
+        parser.error(f"--rounds must be >= 1, got {args.rounds}")
+    if not 0 < args.budget_s < float("inf"):
+        parser.error(f"--budget-s must be a positive number of seconds, got {args.budget_s}")
+    if args.config and args.checkpoint:
+        parser.error("give --config (random weights of that shape) or --checkpoint (a saved model), not both")
     if args.tiny:
         args.device, args.rounds = "cpu", 2
-    args.batch_sizes = args.batch_sizes or ([1, 2] if args.tiny else [1, 4, 8, 16])
+    args.batch_sizes = args.batch_sizes or ([1, 2] if args.tiny else [1, 4])
+    return args
+
+
+def main() -> None:
+    args = parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
-    started = time.perf_counter()
     model = enable_speculation(build_model(args, device, dtype))
+    started = time.perf_counter()
+    deadline = started + args.budget_s
 
     def synchronize():
         if device.type == "cuda":
             torch.cuda.synchronize()
 
-    runs = {(name, b): fn for b in args.batch_sizes
-            for name, fn in methods(model, prompt(model, b, device, dtype), args, device).items()}  # fmt: skip
-    times = {key: [] for key in runs}
-    forwards, syncs = {}, {}
-    for key, run in runs.items():  # warm-up (compiles), then the syncs of one call, untimed
-        forwards[key] = forwards_of(run(), ACTION_DIM)
-        with HostSyncCounter() as counter:
-            run()
-        syncs[key] = counter.count
-    order, rng, rounds_run = list(runs), random.Random(0), 0
-    round_s = 0.0
-    for _ in range(args.rounds):
-        if time.perf_counter() - started + round_s > args.budget_s:
-            break
-        round_started = time.perf_counter()
-        rng.shuffle(order)
-        for key in order:
-            synchronize()
-            start = time.perf_counter()
-            runs[key]()
-            synchronize()
-            times[key].append(1000 * (time.perf_counter() - start))
-        rounds_run += 1
-        round_s = time.perf_counter() - round_started
-    rows = []
-    for (name, b), values in times.items():
-        if not values:
-            continue
-        ms = statistics.median(values)
-        rows.append({"method": name, "batch_size": b, "ms_per_call": ms, "ms_per_action": ms / b,
-                     "target_forwards_per_call": forwards[(name, b)],
-                     "ms_per_forward": ms / forwards[(name, b)],
-                     "syncs_per_round": syncs[(name, b)] / forwards[(name, b)]})  # fmt: skip
-    print(f"\n{device} ({torch.cuda.get_device_name() if device.type == 'cuda' else 'cpu'}), {dtype}, "
-          f"{rounds_run} of {args.rounds} rounds in {time.perf_counter() - started:.0f} s, medians:\n")  # fmt: skip
-    print("| method | B | ms / call | ms / action | target fwd / call | ms / fwd | syncs / round | vs greedy:compile |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
-    baseline = {row["batch_size"]: row["ms_per_call"] for row in rows if row["method"] == "greedy:compile"}
-    for row in rows:
-        versus = baseline.get(row["batch_size"], float("nan")) / row["ms_per_call"]
-        print(f"| {row['method']} | {row['batch_size']} | {row['ms_per_call']:.1f} | {row['ms_per_action']:.1f} | "
-              f"{row['target_forwards_per_call']} | {row['ms_per_forward']:.1f} | {row['syncs_per_round']:.1f} | "
-              f"{versus:.2f}x |")  # fmt: skip
+    def timed(fn) -> tuple[object, float]:
+        synchronize()
+        start = time.perf_counter()
+        out = fn()
+        synchronize()
+        return out, time.perf_counter() - start
+
+    report = {"settings": vars(args), "device": str(device), "dtype": str(dtype), "complete": False,
+              "device_name": torch.cuda.get_device_name() if device.type == "cuda" else "cpu",
+              "torch": torch.__version__, "transformers": transformers.__version__,
+              "batches": [], "rows": []}  # fmt: skip
+    warm_up_s: dict[str, float] = {}  # the longest warm-up of each method so far
+    for index, batch_size in enumerate(args.batch_sizes):
+        share_start = time.perf_counter()
+        share_end = share_start + (deadline - share_start) / (len(args.batch_sizes) - index)
+        warm_ups_end = share_start + WARM_UP_SHARE * (share_end - share_start)
+        inputs = prompt(model, batch_size, device, dtype)
+        prompt_length = inputs["input_ids"].shape[1]
+        with torch.no_grad():
+            greedy_ids = new_tokens(model.generate(**inputs, **COMMON), prompt_length)
+        table = methods(model, inputs, greedy_ids, args, device)
+        ran: dict[str, Method] = {}
+        skipped, forwards, syncs, departures, departures_compiled = [], {}, {}, {}, {}
+        compiled_ids = None  # compiled greedy's tokens, once it has run
+        for name, method in table.items():  # warm-up (compiles), tokens against greedy's, syncs of an uncompiled call
+            expected_s = warm_up_s.get(name, 0.0)
+            if name not in ("greedy", "greedy:compile") and time.perf_counter() + expected_s > warm_ups_end:
+                skipped.append(name)
+                continue
+            output, seconds = timed(method.run)
+            warm_up_s[name] = max(warm_up_s.get(name, 0.0), seconds)
+            forwards[name] = forwards_of(output, ACTION_DIM)
+            tokens = new_tokens(output, prompt_length)
+            compiled_ids = tokens if name == "greedy:compile" else compiled_ids
+            differ = int((tokens != greedy_ids).sum())
+            departures_compiled[name] = None if compiled_ids is None else int((tokens != compiled_ids).sum())
+            if differ and dtype == torch.float32:
+                raise AssertionError(f"{name} at B={batch_size} decoded {differ} tokens unlike greedy's in fp32")
+            departures[name] = differ
+            with HostSyncCounter() as counter:
+                method.run_uncompiled()
+            syncs[name] = counter.count
+            ran[name] = method
+            print(f"B={batch_size} {name}: warm-up {seconds:.1f} s, {forwards[name]} forwards, tokens unlike greedy's "
+                  f"{differ} (compiled greedy's {departures_compiled[name]}), {counter.count} syncs uncompiled",
+                  flush=True)  # fmt: skip
+        times = {name: [] for name in ran}
+        order, rng, rounds_run, round_s = list(ran), random.Random(batch_size), 0, 0.0
+        while rounds_run < args.rounds and (rounds_run < MIN_ROUNDS or time.perf_counter() + round_s < share_end):
+            round_started = time.perf_counter()
+            rng.shuffle(order)
+            for name in order:
+                times[name].append(1000 * timed(ran[name].run)[1])
+            rounds_run += 1
+            round_s = time.perf_counter() - round_started
+        for name, values in times.items():
+            ms = statistics.median(values) if values else None  # warmed up, but no round was timed
+            report["rows"].append({"method": name, "batch_size": batch_size, "ms_per_call": ms,
+                                   "ms_per_action": ms and ms / batch_size,
+                                   "target_forwards_per_call": forwards[name],
+                                   "ms_per_forward": ms and ms / forwards[name],
+                                   "syncs_per_round": syncs[name] / forwards[name],
+                                   "tokens_unlike_greedy": departures[name],
+                                   "tokens_unlike_greedy_compiled": departures_compiled[name],
+                                   "tokens": batch_size * ACTION_DIM,
+                                   "warm_up_s": warm_up_s[name], "samples_ms": values})  # fmt: skip
+        report["batches"].append({"batch_size": batch_size, "rounds_run": rounds_run, "skipped": skipped})
+        report["elapsed_s"] = time.perf_counter() - started
+        if args.json:  # after every batch size: a call cut short keeps what it measured
+            Path(args.json).write_text(json.dumps(report, indent=2))
+    report["complete"] = True
     if args.json:
-        Path(args.json).write_text(json.dumps({"settings": vars(args), "device": str(device), "dtype": str(dtype),
-                                               "rounds_run": rounds_run, "rows": rows}, indent=2))  # fmt: skip
+        Path(args.json).write_text(json.dumps(report, indent=2))
+    print_table(report)
+
+
+def print_table(report: dict) -> None:
+    print(f"\n{report['device']} ({report['device_name']}), {report['dtype']}, torch {report['torch']}, "
+          f"transformers {report['transformers']}, {report['elapsed_s']:.0f} s; medians:\n")  # fmt: skip
+    for batch in report["batches"]:
+        skipped = f", skipped (budget): {', '.join(batch['skipped'])}" if batch["skipped"] else ""
+        print(f"B={batch['batch_size']}: {batch['rounds_run']} rounds{skipped}")
+    print("\n| method | B | ms / call | ms / action | target fwd / call | ms / fwd | syncs / round (uncompiled) | "
+          "tokens unlike greedy | vs greedy:compile |")  # fmt: skip
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    rows = report["rows"]
+    baseline = {row["batch_size"]: row["ms_per_call"] for row in rows if row["method"] == "greedy:compile"}
+
+    def number(value, suffix="") -> str:
+        return "not timed" if value is None else f"{value:.{2 if suffix else 1}f}{suffix}"
+
+    for row in rows:
+        ms, base = row["ms_per_call"], baseline.get(row["batch_size"])
+        versus = base / ms if ms and base else None
+        print(f"| {row['method']} | {row['batch_size']} | {number(ms)} | {number(row['ms_per_action'])} | "
+              f"{row['target_forwards_per_call']} | {number(row['ms_per_forward'])} | "
+              f"{row['syncs_per_round']:.1f} | {row['tokens_unlike_greedy']} / {row['tokens']} | "
+              f"{number(versus, 'x')} |")  # fmt: skip
 
 
 if __name__ == "__main__":
