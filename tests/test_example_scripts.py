@@ -234,3 +234,23 @@ def test_gpu_openvla_benchmark_keeps_to_its_budget(tmp_path):
     assert all(b["skipped"] == ["drafts p=1", "head chain"] and b["rounds_run"] >= 1 for b in report["batches"])
     assert sorted((r["method"], r["batch_size"]) for r in report["rows"]) == [
         ("greedy", 1), ("greedy", 2), ("greedy:compile", 1), ("greedy:compile", 2)]  # fmt: skip
+
+
+@pytest.mark.slow
+def test_host_overhead_benchmark_small_mode(tmp_path):
+    """Its small mode: every method's forwards per call (right drafts one forward, greedy one per token), where a
+    speculative call's time goes (the parts add up to the call), and the two comparisons of issue 66's targets."""
+    output = tmp_path / "host.json"
+    result = run_example("benchmarks/host_overhead.py", "--small", "--json", str(output), timeout=900)
+    assert "| method | ms / call | target fwd / call | ms / round |" in result.stdout
+    report = json.loads(output.read_text())
+    rows = {row["method"]: row for row in report["rows"]}
+    assert set(rows) == {"greedy:compile 1", "greedy:compile 2", "greedy:compile 8", "drafts right", "jacobi"}
+    forwards = {name: row["target_forwards_per_call"] for name, row in rows.items()}
+    assert forwards["greedy:compile 8"] == 8 and forwards["drafts right"] == 1 and 1 < forwards["jacobi"] <= 8
+    for name in ("drafts right", "jacobi"):
+        parts = rows[name]["parts_ms"]
+        assert set(parts) == {"generate_outside_loop", "target_forwards", "drafting", "loop_other"}
+        assert parts["target_forwards"] > 0 and sum(parts.values()) == pytest.approx(rows[name]["ms_per_call"], 0.5)
+    summary = report["summary"]
+    assert summary["greedy_step_ms"] > 0 and summary["right_drafts_call_over_greedy_2"] > 0
