@@ -76,9 +76,9 @@ def test_a_prompt_longer_than_the_compiled_graphs_is_refused_before_any_forward(
 
 
 def test_the_slot_counts_the_service_plans_for_are_the_engines(policy):
-    """The service restates how the engine sizes a compiled call's static cache (prompt + action tokens + the widest
-    verification, rounded up): checked against the engine's own ``with_draft_slots`` at every prompt length of a
-    tier and its neighbours."""
+    """The service restates how a compiled call's static cache is sized (generate's: ``max_length - 1`` = prompt +
+    action tokens - 1; the engine's: + the widest verification, rounded up): checked against the engine's own
+    ``with_draft_slots`` at every prompt length of a tier and its neighbours."""
     from transformers import StaticCache
 
     from hf_specvla.speculative.cache import with_draft_slots
@@ -91,7 +91,7 @@ def test_the_slot_counts_the_service_plans_for_are_the_engines(policy):
     text_config = policy.model.config.get_text_config(decoder=True)
     slots = set()
     for length in range(first - 2, last + 3):
-        generates = StaticCache(config=text_config, max_cache_len=length + policy.config.action_tokens)
+        generates = StaticCache(config=text_config, max_cache_len=length + policy.config.action_tokens - 1)
         engines = with_draft_slots(policy.model, generates, NODE_BUCKETS[-1], SLOT_MULTIPLE, 1)
         planned = multiple * -(-(length + extra) // multiple)
         assert max(layer.max_cache_len for layer in engines.layers) == planned, length
@@ -110,6 +110,7 @@ def test_warm_up_compiles_every_prompt_tier_and_the_limit_follows_max_prompt_tok
         service.close()
     assert service.max_prompt_tokens == 150 and len(service.prompt_tiers) == 2
     state = np.zeros(policy.config.state_dim)
+    assert len(policy.prompt_ids(calls[0][0], state)) == 150  # the longest first: generate's cache keeps its size
     for bucket in (1, 2):
         widths = {len(policy.prompt_ids(rows[0], state)) for rows in calls if len(rows) == bucket}
         for first, last in service.prompt_tiers:

@@ -24,6 +24,8 @@ EXAMPLES = """
     # Quick start-up (eager decoding, no compile), small batches; a greedy-only server (the baseline)
     hf-specvla serve --policy policies/mt10_vla3 --method prior+jacobi --buckets 1 2 4 --port 8001
     hf-specvla serve --policy policies/mt10_vla3 --method greedy:compile --port 8002
+    # Instructions longer than the default limit (GET /info: max_prompt_tokens): their graphs compiled at start-up
+    hf-specvla serve --policy policies/mt10_vla3 --method exact --max-prompt-tokens 240 --port 8003
     # Reachable from other machines: an API key is required (from the environment, not the command line)
     HF_SPECVLA_API_KEY=change-me hf-specvla serve --policy policies/mt10_vla3 --host 0.0.0.0
     # Ray Serve: 2 replicas on a local Ray cluster (or --ray-address auto for a running one)

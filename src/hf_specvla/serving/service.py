@@ -26,9 +26,10 @@ with room for the tier's longest prompt (emptied before each call): one graph pe
 grow with the batch's widest prompt (64 slots at a time: the target's cache with room for a draft tree, a draft
 head's own). A prompt that needs more slots than any warmed-up call compiled new graphs mid-traffic: minutes on a
 CPU, every robot waiting. So the prompt lengths served are bounded: [`PolicyService.prompt_tiers`] groups the lengths
-from this policy's shortest prompt up to ``max_prompt_tokens`` (default: as far as the shortest prompt's slot counts
-go) by the slot counts they need, [`PolicyService.warm_up`] compiles every tier, and [`PolicyService.parse`] refuses a
-longer prompt (422, field ``instruction``, the limit named; ``GET /info`` states it) before any forward.
+from this policy's shortest prompt up to ``max_prompt_tokens`` (default: as far as the shortest prompt's verification
+cache stretches) by the slot counts they need, [`PolicyService.warm_up`] compiles every tier, and
+[`PolicyService.parse`] refuses a longer prompt (422, field ``instruction``, the limit named; ``GET /info`` states it)
+before any forward.
 
 **Speculate only where it pays.** For each bucket the service decodes either speculatively (the method, e.g.
 ``exact`` = previous action + Jacobi drafts, compiled) or with the greedy baseline (transformers' compiled greedy
@@ -68,8 +69,8 @@ CALIBRATION_INSTRUCTION = "calibrate the policy server"
 SLOT_MULTIPLE = 64
 #: a gap between the two modes' median call times past which the other mode is explored less often, and how much
 CLEAR_GAP, CLEAR_GAP_EXPLORE_FACTOR = 0.2, 4
-#: dynamo graphs allowed per bucket on the decoding thread (verification widths, prefill, greedy steps, with and
-#: without hidden states) beyond the engine's own raise, and a margin for transformers' own
+#: dynamo graphs allowed per bucket and prompt tier on the decoding thread (verification widths, prefill, greedy
+#: steps, with and without hidden states) beyond the engine's own raise, and a margin for transformers' own
 GRAPHS_PER_BUCKET, GRAPHS_MARGIN = 16, 16
 
 
@@ -192,9 +193,13 @@ class PolicyService:
     def _slot_rules(self, draft_head) -> list[tuple[int, int]]:
         """``(extra, multiple)`` per static cache a compiled call decodes on: a prompt of ``P`` tokens needs
         ``multiple * ceil((P + extra) / multiple)`` slots in it (the graphs hold that count). Empty: eager, no graphs.
-        The engine's own sizing, restated (tests check it against the engine's): generate's cache holds the prompt
-        and the action tokens, the engine adds room for the widest verification and rounds up; a draft head's cache
-        adds its padded catch-up pairs and its tree's entries."""
+        The engine's own sizing, restated (tests check it against the engine's): the target's cache
+        ([`_verification_rule`]); a draft head's holds the prompt, the action tokens, its padded catch-up pairs and
+        its tree's entries; the greedy baseline's is the service's own (``_greedy_kwargs``).
+
+        transformers' ``generate`` never shrinks the target's cache (it keeps the largest size it made, so as not to
+        recompile): once [`warm_up`] decoded the longest tier, every speculative call decodes on that tier's cache,
+        whatever its prompt; the other caches follow each call's prompt."""
         from ..speculative.compiled import SLOT_MULTIPLE as ENGINE_SLOT_MULTIPLE
         from ..speculative.drafters.eagle_tree import num_head_entries
 
@@ -209,11 +214,13 @@ class PolicyService:
         return rules
 
     def _verification_rule(self) -> tuple[int, int]:
-        """The target's cache in a compiled speculative call (``_slot_rules``)."""
+        """The target's cache in a compiled speculative call (``_slot_rules``): ``generate`` sizes its static cache
+        ``max_length - 1`` (the prompt and the action tokens but the last, which is never fed), the engine adds room
+        for the widest verification and rounds up."""
         from ..speculative.compiled import NODE_BUCKETS
         from ..speculative.compiled import SLOT_MULTIPLE as ENGINE_SLOT_MULTIPLE
 
-        return self.policy.config.action_tokens + NODE_BUCKETS[-1], ENGINE_SLOT_MULTIPLE
+        return self.policy.config.action_tokens - 1 + NODE_BUCKETS[-1], ENGINE_SLOT_MULTIPLE
 
     def _head_trees(self, draft_head) -> list:
         """The tree settings of the draft-head drafters the method runs (a chain is a tree of top-k 1)."""
@@ -236,9 +243,9 @@ class PolicyService:
 
     def _prompt_tiers(self, draft_head) -> list[tuple[int, int]]:
         """The prompt lengths served, grouped by the slot counts they decode on: ``[(first, last), ...]`` tokens,
-        from the shortest prompt to ``max_prompt_tokens`` (default: as far as the shortest prompt's verification
-        cache goes: 64 slots hold the prompt, the action and the widest verification); each tier's graphs
-        are compiled by [`warm_up`]. Empty for an eager method (no graphs: any prompt is served).
+        from the shortest prompt to ``max_prompt_tokens`` (default: the longest prompt whose verification cache has
+        the shortest prompt's slot count); each tier's graphs are compiled by [`warm_up`]. Empty for an eager method
+        (no graphs: any prompt is served, unless ``max_prompt_tokens`` says otherwise).
 
         Raises:
             ValueError: ``max_prompt_tokens`` shorter than this policy's shortest prompt.
@@ -263,20 +270,19 @@ class PolicyService:
         return tiers
 
     def tier_instruction(self, tier: tuple[int, int]) -> str:
-        """A synthetic instruction whose prompt falls in ``tier`` (for [`warm_up`]): the calibration's, else as many
-        words as it takes."""
+        """A synthetic instruction whose prompt is the longest of ``tier`` (or near it) that words make: what
+        [`warm_up`] compiles the tier with (the longest, so that the caches sized for it hold every prompt of the
+        tier)."""
         first, last = tier
         state = self._zero_state()
 
-        def length(instruction: str) -> int:
-            return len(self.policy.prompt_ids(instruction, state))
+        def length(words: list[str]) -> int:
+            return len(self.policy.prompt_ids(" ".join(words), state))
 
-        if first <= length(CALIBRATION_INSTRUCTION) <= last:
-            return CALIBRATION_INSTRUCTION
         words = ["go"]
-        while length(" ".join(words)) < first and len(words) <= last:
+        while len(words) <= last and length([*words, "go"]) <= last:
             words.append("go")
-        if not first <= length(" ".join(words)) <= last:
+        if not first <= length(words) <= last:
             raise RuntimeError(f"no synthetic instruction makes a prompt of {first}..{last} tokens for the warm-up")
         return " ".join(words)
 
@@ -390,12 +396,13 @@ class PolicyService:
         return {**{k: v for k, v in kwargs.items() if k != "cache_implementation"}, CACHE_KEY: cache}
 
     def _allow_graphs(self) -> None:
-        """On the decoding thread: dynamo's recompile limit (a per-thread setting) raised for every bucket's graphs."""
+        """On the decoding thread: dynamo's recompile limit (a per-thread setting) raised for the graphs of every
+        bucket and prompt tier."""
         import torch
 
         config = torch._dynamo.config
         name = "recompile_limit" if hasattr(config, "recompile_limit") else "cache_size_limit"
-        wanted = GRAPHS_PER_BUCKET * len(self.config.buckets) + GRAPHS_MARGIN
+        wanted = GRAPHS_PER_BUCKET * len(self.config.buckets) * max(1, len(self.prompt_tiers)) + GRAPHS_MARGIN
         if getattr(config, name) < wanted:
             setattr(config, name, wanted)
 
@@ -463,22 +470,26 @@ class PolicyService:
         table = []
         measure = calibrate and self.speculates and self.config.calibration_calls > 0
         measure = measure and self.config.speculate_buckets is None
-        instructions = [self.tier_instruction(tier) for tier in self.prompt_tiers] or [CALIBRATION_INSTRUCTION]
-        calibration = CALIBRATION_INSTRUCTION if CALIBRATION_INSTRUCTION in instructions else instructions[0]
+        # every tier's graphs, compiled at its longest prompt, the longest tier first: the target's cache, sized by
+        # generate, keeps the largest size it had (so one set of target graphs, not one per tier)
+        compiled = self.method.compiled or self.baseline.compiled
+        longest = [self.tier_instruction(tier) for tier in self.prompt_tiers[::-1]] if compiled else []
+        calibration, served = CALIBRATION_INSTRUCTION, self._zero_state()
+        if self.prompt_tiers and len(self.policy.prompt_ids(calibration, served)) > self.max_prompt_tokens:
+            calibration = longest[-1]  # a prompt served, so that calibrating compiles nothing more
         for bucket in self.config.buckets:
             sessions = [f"calibration-{bucket}-{i}" for i in range(bucket)]
             times: dict[bool, list[float]] = {True: [], False: []}
             modes = (False, True) if self.speculates else (False,)
-            for instruction in instructions:  # every prompt tier's graphs, without and with drafts
-                if instruction != calibration:
-                    for call in range(2):
-                        images = np.repeat(base[None], bucket, axis=0)
-                        requests = [ActRequest(images[i], instruction, np.zeros(dim), sessions[i], reset=call == 0)
-                                    for i in range(bucket)]  # fmt: skip
-                        for speculative in modes:
-                            self._choice[bucket], saved = speculative, self._choice[bucket]
-                            self._decode_unexplored(requests)
-                            self._choice[bucket] = saved
+            for instruction in longest:  # without drafts, then with
+                for call in range(2):
+                    images = np.repeat(base[None], bucket, axis=0)
+                    requests = [ActRequest(images[i], instruction, np.zeros(dim), sessions[i], reset=call == 0)
+                                for i in range(bucket)]  # fmt: skip
+                    for speculative in modes:
+                        self._choice[bucket], saved = speculative, self._choice[bucket]
+                        self._decode_unexplored(requests)
+                        self._choice[bucket] = saved
             calls = 1 + (self.config.calibration_calls if measure else 0)
             for call in range(calls + 1):  # call 0 compiles (and leaves each session its first action)
                 drift = rng.integers(-2, 3, (bucket, size, size, 3))
