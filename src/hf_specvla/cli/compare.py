@@ -38,8 +38,9 @@ EXAMPLES = """
     # (the finished episodes kept; only episodes timed from now on enter the speed columns)
     hf-specvla compare --policy policies/mt10_vla --tasks reach --episodes 4 --methods greedy prior prior:r=4 \\
         --workers 2 --restart-timing --output-dir runs/compare_smoke
-    # The presets (exact: the fastest setting identical to greedy; fast: the relaxed one chosen on policy v2) and a
-    # relaxed rule spelled out: r per dimension (strict gripper), at most 1 relaxed token per action, a confidence gate
+    # The presets (exact: the fastest setting identical to greedy; fast: the relaxed one, r=4 on x y z with gate=0.5
+    # chosen on policy v2, confirm=1 added on policy v3) and a relaxed rule spelled out: r per dimension (strict
+    # gripper), at most 1 relaxed token per action, a confidence gate
     hf-specvla compare --policy policies/mt10_vla2 --tasks reach --episodes 1 \\
         --methods greedy exact fast prior+jacobi:r=4/4/4/0,m=1,gate=0.5 --output-dir runs/compare_rules_smoke
     # Rules that scale with the motion: within 10% of greedy's motion in bins (x y z), at most 0.04 units, the gripper

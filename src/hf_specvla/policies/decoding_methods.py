@@ -17,13 +17,15 @@ verification; ``k=<int>`` the head chain's length. E.g. ``prior+jacobi:r=4/4/4/0
 ``prior+jacobi:rho=0.1/0.1/0.1/0,confirm=1:compile``.
 
 Presets: ``exact`` (the fastest setting identical to greedy decoding) and ``fast`` (the relaxed setting chosen on policy
-v2; on policy v3 it flips episodes both ways beyond the fidelity criterion), resolved per policy, with or without a
-draft head, and to the policy's action layout ([`PRESETS`], [`Preset`], chosen by the evidence in docs/metaworld.md);
-every place that takes a method string takes them and names what they resolved to. A preset is defined by what it
-relaxes, not by a table: ``fast`` relaxes the position dimensions (x y z) with r=4 and keeps the rotation and the
-gripper strict, only where the target's top-1 probability is below 0.5. On this project's 4-dimensional actions
-(x y z gripper) that is ``r=4/4/4/0``; on OpenVLA's 7 (x y z roll pitch yaw gripper) ``r=4/4/4/0/0/0/0``; on 8
-(x y z, a quaternion qx qy qz qw, gripper) ``r=4/4/4/0/0/0/0/0`` ([`ACTION_LAYOUTS`]). Rotations stay strict because
+v2, with ``confirm=1`` added on policy v3; there it flips episodes both ways beyond the fidelity criterion and is no
+faster than ``exact`` in total decode time), resolved per policy, with or without a draft head, and to the policy's
+action layout ([`PRESETS`], [`Preset`], chosen by the evidence in docs/results/record/metaworld-policies.md); every
+place that takes a method string takes them and names what they resolved to. A preset is defined by what it relaxes,
+not by a table: ``fast`` relaxes the position dimensions (x y z) with r=4 and keeps the rotation and the gripper
+strict, only where the target's top-1 probability is below 0.5, a relaxed token kept only when the gripper after it
+is confirmed (``confirm=1``). On this project's 4-dimensional actions (x y z gripper) that is ``r=4/4/4/0``; on
+OpenVLA's 7 (x y z roll pitch yaw gripper) ``r=4/4/4/0/0/0/0``; on 8 (x y z, a quaternion qx qy qz qw, gripper)
+``r=4/4/4/0/0/0/0/0`` ([`ACTION_LAYOUTS`]). Rotations stay strict because
 no measurement here relaxed one (Meta-World's hand does not rotate); any other number of dimensions is refused with
 the rule to spell out instead. ``exact`` relaxes nothing, so it fits every layout.
 
@@ -457,7 +459,8 @@ class Preset:
 #: by 4 bins where the target is unsure, with the gripper confirmed after a relaxed token (issue 52: on policy v3 it
 #: flipped 12 of 200 episodes on seeds 100000+ where the same rule without the confirmation flipped 17, and kept the
 #: gripper's deviation from greedy's at policy v2's level; no rule tried met the fidelity criterion on v3, see there;
-#: its third range, 300000+: -0.5 [-3.5, +3.0] points, 1.03x over ``exact``)
+#: its third range, 300000+: -0.5 [-3.5, +3.0] points, 0.99x ``exact``'s total decode time (1.03x per call; its
+#: episodes make other calls), docs/results/compare_v3_fast_300k_summary.json)
 PRESETS = {
     preset.name: preset
     for preset in (
