@@ -6,6 +6,8 @@ the computed figures, so a stale or hand-typed figure fails here. Reads JSON onl
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -100,6 +102,12 @@ def test_the_figures_can_fail(table):
     assert table.replace("1.70x [1.54, 1.86]", "1.78x [1.70, 1.86]") not in readme
     computed = set(FIGURE.findall(table))
     assert "1.78" not in computed and "0/600" not in computed and "2.5" not in computed
+
+
+def test_the_script_prints_the_table_and_the_figures(table, quotes):
+    script = ROOT / "examples" / "metaworld" / "figures.py"
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, check=True)
+    assert table in result.stdout and f"fast calls: {quotes['fast calls']}" in result.stdout
 
 
 # ----------------------------------------------------------------------------- the statistics themselves

@@ -14,7 +14,7 @@ One statistic per word:
 * success rates, the paired success difference (points, 95% interval), the discordant episodes and the episodes
   identical to greedy's, as each summary holds them.
 
-``python -m hf_specvla.metaworld.comparison.figures`` prints the README's table and every quoted figure;
+``python examples/metaworld/figures.py`` prints the README's table and every quoted figure ([`report`]);
 ``tests/test_figures.py`` checks that the pages quote exactly these, so a figure that goes stale fails a test.
 A headline speed-up gives the interval of one run and the range over every run of the same comparison on the same
 200 pairs that kept per-call times (``RUNS``); the two earliest presets runs (``compare_v3_presets_100k_summary.json``,
@@ -232,12 +232,7 @@ def quoted_figures(results: Path = RESULTS) -> dict[str, str]:
     }
 
 
-def main() -> None:
-    print(measured_table())
-    print()
-    for name, value in quoted_figures().items():
-        print(f"{name}: {value}")
-
-
-if __name__ == "__main__":
-    main()
+def report(results: Path = RESULTS) -> str:
+    """The README's table, then every quoted figure by name (``examples/metaworld/figures.py`` prints it)."""
+    quotes = quoted_figures(results)
+    return measured_table(results) + "\n\n" + "\n".join(f"{name}: {value}" for name, value in quotes.items())
