@@ -31,7 +31,8 @@ PAGE_QUOTES = {
     "docs/metaworld.md": ["fast calls"],
     "docs/serving.md": [
         "serve warm-up", "exact vs compiled runs", "exact vs compiled run 1", "exact vs compiled run 2",
-        "serve speculative at 4", "serve speculative at 16",
+        "serve speculative at 4", "serve speculative at 16", "serve 1 robot", "serve 1 robot repeats",
+        "serve 2 robots", "serve 2 robots repeats", "serve 4-16 robots",
     ],
     "docs/usage.md": [
         "fast vs exact range", "fast vs exact per call", "fast decided differently", "v2 fast per-call median",
