@@ -153,12 +153,19 @@ def test_fast_over_exact_contains_one_on_every_range():
 
 
 def test_the_runs_are_the_same_pairs_under_the_same_conditions():
-    for (preset, _), names in figures.RUNS.items():
+    for (preset, seeds), names in figures.RUNS.items():
         summaries = [figures.load(name) for name in names]
+        assert {s["settings"]["seed_start"] for s in summaries} == {int(seeds.rstrip("+"))}, names
         keys = [frozenset(per_call_latencies(s)[figures.PRESETS[preset]]) for s in summaries]
         assert all(len(k) == 200 for k in keys) and len(set(keys)) == 1, names
         conditions = {repr(s["timing"]["conditions"]) for s in summaries}
         assert len(conditions) == 1, names
+        # the README's "200 held-out episodes per seed range (10 tasks x 20 seeds), 2 workers x 1 CPU thread"
+        assert (summaries[0]["timing"]["conditions"]["workers"], summaries[0]["timing"]["conditions"]["threads"]) == (
+            2,
+            1,
+        )
+        assert all(len(s["methods"][figures.GREEDY]["task_success_rates"]) == 10 for s in summaries), names
         assert {s["settings"]["policy"] for s in summaries} == {summaries[0]["settings"]["policy"]}
 
 
