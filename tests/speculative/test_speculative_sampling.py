@@ -1,7 +1,10 @@
 """Lossless speculative sampling (``do_sample=True``): whatever the drafter, the generated tokens are distributed
 exactly as the target's own sampling. Checked against the exact distribution of the first 3 tokens (enumerated from
 the target's processed scores) with a chi-square test over 20,000 samples per drafter and temperature, and at a
-temperature near 0 against greedy decoding."""
+temperature near 0 against greedy decoding. The check is shown to fail on wrong samplers (plain sampling at another
+temperature, a speculative sampler that accepts every draft, one that samples the bonus token without removing the
+rejected draft), and every drafter's cases must have had drafts accepted (a drafter never accepted would test only
+the target's own sampling)."""
 
 from __future__ import annotations
 
@@ -26,6 +29,8 @@ from hf_specvla import (
     JacobiDrafter,
     enable_speculation,
 )
+from hf_specvla.speculative import AcceptedPath, loop
+from hf_specvla.training.draft_head import DraftTrainingConfig, build_distillation_dataset, train_draft_head
 
 from ..conftest import tiny_llama_config
 
@@ -47,8 +52,25 @@ def peaked():
 
 @pytest.fixture(scope="module")
 def head(peaked, action_tokenizer):
+    """A random head: its drafts are (almost) never accepted at T=0.7 (0 of 60,000), only the residual path."""
     torch.manual_seed(8)
     return DraftHead.from_target(peaked, action_tokenizer, action_dim=ACTION_DIM, draft_action_tokens_only=False).eval()
+
+
+@pytest.fixture(scope="module")
+def distilled_head(peaked, action_tokenizer, tmp_path_factory):
+    """A head distilled from the target for a moment (200 steps, about a second) on the prompt followed by each of
+    its likely 1- and 2-token prefixes: its drafts are accepted about once per sample and rejected about as often,
+    so both branches of the rejection sampling run."""
+    likely = sorted(exact_distribution(peaked, action_tokenizer, 1.0).items(), key=lambda item: -item[1])[:40]
+    prefixes = sorted({outcome[:length] for outcome, _ in likely for length in (1, 2)})
+    prompts = [{"input_ids": torch.tensor([PROMPT + list(prefix)])} for prefix in prefixes]
+    dataset = build_distillation_dataset(peaked, prompts, NEW_TOKENS, action_tokenizer, progress=False)
+    torch.manual_seed(8)
+    head = DraftHead.from_target(peaked, action_tokenizer, action_dim=ACTION_DIM, draft_action_tokens_only=False)
+    config = DraftTrainingConfig(str(tmp_path_factory.mktemp("distilled")), max_steps=200, learning_rate=1e-3,
+                                 feature_noise=0.0)  # fmt: skip
+    return train_draft_head(head, peaked, dataset, config, progress=False)
 
 
 def _processors(action_tokenizer, temperature: float) -> LogitsProcessorList:
@@ -101,7 +123,7 @@ def _drafter(kind: str, head, layout: ActionLayout, likely: list[tuple[int, ...]
     if kind == "candidates":
         return {"draft_ids": torch.tensor([likely[:4]] * ROWS)}  # [B, C, k]
     drafter = {
-        "chain": lambda: head,  # a random head: its drafts are mostly rejected (the residual path)
+        "chain": lambda: head,  # the distilled head's chain
         "tree": lambda: DraftHeadDrafter(head, tree=tree),
         "prior": lambda: ActionPriorDrafter(history, layout),
         "jacobi": lambda: JacobiDrafter(),
@@ -120,15 +142,15 @@ CASES = [("candidates", 0.7), ("candidates", 1.0), ("prior", 0.7)] + [
 ]  # fmt: skip
 
 
-@pytest.mark.parametrize("kind, temperature", CASES)
-def test_speculative_sampling_keeps_the_targets_distribution(peaked, head, action_tokenizer, kind, temperature):
-    expected = exact_distribution(peaked, action_tokenizer, temperature)
+def _sample(peaked, action_tokenizer, kind: str, temperature: float, head, expected,
+            samples: int = SAMPLES) -> tuple[dict, int]:  # fmt: skip
+    """``samples`` samples of the first 3 tokens drafted by ``kind``: (count per outcome, drafts accepted)."""
     layout = ActionLayout(action_tokenizer, ACTION_DIM)
     likely = sorted(expected, key=expected.get, reverse=True)
     counts: dict[tuple, int] = {}
     accepted = 0
     torch.manual_seed(100)
-    for _ in range(SAMPLES // ROWS):
+    for _ in range(samples // ROWS):
         out = peaked.generate(
             input_ids=torch.tensor([PROMPT] * ROWS), max_new_tokens=NEW_TOKENS, do_sample=True, temperature=temperature,
             top_p=TOP_P, top_k=0, suppress_tokens=list(range(action_tokenizer.action_token_begin)),
@@ -137,11 +159,20 @@ def test_speculative_sampling_keeps_the_targets_distribution(peaked, head, actio
         for row in out.sequences[:, len(PROMPT) :].tolist():
             counts[tuple(row)] = counts.get(tuple(row), 0) + 1
         accepted += sum(out.speculation.accepted_per_position)
+    return counts, accepted
+
+
+@pytest.mark.parametrize("kind, temperature", CASES)
+def test_speculative_sampling_keeps_the_targets_distribution(peaked, action_tokenizer, request, kind, temperature):
+    expected = exact_distribution(peaked, action_tokenizer, temperature)
+    head = request.getfixturevalue("distilled_head") if kind in ("chain", "tree", "composed") else None
+    counts, accepted = _sample(peaked, action_tokenizer, kind, temperature, head, expected)
     p_value, cells = chi_square_p_value(counts, expected, SAMPLES)
     print(f"{kind} T={temperature}: chi-square p={p_value:.3f} over {cells} cells, {accepted} drafts accepted")
     assert cells >= 5 and p_value > 0.01, (kind, temperature, p_value, cells)
-    if kind not in ("chain", "tree"):  # drafts were accepted (Jacobi's rarely: it guesses only past a rejection)
-        assert accepted > SAMPLES // (100 if kind == "jacobi" else 10), accepted
+    # drafts were accepted: the speculative path was tested, not only the target's sampling (Jacobi's rarely: it
+    # guesses only past a rejection)
+    assert accepted > SAMPLES // (100 if kind == "jacobi" else 10), accepted
 
 
 def test_the_test_detects_a_wrong_distribution(peaked, action_tokenizer):
@@ -155,6 +186,62 @@ def test_the_test_detects_a_wrong_distribution(peaked, action_tokenizer):
     for row in out[:, len(PROMPT) :].tolist():
         counts[tuple(row)] = counts.get(tuple(row), 0) + 1
     assert chi_square_p_value(counts, expected, SAMPLES)[0] < 1e-6
+
+
+def wrong_sampler(accept_every_draft: bool = False, remove_rejected: bool = True):
+    """A deliberately wrong ``sample_trees`` (the engine's, with one mistake): ``accept_every_draft`` takes each
+    node's first child whatever the target's probability of it; ``remove_rejected=False`` samples the bonus token
+    from the target's distribution without taking the rejected drafts out (the draft is then emitted more often than
+    the target samples it)."""
+
+    def sample_trees(trees, scores, generator=None) -> list[AcceptedPath]:
+        probs = scores.float().softmax(dim=-1).cpu()  # [B, 1 + N, V]
+        paths = []
+        for b, tree in enumerate(trees.trees):
+            children: dict[int, list[int]] = {}
+            for node, parent in enumerate(tree.parent_list):
+                children.setdefault(parent, []).append(node)
+            nodes, at = [], -1
+            while True:
+                p, chosen = probs[b, at + 1].clone(), None
+                for child in children.get(at, []):
+                    token = tree.host_tokens[child]
+                    if accept_every_draft or float(torch.rand((), generator=generator)) < float(p[token]):
+                        chosen = child
+                        break
+                    if remove_rejected:
+                        p[token] = 0.0
+                        p /= p.sum()
+                if chosen is None:
+                    bonus = int(torch.multinomial(p, 1, generator=generator))
+                    break
+                nodes.append(chosen)
+                at = chosen
+            paths.append(AcceptedPath(nodes, bonus, [0] * len(nodes), None))
+        return paths
+
+    return sample_trees
+
+
+@pytest.mark.parametrize(
+    "mistake, settings",
+    [("accepts every draft", dict(accept_every_draft=True)), ("keeps the rejected draft", dict(remove_rejected=False)),
+     ("none", {})],
+)  # fmt: skip
+def test_the_test_detects_a_wrong_speculative_sampler(peaked, action_tokenizer, monkeypatch, mistake, settings):
+    """The same check, on the prior's drafts at T=0.7 (a case above; here on one batch of 4,000 samples, fewer than
+    there, so a rejection here is one there too), rejects a speculative sampler with one mistake, which still accepts
+    drafts; the same sampler without the mistake passes it (the mistake is what fails)."""
+    expected = exact_distribution(peaked, action_tokenizer, 0.7)
+    monkeypatch.setattr(loop, "sample_trees", wrong_sampler(**settings))
+    counts, accepted = _sample(peaked, action_tokenizer, "prior", 0.7, None, expected, samples=ROWS)
+    assert accepted > ROWS // 10, accepted  # the sampler ran on drafts
+    p_value, cells = chi_square_p_value(counts, expected, ROWS)
+    print(f"{mistake}: chi-square p={p_value:.3g} over {cells} cells, {accepted} drafts accepted")
+    if mistake == "none":
+        assert p_value > 0.01, (p_value, cells)
+    else:
+        assert p_value < 1e-6, (mistake, p_value, cells)
 
 
 def test_near_zero_temperature_is_greedy(peaked, head, action_tokenizer):
