@@ -10,7 +10,7 @@ request's arrays are decoded field by field, so an error names the field (``imag
 | field | type | |
 |---|---|---|
 | ``image`` | uint8 array ``[S, S, 3]`` (``GET /info`` names S) | required (OpenVLA's) |
-| ``instruction`` | string | required (OpenVLA's) |
+| ``instruction`` | string | required (OpenVLA's); at most 1000 characters and ``GET /info``'s ``max_prompt_tokens`` |
 | ``unnorm_key`` | string | accepted and ignored: a policy here has one set of action statistics (OpenVLA's) |
 | ``state`` | numbers ``[state_dim]`` (an array or a list) | required when the policy reads the proprio state |
 | ``session`` | string, at most 128 characters | the robot's id: the server keeps its previous actions as drafts |
