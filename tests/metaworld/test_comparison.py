@@ -102,7 +102,7 @@ def test_summary_keeps_per_call_times_and_times_only_episodes_of_the_folders_con
     again = paired_speedup([kept["greedy"][k] for k in keys], [kept["prior"][k] for k in keys])
     assert again["speedup"] == pytest.approx(row["speedup_total"]["speedup"], rel=1e-4)
     table = format_comparison(summary)
-    assert "speed-up, total time (95% CI)" in table and "speed-up, median of ratios" in table
+    assert "speed-up, mean per call (95% CI)" in table and "speed-up, median of ratios" in table
     assert f"| {row['speedup_total']['speedup']:.2f}x [" in table and "(4 pairs)" in table
     # against compiled greedy too, when it ran
     compiled = [_record(r["task"], r["seed"], "greedy:compile", [x / 2 for x in r["latencies_ms"]])

@@ -15,9 +15,9 @@ baseline every figure is paired with.
 
 **Per method** (see [`summarize_comparison`]): success rate; the paired difference to greedy with a 95% bootstrap
 interval over seeds and the discordant counts; mean episode length; median ms per policy call (one action, or one
-chunk of actions for a chunked policy); the speed-up vs greedy as **total time** (greedy's mean ms per call over the
-paired episodes / the method's: the ratio of total decode times when both make the same calls) with a 95% paired
-bootstrap interval over episodes, and as the **median of ratios** (median over seeds of the ratio of the two
+chunk of actions for a chunked policy); the speed-up vs greedy as the **mean per call** (greedy's mean ms per call
+over the paired episodes / the method's: the ratio of total decode times only when both make the same calls) with a
+95% paired bootstrap interval over episodes, and as the **median of ratios** (median over seeds of the ratio of the two
 episodes' median ms per call, the figure reported first), both also vs ``greedy:compile`` when it ran; target
 forwards per call and per action (env step);
 tokens per target forward; for relaxed methods the bin deviation from greedy's action *on the same observation*
