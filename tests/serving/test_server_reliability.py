@@ -17,6 +17,7 @@ import pytest
 
 from hf_specvla.policies import VLAPolicy
 from hf_specvla.serving import ServeConfig
+from hf_specvla.serving.batching import ACTIVE_WINDOW_S
 from hf_specvla.serving.protocol import dumps, encode_array
 from hf_specvla.serving.server import PolicyServer
 
@@ -155,14 +156,14 @@ def test_health_is_not_ok_once_the_batcher_died_and_requests_fail_instead_of_han
 # ----------------------------------------------------------------------------- batching under a backlog
 def test_a_backlog_behind_a_slow_batch_is_decoded_in_full_batches(policy):
     """The first batch takes longer than the "active robot" window while 12 robots queue a request each: they are
-    decoded 4 at a time (the largest bucket), not one by one."""
+    decoded 4 at a time (the largest bucket), not one by one (as 190 of 200 requests from 32 robots once were)."""
     service = _service(policy)
-    act, first_started = service.act, threading.Event()
+    act, first_started, release = service.act, threading.Event(), threading.Event()
 
     def slow_first(requests, arrived=None):
         if not first_started.is_set():
             first_started.set()
-            time.sleep(1.5)  # > ACTIVE_WINDOW_S: every queued request is "old" by the time it is dequeued
+            assert release.wait(30)
         return act(requests, arrived)
 
     service.act = slow_first
@@ -180,6 +181,8 @@ def test_a_backlog_behind_a_slow_batch_is_decoded_in_full_batches(policy):
         for thread in threads[1:]:
             thread.start()
         _wait_until(lambda: server.backend.batcher.waiting == 12, "the 12 robots' requests are queued")
+        time.sleep(ACTIVE_WINDOW_S + 0.2)  # every queued request is "old" by the time it is dequeued
+        release.set()
         for thread in threads:
             thread.join()
         _, stats = _get(server.url + "/stats")
