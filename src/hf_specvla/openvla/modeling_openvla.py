@@ -464,7 +464,8 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
                 f"predict_action decodes one action, its action_dim={action_dim} tokens: drop "
                 f"max_new_tokens={kwargs['max_new_tokens']!r}"
             )
-        layout = self.action_layout(unnorm_key)
+        # what relaxed acceptance and the prior read (built only for an episode's or a speculative call)
+        layout = None if previous_action_ids is None else self.action_layout(unnorm_key)
         self._check_episode_memory(action_prior, previous_action_ids, layout)
         if image is not None or instruction is not None:
             if input_ids is not None or "pixel_values" in kwargs:
@@ -492,8 +493,9 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
             elif action_prior and kwargs.get("draft_ids") is None:  # an episode's first step: plain decoding
                 for name in SPECULATION_KWARGS:
                     kwargs.pop(name, None)
-        if isinstance(kwargs.get("assistant_model"), (DraftHead, Drafter)) or kwargs.get("draft_ids") is not None:
-            kwargs.setdefault("action_layout", layout)
+        drafts = isinstance(kwargs.get("assistant_model"), (DraftHead, Drafter)) or kwargs.get("draft_ids") is not None
+        if drafts and "action_layout" not in kwargs:
+            kwargs["action_layout"] = layout if layout is not None else self.action_layout(unnorm_key)
         kwargs.update(self._action_length(action_dim, kwargs.pop("min_new_tokens", action_dim),
                                           kwargs.pop("generation_config", None)))  # fmt: skip
         generated = self.generate(input_ids, **kwargs)
@@ -505,7 +507,7 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         return self.action_normalizer(unnorm_key).unnormalize(normalized)
 
     @staticmethod
-    def _check_episode_memory(action_prior: bool, previous_action_ids, layout: ActionLayout) -> None:
+    def _check_episode_memory(action_prior: bool, previous_action_ids, layout: ActionLayout | None) -> None:
         """Refuses, naming the value, an ``action_prior`` that is not a bool or has no memory to draft from, and a
         memory that is not a list of actions (each ``action_dim`` action token ids)."""
         if not isinstance(action_prior, bool):
