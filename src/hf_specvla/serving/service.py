@@ -131,7 +131,8 @@ class PolicyService:
 
     # ----------------------------------------------------------------------------- what the server says it is
     def info(self) -> dict:
-        """What ``GET /info`` returns: the policy, what a robot must send, the method and the buckets."""
+        """What ``GET /info`` returns: the policy, what a robot must send (the instruction's limits too), the method and
+        the buckets."""
         layout = self.policy.config
         return {
             "server": "hf_specvla",
