@@ -65,7 +65,9 @@ logger = logging.getLogger(__name__)
 TIMING_WINDOW = 16
 #: the instruction of the calibration's synthetic observations
 CALIBRATION_INSTRUCTION = "calibrate the policy server"
-#: the greedy baseline's static caches hold a multiple of this many slots (a longer prompt takes the next multiple)
+#: the greedy baseline's static caches hold a multiple of this many slots (a longer prompt takes the next multiple);
+#: the engine rounds its own caches (the target's, a draft head's) the same way (its private ``SLOT_MULTIPLE``: the
+#: tests check that the two agree)
 SLOT_MULTIPLE = 64
 #: a gap between the two modes' median call times past which the other mode is explored less often, and how much
 CLEAR_GAP, CLEAR_GAP_EXPLORE_FACTOR = 0.2, 4
@@ -201,32 +203,32 @@ class PolicyService:
         transformers' ``generate`` never shrinks the target's cache (it keeps the largest size it made, so as not to
         recompile): once [`warm_up`] decoded the longest tier, every speculative call decodes on that tier's cache,
         whatever its prompt; the other caches follow each call's prompt."""
-        from ..speculative.compiled import SLOT_MULTIPLE as ENGINE_SLOT_MULTIPLE
-        from ..speculative.drafters.eagle_tree import num_head_entries
-
-        tokens = self.policy.config.action_tokens
         rules = []
         if self.method.compiled and self.speculates:
             rules.append(self._verification_rule())
-            for tree in self._head_trees(draft_head):  # the head's own cache (DraftHeadSession.key_length)
-                rules.append((tokens + tree.depth + 1 + num_head_entries(tree.top_k, tree.depth), ENGINE_SLOT_MULTIPLE))
+            rules += [self._head_rule(tree) for tree in self._head_trees(draft_head)]
         if self.baseline.compiled and not rules:  # greedy only: its cache's own tiers (else it follows the method's)
-            rules.append((tokens, SLOT_MULTIPLE))
+            rules.append((self.policy.config.action_tokens, SLOT_MULTIPLE))
         return rules
 
     def _verification_rule(self) -> tuple[int, int]:
         """The target's cache in a compiled speculative call (``_slot_rules``): ``generate`` sizes its static cache
         ``max_length - 1`` (the prompt and the action tokens but the last, which is never fed), the engine adds room
         for the widest verification and rounds up."""
-        from ..speculative.compiled import NODE_BUCKETS
-        from ..speculative.compiled import SLOT_MULTIPLE as ENGINE_SLOT_MULTIPLE
+        from ..speculative import NODE_BUCKETS
 
-        return self.policy.config.action_tokens - 1 + NODE_BUCKETS[-1], ENGINE_SLOT_MULTIPLE
+        return self.policy.config.action_tokens - 1 + NODE_BUCKETS[-1], SLOT_MULTIPLE
+
+    def _head_rule(self, tree) -> tuple[int, int]:
+        """A draft head's cache in a compiled call (``_slot_rules``; the engine's ``DraftHeadSession.key_length``):
+        ``max_length`` (the prompt and the action tokens), the padded catch-up pairs (``depth + 1``) and the entries
+        one expansion writes (``(depth - 1) * top_k``, ``eagle_tree.num_head_entries``), rounded up."""
+        tokens = self.policy.config.action_tokens
+        return tokens + tree.depth + 1 + (tree.depth - 1) * tree.top_k, SLOT_MULTIPLE
 
     def _head_trees(self, draft_head) -> list:
         """The tree settings of the draft-head drafters the method runs (a chain is a tree of top-k 1)."""
-        from ..speculative import DraftHead, DraftHeadDrafter
-        from ..speculative.drafter import ComposedDrafter
+        from ..speculative import ComposedDrafter, DraftHead, DraftHeadDrafter
 
         if draft_head is None:
             return []
