@@ -144,6 +144,23 @@ def test_a_setting_out_of_range_is_refused_naming_it(settings, message):
         ServeConfig(**settings)
 
 
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        (dict(drain_timeout_s=float("inf")), "drain_timeout_s must be seconds 0..3600, got inf"),
+        (dict(drain_timeout_s=float("nan")), "drain_timeout_s must be seconds 0..3600, got nan"),
+        (dict(max_request_bytes=0), "max_request_bytes must be an integer >= 1, got 0"),
+    ],
+)
+def test_a_server_setting_out_of_range_is_refused_naming_it(policy, settings, message):
+    service = _service(policy)
+    try:
+        with pytest.raises(ValueError, match=message.replace(".", r"\.")):
+            PolicyServer(service, port=0, **settings)
+    finally:
+        service.close()
+
+
 def test_health_is_not_ok_once_the_batcher_died_and_requests_fail_instead_of_hanging(policy):
     """The probe's ``--max-wait-ms inf`` killed the batching thread (``OverflowError``) while /health said ok and
     every request hung; the setting is refused now, so the same death is forced here."""

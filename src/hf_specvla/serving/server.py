@@ -31,6 +31,9 @@ from .service import PolicyService
 
 logger = logging.getLogger(__name__)
 
+#: the longest drain SIGTERM may be given (a finite wait: its thread joins and uvicorn's timer need a number)
+MAX_DRAIN_TIMEOUT_S = 3600.0
+
 
 class LocalBackend:
     """The app's backend on one machine: requests -> [`Batcher`] -> [`PolicyService`]."""
@@ -74,6 +77,14 @@ class PolicyServer:
                  api_key: str | None = None, max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
                  drain_timeout_s: float = 30.0, sock: socket.socket | None = None):  # fmt: skip
         check_exposure(host, api_key)
+        if isinstance(max_request_bytes, bool) or not isinstance(max_request_bytes, int) or max_request_bytes < 1:
+            raise ValueError(f"max_request_bytes must be an integer >= 1, got {max_request_bytes!r}")
+        if (
+            isinstance(drain_timeout_s, bool)
+            or not isinstance(drain_timeout_s, int | float)
+            or not (0 <= drain_timeout_s <= MAX_DRAIN_TIMEOUT_S)
+        ):
+            raise ValueError(f"drain_timeout_s must be seconds 0..{MAX_DRAIN_TIMEOUT_S:g}, got {drain_timeout_s!r}")
         self.backend = LocalBackend(service)
         self.routes = PolicyRoutes(self.backend, api_key, max_request_bytes)
         self.host, self.drain_timeout_s = host, drain_timeout_s
