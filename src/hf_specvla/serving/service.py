@@ -279,15 +279,18 @@ class PolicyService:
         first, last = tier
         state = self._zero_state()
 
-        def length(words: list[str]) -> int:
-            return len(self.policy.prompt_ids(" ".join(words), state))
+        def length(words: int) -> int:
+            return len(self.policy.prompt_ids(" ".join(["go"] * words), state))
 
-        words = ["go"]
-        while len(words) <= last and length([*words, "go"]) <= last:
-            words.append("go")
+        step = max(1, length(2) - length(1))  # tokens per word
+        words = max(1, 1 + (last - length(1)) // step)  # then a few steps to the longest that fits
+        while words > 1 and length(words) > last:
+            words -= 1
+        while length(words + 1) <= last:
+            words += 1
         if not first <= length(words) <= last:
             raise RuntimeError(f"no synthetic instruction makes a prompt of {first}..{last} tokens for the warm-up")
-        return " ".join(words)
+        return " ".join(["go"] * words)
 
     def _check_draft_state(self, draft_state: list[list[int]]) -> None:
         dim, tokenizer = self.policy.config.action_dim, self.policy.action_tokenizer
