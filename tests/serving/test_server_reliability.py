@@ -127,6 +127,17 @@ def test_warm_up_compiles_every_prompt_tier_and_the_limit_follows_max_prompt_tok
         _service(policy, method="exact", max_prompt_tokens=10)
 
 
+def test_the_default_limit_leaves_the_instruction_room(policy, monkeypatch):
+    """A policy whose shortest prompt sits just below a slot boundary (many image tokens) still serves instructions
+    of ``MIN_INSTRUCTION_TOKENS`` by default: one more tier, compiled at start-up."""
+    from hf_specvla.serving import service as service_module
+
+    monkeypatch.setattr(service_module, "MIN_INSTRUCTION_TOKENS", 100)
+    service = _service(policy, method="exact")
+    service.close()
+    assert service.max_prompt_tokens == service.shortest_prompt + 100 and len(service.prompt_tiers) == 2
+
+
 # ----------------------------------------------------------------------------- settings
 @pytest.mark.parametrize(
     ("settings", "message"),

@@ -39,8 +39,9 @@ class ServeConfig:
         max_sessions: robots whose drafts are kept.
         max_prompt_tokens: the longest prompt served (tokens: image, instruction and state), for a compiled method:
             start-up compiles graphs for every prompt length up to it (None: as long as the shortest prompt's
-            verification cache holds, about 50 instruction tokens on policy v3; longer costs start-up time, more
-            graphs per bucket every 64 tokens, and every speculative call then runs on the longest prompt's cache).
+            verification cache holds, and at least ``service.MIN_INSTRUCTION_TOKENS`` for the instruction: 54 tokens
+            on policy v3. Longer costs start-up time, more graphs per bucket every 64 tokens, and every speculative
+            call then runs on the longest prompt's cache).
             ``GET /info`` states the limit in force; a longer request is refused (422, field ``instruction``) before
             any forward. An eager method has no such limit.
     """

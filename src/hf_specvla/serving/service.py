@@ -69,6 +69,9 @@ CALIBRATION_INSTRUCTION = "calibrate the policy server"
 #: the engine rounds its own caches (the target's, a draft head's) the same way (its private ``SLOT_MULTIPLE``: the
 #: tests check that the two agree)
 SLOT_MULTIPLE = 64
+#: the default prompt limit leaves the instruction at least this many tokens (MT50's longest takes 13 on policy v3;
+#: on v3 the shortest prompt's verification cache leaves 54, so the default is that one tier)
+MIN_INSTRUCTION_TOKENS = 32
 #: a gap between the two modes' median call times past which the other mode is explored less often, and how much
 CLEAR_GAP, CLEAR_GAP_EXPLORE_FACTOR = 0.2, 4
 #: dynamo graphs allowed per bucket and prompt tier on the decoding thread (verification widths, prefill, greedy
@@ -247,7 +250,8 @@ class PolicyService:
     def _prompt_tiers(self, draft_head) -> list[tuple[int, int]]:
         """The prompt lengths served, grouped by the slot counts they decode on: ``[(first, last), ...]`` tokens,
         from the shortest prompt to ``max_prompt_tokens`` (default: the longest prompt whose verification cache has
-        the shortest prompt's slot count); each tier's graphs are compiled by [`warm_up`]. Empty for an eager method
+        the shortest prompt's slot count, and at least ``MIN_INSTRUCTION_TOKENS`` for the instruction); each tier's
+        graphs are compiled by [`warm_up`]. Empty for an eager method
         (no graphs: any prompt is served, unless ``max_prompt_tokens`` says otherwise).
 
         Raises:
@@ -265,7 +269,8 @@ class PolicyService:
 
         if longest is None:  # as far as the shortest prompt's verification cache goes (whatever the method)
             extra, multiple = self._verification_rule()
-            longest = multiple * math.ceil((shortest + extra) / multiple) - extra
+            longest = max(multiple * math.ceil((shortest + extra) / multiple) - extra,
+                          shortest + MIN_INSTRUCTION_TOKENS)  # fmt: skip
         tiers = [(shortest, shortest)]
         for length in range(shortest + 1, longest + 1):
             first, _ = tiers[-1]
