@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..actions.tokenizer import ActionTokenizer
-from ..progress import progress_bar
+from ..progress import heartbeat, progress_bar
 from ..speculative import ActionPriorDrafter, SpeculationStats
 
 
@@ -109,9 +109,11 @@ def run_benchmark(
     base = dict(max_new_tokens=max_new_tokens, min_new_tokens=max_new_tokens, do_sample=False)
     by_length = {prompt["input_ids"].shape[1]: prompt for prompt in prompts}  # compiled graphs: one per prompt length
     warm_up = prompts[:warmup] + [p for p in by_length.values() if not any(p is q for q in prompts[:warmup])]
-    for method in methods:  # warm-up: allocator, lazy init, every prompt length's compiled graphs
-        for prompt in warm_up:
-            target.generate(**prompt, **base, **method.generate_kwargs)
+    with heartbeat("warm-up (compiles the :compile rows, off the clock)") as beat:
+        for index, method in enumerate(methods):  # warm-up: allocator, lazy init, every prompt length's compiled graphs
+            beat.begin(f"{method.name} ({index + 1}/{len(methods)})")
+            for prompt in warm_up:
+                target.generate(**prompt, **base, **method.generate_kwargs)
     rng = random.Random(seed)
     order = list(methods)
     for _ in progress_bar(range(repeats), desc="benchmark", disable=not progress):
@@ -169,6 +171,138 @@ def format_report(results: list[MethodResult]) -> str:
             f"{accept} | {split} | {statistics.mean(distances):.2f} / {max(distances)} |"
         )
     return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- the verdict
+@dataclass(frozen=True)
+class VerdictRow:
+    """One row of the demo's verdict, read from one measured method.
+
+    Attributes:
+        role: what a newcomer calls it (``"compiled greedy"``, ``"`exact`"``, ``"relaxed r=1"``).
+        method: the measured row it reads (its name in the full tables).
+        median_latency: seconds per action (median over calls).
+        target_forwards: target forwards per action, the mean over calls.
+        identical: actions whose every token is eager greedy's; ``actions``: actions compared.
+    """
+
+    role: str
+    method: str
+    median_latency: float
+    target_forwards: float
+    identical: int
+    actions: int
+
+    def __post_init__(self):
+        if not 0 <= self.identical <= self.actions or self.actions < 1:
+            raise ValueError(f"{self.method}: {self.identical} identical of {self.actions} actions (need 0..actions)")
+
+    @property
+    def lossless(self) -> bool:
+        return self.identical == self.actions
+
+
+#: The verdict's rows: (role, what it is, patterns of the measured rows it reads: the first matching row is read).
+#: The episode table has them all (the previous action drafts there); the held-out scene table stands in for it
+#: with ``--episodes 0`` (Jacobi drafts and the head's chains, no previous action).
+VERDICT_ROLES = (
+    ("greedy", "plain greedy decoding, eager", (r"greedy",)),
+    ("compiled greedy", "transformers' static cache + CompileConfig", (r"greedy:compile",)),
+    ("`exact`", "previous action + Jacobi drafts, compiled, r=0",
+     (r"prior\+jacobi r=0:compile", r"prior\+jacobi r=0", r"jacobi r=0:compile", r"jacobi r=0")),
+    ("draft head", "`exact` + the draft head's EAGLE-2 tree",
+     (r"prior\+jacobi\+tree r=0:compile", r"prior\+jacobi\+tree r=0", r"spec k=\d+ r=0:compile", r"spec k=\d+ r=0")),
+    ("relaxed", "accepts a draft token up to r bins from the target's",
+     (r"prior\+jacobi r=[1-9]\d*:compile", r"prior\+jacobi r=[1-9]\d*", r"spec k=\d+ r=[1-9]\d*(:compile)?")),
+)  # fmt: skip
+
+
+def verdict_rows(results: list, action_dim: int) -> list[tuple[VerdictRow, str]]:
+    """(row, what it is) for each [`VERDICT_ROLES`] role found in ``results`` ([`run_episode_benchmark`]'s or
+    [`run_benchmark`]'s; the first result is eager greedy, what "identical" compares with)."""
+    import re
+
+    rows = []
+    for role, what, patterns in VERDICT_ROLES:
+        found = next((r for p in patterns for r in results if re.fullmatch(p, r.name)), None)
+        if found is None or any(row.method == found.name for row, _ in rows):
+            continue
+        tolerance = re.search(r"r=(\d+)", found.name)
+        if role == "relaxed" and tolerance:
+            role = f"relaxed r={tolerance.group(1)}"
+        distances = found.bin_distances or [0] * action_dim
+        actions = [distances[i : i + action_dim] for i in range(0, len(distances), action_dim)]
+        identical = sum(not any(action) for action in actions)
+        rows.append((VerdictRow(role, found.name, found.median_latency, _forwards_per_action(found, action_dim),
+                                identical, len(actions)), what))  # fmt: skip
+    return rows
+
+
+def _forwards_per_action(result, action_dim: int) -> float:
+    if isinstance(result, EpisodeMethodResult):
+        return statistics.mean(result.target_forwards)
+    if result.stats is None:  # greedy: one forward a token
+        return float(action_dim)
+    return result.stats.num_target_forwards / len(result.latencies)
+
+
+def format_verdict(results: list, action_dim: int) -> str:
+    """The demo's last screen: the rows a newcomer needs (greedy, compiled greedy, `exact`, the draft head, a relaxed
+    setting; those measured) as a table against the fastest greedy row, then one sentence saying what it means, every
+    figure read from ``results`` (see [`verdict_rows`])."""
+    rows = verdict_rows(results, action_dim)
+    if not rows:
+        return "No verdict: none of the verdict's rows (greedy, greedy:compile, `exact`, ...) was measured."
+    greedy = [row for row, _ in rows if row.method.split(":")[0] == "greedy"]
+    baseline = min(greedy or [rows[0][0]], key=lambda row: row.median_latency)
+    lines = [
+        f"| | method | what it is | ms/action | speed-up vs {baseline.role} | target forwards/action | identical to "
+        "greedy |",
+        "|---|---|---|---:|---:|---:|---:|",
+    ]
+    for row, what in rows:
+        lines.append(
+            f"| {row.role} | {row.method} | {what} | {1000 * row.median_latency:.1f} | "
+            f"{baseline.median_latency / row.median_latency:.2f}x | {row.target_forwards:.2f} | "
+            f"{row.identical}/{row.actions} |"
+        )
+    return "\n".join(lines) + "\n\n" + verdict_sentence([row for row, _ in rows], baseline)
+
+
+def verdict_sentence(rows: list[VerdictRow], baseline: VerdictRow) -> str:
+    """One sentence from the verdict's rows: the fastest lossless speculative row against ``baseline`` (faster or
+    not, in how many target forwards), then whether the relaxed row buys speed with changed actions."""
+    speculative = [row for row in rows if row.method.split(":")[0] != "greedy"]
+    lossless = [row for row in speculative if row.lossless]
+    best = min(lossless, key=lambda row: row.median_latency) if lossless else None
+    parts = []
+    if best is not None:
+        speedup = baseline.median_latency / best.median_latency
+        forwards = f"{best.target_forwards:.1f} target forwards per action instead of {baseline.target_forwards:.0f}"
+        if speedup > 1:
+            parts.append(f"{best.role} ({best.method}) gives greedy's actions, all {best.actions}, {speedup:.2f}x as "
+                         f"fast as {baseline.role} ({forwards})")  # fmt: skip
+        else:
+            parts.append(f"no lossless setting beat {baseline.role} on this machine: the best, {best.role} "
+                         f"({best.method}), gives greedy's actions at {speedup:.2f}x its speed "
+                         f"({forwards})")  # fmt: skip
+    elif speculative:
+        parts.append(f"no speculative row gave all of greedy's actions here (a lossless row should: see the full "
+                     f"tables), against {baseline.role}")  # fmt: skip
+    else:
+        parts.append(f"only greedy rows were measured: the fastest is {baseline.role}")
+    for row in [row for row in speculative if row.role.startswith("relaxed")][:1]:
+        speedup, changed = baseline.median_latency / row.median_latency, 1 - row.identical / row.actions
+        if not changed:
+            parts.append(f"{row.role} changed no action here ({speedup:.2f}x)")
+        elif best is None or row.median_latency < best.median_latency:
+            parts.append(f"{row.role} is faster still ({speedup:.2f}x) but changes {changed:.0%} of the actions: "
+                         f"fidelity traded for speed")  # fmt: skip
+        else:
+            parts.append(f"{row.role} changes {changed:.0%} of the actions and is no faster ({speedup:.2f}x): keep "
+                         f"{best.role}")  # fmt: skip
+    text = "; ".join(parts)
+    return f"In one sentence: {text[0].lower()}{text[1:]}."
 
 
 # ----------------------------------------------------------------------------- episodes (previous actions are real)
@@ -307,12 +441,14 @@ def run_episode_benchmark(
     them alike; bin distances compare each action token with the baseline's at the same step.
     """
     results = {m.name: EpisodeMethodResult(m.name, accepted_by_position=[0] * action_dim) for m in methods}
-    for method in methods:  # warm-up: allocator, lazy init, both code paths, every prompt length's compiled graphs
-        for index, episode in enumerate(episodes):
-            history: list[list[int]] = []
-            for observation in episode[: warmup if index == 0 else 1]:
-                ids, _ = act(observation, history, method.action_prior, **method.generate_kwargs)
-                history = [*history, ids][-ActionPriorDrafter.history_length :]
+    with heartbeat("warm-up (compiles the :compile rows, off the clock)") as beat:
+        for number, method in enumerate(methods):  # warm-up: allocator, lazy init, both code paths, compiled graphs
+            beat.begin(f"{method.name} ({number + 1}/{len(methods)})")
+            for index, episode in enumerate(episodes):
+                history: list[list[int]] = []
+                for observation in episode[: warmup if index == 0 else 1]:
+                    ids, _ = act(observation, history, method.action_prior, **method.generate_kwargs)
+                    history = [*history, ids][-ActionPriorDrafter.history_length :]
     rng = random.Random(seed)
     order = list(methods)
     total = repeats * sum(len(e) for e in episodes)

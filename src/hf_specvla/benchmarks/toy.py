@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from transformers import AutoConfig, CLIPVisionConfig, LlavaConfig, LlavaForConditionalGeneration
+from transformers import AutoConfig, CLIPVisionConfig, LlavaConfig, LlavaForConditionalGeneration, LogitsProcessorList
+from transformers.generation.logits_process import MinNewTokensLengthLogitsProcessor
 
 from ..actions.tokenizer import ActionTokenizer
 from ..actions.vla_tokenizer import build_vla_tokenizer, encode_prompt
@@ -293,9 +294,42 @@ def early_exit_assistant(target, num_layers: int = 1):
             f"an early-exit assistant keeps 1 .. {depth - 1} of the target's {depth} layers, got {num_layers}"
         )
     config.text_config.num_hidden_layers = num_layers
-    assistant = type(target)(config).to(target.device, target.dtype).eval()
+    assistant = _assistant_class(type(target))(config).to(target.device, target.dtype).eval()
     assistant.load_state_dict(target.state_dict(), strict=False)  # the deeper layers' weights are left out
     return assistant
+
+
+class AssistantGenerationMixin:
+    """``generate`` for a model that transformers' assisted generation calls as its assistant, without the two
+    warnings transformers (5.24) logs at that call, which are of its own making: its ``AssistedCandidateGenerator``
+    passes a ``generation_config`` together with ``min_new_tokens`` / ``max_new_tokens`` / ``use_cache`` ("Passing
+    `generation_config` together with generation-related arguments ... is deprecated"), and the target's logits
+    processors, among them the ``MinNewTokensLengthLogitsProcessor`` the assistant's ``generate`` builds again from
+    that ``min_new_tokens`` ("... has been passed to `.generate()`, but it was also created"). Here the settings go
+    into one copy of the config, and the target's processor is left to the one built from it: both mask the end of
+    sequence up to the same position (the assistant continues the target's sequence), so the drafts are the same.
+    """
+
+    def generate(self, *args, generation_config=None, logits_processor=None, **kwargs):
+        if generation_config is not None:
+            generation_config = copy.copy(generation_config)  # transformers' own, reused at every round
+            kwargs = generation_config.update(**kwargs)  # the generation settings in; the model's inputs back
+            if logits_processor is not None and (generation_config.min_new_tokens or 0) > 0:
+                logits_processor = LogitsProcessorList(
+                    p for p in logits_processor if not isinstance(p, MinNewTokensLengthLogitsProcessor)
+                )
+        return super().generate(*args, generation_config=generation_config, logits_processor=logits_processor,
+                                **kwargs)  # fmt: skip
+
+
+def _assistant_class(model_class: type) -> type:
+    """``model_class`` with [`AssistantGenerationMixin`] (one class per model class)."""
+    if model_class not in _ASSISTANT_CLASSES:
+        _ASSISTANT_CLASSES[model_class] = type(model_class.__name__, (AssistantGenerationMixin, model_class), {})
+    return _ASSISTANT_CLASSES[model_class]
+
+
+_ASSISTANT_CLASSES: dict[type, type] = {}
 
 
 def load_toy_pipeline(output_dir: str) -> ToyPipeline:

@@ -42,8 +42,9 @@ def load_pipeline(pipeline_dir: str, parser):
         return load_toy_pipeline(pipeline_dir)
 
 
-def time_pipeline(pipeline, args) -> None:
-    """The strict / relaxed table on held-out toy scenes, methods interleaved."""
+def time_pipeline(pipeline, args) -> tuple[list, str]:
+    """The strict / relaxed table on held-out toy scenes, methods interleaved: (the results, the table with its
+    heading)."""
     import torch
 
     from ..benchmarks.speed import format_report, run_benchmark, speculative_methods
@@ -60,16 +61,17 @@ def time_pipeline(pipeline, args) -> None:
     results = run_benchmark(
         pipeline.target, prompts, methods, ACTION_DIM, pipeline.action_tokenizer, repeats=args.repeats, seed=args.seed
     )
-    print(
-        f"\n{len(prompts)} prompts x {args.repeats} repeats, {ACTION_DIM} action tokens each, "
-        f"{torch.get_num_threads()} CPU threads, methods interleaved in random order:\n"
+    heading = (
+        f"{len(prompts)} held-out prompts x {args.repeats} repeats, {ACTION_DIM} action tokens each, "
+        f"{torch.get_num_threads()} CPU threads, methods interleaved in random order:"
     )
-    print(format_report(results))
+    return results, f"{heading}\n\n{format_report(results)}"
 
 
 def run(args, parser) -> int:
     pipeline = load_pipeline(args.pipeline_dir, parser)
     given = f"--bin-tolerances {' '.join(map(str, args.bin_tolerances))}"
     check_bin_tolerances(args.bin_tolerances, pipeline.action_tokenizer.n_bins, given, parser)  # before any timing
-    time_pipeline(pipeline, args)
+    _, report = time_pipeline(pipeline, args)
+    print(f"\n{report}")
     return 0

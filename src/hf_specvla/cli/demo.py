@@ -4,6 +4,8 @@ scenes, and drafts from previous actions / the head / both on moving-dot episode
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from .benchmark import add_benchmark_arguments, time_pipeline
 from .common import NON_NEGATIVE, check_output_dir_flag, usage_errors
 
@@ -45,8 +47,13 @@ def add_arguments(parser) -> None:
     add_benchmark_arguments(parser)
 
 
-def time_episodes(pipeline, args) -> None:
-    """The demo's second table: moving-dot episodes, so that the action prior has previous actions to draft."""
+#: the file in the run's folder that holds the demo's full tables
+REPORT_FILE = "demo_report.md"
+
+
+def time_episodes(pipeline, args) -> tuple[list, str]:
+    """The demo's second table: moving-dot episodes, so that the action prior has previous actions to draft: (the
+    results, the tables with their heading: speed, where the time goes, Jacobi guesses, accepted drafts by position)."""
     from ..benchmarks.speed import (
         episode_methods,
         format_episode_report,
@@ -62,22 +69,56 @@ def time_episodes(pipeline, args) -> None:
     methods = episode_methods(pipeline.draft_head, tolerances, DraftTreeConfig(), ACTION_DIM - 1, compiled_on)
     episodes = toy_episodes(args.episodes)
     results = run_episode_benchmark(toy_actor(pipeline), episodes, methods, ACTION_DIM, seed=args.seed)
-    print(
-        f"\n{len(episodes)} moving-dot episodes ({sum(map(len, episodes))} steps): drafts from the previous actions "
-        f"(prior), the draft head (chain / EAGLE-2 tree) or both, interleaved at every step:\n"
+    heading = (
+        f"{len(episodes)} moving-dot episodes ({sum(map(len, episodes))} steps): drafts from the previous actions "
+        f"(prior), the draft head (chain / EAGLE-2 tree) or both, interleaved at every step:"
     )
-    print(format_episode_report(results))
+    return results, f"{heading}\n\n{format_episode_report(results)}"
+
+
+def write_report(output_dir: str, sections: list[str], verdict: str, argv: list[str]) -> Path:
+    """Writes the full tables and the verdict to ``output_dir/demo_report.md`` (replaced whole: a crash leaves the
+    previous report), holding the folder's lock (see ``hf_specvla.run_folder``). Returns the file's path."""
+    import os
+
+    from ..run_folder import lock_folder
+
+    command = " ".join(["hf-specvla", *argv])
+    text = "\n\n".join([f"# `{command}`", *sections, "## Verdict", verdict]) + "\n"
+    with lock_folder(output_dir) as run:
+        temporary = run.bound / f".{REPORT_FILE}.tmp"
+        temporary.write_text(text)
+        os.replace(temporary, run.bound / REPORT_FILE)
+    return Path(output_dir) / REPORT_FILE
+
+
+def _count(number: int, noun: str) -> str:
+    return f"{number} {noun}{'' if number == 1 else 's'}"
 
 
 def run(args, parser) -> int:
-    from ..benchmarks.toy import ToyTargetSize, build_toy_pipeline
+    import torch
+
+    from ..benchmarks.speed import format_verdict
+    from ..benchmarks.toy import ACTION_DIM, ToyTargetSize, build_toy_pipeline
 
     check_output_dir_flag(args.output_dir, parser)
     with usage_errors(parser, errors=(FileExistsError,)):
         size = ToyTargetSize(**SIZES[args.size])
         pipeline = build_toy_pipeline(args.output_dir, size, args.target_steps, args.draft_steps, seed=args.seed,
                                       overwrite=args.overwrite_output_dir)  # fmt: skip
-    time_pipeline(pipeline, args)
+    results, scenes = time_pipeline(pipeline, args)
+    sections = [f"## Held-out scenes\n\n{scenes}"]
+    measured = f"{_count(len(results[0].latencies), 'action')} on held-out scenes"
     if args.episodes:
-        time_episodes(pipeline, args)
+        results, episodes = time_episodes(pipeline, args)  # the verdict reads these: the previous action drafts
+        sections.append(f"## Moving-dot episodes\n\n{episodes}")
+        measured = f"{_count(len(results[0].latencies), 'action')} of {_count(args.episodes, 'moving-dot episode')}"
+    verdict = format_verdict(results, ACTION_DIM)
+    report = write_report(args.output_dir, sections, verdict, getattr(args, "argv", ["demo"]))
+    print(
+        f"\nVerdict ({measured}, {_count(torch.get_num_threads(), 'CPU thread')}; a toy target: the README has a "
+        f"real policy's figures):\n\n{verdict}\n\nThe full tables (every method, Jacobi guesses, accepted drafts "
+        f"by token position): {report}"
+    )
     return 0

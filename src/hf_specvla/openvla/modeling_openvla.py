@@ -496,8 +496,8 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         drafts = isinstance(kwargs.get("assistant_model"), (DraftHead, Drafter)) or kwargs.get("draft_ids") is not None
         if drafts and "action_layout" not in kwargs:
             kwargs["action_layout"] = layout if layout is not None else self.action_layout(unnorm_key)
-        kwargs.update(self._action_length(action_dim, kwargs.pop("min_new_tokens", action_dim),
-                                          kwargs.pop("generation_config", None)))  # fmt: skip
+        kwargs = self._action_length(action_dim, kwargs.pop("min_new_tokens", action_dim),
+                                     kwargs.pop("generation_config", None), kwargs)  # fmt: skip
         generated = self.generate(input_ids, **kwargs)
         sequences = generated if isinstance(generated, torch.Tensor) else generated.sequences
         action_token_ids = sequences[0, -action_dim:]
@@ -528,20 +528,24 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         ActionPriorDrafter(previous_action_ids, layout)  # each a list of action_dim action token ids, or it names it
 
     @staticmethod
-    def _action_length(action_dim: int, min_new_tokens: int, generation_config: GenerationConfig | None) -> dict:
-        """``generate``'s length settings (``action_dim`` new tokens): as keywords, or in a copy of the caller's
-        ``generation_config`` (which decides how to decode, e.g. its ``do_sample=True`` samples).
+    def _action_length(action_dim: int, min_new_tokens: int, generation_config: GenerationConfig | None,
+                       kwargs: dict) -> dict:  # fmt: skip
+        """``generate``'s keyword arguments: ``kwargs`` with the length settings (``action_dim`` new tokens); or,
+        given the caller's ``generation_config`` (which decides how to decode, e.g. its ``do_sample=True`` samples),
+        a copy of it holding the length and every generation setting of ``kwargs`` (e.g. a compiled method's
+        ``cache_implementation`` / ``compile_config``), the rest (inputs, drafters...) beside it: transformers
+        deprecates a ``generation_config`` passed together with generation settings.
 
         Raises:
             TypeError: a ``generation_config`` that is not a ``GenerationConfig``.
         """
         length = dict(max_new_tokens=action_dim, min_new_tokens=min_new_tokens)
         if generation_config is None:
-            return length
+            return {**kwargs, **length}
         if not isinstance(generation_config, GenerationConfig):
             raise TypeError(
                 f"generation_config must be a transformers GenerationConfig, got {type(generation_config).__name__}"
             )
         generation_config = copy.deepcopy(generation_config)  # the caller's is left as it was
-        generation_config.update(**length)
-        return {"generation_config": generation_config}
+        rest = generation_config.update(**{**kwargs, **length})  # what is not a generation setting
+        return {"generation_config": generation_config, **rest}

@@ -240,8 +240,8 @@ class VLAPolicy:
         if length:
             raise ValueError(f"predict_action decodes the policy's {self.config.action_tokens} action tokens: drop "
                              f"{', '.join(length)}")  # fmt: skip
-        kwargs = self._generation_settings(generate_kwargs.pop("generation_config", None), pad_id, return_output)
-        kwargs.update(generate_kwargs)
+        generation_config = generate_kwargs.pop("generation_config", None)
+        kwargs = self._generation_settings(generation_config, pad_id, return_output, generate_kwargs)
         assistant, num_draft_tokens = kwargs.pop("assistant_model", None), kwargs.pop("num_draft_tokens", None)
         drafter = episode_drafter(assistant, num_draft_tokens, action_prior, histories, self.action_layout,
                                   self.config.chunk_length)  # fmt: skip
@@ -260,10 +260,14 @@ class VLAPolicy:
         actions = self.actions_from_token_ids(action_ids)  # [B, H, A]
         return (actions[:, 0] if chunk == 1 else actions), output
 
-    def _generation_settings(self, generation_config: GenerationConfig | None, pad_id: int, return_output: bool):
-        """``generate``'s settings: the action's tokens, and greedy decoding (whatever the model's saved generation
-        config says), unless the caller's ``generation_config`` says how to decode (its ``do_sample=True`` samples):
-        then a copy of it, given the action's tokens.
+    def _generation_settings(self, generation_config: GenerationConfig | None, pad_id: int, return_output: bool,
+                             generate_kwargs: dict) -> dict:  # fmt: skip
+        """``generate``'s keyword arguments: the action's tokens, greedy decoding (whatever the model's saved
+        generation config says) and the caller's ``generate_kwargs``; or, when the caller's ``generation_config``
+        says how to decode (its ``do_sample=True`` samples), a copy of it holding the action's tokens and every
+        generation setting of ``generate_kwargs`` (e.g. a compiled method's ``cache_implementation`` /
+        ``compile_config``), the rest (drafters, ``bin_tolerance``...) beside it: transformers deprecates a
+        ``generation_config`` passed together with generation settings.
 
         Raises:
             TypeError: a ``generation_config`` that is not a ``GenerationConfig``.
@@ -273,14 +277,14 @@ class VLAPolicy:
         if return_output:
             settings["return_dict_in_generate"] = True
         if generation_config is None:
-            return dict(settings, do_sample=False)
+            return dict(settings, do_sample=False, **generate_kwargs)
         if not isinstance(generation_config, GenerationConfig):
             raise TypeError(
                 f"generation_config must be a transformers GenerationConfig, got {type(generation_config).__name__}"
             )
         generation_config = copy.deepcopy(generation_config)  # the caller's is left as it was
-        generation_config.update(**settings)
-        return {"generation_config": generation_config}
+        rest = generation_config.update(**{**settings, **generate_kwargs})  # what is not a generation setting
+        return {"generation_config": generation_config, **rest}
 
     def weights_fingerprint(self) -> str:
         """Content fingerprint of the model's weights (computed once; a policy's weights do not change at
