@@ -9,9 +9,15 @@ Prompt (OpenVLA's, plus the proprio state):
 The image enters as N placeholder tokens that Llava replaces with projected patch features. The proprio state
 (hand xyz + gripper, 4 numbers) is q01/q99-normalised and discretised with the *action* tokenizer, i.e. it
 reuses the 256 bin tokens, so no new vocabulary is needed.
+
+The prompt's fixed part per instruction (``<s>``, the image tokens, the prompt's words) is cached for the last
+``PROMPT_CACHE_SIZE`` distinct instructions (least recently used first out): a policy server's robots resend the same
+few, and one sending a new instruction every call cannot grow the server's memory without bound.
 """
 
 from __future__ import annotations
+
+from collections import OrderedDict
 
 import numpy as np
 import torch
@@ -19,6 +25,9 @@ from transformers import PreTrainedTokenizerFast
 
 from ..actions.tokenizer import ActionNormalizer, ActionTokenizer
 from .configuration_vla import VLAPolicyConfig
+
+#: the distinct instructions whose prompt prefix [`VLAProcessor.prompt_ids`] keeps (least recently used first out)
+PROMPT_CACHE_SIZE = 1024
 
 
 class VLAProcessor:
@@ -35,7 +44,8 @@ class VLAProcessor:
         self.action_normalizer = ActionNormalizer.from_dict(config.action_stats) if config.action_stats else None
         self.state_normalizer = ActionNormalizer.from_dict(config.state_stats) if config.state_stats else None
         self.scene_normalizer = ActionNormalizer.from_dict(config.scene_stats) if config.scene_stats else None
-        self._prefix_cache: dict[str, list[int]] = {}  # instruction -> [<s>, <image> x N, prompt text]
+        # instruction -> [<s>, <image> x N, prompt text], the last PROMPT_CACHE_SIZE distinct instructions
+        self._prefix_cache: OrderedDict[str, list[int]] = OrderedDict()
         self._state_word, self._out_words = self._encode("\nState:"), self._encode("\nOut:")
 
     def preprocess_images(self, images) -> torch.Tensor:
@@ -76,17 +86,35 @@ class VLAProcessor:
 
     def prompt_ids(self, instruction: str, state=None) -> list[int]:
         """Token ids of the prompt (see module docstring)."""
-        if instruction not in self._prefix_cache:
-            text = f"In: What action should the robot take to {instruction.lower().strip().rstrip('.')}?"
-            image_id = self.tokenizer.convert_tokens_to_ids("<image>")
-            prefix = [self.tokenizer.bos_token_id] + [image_id] * self.config.num_image_tokens + self._encode(text)
-            self._prefix_cache[instruction] = prefix
-        ids = list(self._prefix_cache[instruction])
+        ids = list(self._prompt_prefix(instruction))
         if self.config.use_state:
             if state is None:
                 raise ValueError("this policy was built with use_state=True: pass state=[x, y, z, gripper]")
             ids += self._state_word + self.state_token_ids(state)
         return ids + self._out_words
+
+    def _prompt_prefix(self, instruction: str) -> list[int]:
+        """``[<s>, <image> x N, prompt text]`` for ``instruction``, from the cache of the last ``PROMPT_CACHE_SIZE``
+        distinct instructions (callers copy it). Safe from several threads (a server's HTTP and decoding threads):
+        each step is one ``OrderedDict`` operation, and an entry evicted meanwhile is only recomputed."""
+        cache = self._prefix_cache
+        prefix = cache.get(instruction)
+        if prefix is not None:
+            try:
+                cache.move_to_end(instruction)
+            except KeyError:  # evicted by another thread since: it stays out
+                pass
+            return prefix
+        text = f"In: What action should the robot take to {instruction.lower().strip().rstrip('.')}?"
+        image_id = self.tokenizer.convert_tokens_to_ids("<image>")
+        prefix = [self.tokenizer.bos_token_id] + [image_id] * self.config.num_image_tokens + self._encode(text)
+        cache[instruction] = prefix
+        while len(cache) > PROMPT_CACHE_SIZE:
+            try:
+                cache.popitem(last=False)
+            except KeyError:  # emptied by another thread meanwhile
+                break
+        return prefix
 
     def action_token_ids(self, actions) -> np.ndarray:
         """Raw actions ``[..., action_dim]`` -> their token ids (normalised with the policy's statistics)."""
