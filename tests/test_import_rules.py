@@ -102,6 +102,32 @@ def test_nothing_outside_the_engine_imports_its_private_modules():
     assert _violations(rule) == []
 
 
+def test_no_module_imports_one_that_imports_it_back():
+    """No import circle, local imports included: each module's imports form a graph without cycles (a lazy import
+    that closes a circle hides which module builds on which)."""
+    modules = {_module_name(path) for path in PACKAGE.rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for module, _, imported, _ in EDGES:
+        while imported not in modules and "." in imported:  # ``from a.b import name``: the module a.b
+            imported = imported.rsplit(".", 1)[0]
+        if imported in modules and imported != module and not module.startswith(imported + "."):
+            graph.setdefault(module, set()).add(imported)  # (a package's own __init__, imported by its modules, aside)
+    circles, done = [], set()
+
+    def visit(module: str, path: list[str]) -> None:
+        for imported in sorted(graph.get(module, ())):
+            if imported in path:
+                circles.append(path[path.index(imported) :] + [imported])
+            elif imported not in done:
+                visit(imported, path + [imported])
+        done.add(module)
+
+    for module in sorted(graph):
+        if module not in done:
+            visit(module, [module])
+    assert circles == [], [" -> ".join(circle) for circle in circles]
+
+
 def test_nothing_imports_the_cli():
     rule = lambda module, imported: _inside(imported, "hf_specvla.cli") and not _inside(module, "hf_specvla.cli")  # noqa: E731
     assert _violations(rule) == []

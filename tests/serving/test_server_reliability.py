@@ -82,15 +82,11 @@ def test_the_slot_counts_the_service_plans_for_are_the_engines(policy):
     ``with_draft_slots`` at every prompt length of a tier and its neighbours."""
     from transformers import StaticCache
 
-    from hf_specvla.serving import service as service_module
-    from hf_specvla.speculative import DraftTreeConfig
+    from hf_specvla.speculative import NODE_BUCKETS, SLOT_MULTIPLE, DraftTreeConfig, num_head_entries
     from hf_specvla.speculative.cache import with_draft_slots
-    from hf_specvla.speculative.compiled import NODE_BUCKETS, SLOT_MULTIPLE
-    from hf_specvla.speculative.drafters.eagle_tree import num_head_entries
 
     service = _service(policy, method="exact")
     service.close()
-    assert service_module.SLOT_MULTIPLE == SLOT_MULTIPLE  # the service's rounding is the engine's
     for tree in (DraftTreeConfig(), DraftTreeConfig(top_k=1, depth=7, total_tokens=7)):  # the head's key_length
         extra = policy.config.action_tokens + tree.depth + 1 + num_head_entries(tree.top_k, tree.depth)
         assert service._head_rule(tree) == (extra, SLOT_MULTIPLE)

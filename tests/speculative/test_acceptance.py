@@ -354,3 +354,44 @@ def test_rules_that_read_units_need_them(layout):
         make_acceptance_rule(0, None, motion_scale=0.1)
     assert isinstance(make_acceptance_rule(0, None, motion_scale=0.0), ExactMatch)
     assert isinstance(make_acceptance_rule(4, layout, max_relaxed_per_action=0, confirm_strict_tail=True), ExactMatch)
+
+
+def test_the_acceptance_compiles_into_one_graph_that_finds_the_eager_paths(units_layout, action_tokenizer):
+    """The acceptance's device part (``search_paths``) compiled into one graph, dynamic sizes, against eager on random
+    batches of random trees, for every kind of rule (exact, relaxed, motion-scaled with a budget and the strict tail,
+    gated by the target's confidence): the same paths, distances and bonus tokens at one row and at several, at
+    every width, with earlier rounds' relaxed tokens counted (what a fused compiled round would need of it)."""
+    from hf_specvla.speculative.acceptance import search_paths
+    from hf_specvla.speculative.tree import TreeBatch
+
+    generator = torch.Generator().manual_seed(11)
+    rules = {
+        "exact": make_acceptance_rule(0, units_layout),
+        "relaxed": make_acceptance_rule(3, units_layout),
+        "budget and strict tail": make_acceptance_rule([2] * 6 + [0], units_layout, motion_scale=[0.2] * 6 + [0],
+                                                       max_relaxed_per_action=1, confirm_strict_tail=True),
+        "confidence gate": make_acceptance_rule(2, units_layout, confidence_gate=0.5),
+    }  # fmt: skip
+    compiled, compared, relaxed = torch.compile(search_paths, dynamic=True, fullgraph=True), 0, 0
+    for name, rule in rules.items():
+        for batch_size, width in ((1, 2), (1, 8), (3, 4), (2, 16), (1, 16), (4, 2)):
+            rows, targets = [], []
+            for _ in range(batch_size):
+                parents = [-1] + [int(torch.randint(-1, i, (1,), generator=generator)) for i in range(1, width)]
+                row_targets = torch.randint(64, 320, (1 + width,), generator=generator)
+                noise = torch.randint(-3, 4, (width,), generator=generator) * (torch.rand(width, generator=generator)
+                                                                                < 0.5)  # fmt: skip
+                tokens = (row_targets[torch.tensor(parents) + 1] + noise).clamp(64, 319)
+                rows.append(DraftTree(tokens, torch.tensor(parents)))
+                targets.append(row_targets)
+            trees, target_ids = TreeBatch(rows), torch.stack(targets)
+            prior = torch.randint(0, 14, (batch_size, 1), generator=generator)
+            earlier = torch.randint(0, 2, (batch_size, 1), generator=generator)
+            probs = torch.rand(batch_size, 1 + width, generator=generator) if rule.needs_probabilities else None
+            inputs = (trees.token_ids, trees.ancestor_or_self, trees.parents, trees.depths, trees.is_real, target_ids,
+                      prior, earlier, probs, rule, units_layout)  # fmt: skip
+            eager, fused = search_paths(*inputs), compiled(*inputs)
+            assert torch.equal(eager, fused), (name, batch_size, width)
+            compared += 1
+            relaxed += int(eager[:, width : 2 * width].bool().any())
+    assert compared == 24 and relaxed > 0  # relaxed paths were kept, not only exact ones

@@ -65,10 +65,6 @@ logger = logging.getLogger(__name__)
 TIMING_WINDOW = 16
 #: the instruction of the calibration's synthetic observations
 CALIBRATION_INSTRUCTION = "calibrate the policy server"
-#: the greedy baseline's static caches hold a multiple of this many slots (a longer prompt takes the next multiple);
-#: the engine rounds its own caches (the target's, a draft head's) the same way (its private ``SLOT_MULTIPLE``: the
-#: tests check that the two agree)
-SLOT_MULTIPLE = 64
 #: the default prompt limit leaves the instruction at least this many tokens (MT50's longest takes 13 on policy v3;
 #: on v3 the shortest prompt's verification cache leaves 54, so the default is that one tier)
 MIN_INSTRUCTION_TOKENS = 32
@@ -206,6 +202,8 @@ class PolicyService:
         transformers' ``generate`` never shrinks the target's cache (it keeps the largest size it made, so as not to
         recompile): once [`warm_up`] decoded the longest tier, every speculative call decodes on that tier's cache,
         whatever its prompt; the other caches follow each call's prompt."""
+        from ..speculative import SLOT_MULTIPLE
+
         rules = []
         if self.method.compiled and self.speculates:
             rules.append(self._verification_rule())
@@ -218,16 +216,18 @@ class PolicyService:
         """The target's cache in a compiled speculative call (``_slot_rules``): ``generate`` sizes its static cache
         ``max_length - 1`` (the prompt and the action tokens but the last, which is never fed), the engine adds room
         for the widest verification and rounds up."""
-        from ..speculative import NODE_BUCKETS
+        from ..speculative import NODE_BUCKETS, SLOT_MULTIPLE
 
         return self.policy.config.action_tokens - 1 + NODE_BUCKETS[-1], SLOT_MULTIPLE
 
     def _head_rule(self, tree) -> tuple[int, int]:
         """A draft head's cache in a compiled call (``_slot_rules``; the engine's ``DraftHeadSession.key_length``):
         ``max_length`` (the prompt and the action tokens), the padded catch-up pairs (``depth + 1``) and the entries
-        one expansion writes (``(depth - 1) * top_k``, ``eagle_tree.num_head_entries``), rounded up."""
+        one expansion writes (``num_head_entries``), rounded up."""
+        from ..speculative import SLOT_MULTIPLE, num_head_entries
+
         tokens = self.policy.config.action_tokens
-        return tokens + tree.depth + 1 + (tree.depth - 1) * tree.top_k, SLOT_MULTIPLE
+        return tokens + tree.depth + 1 + num_head_entries(tree.top_k, tree.depth), SLOT_MULTIPLE
 
     def _head_trees(self, draft_head) -> list:
         """The tree settings of the draft-head drafters the method runs (a chain is a tree of top-k 1)."""
@@ -391,7 +391,7 @@ class PolicyService:
             return kwargs
         from transformers import StaticCache
 
-        from ..speculative import CACHE_KEY
+        from ..speculative import CACHE_KEY, SLOT_MULTIPLE
 
         rows = states if states is not None else [None] * len(instructions)
         width = max(len(self.policy.prompt_ids(i, s)) for i, s in zip(instructions, rows))

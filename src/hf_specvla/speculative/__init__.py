@@ -16,6 +16,7 @@ from .acceptance import (
     check_bin_tolerance_range,
     make_acceptance_rule,
 )
+from .assistant import as_drafter
 from .compat import (
     CACHE_KEY,
     NEWEST_TESTED_TRANSFORMERS,
@@ -24,7 +25,7 @@ from .compat import (
     cache_of,
     check_transformers_support,
 )
-from .compiled import NODE_BUCKETS, compiled_decoding_kwargs, compiles_verification, verification_width
+from .compiled import NODE_BUCKETS, SLOT_MULTIPLE, compiled_decoding_kwargs, compiles_verification, verification_width
 from .config import SpeculationConfig
 from .configuration_draft_head import DraftHeadConfig
 from .drafter import (
@@ -51,8 +52,9 @@ from .drafters import (
     with_previous_actions,
 )
 from .drafters.draft_head import embed_tokens
+from .drafters.eagle_tree import num_head_entries
 from .generation import SPECULATION_KWARGS, SpeculativeGenerationMixin, disable_speculation, enable_speculation
-from .loop import as_drafter, speculative_generate
+from .loop import speculative_generate
 from .masks import causal_mask, to_additive_mask
 from .modeling_draft_head import DraftHead, TargetHandles, check_draft_head_folder, is_local_path, softcap_logits
 from .outputs import SpeculativeDecoderOnlyOutput
@@ -67,6 +69,7 @@ __all__ = [
     "SUPPORTED_TRANSFORMERS",
     "SPECULATION_KWARGS",
     "NODE_BUCKETS",
+    "SLOT_MULTIPLE",
     "compiled_decoding_kwargs",
     "compiles_verification",
     "verification_width",
@@ -79,6 +82,7 @@ __all__ = [
     "read_hidden_states",
     "check_draft_head_folder",
     "embed_tokens",
+    "num_head_entries",
     "is_local_path",
     "softcap_logits",
     "episode_drafter",

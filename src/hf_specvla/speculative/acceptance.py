@@ -561,17 +561,66 @@ def accept_trees(
         one [`AcceptedPath`] per row; ties between equally long passing paths go to the smallest total bin
         distance, then to the lowest node index.
     """
-    tokens, ancestor_or_self = trees.token_ids, trees.ancestor_or_self  # [B, N], [B, N, N]
+    tokens = trees.token_ids  # [B, N]
     batch_size, num_nodes = tokens.shape
     if num_nodes == 0:
         return [AcceptedPath([], bonus, [], [bonus]) for bonus in target_ids[:, 0].tolist()]
-    parent_targets = target_ids.gather(1, trees.parents + 1)  # [B, N] greedy token at each node's place
+    if rule.needs_probabilities and top1_probs is None:
+        raise ValueError(f"{rule!r} needs the target's top-1 probabilities: pass top1_probs")
+    prior = torch.tensor(num_prior_action_tokens, device=tokens.device)[:, None]  # [B, 1]
+    earlier = torch.tensor(relaxed_in_action or [0] * batch_size, device=tokens.device)[:, None]  # [B, 1]
+    # one read from the device per verification: the paths, distances, bonus tokens, drafted and target tokens, the
+    # parents (a tree drafted on the device is then known on the host too)
+    packed = search_paths(
+        tokens, trees.ancestor_or_self, trees.parents, trees.depths, trees.is_real, target_ids, prior, earlier,
+        top1_probs, rule, action_layout,
+    ).tolist()  # fmt: skip
+    paths = []
+    for row, tree in zip(packed, trees.trees):
+        row_on_path, row_distances, bonus = row[:num_nodes], row[num_nodes : 2 * num_nodes], row[2 * num_nodes]
+        if tree.token_list is None:
+            tree.token_list = row[2 * num_nodes + 1 : 2 * num_nodes + 1 + tree.num_nodes]
+        if tree.host_parents is None:
+            tree.host_parents = row[4 * num_nodes + 2 : 4 * num_nodes + 2 + tree.num_nodes]
+        nodes = [i for i, kept in enumerate(row_on_path) if kept]  # index order is depth order
+        row_targets = row[3 * num_nodes + 1 : 3 * num_nodes + 2 + tree.num_nodes]
+        paths.append(AcceptedPath(nodes, bonus, [row_distances[i] for i in nodes], row_targets))
+    return paths
+
+
+def search_paths(
+    tokens: torch.Tensor,
+    ancestor_or_self: torch.Tensor,
+    parents: torch.Tensor,
+    depths: torch.Tensor,
+    is_real: torch.Tensor,
+    target_ids: torch.Tensor,
+    prior: torch.Tensor,
+    earlier: torch.Tensor,
+    top1_probs: torch.Tensor | None,
+    rule: AcceptanceRule,
+    action_layout: ActionLayout | None,
+) -> torch.Tensor:
+    """[`accept_trees`]'s work on the device, tensors in and one tensor out: no read of the device and no host value
+    but the rule's and the layout's settings, so that it traces into one graph (``torch.compile(search_paths,
+    dynamic=True, fullgraph=True)`` finds the same paths, tests/speculative/test_acceptance.py), the step a fused
+    compiled round would hold after the target's forward.
+
+    Args:
+        tokens / parents / depths / is_real: ``[B, N]`` the trees (a [`TreeBatch`]'s); ancestor_or_self ``[B, N, N]``.
+        target_ids: ``[B, 1 + N]``; prior / earlier: ``[B, 1]`` the action tokens before each root, and the relaxed
+            tokens already emitted in the root's action; top1_probs: ``[B, 1 + N]`` or None.
+    Returns:
+        ``[B, 4 N + 2 + N]`` packed per row: on-path flags ``[N]``, bin distances ``[N]``, the bonus token, the drafted
+        tokens ``[N]``, the target's tokens ``[1 + N]``, the parents ``[N]``.
+    """
+    batch_size, num_nodes = tokens.shape
+    parent_targets = target_ids.gather(1, parents + 1)  # [B, N] greedy token at each node's place
     if action_layout is not None:
         tokenizer = action_layout.tokenizer
         is_action = tokenizer.is_action_token(tokens)
         strict_ancestors = ancestor_or_self & ~torch.eye(num_nodes, dtype=torch.bool, device=tokens.device)
         # (integer products as masked sums: CUDA has no integer matmul)
-        prior = torch.tensor(num_prior_action_tokens, device=tokens.device)[:, None]  # [B, 1]
         before = prior + (strict_ancestors.long() * is_action.long()[:, None, :]).sum(-1)  # [B, N]
         action_dims = before % action_layout.action_dim
         action_steps = before // action_layout.action_dim  # [B, N] which action of the call (chunk step)
@@ -580,10 +629,8 @@ def accept_trees(
     else:
         action_dims = action_steps = torch.zeros_like(tokens)
         distances = torch.zeros_like(tokens)
-    parent_probs = None if top1_probs is None else top1_probs.gather(1, trees.parents + 1)  # [B, N]
-    if rule.needs_probabilities and parent_probs is None:
-        raise ValueError(f"{rule!r} needs the target's top-1 probabilities: pass top1_probs")
-    passes = rule(tokens, parent_targets, action_dims, action_steps, parent_probs) & trees.is_real  # [B, N] alone
+    parent_probs = None if top1_probs is None else top1_probs.gather(1, parents + 1)  # [B, N]
+    passes = rule(tokens, parent_targets, action_dims, action_steps, parent_probs) & is_real  # [B, N] alone
     budget = rule.max_relaxed_per_action
     if budget is not None and action_layout is not None:
         # relaxed tokens on each node's path within its own action (and, for the action the root continues, those
@@ -592,7 +639,6 @@ def accept_trees(
         same_action = action_steps[:, :, None] == action_steps[:, None, :]  # [B, N, N]
         count = (ancestor_or_self & same_action & relaxed[:, None, :]).long().sum(-1)  # [B, N]
         first_step = prior // action_layout.action_dim  # [B, 1] the action the root's next token belongs to
-        earlier = torch.tensor(relaxed_in_action or [0] * batch_size, device=tokens.device)[:, None]  # [B, 1]
         count = count + torch.where(action_steps == first_step, earlier, 0)
         passes = passes & (count <= budget)
     path_passes = ~(ancestor_or_self & ~passes[:, None, :]).any(dim=-1)  # [B, N] the node and all its ancestors
@@ -609,26 +655,12 @@ def accept_trees(
     # deepest, then closest, then first: argmax returns the first of equal maxima. Any bound above every path's total
     # distance orders the same; this one is known on the host (no read of the device's maximum)
     widest = (action_layout.tokenizer.n_bins - 1) * num_nodes if action_layout is not None else 0
-    rank = (trees.depths + 1) * (widest + 1) - total_distance  # >= 1 for every node
+    rank = (depths + 1) * (widest + 1) - total_distance  # >= 1 for every node
     best = torch.where(path_passes, rank, 0).argmax(dim=-1)  # [B]
     accepted = path_passes.any(dim=-1)  # [B]
     bonus_ids = torch.where(accepted, target_ids.gather(1, best[:, None] + 1)[:, 0], target_ids[:, 0])
     on_path = ancestor_or_self[torch.arange(batch_size, device=tokens.device), best] & accepted[:, None]  # [B, N]
-    # one read from the device per verification: the paths, distances, bonus tokens, drafted and target tokens, the
-    # parents (a tree drafted on the device is then known on the host too)
-    packed = torch.cat([on_path.long(), distances, bonus_ids[:, None], tokens, target_ids, trees.parents],
-                       dim=1).tolist()  # fmt: skip
-    paths = []
-    for row, tree in zip(packed, trees.trees):
-        row_on_path, row_distances, bonus = row[:num_nodes], row[num_nodes : 2 * num_nodes], row[2 * num_nodes]
-        if tree.token_list is None:
-            tree.token_list = row[2 * num_nodes + 1 : 2 * num_nodes + 1 + tree.num_nodes]
-        if tree.host_parents is None:
-            tree.host_parents = row[4 * num_nodes + 2 : 4 * num_nodes + 2 + tree.num_nodes]
-        nodes = [i for i, kept in enumerate(row_on_path) if kept]  # index order is depth order
-        row_targets = row[3 * num_nodes + 1 : 3 * num_nodes + 2 + tree.num_nodes]
-        paths.append(AcceptedPath(nodes, bonus, [row_distances[i] for i in nodes], row_targets))
-    return paths
+    return torch.cat([on_path.long(), distances, bonus_ids[:, None], tokens, target_ids, parents], dim=1)
 
 
 # ----------------------------------------------------------------------------- sampling

@@ -101,46 +101,14 @@ def compile_settings(compile_config) -> str:
     return repr(sorted(compile_config.to_dict().items()))
 
 
-#: per function and compile settings, its ``torch.compile`` wrapper (one per settings: dynamo keeps the graphs)
-_COMPILED_FUNCTIONS: dict[tuple[Callable, str], Callable] = {}
-
-
-def compiled_function(function: Callable, compile_config, graphs: int) -> Callable:
-    """``torch.compile(function)`` with a ``CompileConfig``'s settings (as transformers' ``get_compiled_call`` compiles
-    a model's call), made once per settings; dynamo's recompile limit is raised so that ``graphs`` graphs (one per
-    input shape the caller will meet) fit beside others."""
-    allow_graphs(graphs + _GRAPHS_BESIDE_OURS)
-    key = (function, compile_settings(compile_config))
-    if key not in _COMPILED_FUNCTIONS:
-        _COMPILED_FUNCTIONS[key] = torch.compile(function, **compile_config.to_dict())
-    return _COMPILED_FUNCTIONS[key]
-
-
-#: drafters' work compiled up front, by what its graphs depend on (e.g. a draft head's architecture, dtype, device,
-#: compile settings, cache slots and tree settings)
-_COMPILED_DRAFTING: set[tuple] = set()
-
-
-def compile_once(key: tuple, compile_all: Callable[[], None]) -> float:
-    """Runs ``compile_all`` (throw-away calls that compile every graph a drafter will need) the first time ``key`` is
-    met in this process; returns the seconds it took (0 when ``key`` was met before)."""
-    if key in _COMPILED_DRAFTING:
-        return 0.0
-    start = time.perf_counter()
-    compile_all()
-    _COMPILED_DRAFTING.add(key)
-    return time.perf_counter() - start
-
-
 def reset_compilation() -> None:
     """``torch._dynamo.reset()`` and forgets what hf_specvla compiled up front (so that the next call compiles every
-    width and depth again, before its first compiled round)."""
+    width, prefill and draft-head graph again, before its first compiled round): every model's [`CompiledVerifier`],
+    which owns all of it, is made anew at its next use."""
     global _graphs_compiled, _compilation_epoch
     torch._dynamo.reset()
     _graphs_compiled = 0
     _compilation_epoch += 1  # every model's CompiledVerifier forgets its graphs
-    _COMPILED_DRAFTING.clear()
-    _COMPILED_FUNCTIONS.clear()
 
 
 #: the model inputs with a sequence dimension in a prefill, and that dimension, from the end ([`mark_length_dynamic`])
@@ -184,11 +152,12 @@ _compilation_epoch = 0
 
 
 class CompiledVerifier:
-    """One model's compiled verification under one ``CompileConfig``: transformers' compiled model call (shared with
-    its compiled greedy decoding) and what was compiled up front for it, by what the graphs depend on (cache slots,
-    hidden states returned, buckets, batch size): every verification width, the prefill's graph, the prefills that
-    stay eager. Kept on the model, as transformers keeps its compiled call ([`for_model`]); a call compiles what it
-    needs right after its first prefill, outside the round loop ([`compile_widths`], [`compile_prefill`]).
+    """Everything hf_specvla compiles for one model under one ``CompileConfig``: transformers' compiled model call
+    (shared with its compiled greedy decoding) and what was compiled up front for it, by what the graphs depend on
+    (cache slots, hidden states returned, buckets, batch size): every verification width, the prefill's graph, the
+    prefills that stay eager; and its drafters' graphs (a draft head's compiled round, [`compiled_function`],
+    [`compile_once`]). Kept on the model, as transformers keeps its compiled call ([`for_model`]); a call compiles
+    what it needs right after its first prefill, outside the round loop ([`compile_widths`], [`compile_prefill`]).
 
     On a CUDA device transformers' ``CompileConfig`` compiles with ``mode="reduce-overhead"``: each (batch size,
     width) graph is captured as a CUDA graph, its inputs copied into static buffers at each replay (the outputs, which
@@ -201,21 +170,44 @@ class CompiledVerifier:
         self.widths_compiled: set[tuple] = set()  # (slots, hidden states, buckets, batch size)
         self.prefills_compiled: set[tuple] = set()  # (slots, hidden states, batch size)
         self.prefills_eager: set[tuple] = set()  # the same keys, whose forward over the prompt did not compile
+        self.functions: dict[Callable, Callable] = {}  # drafters' functions, compiled ([`compiled_function`])
+        self.drafting_compiled: set[tuple] = set()  # drafters' work compiled up front ([`compile_once`])
 
     @classmethod
-    def for_model(cls, model: PreTrainedModel, generation_config: GenerationConfig) -> CompiledVerifier:
-        """``model``'s verifier for ``generation_config.compile_config`` (made at its first use), its model call
-        fetched again (a caller may have wrapped ``get_compiled_call``, as the benchmarks' clock does), dynamo's
-        recompile limit raised to hold one graph per bucket (past the limit dynamo would silently run eagerly)."""
+    def for_model(cls, model: PreTrainedModel, compile_config) -> CompiledVerifier:
+        """``model``'s verifier for ``compile_config`` (made at its first use), its model call fetched again (a caller
+        may have wrapped ``get_compiled_call``, as the benchmarks' clock does), dynamo's recompile limit raised to
+        hold one graph per bucket (past the limit dynamo would silently run eagerly)."""
         allow_graphs(max(2 * len(NODE_BUCKETS), _graphs_compiled) + _GRAPHS_BESIDE_OURS)  # with / without hidden
         verifiers = model.__dict__.setdefault("_hf_specvla_verifiers", {})
-        settings = compile_settings(generation_config.compile_config)
+        settings = compile_settings(compile_config)
         verifier = verifiers.get(settings)
         if verifier is None or verifier.epoch != _compilation_epoch:
-            verifier = verifiers[settings] = cls(model, generation_config.compile_config)
+            verifier = verifiers[settings] = cls(model, compile_config)
         else:
-            verifier.call = model.get_compiled_call(generation_config.compile_config)
+            verifier.call = model.get_compiled_call(compile_config)
         return verifier
+
+    # ----------------------------------------------------------------- drafters' graphs
+    def compiled_function(self, function: Callable, graphs: int) -> Callable:
+        """``torch.compile(function)`` with this verifier's ``CompileConfig`` settings (as transformers'
+        ``get_compiled_call`` compiles a model's call), made once; dynamo's recompile limit is raised so that
+        ``graphs`` graphs (one per input shape the caller will meet) fit beside others."""
+        allow_graphs(graphs + _GRAPHS_BESIDE_OURS)
+        if function not in self.functions:
+            self.functions[function] = torch.compile(function, **self.compile_config.to_dict())
+        return self.functions[function]
+
+    def compile_once(self, key: tuple, compile_all: Callable[[], None]) -> float:
+        """Runs ``compile_all`` (throw-away calls that compile every graph a drafter will need) the first time ``key``
+        (what those graphs depend on: e.g. a draft head's architecture, dtype, cache slots and tree settings) is met;
+        returns the seconds it took (0 when ``key`` was met before)."""
+        if key in self.drafting_compiled:
+            return 0.0
+        start = time.perf_counter()
+        compile_all()
+        self.drafting_compiled.add(key)
+        return time.perf_counter() - start
 
     # ----------------------------------------------------------------- the prefill
     def prefill_key(self, slots: int, output_hidden: tuple[int, ...] | None, prompt_length: int, batch_size: int):

@@ -159,8 +159,9 @@ class Drafter:
         raise NotImplementedError
 
     def as_drafter(self, num_draft_tokens: int | None = None) -> Drafter:
-        """What ``generate`` drafts with when this is the ``assistant_model``: itself (a [`DraftHead`] returns the
-        drafter of its chain). ``num_draft_tokens`` is a bare head's option: a drafter carries its own settings.
+        """What ``generate`` drafts with when this is the ``assistant_model``: itself (a bare [`DraftHead`] drafts
+        its chain, ``speculative.assistant.as_drafter``). ``num_draft_tokens`` is a bare head's option: a drafter
+        carries its own settings.
 
         Raises:
             ValueError: ``num_draft_tokens`` given to a drafter.

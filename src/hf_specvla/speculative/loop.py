@@ -52,6 +52,7 @@ from transformers.generation.stopping_criteria import EosTokenCriteria, MaxLengt
 
 from ..actions.tokenizer import ActionLayout
 from .acceptance import AcceptanceRule, AcceptedPath, accept_trees, make_acceptance_rule, sample_trees
+from .assistant import as_drafter
 from .cache import (
     ROLLBACK_LAYER_TYPES,
     cache_batch_size,
@@ -168,22 +169,6 @@ class _Stopwatch:
 
 
 # ----------------------------------------------------------------------------- inputs
-def as_drafter(assistant, num_draft_tokens: int | None) -> Drafter | None:
-    """The [`Drafter`] behind an ``assistant_model`` / ``draft_head`` argument (a bare DraftHead drafts a chain).
-
-    Raises:
-        TypeError: for anything that is neither a DraftHead nor a Drafter.
-    """
-    if assistant is None:
-        return None
-    if isinstance(assistant, Drafter) or callable(getattr(assistant, "as_drafter", None)):
-        return assistant.as_drafter(num_draft_tokens)  # a DraftHead drafts a chain; a Drafter is one
-    raise TypeError(
-        f"the assistant must be a hf_specvla DraftHead or Drafter (DraftHeadDrafter, ActionPriorDrafter, "
-        f"ComposedDrafter, ...), got {type(assistant).__name__}"
-    )
-
-
 def draft_id_candidates(draft_ids, batch_size: int, vocab_size: int) -> list[list[list[int]]]:
     """Validates ``generate(draft_ids=...)``: a LongTensor ``[B, k]`` or ``[B, C, k]`` -> per row, C candidate lists.
 
@@ -973,7 +958,7 @@ def prepare(
     cache = model_inputs[CACHE_KEY]
     verifier = None  # the compiled verification of every round after the prefill (fixed widths), or eager
     if compiles_verification(model, generation_config, cache):
-        verifier = CompiledVerifier.for_model(model, generation_config)
+        verifier = CompiledVerifier.for_model(model, generation_config.compile_config)
     cached_tokens = input_ids.shape[1] - num_new  # the rows' first tokens the cache held before the call
     contexts = _draft_contexts(
         model, batch_size, layout, eos_ids, None if prompt_padding is None else prompt_padding[:, -num_new:],

@@ -285,13 +285,6 @@ class DraftHead(PreTrainedModel):
             )
         return TargetHandles(embed_tokens, lm_head)
 
-    def as_drafter(self, num_draft_tokens: int | None = None):
-        """What ``generate(assistant_model=head)`` drafts with: the head's chain of ``num_draft_tokens`` (default
-        ``config.num_draft_tokens``), a [`DraftHeadDrafter`]."""
-        from .drafters.draft_head import DraftHeadDrafter  # the drafter builds on this module
-
-        return DraftHeadDrafter(self, num_draft_tokens=num_draft_tokens)
-
     def check_target(self, target: PreTrainedModel, target_fingerprint: str | None = None) -> None:
         """Refuses a target this head was not made for, before any decoding: shapes (as [`target_handles`]) and,
         when both are known, the weights the head was distilled from (``config.target_fingerprint``) against

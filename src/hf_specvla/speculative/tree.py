@@ -313,6 +313,13 @@ class TreeBatch:
             raise ValueError("TreeBatch needs at least one tree")
         device = self.trees[0].token_ids.device
         n, b = max(self.min_nodes, *(t.num_nodes for t in self.trees)), len(self.trees)
+        if all(t.num_nodes == n for t in self.trees):  # no filler: the rows' own tensors, stacked
+            self.token_ids = torch.stack([t.token_ids for t in self.trees])
+            self.parents = torch.stack([t.parents for t in self.trees])
+            self.depths = torch.stack([t.depths for t in self.trees])
+            self.ancestor_or_self = torch.stack([t.ancestor_or_self for t in self.trees])
+            self.is_real = torch.ones(b, n, dtype=torch.bool, device=device)
+            return
         self.token_ids = torch.zeros(b, n, dtype=torch.long, device=device)
         self.parents = torch.full((b, n), -1, dtype=torch.long, device=device)
         self.depths = torch.zeros(b, n, dtype=torch.long, device=device)

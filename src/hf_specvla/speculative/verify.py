@@ -162,28 +162,57 @@ def target_greedy_ids(
         trees: the verified trees, padded to N nodes.
         logits: ``[B, 1 + N, V]`` the verification's logits (column 0: after the root; 1 + i: after node i).
     Returns:
-        (target_ids ``[B, 1 + N]``, scores ``[B, 1 + N, V]``); filler nodes keep their raw logits (never read).
+        (target_ids ``[B, 1 + N]``, scores ``[B, 1 + N, V]``); filler nodes' scores are never read (raw logits, or
+        EOS hidden with every other column).
     """
     if len(logits_processor) == 0:
         return logits.argmax(dim=-1), logits
-    batch_size, device = logits.shape[0], logits.device
-    lengths = torch.tensor([s.shape[1] for s in sequences], device=device)[:, None]  # [B, 1]
-    prefix_lengths = torch.cat([lengths, lengths + 1 + trees.depths], dim=1)  # [B, 1 + N]
-    scored = torch.cat([trees.is_real.new_ones(batch_size, 1), trees.is_real], dim=1)  # [B, 1 + N]
-    scores = logits.clone()
+    device = logits.device
+    # the shortest and longest prefix any scored (row, column) has, from the host's lengths and depth bounds
+    shortest = min(s.shape[1] for s in sequences)
+    longest = max(s.shape[1] + _depth_bound(tree) for s, tree in zip(sequences, trees.trees))
+    scores, prefix_lengths, scored = logits, None, None
     num_masks = 0
     for processor in logits_processor:
         threshold = eos_hidden_below(processor)
         if threshold is None:
             break
         num_masks += 1
-        hidden = (prefix_lengths < threshold) & scored  # [B, 1 + N]
+        if shortest >= threshold:  # no prefix is below it: the processor changes nothing
+            continue
         eos_ids = processor.eos_token_id.to(device).reshape(-1)  # [E]
+        scores = logits.clone() if scores is logits else scores
+        if longest < threshold:  # every prefix is below it: EOS hidden everywhere (filler columns are never read)
+            scores[..., eos_ids] = -torch.inf
+            continue
+        if prefix_lengths is None:
+            prefix_lengths, scored = _prefix_lengths(sequences, trees)
+        hidden = (prefix_lengths < threshold) & scored  # [B, 1 + N]
         scores[..., eos_ids] = torch.where(hidden[..., None], -torch.inf, scores[..., eos_ids])
     remaining = logits_processor[num_masks:]
     if remaining:
+        scores = logits.clone() if scores is logits else scores
+        if prefix_lengths is None:
+            prefix_lengths, scored = _prefix_lengths(sequences, trees)
         _apply_by_prefix_length(remaining, sequences, trees, prefix_lengths, scored, scores)
     return scores.argmax(dim=-1), scores
+
+
+def _prefix_lengths(sequences: Sequence[torch.Tensor], trees: TreeBatch) -> tuple[torch.Tensor, torch.Tensor]:
+    """(``[B, 1 + N]`` each (row, column)'s prefix length, ``[B, 1 + N]`` bool whether it is scored: not filler)."""
+    device = trees.token_ids.device
+    lengths = torch.tensor([s.shape[1] for s in sequences], device=device)[:, None]  # [B, 1]
+    prefix_lengths = torch.cat([lengths, lengths + 1 + trees.depths], dim=1)
+    scored = torch.cat([trees.is_real.new_ones(len(sequences), 1), trees.is_real], dim=1)
+    return prefix_lengths, scored
+
+
+def _depth_bound(tree) -> int:
+    """At most how many tokens a node of ``tree`` adds to its row's prefix (its depth + 1), known on the host
+    without reading the device (a tree drafted there tells its bound)."""
+    if tree.num_nodes == 0:
+        return 0
+    return tree.max_depth if tree.knows_structure() else (tree.depth_bound or tree.num_nodes)
 
 
 def _apply_by_prefix_length(

@@ -213,7 +213,7 @@ def episode_drafter(
         ValueError: ``num_draft_tokens`` without an assistant.
         TypeError: an assistant that is neither a DraftHead nor a Drafter.
     """
-    from ..loop import as_drafter  # the loop builds on the drafters
+    from ..assistant import as_drafter  # above the drafters: it builds a draft head's
 
     if num_draft_tokens is not None and assistant is None:
         raise ValueError("num_draft_tokens needs assistant_model=<DraftHead>")

@@ -49,7 +49,7 @@ import torch
 from transformers.cache_utils import DynamicCache, StaticCache
 
 from ..cache import set_static_length, truncate_cache
-from ..compiled import SLOT_MULTIPLE, compile_once, compile_settings, compiled_function
+from ..compiled import SLOT_MULTIPLE, CompiledVerifier, compile_settings
 from ..drafter import Commit, DraftContext, Drafter, DraftRound, DraftSession
 from ..masks import causal_allowed, sequence_key_padding, to_additive_mask
 from ..modeling_draft_head import DraftHead, DraftScorer, TargetHandles
@@ -205,7 +205,9 @@ class _DraftHeadSession(DraftSession):
             entries = context.max_length + self.num_padded_pairs + tree_entries
             self.key_length = -(-entries // SLOT_MULTIPLE) * SLOT_MULTIPLE
             self.cache = drafter.static_cache(self.key_length)
-            self.compiled_round = compiled_function(catch_up_and_expand, self.compile_config, graphs=1)
+            # the target's compiled state owns the head's graphs too (one owner per model and compile settings)
+            self.compiled = CompiledVerifier.for_model(context.model, self.compile_config)
+            self.compiled_round = self.compiled.compiled_function(catch_up_and_expand, graphs=1)
         self.graph_depth: int | None = None  # the depth this call's compiled rounds expand to (its first round's)
         self.cache_length = 0  # committed entries in self.cache
         self.cached_tokens = context.cached_tokens  # the row's tokens the target held before the call (not fed here)
@@ -361,7 +363,7 @@ class _DraftHeadSession(DraftSession):
         """Compiles this call's round graph (``graph_depth``) before its first compiled round, so that nothing compiles
         mid-call (a throw-away round on the real inputs; the cache keeps its entries)."""
         key = self.drafter.round_graph_key(self.compile_config, self.key_length, self.graph_depth)
-        seconds = compile_once(key, partial(run, self.graph_depth))
+        seconds = self.compiled.compile_once(key, partial(run, self.graph_depth))
         if seconds:
             self.compile_seconds += seconds
             logger.info("compiled the draft head's round (depth %d) in %.1f s", self.graph_depth, seconds)
