@@ -29,10 +29,10 @@ import numpy as np
 import torch
 
 from hf_specvla import ActionLayout, DraftHead, JacobiDrafter
+from hf_specvla.speculative import as_drafter
 from hf_specvla.speculative.compiled import compiled_decoding_kwargs
 from hf_specvla.speculative.drafters import with_action_priors
 from hf_specvla.speculative.generation import SPECULATION_KWARGS
-from hf_specvla.speculative.loop import as_drafter
 
 #: bounds, not methods: "oracle" drafts this step's greedy action itself (the best any drafter can do: one target
 #: forward per action, every row), "one-token" is greedy decoding stopped after ONE token (the prefill alone: no
