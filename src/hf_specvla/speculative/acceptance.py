@@ -60,6 +60,9 @@ class AcceptanceRule:
     #: its action's strict dimensions confirmed in the same verification ([`StrictTailConfirmed`]); None: no such
     #: condition
     strict_tail: tuple[int, ...] | None = None
+    #: whether the rule reads what a token means as an action (its dimension, its chunk step, its bin distance to the
+    #: target's); a rule that only compares tokens ([`ExactMatch`]) lets acceptance skip the action layout's work
+    reads_actions: bool = True
 
     def __call__(
         self,
@@ -92,6 +95,8 @@ class AcceptanceRule:
 
 class ExactMatch(AcceptanceRule):
     """Accept a drafted token iff it equals the target's greedy token."""
+
+    reads_actions = False  # every accepted token is the target's: bin distance 0, whatever its dimension
 
     def __call__(self, draft_ids, target_ids, action_dims=None, action_steps=None, top1_probs=None):
         return draft_ids == target_ids
@@ -616,7 +621,7 @@ def search_paths(
     """
     batch_size, num_nodes = tokens.shape
     parent_targets = target_ids.gather(1, parents + 1)  # [B, N] greedy token at each node's place
-    if action_layout is not None:
+    if action_layout is not None and rule.reads_actions:
         tokenizer = action_layout.tokenizer
         is_action = tokenizer.is_action_token(tokens)
         strict_ancestors = ancestor_or_self & ~torch.eye(num_nodes, dtype=torch.bool, device=tokens.device)
@@ -632,7 +637,7 @@ def search_paths(
     parent_probs = None if top1_probs is None else top1_probs.gather(1, parents + 1)  # [B, N]
     passes = rule(tokens, parent_targets, action_dims, action_steps, parent_probs) & is_real  # [B, N] alone
     budget = rule.max_relaxed_per_action
-    if budget is not None and action_layout is not None:
+    if budget is not None and action_layout is not None and rule.reads_actions:
         # relaxed tokens on each node's path within its own action (and, for the action the root continues, those
         # emitted by earlier rounds): a node over the budget fails, and with it every path through it
         relaxed = passes & (tokens != parent_targets)  # [B, N]
@@ -642,7 +647,7 @@ def search_paths(
         count = count + torch.where(action_steps == first_step, earlier, 0)
         passes = passes & (count <= budget)
     path_passes = ~(ancestor_or_self & ~passes[:, None, :]).any(dim=-1)  # [B, N] the node and all its ancestors
-    if rule.strict_tail is not None and action_layout is not None:
+    if rule.strict_tail is not None and action_layout is not None and rule.reads_actions:
         # a relaxed node's path may end only at or past its action's last strict dimension after it (confirmed there)
         relaxed = passes & (tokens != parent_targets) & is_action  # [B, N]
         last_strict = torch.tensor(rule.strict_tail, device=tokens.device)[action_dims]  # [B, N] (-1: none)
@@ -654,7 +659,7 @@ def search_paths(
     total_distance = (ancestor_or_self.long() * distances[:, None, :]).sum(-1)  # [B, N] summed along the path
     # deepest, then closest, then first: argmax returns the first of equal maxima. Any bound above every path's total
     # distance orders the same; this one is known on the host (no read of the device's maximum)
-    widest = (action_layout.tokenizer.n_bins - 1) * num_nodes if action_layout is not None else 0
+    widest = (action_layout.tokenizer.n_bins - 1) * num_nodes if action_layout is not None and rule.reads_actions else 0
     rank = (depths + 1) * (widest + 1) - total_distance  # >= 1 for every node
     best = torch.where(path_passes, rank, 0).argmax(dim=-1)  # [B]
     accepted = path_passes.any(dim=-1)  # [B]
