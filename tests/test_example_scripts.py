@@ -213,6 +213,12 @@ def test_serving_load_script_drives_three_servers_and_reports_every_k(tmp_path):
         assert tokens - fraction * (tokens - 1) - 1e-9 <= forwards <= tokens + 1e-9, row
         if row["kind"] != "adaptive":
             assert fraction == (1.0 if row["kind"] == "always" else 0.0), row
+        # what the run's server chose, per bucket: its final mode and its share of speculative batches
+        server = row["server"]
+        assert set(server["final_modes"].values()) <= {"speculative", "greedy"} and server["final_modes"]
+        assert 0 <= server["speculative_share"] <= 1
+    # every run on fresh servers: no sessions, timings or choices carried over from the runs before
+    assert sorted(row["server"]["generation"] for row in rows) == list(range(len(rows)))
 
 
 @pytest.mark.slow

@@ -4,7 +4,9 @@ Three servers over one policy in one server process (the graphs compiled once, s
 compiled greedy decoding at every batch size: what a plain server does), **always** (the speculative method at every
 batch size) and **adaptive** (speculative or greedy per batch size, whichever its start-up calibration and the
 traffic measure faster: ``hf-specvla serve``'s default). For each K in ``--robots`` and each repeat, the three are
-driven in turn (order rotated per repeat) by K robot threads over the same episodes; each run starts fresh sessions.
+driven in turn (order rotated per repeat) by K robot threads over the same episodes; each run starts on fresh
+servers (new services: no sessions, timings or per-bucket choices from an earlier run; adaptive calibrates anew on
+the compiled graphs), and its row records that server's final mode and share of speculative batches per bucket.
 
 **Robots** (``--driver``): ``replay`` (default) sends the observations of recorded greedy episodes (Meta-World,
 tasks x seeds, recorded once in this process): at r = 0 every server acts as greedy, so a robot would meet exactly
@@ -72,7 +74,10 @@ def parse_args(argv=None):
 
 # ----------------------------------------------------------------------------- the server process
 def serve(settings: dict) -> None:
-    """Three servers over one policy; prints one JSON line (their URLs, the calibration) and serves until killed."""
+    """Three servers over one policy; prints one JSON line (their URLs, the calibration), then, for every line read
+    on stdin (one per run), stops them and starts fresh ones (new services: no sessions, timings or per-bucket
+    choices from an earlier run; the compiled graphs are the process's and stay) and prints their URLs again. Ends
+    at the end of stdin."""
     import torch
 
     from hf_specvla.serving import PolicyService, ServeConfig
@@ -86,22 +91,52 @@ def serve(settings: dict) -> None:
     started = time.perf_counter()
     calibration = adaptive.warm_up()  # compiles every bucket in both modes; the others share the graphs
     compile_s = time.perf_counter() - started
-    services = {
-        "adaptive": adaptive,
-        "always": PolicyService(adaptive.policy, ServeConfig(**{**base, "speculate_buckets": buckets})),
-        "greedy": PolicyService(adaptive.policy, ServeConfig(**{**base, "speculate_buckets": ()})),
-    }
-    servers = {kind: PolicyServer(service, port=0) for kind, service in services.items()}
-    for server in servers.values():
-        server.__enter__()
-    print(json.dumps({"urls": {k: s.url for k, s in servers.items()}, "calibration": calibration,
-                      "warm_up_s": round(compile_s, 1), "method": adaptive.method.name,
-                      "baseline": adaptive.baseline.name}), flush=True)  # fmt: skip
+    policy, generation = adaptive.policy, 0
     while True:
-        time.sleep(3600)
+        services = {
+            "adaptive": adaptive,
+            "always": PolicyService(policy, ServeConfig(**{**base, "speculate_buckets": buckets})),
+            "greedy": PolicyService(policy, ServeConfig(**{**base, "speculate_buckets": ()})),
+        }
+        servers = {kind: PolicyServer(service, port=0) for kind, service in services.items()}
+        for server in servers.values():
+            server.__enter__()
+        print(json.dumps({"urls": {k: s.url for k, s in servers.items()}, "calibration": calibration,
+                          "warm_up_s": round(compile_s, 1), "method": adaptive.method.name,
+                          "baseline": adaptive.baseline.name, "generation": generation}), flush=True)  # fmt: skip
+        command = sys.stdin.readline()
+        for server in servers.values():
+            server.__exit__(None, None, None)
+        for service in services.values():
+            service.close()
+        if not command:
+            return
+        generation += 1
+        adaptive = PolicyService(policy, ServeConfig(**base))
+        calibration = adaptive.warm_up()  # calibrates anew (the graphs are compiled: nothing compiles again)
 
 
 # ----------------------------------------------------------------------------- the robots
+def _server_record(started: dict, stats: dict) -> dict:
+    """What a run's server was and chose: its generation (a fresh one per run), its start-up calibration, each
+    bucket's final mode and share of speculative batches, and the run's share of speculative batches."""
+    buckets = stats["buckets"]
+    return {
+        "generation": started["generation"],
+        "calibration": started["calibration"],
+        "speculative_share": stats.get("speculative_share"),
+        "final_modes": {bucket: row.get("mode") for bucket, row in buckets.items()},
+        "bucket_speculative_share": {bucket: row.get("speculative_share") for bucket, row in buckets.items()},
+    }
+
+
+def _get_json(url: str) -> dict:
+    import urllib.request
+
+    with urllib.request.urlopen(url, timeout=30) as response:  # loopback, the servers this script started
+        return json.loads(response.read())
+
+
 def replay(url: str, robots: int, episodes: list[list[dict]], chunk_length: int) -> dict:
     """One run: ``robots`` threads, each taking the next recorded episode and sending its observations in order
     (a new session per episode, reset at its first); the figures of :func:`drive`'s rows."""
@@ -252,27 +287,36 @@ def main(argv=None) -> int:
         recorded, chunk_length = record(args)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     process = subprocess.Popen([sys.executable, __file__, "--output", "-", "--serve", json.dumps(settings)],
-                               stdout=subprocess.PIPE, text=True, env=env)  # fmt: skip
+                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)  # fmt: skip
     rows: list[dict] = []
     try:
-        started = json.loads(process.stdout.readline())
+        started = first = json.loads(process.stdout.readline())
         logger.info("servers up after %.0f s of warm-up: %s", started["warm_up_s"], started["urls"])
         with tempfile.TemporaryDirectory() as scratch:
             for repeat in range(args.repeats):
                 for k in args.robots:
                     order = KINDS[repeat % 3 :] + KINDS[: repeat % 3]
                     for kind in order:
+                        if rows:  # every run on fresh servers: no state from the runs before
+                            process.stdin.write("restart\n")
+                            process.stdin.flush()
+                            started = json.loads(process.stdout.readline())
                         folder = Path(scratch) / f"{kind}-{k}-{repeat}"
                         episodes = args.episodes or max(2 * k, 6)
                         if args.driver == "replay":
                             run = replay(started["urls"][kind], k, recorded[:episodes], chunk_length)
                         else:
                             run = drive(started["urls"][kind], k, episodes, args, folder)
+                        run["server"] = _server_record(started, _get_json(started["urls"][kind] + "/stats"))
                         rows.append({"robots": k, "kind": kind, "repeat": repeat, **run})
                         logger.info("K=%d %s: %.1f actions/s, p95 %.1f ms", k, kind, run["actions_per_second"],
                                     run["latency_p95_ms"])  # fmt: skip
     finally:
-        process.kill()
+        process.stdin.close()  # the server process stops its servers and ends
+        try:
+            process.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            process.kill()
     for k in args.robots:  # lossless: every server's episodes executed the same actions
         runs = [r for r in rows if r["robots"] == k]
         for run in runs[1:]:
@@ -283,7 +327,7 @@ def main(argv=None) -> int:
     print(text)
     for row in rows:
         row.pop("actions")
-    output = {"settings": vars(args), "servers": started, "rows": rows, "table": text}
+    output = {"settings": vars(args), "servers": first, "rows": rows, "table": text}
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     Path(args.output).write_text(json.dumps(output, indent=1))
     return 0
