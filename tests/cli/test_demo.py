@@ -94,7 +94,9 @@ def test_without_episodes_the_verdict_reads_the_held_out_scene_table():
     results = [scene_row("greedy", 0.02), scene_row("greedy:compile", 0.01), scene_row("spec k=2 r=0", 0.015, stats),
                scene_row("jacobi r=0:compile", 0.009, stats), scene_row("spec k=2 r=0:compile", 0.008, stats),
                scene_row("spec k=6 r=1", 0.012, stats, (0, 1, 0, 0))]  # fmt: skip
-    rows = {row.role: row for row, _ in verdict_rows(results, ACTION_DIM)}
+    described = verdict_rows(results, ACTION_DIM)
+    rows = {row.role: row for row, _ in described}
+    assert "no previous action" in dict((row.role, what) for row, what in described)["`exact`"]  # it says which
     assert {role: row.method for role, row in rows.items()} == {
         "greedy": "greedy", "compiled greedy": "greedy:compile", "`exact`": "jacobi r=0:compile",
         "draft head": "spec k=2 r=0:compile", "relaxed r=1": "spec k=6 r=1"}  # fmt: skip

@@ -202,18 +202,22 @@ class VerdictRow:
         return self.identical == self.actions
 
 
-#: The verdict's rows: (role, what it is, patterns of the measured rows it reads: the first matching row is read).
+#: The verdict's rows: (role, the measured rows it may read as (name pattern, what it is); the first found is read).
 #: The episode table has them all (the previous action drafts there); the held-out scene table stands in for it
 #: with ``--episodes 0`` (Jacobi drafts and the head's chains, no previous action).
 VERDICT_ROLES = (
-    ("greedy", "plain greedy decoding, eager", (r"greedy",)),
-    ("compiled greedy", "transformers' static cache + CompileConfig", (r"greedy:compile",)),
-    ("`exact`", "previous action + Jacobi drafts, compiled, r=0",
-     (r"prior\+jacobi r=0:compile", r"prior\+jacobi r=0", r"jacobi r=0:compile", r"jacobi r=0")),
-    ("draft head", "`exact` + the draft head's EAGLE-2 tree",
-     (r"prior\+jacobi\+tree r=0:compile", r"prior\+jacobi\+tree r=0", r"spec k=\d+ r=0:compile", r"spec k=\d+ r=0")),
-    ("relaxed", "accepts a draft token up to r bins from the target's",
-     (r"prior\+jacobi r=[1-9]\d*:compile", r"prior\+jacobi r=[1-9]\d*", r"spec k=\d+ r=[1-9]\d*(:compile)?")),
+    ("greedy", ((r"greedy", "plain greedy decoding, eager"),)),
+    ("compiled greedy", ((r"greedy:compile", "transformers' static cache + CompileConfig"),)),
+    ("`exact`", ((r"prior\+jacobi r=0:compile", "previous action + Jacobi drafts, compiled, r=0"),
+                 (r"prior\+jacobi r=0", "previous action + Jacobi drafts, eager, r=0"),
+                 (r"jacobi r=0:compile", "Jacobi drafts, compiled, r=0 (no previous action here)"),
+                 (r"jacobi r=0", "Jacobi drafts, eager, r=0 (no previous action here)"))),
+    ("draft head", ((r"prior\+jacobi\+tree r=0:compile", "`exact` + the draft head's EAGLE-2 tree, compiled"),
+                    (r"prior\+jacobi\+tree r=0", "`exact` + the draft head's EAGLE-2 tree, eager"),
+                    (r"spec k=\d+ r=0:compile", "the draft head's chain, compiled, r=0"),
+                    (r"spec k=\d+ r=0", "the draft head's chain, eager, r=0"))),
+    ("relaxed", ((r"prior\+jacobi r=[1-9]\d*(:compile)?", "`exact` accepting draft tokens up to r bins off"),
+                 (r"spec k=\d+ r=[1-9]\d*(:compile)?", "the head's chain accepting tokens up to r bins off"))),
 )  # fmt: skip
 
 
@@ -223,17 +227,19 @@ def verdict_rows(results: list, action_dim: int) -> list[tuple[VerdictRow, str]]
     import re
 
     rows = []
-    for role, what, patterns in VERDICT_ROLES:
-        found = next((r for p in patterns for r in results if re.fullmatch(p, r.name)), None)
-        if found is None or any(row.method == found.name for row, _ in rows):
+    for role, candidates in VERDICT_ROLES:
+        found = next(((r, what) for pattern, what in candidates for r in results if re.fullmatch(pattern, r.name)),
+                     None)  # fmt: skip
+        if found is None or any(row.method == found[0].name for row, _ in rows):
             continue
-        tolerance = re.search(r"r=(\d+)", found.name)
+        result, what = found
+        tolerance = re.search(r"r=(\d+)", result.name)
         if role == "relaxed" and tolerance:
             role = f"relaxed r={tolerance.group(1)}"
-        distances = found.bin_distances or [0] * action_dim
+        distances = result.bin_distances or [0] * action_dim
         actions = [distances[i : i + action_dim] for i in range(0, len(distances), action_dim)]
         identical = sum(not any(action) for action in actions)
-        rows.append((VerdictRow(role, found.name, found.median_latency, _forwards_per_action(found, action_dim),
+        rows.append((VerdictRow(role, result.name, result.median_latency, _forwards_per_action(result, action_dim),
                                 identical, len(actions)), what))  # fmt: skip
     return rows
 
