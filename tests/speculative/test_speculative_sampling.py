@@ -29,7 +29,7 @@ from hf_specvla import (
     JacobiDrafter,
     enable_speculation,
 )
-from hf_specvla.speculative import AcceptedPath, loop
+from hf_specvla.speculative import AcceptedPath, rounds
 from hf_specvla.training.draft_head import DraftTrainingConfig, build_distillation_dataset, train_draft_head
 
 from ..conftest import tiny_llama_config
@@ -233,7 +233,7 @@ def test_the_test_detects_a_wrong_speculative_sampler(peaked, action_tokenizer, 
     there, so a rejection here is one there too), rejects a speculative sampler with one mistake, which still accepts
     drafts; the same sampler without the mistake passes it (the mistake is what fails)."""
     expected = exact_distribution(peaked, action_tokenizer, 0.7)
-    monkeypatch.setattr(loop, "sample_trees", wrong_sampler(**settings))
+    monkeypatch.setattr(rounds, "sample_trees", wrong_sampler(**settings))  # what the rounds sample with
     counts, accepted = _sample(peaked, action_tokenizer, "prior", 0.7, None, expected, samples=ROWS)
     assert accepted > ROWS // 10, accepted  # the sampler ran on drafts
     p_value, cells = chi_square_p_value(counts, expected, ROWS)
