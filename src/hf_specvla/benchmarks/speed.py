@@ -116,23 +116,26 @@ def run_benchmark(
                 target.generate(**prompt, **base, **method.generate_kwargs)
     rng = random.Random(seed)
     order = list(methods)
-    for _ in progress_bar(range(repeats), desc="benchmark", disable=not progress):
-        for prompt in prompts:
-            rng.shuffle(order)
-            outputs = {}
-            for method in order:
-                start = time.perf_counter()
-                out = target.generate(**prompt, **base, **method.generate_kwargs, return_dict_in_generate=True)
-                results[method.name].latencies.append(time.perf_counter() - start)
-                outputs[method.name] = out.sequences[:, -max_new_tokens:]
-                spec = getattr(out, "speculation", None)
-                if spec is not None:
-                    prev = results[method.name].stats
-                    results[method.name].stats = spec if prev is None else prev.merge(spec)
-            reference = outputs[methods[0].name]
-            for name, tokens in outputs.items():
-                distance = action_tokenizer.bin_distance(tokens, reference)
-                results[name].bin_distances.extend(distance.flatten().tolist())
+    bar = progress_bar(total=repeats * len(prompts), desc="benchmark", disable=not progress)  # a tick a prompt
+    with bar:
+        for _ in range(repeats):
+            for prompt in prompts:
+                rng.shuffle(order)
+                outputs = {}
+                for method in order:
+                    start = time.perf_counter()
+                    out = target.generate(**prompt, **base, **method.generate_kwargs, return_dict_in_generate=True)
+                    results[method.name].latencies.append(time.perf_counter() - start)
+                    outputs[method.name] = out.sequences[:, -max_new_tokens:]
+                    spec = getattr(out, "speculation", None)
+                    if spec is not None:
+                        prev = results[method.name].stats
+                        results[method.name].stats = spec if prev is None else prev.merge(spec)
+                reference = outputs[methods[0].name]
+                for name, tokens in outputs.items():
+                    distance = action_tokenizer.bin_distance(tokens, reference)
+                    results[name].bin_distances.extend(distance.flatten().tolist())
+                bar.update(1)
     return [results[m.name] for m in methods]
 
 
