@@ -188,8 +188,6 @@ def test_the_openvla_ports_predict_action_warns_nothing():
             np.testing.assert_array_equal(action, greedy, err_msg=str(kwargs))
 
 
-@pytest.mark.xfail(strict=True, reason="issue 65, engine: speculative/loop.py warns with stacklevel=2, which is "
-                   "transformers' generate (it calls speculative_generate through custom_generate)")  # fmt: skip
 def test_our_future_warning_points_at_the_callers_line(tiny_llama, random_draft):
     """``generate(..., draft_head=...)`` is deprecated: its FutureWarning names the caller's file, not
     transformers'."""

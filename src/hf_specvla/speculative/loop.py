@@ -36,6 +36,8 @@ Entry point: [`speculative_generate`], a ``custom_generate`` callable for ``mode
 
 from __future__ import annotations
 
+import os
+import sys
 import warnings
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
@@ -108,7 +110,7 @@ def speculative_generate(
             "speculative_generate(draft_head=...) is deprecated and will be removed: pass drafter= (or "
             "model.generate(assistant_model=...)), which takes a DraftHead too",
             FutureWarning,
-            stacklevel=2,
+            stacklevel=_caller_stacklevel(),
         )
     settings = SpeculationConfig(
         bin_tolerance, num_draft_tokens, action_layout, profile_speculation, confidence_gate, max_relaxed_per_action,
@@ -122,3 +124,18 @@ def speculative_generate(
         while call.state.rows:
             decode_round(model, call, logits_processor, stopping_criteria)
     return finish(call, generation_config)
+
+
+def _caller_stacklevel() -> int:
+    """The ``stacklevel`` that makes a warning raised in [`speculative_generate`] name its caller's line: the first
+    frame outside this package's engine, transformers (whose ``generate`` calls us through ``custom_generate``) and
+    torch (its ``no_grad`` wrapper)."""
+    import transformers
+
+    skip = tuple(
+        os.path.dirname(module.__file__) + os.sep for module in (sys.modules[__package__], transformers, torch)
+    )
+    frame, level = sys._getframe(2), 2  # the frame that called speculative_generate
+    while frame.f_back is not None and frame.f_code.co_filename.startswith(skip):
+        frame, level = frame.f_back, level + 1
+    return level
