@@ -54,31 +54,40 @@ def commit_paths(
     base = cache_length(state.target_cache) - trees.num_nodes  # cache entries before the tree's
     device = state.pending_ids.device
     longest = max(len(p.nodes) for p in paths)
-    path_valid = torch.tensor(
-        [[i < len(p.nodes) for i in range(longest)] for p in paths], dtype=torch.bool, device=device
-    )  # [B, A]
-    node_index = torch.tensor([p.nodes + [0] * (longest - len(p.nodes)) for p in paths], device=device).long()
+    node_index = None  # [B, A] each row's path nodes, padded; None when every path is its tree's first nodes
     if all(p.nodes == list(range(len(p.nodes))) for p in paths):  # leftmost paths (chains): a prefix, truncate
         truncate_cache(state.target_cache, base + longest)  # a shorter row's extra entries become invalid keys
     else:
+        node_index = torch.tensor([p.nodes + [0] * (longest - len(p.nodes)) for p in paths], device=device).long()
         keep_cache_path(state.target_cache, base, in_cache_batch(state, node_index, 0))
-    valid_before = state.key_valid
-    if valid_before is None:
-        valid_before = torch.ones(batch_size, base, dtype=torch.bool, device=device)
-    key_valid = torch.cat([valid_before, path_valid], dim=1)  # [B, base + A]
-    # every key valid: known on the host when no key was invalid before (else the device says)
+    # every key valid: known on the host when no key was invalid before and every path has one length (else the
+    # device says); the mask of valid keys is built only when some key may be invalid
     same_length = all(len(p.nodes) == longest for p in paths)
+    key_valid = None  # [B, base + A]
+    if not same_length or state.key_valid is not None:
+        path_valid = torch.tensor(
+            [[i < len(p.nodes) for i in range(longest)] for p in paths], dtype=torch.bool, device=device
+        )  # [B, A]
+        valid_before = state.key_valid
+        if valid_before is None:
+            valid_before = torch.ones(batch_size, base, dtype=torch.bool, device=device)
+        key_valid = torch.cat([valid_before, path_valid], dim=1)
     all_valid = same_length and (state.key_valid is None or bool(key_valid.all()))
     commits = []
     for b, (row, path) in enumerate(zip(state.rows, paths)):
         accepted = len(path.nodes)
-        nodes = node_index[b, :accepted]
-        path_tokens = trees.token_ids[b, nodes][None]  # [1, A_b]
+        kept_hidden = None
+        if node_index is None:  # the path is the tree's first nodes: slices, no gather
+            path_tokens = trees.token_ids[b : b + 1, :accepted]  # [1, A_b]
+            if hidden is not None:  # the pending tokens' hidden states, then the path's, as they are laid out
+                kept_hidden = hidden[b : b + 1, : num_pending + accepted]
+        else:
+            nodes = node_index[b, :accepted]
+            path_tokens = trees.token_ids[b, nodes][None]  # [1, A_b]
+            if hidden is not None:
+                kept_hidden = torch.cat([hidden[b : b + 1, :num_pending], hidden[b : b + 1, num_pending + nodes]], 1)
         bonus = path_tokens.new_full((1, 1), path.bonus_id)
         path_positions = state.pending_positions[b : b + 1, -1:] + 1 + torch.arange(accepted, device=device)[None]
-        kept_hidden = None
-        if hidden is not None:
-            kept_hidden = torch.cat([hidden[b : b + 1, :num_pending], hidden[b : b + 1, num_pending + nodes]], dim=1)
         row.committed_length += num_pending + accepted
         commits.append(
             Commit(
