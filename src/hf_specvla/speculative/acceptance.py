@@ -572,8 +572,10 @@ def accept_trees(
         return [AcceptedPath([], bonus, [], [bonus]) for bonus in target_ids[:, 0].tolist()]
     if rule.needs_probabilities and top1_probs is None:
         raise ValueError(f"{rule!r} needs the target's top-1 probabilities: pass top1_probs")
-    prior = torch.tensor(num_prior_action_tokens, device=tokens.device)[:, None]  # [B, 1]
-    earlier = torch.tensor(relaxed_in_action or [0] * batch_size, device=tokens.device)[:, None]  # [B, 1]
+    prior = earlier = None  # what only a rule reading actions needs
+    if action_layout is not None and rule.reads_actions:
+        prior = torch.tensor(num_prior_action_tokens, device=tokens.device)[:, None]  # [B, 1]
+        earlier = torch.tensor(relaxed_in_action or [0] * batch_size, device=tokens.device)[:, None]  # [B, 1]
     # one read from the device per verification: the paths, distances, bonus tokens, drafted and target tokens, the
     # parents (a tree drafted on the device is then known on the host too)
     packed = search_paths(
@@ -600,8 +602,8 @@ def search_paths(
     depths: torch.Tensor,
     is_real: torch.Tensor,
     target_ids: torch.Tensor,
-    prior: torch.Tensor,
-    earlier: torch.Tensor,
+    prior: torch.Tensor | None,
+    earlier: torch.Tensor | None,
     top1_probs: torch.Tensor | None,
     rule: AcceptanceRule,
     action_layout: ActionLayout | None,
@@ -614,7 +616,8 @@ def search_paths(
     Args:
         tokens / parents / depths / is_real: ``[B, N]`` the trees (a [`TreeBatch`]'s); ancestor_or_self ``[B, N, N]``.
         target_ids: ``[B, 1 + N]``; prior / earlier: ``[B, 1]`` the action tokens before each root, and the relaxed
-            tokens already emitted in the root's action; top1_probs: ``[B, 1 + N]`` or None.
+            tokens already emitted in the root's action (None where the rule reads no action, or no layout);
+            top1_probs: ``[B, 1 + N]`` or None.
     Returns:
         ``[B, 4 N + 2 + N]`` packed per row: on-path flags ``[N]``, bin distances ``[N]``, the bonus token, the drafted
         tokens ``[N]``, the target's tokens ``[1 + N]``, the parents ``[N]``.
@@ -631,8 +634,11 @@ def search_paths(
         action_steps = before // action_layout.action_dim  # [B, N] which action of the call (chunk step)
         both_actions = is_action & tokenizer.is_action_token(parent_targets)
         distances = torch.where(both_actions, tokenizer.bin_distance(tokens, parent_targets), 0)
-    else:
+    elif rule.reads_actions:  # no layout: every token at dimension 0 of the call's first action
         action_dims = action_steps = torch.zeros_like(tokens)
+        distances = torch.zeros_like(tokens)
+    else:  # a rule that only compares tokens: every accepted token is the target's
+        action_dims = action_steps = None
         distances = torch.zeros_like(tokens)
     parent_probs = None if top1_probs is None else top1_probs.gather(1, parents + 1)  # [B, N]
     passes = rule(tokens, parent_targets, action_dims, action_steps, parent_probs) & is_real  # [B, N] alone
@@ -656,11 +662,14 @@ def search_paths(
         )
         reach = torch.where(ancestor_or_self, must_reach[:, None, :], -1).amax(dim=-1)  # [B, N] over the path
         path_passes = path_passes & (before >= reach)  # ``before``: the node's own index among the call's actions
-    total_distance = (ancestor_or_self.long() * distances[:, None, :]).sum(-1)  # [B, N] summed along the path
     # deepest, then closest, then first: argmax returns the first of equal maxima. Any bound above every path's total
     # distance orders the same; this one is known on the host (no read of the device's maximum)
-    widest = (action_layout.tokenizer.n_bins - 1) * num_nodes if action_layout is not None and rule.reads_actions else 0
-    rank = (depths + 1) * (widest + 1) - total_distance  # >= 1 for every node
+    if action_layout is not None and rule.reads_actions:
+        total_distance = (ancestor_or_self.long() * distances[:, None, :]).sum(-1)  # [B, N] summed along the path
+        widest = (action_layout.tokenizer.n_bins - 1) * num_nodes
+        rank = (depths + 1) * (widest + 1) - total_distance  # >= 1 for every node
+    else:  # no distances: the deepest, then the first
+        rank = depths + 1
     best = torch.where(path_passes, rank, 0).argmax(dim=-1)  # [B]
     accepted = path_passes.any(dim=-1)  # [B]
     bonus_ids = torch.where(accepted, target_ids.gather(1, best[:, None] + 1)[:, 0], target_ids[:, 0])
