@@ -50,6 +50,8 @@ from hf_specvla.speculative.syncs import HostSyncCounter
 PROMPT_IDS = [1, 512, 29901, 1724, 3158, 881, 278, 19964, 2125, 304, 5839, 701, 278, 2654, 2908, 29973, 13, 3744, 29901]
 ACTION_DIM = 7
 #: every call decodes one action per row, greedily
+#: action statistics of the random models (the times do not depend on them)
+PLACEHOLDER_STATS = {"bridge_orig": {"action": {"q01": [-1.0] * ACTION_DIM, "q99": [1.0] * ACTION_DIM}}}
 #: the part of a batch size's share of the budget that warm-ups may start in (the rest times them)
 WARM_UP_SHARE = 0.7
 #: the methods every batch size warms up and times whatever the budget says (the speed-ups are over them)
@@ -63,8 +65,7 @@ def openvla_7b_config() -> OpenVLAConfig:
     """openvla/openvla-7b's shapes without its files: config.json differs from the port's defaults (the Prismatic
     ``dinosiglip-vit-so-224px`` towers, the Llama-2-7B decoder) only in its padded vocabulary and its statistics; the
     statistics here are placeholders (the times do not depend on them)."""
-    stats = {"bridge_orig": {"action": {"q01": [-1.0] * ACTION_DIM, "q99": [1.0] * ACTION_DIM}}}
-    return OpenVLAConfig(norm_stats=stats, text_config={"vocab_size": 32064, "pad_token_id": 32000})
+    return OpenVLAConfig(norm_stats=PLACEHOLDER_STATS, text_config={"vocab_size": 32064, "pad_token_id": 32000})
 
 
 def tiny_config() -> OpenVLAConfig:
@@ -72,10 +73,9 @@ def tiny_config() -> OpenVLAConfig:
     register_vision_tower("bench-tiny-dino", VisionTowerSpec(32, 3, 2, 64, class_token=True, num_register_tokens=4,
                           no_embed_class=True, layer_scale=True), exist_ok=True)  # fmt: skip
     register_vision_tower("bench-tiny-siglip", VisionTowerSpec(24, 3, 2, 40, attention_pool=True), exist_ok=True)
-    stats = {"bridge_orig": {"action": {"q01": [-1.0] * ACTION_DIM, "q99": [1.0] * ACTION_DIM}}}
     text = dict(hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4, vocab_size=32064,
                 pad_token_id=32000)  # fmt: skip
-    return OpenVLAConfig(norm_stats=stats, timm_model_ids=["bench-tiny-dino", "bench-tiny-siglip"],
+    return OpenVLAConfig(norm_stats=PLACEHOLDER_STATS, timm_model_ids=["bench-tiny-dino", "bench-tiny-siglip"],
                          image_sizes=[28, 28], text_config=text)  # fmt: skip
 
 

@@ -21,7 +21,6 @@ Speculation: ``generate(..., assistant_model=draft_head | drafter, draft_ids=...
 
 from __future__ import annotations
 
-import copy
 import json
 import os
 from dataclasses import dataclass
@@ -47,6 +46,7 @@ from ..speculative import (
     is_local_path,
     named_weight_errors,
     remember_actions,
+    with_generation_config,
 )
 from .configuration_openvla import OpenVLAConfig
 from .vision import AttentionPoolLatent, LayerScale, OpenVLAProjector, OpenVLAVisionBackbone, VisionTransformer
@@ -542,10 +542,4 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         length = dict(max_new_tokens=action_dim, min_new_tokens=min_new_tokens)
         if generation_config is None:
             return {**kwargs, **length}
-        if not isinstance(generation_config, GenerationConfig):
-            raise TypeError(
-                f"generation_config must be a transformers GenerationConfig, got {type(generation_config).__name__}"
-            )
-        generation_config = copy.deepcopy(generation_config)  # the caller's is left as it was
-        rest = generation_config.update(**{**kwargs, **length})  # what is not a generation setting
-        return {"generation_config": generation_config, **rest}
+        return with_generation_config(generation_config, {**kwargs, **length})

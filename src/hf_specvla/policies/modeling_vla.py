@@ -14,7 +14,6 @@ One folder is a complete policy: ``save_pretrained`` writes the model, the token
 
 from __future__ import annotations
 
-import copy
 import json
 from dataclasses import asdict
 from pathlib import Path
@@ -41,6 +40,7 @@ from ..speculative import (
     episode_drafter,
     named_weight_errors,
     remember_actions,
+    with_generation_config,
 )
 from .configuration_vla import POLICY_CONFIG_NAME, VLAPolicyConfig
 from .processing_vla import VLAProcessor
@@ -278,13 +278,7 @@ class VLAPolicy:
             settings["return_dict_in_generate"] = True
         if generation_config is None:
             return dict(settings, do_sample=False, **generate_kwargs)
-        if not isinstance(generation_config, GenerationConfig):
-            raise TypeError(
-                f"generation_config must be a transformers GenerationConfig, got {type(generation_config).__name__}"
-            )
-        generation_config = copy.deepcopy(generation_config)  # the caller's is left as it was
-        rest = generation_config.update(**{**settings, **generate_kwargs})  # what is not a generation setting
-        return {"generation_config": generation_config, **rest}
+        return with_generation_config(generation_config, {**settings, **generate_kwargs})
 
     def weights_fingerprint(self) -> str:
         """Content fingerprint of the model's weights (computed once; a policy's weights do not change at

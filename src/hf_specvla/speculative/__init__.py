@@ -53,7 +53,13 @@ from .drafters import (
 )
 from .drafters.draft_head import embed_tokens
 from .drafters.eagle_tree import num_head_entries
-from .generation import SPECULATION_KWARGS, SpeculativeGenerationMixin, disable_speculation, enable_speculation
+from .generation import (
+    SPECULATION_KWARGS,
+    SpeculativeGenerationMixin,
+    disable_speculation,
+    enable_speculation,
+    with_generation_config,
+)
 from .loop import speculative_generate
 from .masks import causal_mask, to_additive_mask
 from .modeling_draft_head import DraftHead, TargetHandles, check_draft_head_folder, is_local_path, softcap_logits
@@ -68,6 +74,7 @@ __all__ = [
     "OLDEST_TESTED_TRANSFORMERS",
     "SUPPORTED_TRANSFORMERS",
     "SPECULATION_KWARGS",
+    "with_generation_config",
     "NODE_BUCKETS",
     "SLOT_MULTIPLE",
     "compiled_decoding_kwargs",

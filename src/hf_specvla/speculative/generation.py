@@ -9,9 +9,10 @@ forwarded to a callable), or ``draft_ids`` (drafts known up front, with or witho
 
 from __future__ import annotations
 
+import copy
 import inspect
 
-from transformers import PreTrainedModel
+from transformers import GenerationConfig, PreTrainedModel
 
 from .compat import check_transformers_support
 from .compiled import allow_graphs_compiled_so_far
@@ -27,6 +28,25 @@ SPECULATION_KWARGS = tuple(
     for name in inspect.signature(SpeculationConfig).parameters
     if name in inspect.signature(speculative_generate).parameters
 )
+
+
+def with_generation_config(generation_config: GenerationConfig, settings: dict) -> dict:
+    """``generate``'s keyword arguments for ``settings`` when a caller passes its own ``generation_config`` (which
+    decides how to decode, e.g. its ``do_sample=True`` samples): a copy of it (the caller's is left as it was) holding
+    every generation setting of ``settings`` (lengths, a compiled method's ``cache_implementation`` /
+    ``compile_config``, ...), the rest (inputs, drafters, ``bin_tolerance``...) beside it, since transformers
+    deprecates a ``generation_config`` passed together with generation settings.
+
+    Raises:
+        TypeError: a ``generation_config`` that is not a ``GenerationConfig``.
+    """
+    if not isinstance(generation_config, GenerationConfig):
+        raise TypeError(
+            f"generation_config must be a transformers GenerationConfig, got {type(generation_config).__name__}"
+        )
+    generation_config = copy.deepcopy(generation_config)
+    rest = generation_config.update(**settings)  # what is not a generation setting
+    return {"generation_config": generation_config, **rest}
 
 
 class SpeculativeGenerationMixin:
