@@ -18,6 +18,8 @@ from hf_specvla.metaworld.comparison.statistics import paired_speedup, per_call_
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
+#: this checkout's result files (the package may be installed elsewhere, as tox installs it)
+RESULTS = ROOT / "docs" / "results"
 
 #: page -> the named figures it quotes (figures.quoted_figures)
 PAGE_QUOTES = {
@@ -47,12 +49,12 @@ NOT_MEASURED = {"95%"}
 
 @pytest.fixture(scope="module")
 def quotes() -> dict[str, str]:
-    return figures.quoted_figures()
+    return figures.quoted_figures(RESULTS)
 
 
 @pytest.fixture(scope="module")
 def table() -> str:
-    return figures.measured_table()
+    return figures.measured_table(RESULTS)
 
 
 def _normalized(text: str) -> str:
@@ -79,7 +81,7 @@ def _measured_parts(readme: str) -> str:
 
 def test_the_readme_shows_the_computed_table(table):
     readme = README.read_text()
-    assert table in readme, "README.md's table differs from figures.measured_table():\n" + table
+    assert table in readme, "README.md's table differs from figures.measured_table(RESULTS):\n" + table
 
 
 @pytest.mark.parametrize("page", sorted(PAGE_QUOTES))
@@ -124,7 +126,7 @@ def test_total_time_is_sum_over_sum_and_per_call_is_the_mean_ratio():
 @pytest.mark.parametrize("name", ["compare_v3_head_v2_100k_summary.json", "compare_v3_fast_300k_summary.json"])
 def test_a_lossless_methods_total_time_is_compares_figure(name):
     """Same calls as greedy: the total-time ratio and its interval are exactly what compare stored."""
-    summary = figures.load(name)
+    summary = figures.load(name, RESULTS)
     stored = summary["methods"][figures.EXACT]["speedup_total"]
     mine = figures.total_time_speedup(summary, figures.EXACT)
     assert mine["method_calls"] == mine["baseline_calls"]
@@ -133,7 +135,7 @@ def test_a_lossless_methods_total_time_is_compares_figure(name):
 
 
 def test_fast_makes_other_calls_so_compares_stored_figure_is_per_call():
-    summary = figures.load("compare_v3_relaxed_100k_summary.json")
+    summary = figures.load("compare_v3_relaxed_100k_summary.json", RESULTS)
     total = figures.total_time_speedup(summary, figures.FAST)
     assert (total["method_calls"], total["baseline_calls"]) == (14_741, 14_073)
     per_call = figures.per_call_speedup(summary, figures.FAST)
@@ -148,13 +150,15 @@ def test_fast_makes_other_calls_so_compares_stored_figure_is_per_call():
 def test_fast_over_exact_contains_one_on_every_range():
     """The README says so: every interval of fast's total decode time over exact's contains 1."""
     for seeds in figures.SEED_RANGES:
-        versus = figures.total_time_speedup(figures.load(figures.RUNS["fast", seeds][0]), figures.FAST, figures.EXACT)
+        versus = figures.total_time_speedup(
+            figures.load(figures.RUNS["fast", seeds][0], RESULTS), figures.FAST, figures.EXACT
+        )
         assert versus["ci_low"] < 1 < versus["ci_high"], seeds
 
 
 def test_the_runs_are_the_same_pairs_under_the_same_conditions():
     for (preset, seeds), names in figures.RUNS.items():
-        summaries = [figures.load(name) for name in names]
+        summaries = [figures.load(name, RESULTS) for name in names]
         assert {s["settings"]["seed_start"] for s in summaries} == {int(seeds.rstrip("+"))}, names
         keys = [frozenset(per_call_latencies(s)[figures.PRESETS[preset]]) for s in summaries]
         assert all(len(k) == 200 for k in keys) and len(set(keys)) == 1, names
@@ -170,8 +174,8 @@ def test_the_runs_are_the_same_pairs_under_the_same_conditions():
 
 
 def test_the_serving_ratios_are_of_the_medians_as_the_serving_table():
-    table = figures.load(figures.SERVING)["table"]
+    table = figures.load(figures.SERVING, RESULTS)["table"]
     for robots in (1, 2, 4, 8, 16):
-        ratio, repeats = figures._throughput_ratios(figures.RESULTS, robots)
+        ratio, repeats = figures._throughput_ratios(RESULTS, robots)
         assert f"| {robots} | adaptive |" in table and f"| {ratio:.2f}x |" in table
         assert len(repeats) == 3 and np.min(repeats) <= ratio * 1.1

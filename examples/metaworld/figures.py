@@ -5,7 +5,12 @@ result file in docs/results/ (total decode time = sum over sum; per call = mean 
     python examples/metaworld/figures.py
 """
 
+from pathlib import Path
+
 from hf_specvla.metaworld.comparison.figures import report
 
+#: this checkout's result files
+RESULTS = Path(__file__).resolve().parents[2] / "docs" / "results"
+
 if __name__ == "__main__":
-    print(report())
+    print(report(RESULTS))

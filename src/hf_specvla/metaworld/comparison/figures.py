@@ -32,8 +32,18 @@ import numpy as np
 
 from .statistics import SPEEDUP_RESAMPLES, per_call_latencies
 
-#: docs/results/ of this checkout (the files are not installed with the package)
-RESULTS = Path(__file__).resolve().parents[4] / "docs" / "results"
+
+def _results_folder() -> Path:
+    """docs/results/ of the checkout: the source tree's when the package runs from it (an editable install), else the
+    working directory's (an installed package, as tox installs it, run from the checkout's root). The files are not
+    installed with the package."""
+    source_tree = Path(__file__).resolve().parents[4] / "docs" / "results"
+    working_dir = Path.cwd() / "docs" / "results"
+    return source_tree if source_tree.is_dir() or not working_dir.is_dir() else working_dir
+
+
+#: docs/results/ of this checkout (see ``_results_folder``)
+RESULTS = _results_folder()
 
 EXACT = "prior+jacobi:compile"
 FAST = "prior+jacobi:r=4/4/4/0,gate=0.5,confirm=1:compile"
