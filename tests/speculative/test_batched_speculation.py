@@ -292,3 +292,37 @@ def test_bad_max_drafts_per_row(tiny_llama, random_draft, cap):
     with pytest.raises(ValueError, match=f"max_drafts_per_row must be an int >= 0 .* got {re.escape(repr(cap))}"):
         tiny_llama.generate(input_ids=torch.tensor([[5, 6, 7]]), max_new_tokens=3, assistant_model=random_draft,
                             max_drafts_per_row=cap)  # fmt: skip
+
+
+# ------------------------------------------------------------------------------- rows reported as they finish
+@pytest.mark.parametrize("cache_implementation", [None, "static"])
+def test_on_row_finished_reports_each_row_when_it_stops(tiny_llama, cache_implementation):
+    """Rows whose drafts are right finish in the prefill, the others rounds later: each is reported once, in
+    finishing order, with exactly the tokens the returned batch holds for it; the output is greedy's."""
+    prompts = text_prompts(4, seed=31)
+    batch = left_padded(prompts)
+    width = batch["input_ids"].shape[1]
+    eos = eos_reached_early(tiny_llama, batch, 8)
+    expected = greedy(tiny_llama, **batch, max_new_tokens=8, eos_token_id=eos)
+    draft_ids = expected[:, width : width + 7].clone()
+    draft_ids[1::2, 0] = (draft_ids[1::2, 0] + 1) % 320  # rows 1 and 3: wrong drafts, one token a forward
+    reported = []
+    out = tiny_llama.generate(
+        **batch, max_new_tokens=8, eos_token_id=eos, pad_token_id=PAD, draft_ids=draft_ids,
+        on_row_finished=lambda row, new_tokens: reported.append((row, new_tokens.clone())),
+        cache_implementation=cache_implementation, return_dict_in_generate=True,
+    )  # fmt: skip
+    assert torch.equal(out.sequences, expected)
+    assert sorted(row for row, _ in reported) == [0, 1, 2, 3]
+    for row, tokens in reported:
+        generated = out.sequences[row, width:]
+        assert torch.equal(tokens, generated[: len(tokens)]) and bool((generated[len(tokens) :] == PAD).all())
+    forwards = [out.speculation.rows[row].num_target_forwards for row, _ in reported]
+    assert forwards == sorted(forwards) and forwards[0] < forwards[-1], forwards  # early rows reported first
+
+
+def test_on_row_finished_must_be_callable(tiny_llama):
+    batch = left_padded(text_prompts(2, seed=1))
+    with pytest.raises(TypeError, match="on_row_finished must be a callable.*got str"):
+        tiny_llama.generate(**batch, max_new_tokens=4, pad_token_id=PAD, draft_ids=batch["input_ids"][:, :2],
+                            on_row_finished="print")  # fmt: skip

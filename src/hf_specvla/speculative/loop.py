@@ -39,7 +39,7 @@ from __future__ import annotations
 import os
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 import torch
@@ -81,6 +81,7 @@ def speculative_generate(
     motion_scale: float | Sequence[float] | None = SpeculationConfig.motion_scale,
     max_deviation: float | Sequence[float] | None = SpeculationConfig.max_deviation,
     confirm_strict_tail: bool = SpeculationConfig.confirm_strict_tail,
+    on_row_finished: Callable[[int, torch.Tensor], None] | None = None,
     **model_kwargs,
 ) -> SpeculativeDecoderOnlyOutput | torch.LongTensor:
     """Greedy speculative decoding of a batch; a ``custom_generate`` callable for ``model.generate``.
@@ -99,12 +100,23 @@ def speculative_generate(
             (``draft_head=`` is the same, deprecated: a ``FutureWarning``).
         draft_ids: ``[B, k]`` or ``[B, C, k]`` drafts of the first generated tokens of each row, known up front:
             verified inside the prefill forward, with or without a drafter.
+        on_row_finished: called as ``on_row_finished(row, new_tokens)`` the moment a row stops (EOS, its length,
+            a stopping criterion), while the rest of the batch may still be decoding: ``row`` its index in the
+            batch, ``new_tokens`` ``[n]`` its generated tokens (final: what the returned row holds after the
+            prompt, without the right padding). Once per row, in the calling thread, in finishing order (rows that
+            stop in one round in batch order). A server answers each request from it without waiting for the
+            batch's slowest row; an exception raised by it ends the call.
     Returns:
         ``[B, S + new]`` token ids (rows that stopped early right-padded with ``pad_token_id``), or with
         ``return_dict_in_generate=True`` a [`SpeculativeDecoderOnlyOutput`] whose ``.speculation`` is a
         [`SpeculationStats`] (summed over rows; ``.rows`` per row when B > 1).
     """
     check_transformers_support()
+    if on_row_finished is not None and not callable(on_row_finished):
+        raise TypeError(
+            f"on_row_finished must be a callable (row: int, new_tokens: Tensor) -> None or None, got "
+            f"{type(on_row_finished).__name__}"
+        )
     if draft_head is not None:
         warnings.warn(
             "speculative_generate(draft_head=...) is deprecated and will be removed: pass drafter= (or "
@@ -118,6 +130,7 @@ def speculative_generate(
     )  # fmt: skip
     call = prepare(model, input_ids, logits_processor, generation_config, settings, drafter, draft_head, draft_ids,
                    model_kwargs)  # fmt: skip
+    call.on_row_finished = on_row_finished
     cache = call.state.target_cache
     with open_sliding_windows(cache), host_length(cache):  # exact: the generation fits the window (checked)
         prefill(model, call, logits_processor, stopping_criteria)

@@ -380,6 +380,10 @@ def settle(call: SpeculativeCall, trees: TreeBatch, output: TargetOutput, logits
     call.stats.num_batch_forwards += 1
     paths, target_ids, target_scores = accept(state, plan, trees, output, logits_processor)
     emit(state, plan, trees, paths, output, target_scores, stopping_criteria)
+    if call.on_row_finished is not None:
+        for row in state.rows:
+            if row.finished:  # finished this round: finished rows leave the batch at the end of every round
+                call.on_row_finished(row.index, row.sequence[0, row.sequence.shape[1] - row.num_generated :])
     commits = commit_paths(state, trees, paths, output.hidden, target_ids)
     with call.stopwatch.section("draft_seconds"):
         observe(state, commits)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -120,3 +121,5 @@ class SpeculativeCall:
     cached_tokens: int  # the rows' first tokens the cache held before the call
     pad_token_id: int | None
     total_start: float
+    #: ``(row, new_tokens [n])`` -> None, called as each row stops (``speculative_generate``'s argument), or None
+    on_row_finished: Callable[[int, torch.Tensor], None] | None = None
