@@ -7,11 +7,11 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import bench_episodes, benchmark, collect, compare, demo, eval, robots, serve, train_draft, train_vla
+from . import bench_episodes, benchmark, collect, compare, demo, eval, robots, rollouts, serve, train_draft, train_vla
 from .common import HelpFormatter, configure_logging
 
 #: in the order ``--help`` lists them
-COMMANDS = (demo, benchmark, bench_episodes, collect, train_vla, eval, train_draft, compare, serve, robots)
+COMMANDS = (demo, benchmark, bench_episodes, collect, train_vla, eval, rollouts, train_draft, compare, serve, robots)
 EXAMPLES = "".join(command.EXAMPLES for command in COMMANDS)
 
 

@@ -55,9 +55,12 @@ def training_record(command: str, config, inputs: dict, paths: dict | None = Non
     return RunRecord(command, {**settings, **inputs}, paths=paths or {})
 
 
-def check_output_dir(output_dir: Path, record: RunRecord | None, resume: bool, overwrite: bool) -> None:
+def check_output_dir(output_dir: Path, record: RunRecord | None, resume: bool, overwrite: bool,
+                     kind: str = "training run") -> None:  # fmt: skip
     """The refusals of [`prepare_output_dir`], without writing anything (call it before a long preparation;
-    ``record=None``: all but the comparison with the folder's record, e.g. before the data is known).
+    ``record=None``: all but the comparison with the folder's record, e.g. before the data is known). ``kind``: what
+    the folder holds, for messages; only a "training run" needs a checkpoint to resume (a folder of episodes, e.g.
+    ``rollouts``, resumes from its files).
 
     Raises:
         FileNotFoundError: ``resume`` into a folder that does not exist or is empty (nothing to resume).
@@ -66,6 +69,8 @@ def check_output_dir(output_dir: Path, record: RunRecord | None, resume: bool, o
             another run (naming the differing setting).
     """
     output_dir = Path(output_dir)
+    training = kind == "training run"
+    start_over = "train from scratch" if training else "start over"
     if overwrite:
         return
     if is_empty_folder(output_dir):
@@ -78,19 +83,19 @@ def check_output_dir(output_dir: Path, record: RunRecord | None, resume: bool, o
         return
     if not (output_dir / RUN_FILE).is_file():
         raise FileExistsError(
-            f"{str(output_dir)!r} holds no training run (it is not empty and has no {RUN_FILE}: another tool's files, "
+            f"{str(output_dir)!r} holds no {kind} (it is not empty and has no {RUN_FILE}: another tool's files, "
             f"or a folder written before run records existed); choose another folder, or pass --overwrite-output-dir "
-            f"to move it aside and train from scratch"
+            f"to move it aside and {start_over}"
         )
     if record is not None:
         check_run_folder(output_dir, record)  # another run's folder: named first, whatever the flags
     if not resume:
         raise FileExistsError(
-            f"output_dir {str(output_dir)!r} already holds this run; pass --resume (resume=True) to continue its "
-            f"training, --overwrite-output-dir (overwrite_output_dir=True) to move it aside and train from scratch, "
-            f"or choose another folder"
+            f"output_dir {str(output_dir)!r} already holds this {kind}; pass --resume (resume=True) to continue "
+            f"{'its training' if training else 'it'}, --overwrite-output-dir (overwrite_output_dir=True) to move it "
+            f"aside and {start_over}, or choose another folder"
         )
-    if latest_checkpoint(output_dir) is None:
+    if training and latest_checkpoint(output_dir) is None:
         raise FileExistsError(
             f"--resume: {str(output_dir)!r} has no checkpoint-* to resume from (the run stopped before its first "
             f"checkpoint); pass --overwrite-output-dir to move it aside and train from scratch, or choose another "
