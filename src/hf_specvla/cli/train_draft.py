@@ -24,6 +24,11 @@ EXAMPLES = """
     # Head v2: a low, a middle and the top layer of the policy, its previous action, trained on its own drafts
     hf-specvla train-draft --policy policies/mt10_vla --tasks reach --rollout-episodes 2 --max-steps 20 \\
         --head v2 --output-dir runs/reach_draft_v2_smoke
+    # On rollouts collected beforehand (hf-specvla rollouts): its episodes, the last --validation-episodes held out
+    hf-specvla rollouts --policy policies/mt10_vla --tasks reach --episodes-per-task 3 --max-steps 10 \\
+        --output-dir runs/reach_rollouts_smoke
+    hf-specvla train-draft --policy policies/mt10_vla --tasks reach --rollouts runs/reach_rollouts_smoke \\
+        --max-steps 20 --output-dir runs/reach_draft_rollouts_smoke
 """
 
 
@@ -35,13 +40,18 @@ def add_arguments(parser) -> None:
                         help="also distil on frames of these `collect` folders (default: rollouts only)")  # fmt: skip
     parser.add_argument("--demo-frames-per-task", type=NON_NEGATIVE, default=DraftDataConfig.demo_frames_per_task,
                         help="with --data: frames sampled per task")  # fmt: skip
-    parser.add_argument("--rollout-episodes", type=POSITIVE, default=DraftDataConfig.rollout_episodes,
-                        help="greedy on-policy episodes per task (the last --validation-episodes held "
-                             "out)")  # fmt: skip
-    parser.add_argument("--rollout-max-steps", type=POSITIVE, default=DraftDataConfig.rollout_max_steps,
-                        help="steps kept per rollout")  # fmt: skip
-    parser.add_argument("--rollout-seed-start", type=NON_NEGATIVE, default=DraftDataConfig.rollout_seed_start,
-                        help="first rollout seed")  # fmt: skip
+    parser.add_argument("--rollouts", default=None,
+                        help="read the on-policy frames from this `hf-specvla rollouts` folder of the policy "
+                             "instead of rolling it out here")  # fmt: skip
+    parser.add_argument("--rollout-episodes", type=POSITIVE, default=None,
+                        help=f"greedy on-policy episodes per task (the last --validation-episodes held out; default: "
+                             f"{DraftDataConfig.rollout_episodes}, with --rollouts every finished one)")  # fmt: skip
+    parser.add_argument("--rollout-max-steps", type=POSITIVE, default=None,
+                        help=f"steps kept per rollout (default: {DraftDataConfig.rollout_max_steps}, with --rollouts "
+                             f"the folder's)")  # fmt: skip
+    parser.add_argument("--rollout-seed-start", type=NON_NEGATIVE, default=None,
+                        help=f"first rollout seed (default: {DraftDataConfig.rollout_seed_start}, with --rollouts the "
+                             f"folder's)")  # fmt: skip
     parser.add_argument("--validation-episodes", type=POSITIVE, default=DraftDataConfig.validation_episodes,
                         help="held-out rollouts per task")  # fmt: skip
     parser.add_argument("--validation-frames", type=POSITIVE, default=DraftDataConfig.validation_frames,
@@ -83,8 +93,9 @@ def run(args, parser) -> int:
     check_output_dir_flag(args.output_dir, parser)
     check_training_folder(args.output_dir, args.resume, args.overwrite_output_dir, parser)
     with usage_errors(parser, errors=(ValueError, FileNotFoundError)):
+        episodes, max_steps, seed_start = rollout_defaults(args)
         data_config = DraftDataConfig(
-            args.tasks, args.rollout_episodes, args.rollout_max_steps, args.rollout_seed_start,
+            args.tasks, episodes, max_steps, seed_start,
             args.validation_episodes, args.validation_frames, args.demo_frames_per_task, seed=args.seed,
         )  # fmt: skip
         training_config = PolicyDraftTrainingConfig(
@@ -104,6 +115,27 @@ def run(args, parser) -> int:
     command = shlex.join(["hf-specvla", *args.argv])
     with usage_errors(parser, errors=(FileExistsError,)):
         head = train_policy_draft_head(policy, training_config, data_config, args.data or [], args.num_draft_tokens,
-                                       command=command, head_version=args.head)  # fmt: skip
+                                       command=command, head_version=args.head, rollouts=args.rollouts)  # fmt: skip
     print(f"draft head saved to {args.output_dir} ({head.num_parameters():,} parameters); see its README.md")
     return 0
+
+
+def rollout_defaults(args) -> tuple[int, int, int]:
+    """--rollout-episodes, --rollout-max-steps, --rollout-seed-start as given, else ``DraftDataConfig``'s or, with
+    --rollouts, the folder's (every episode finished for each task, its step cut, its first seed).
+
+    Raises:
+        FileNotFoundError: --rollouts names no rollouts folder.
+    """
+    defaults = DraftDataConfig
+    episodes, max_steps, seed_start = args.rollout_episodes, args.rollout_max_steps, args.rollout_seed_start
+    if args.rollouts is None:
+        return (episodes or defaults.rollout_episodes, max_steps or defaults.rollout_max_steps,
+                defaults.rollout_seed_start if seed_start is None else seed_start)  # fmt: skip
+    from ..metaworld.env import resolve_tasks
+    from ..training.rollouts import finished_episodes_per_task, read_rollouts_record
+
+    settings = read_rollouts_record(args.rollouts)
+    seed_start = settings["seed_start"] if seed_start is None else seed_start
+    episodes = episodes or finished_episodes_per_task(args.rollouts, resolve_tasks(args.tasks), seed_start)
+    return episodes, max_steps or settings["max_steps"], seed_start

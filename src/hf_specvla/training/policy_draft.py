@@ -3,7 +3,9 @@
 Self-distillation (see [`hf_specvla.training.draft_head`]) on the policy's own greedy actions, over two kinds of frames:
 
 * **on-policy**: the states the policy itself reaches in greedy rollouts (seeds from ``DRAFT_SEED_START``,
-  400000), which is where the head is used; the last ``validation_episodes`` rollouts of every task are held out;
+  400000), which is where the head is used; the last ``validation_episodes`` rollouts of every task are held out.
+  Collected in-process, or read from a folder of ``hf-specvla rollouts`` (``rollouts=``, [`read_rollout_frames`]:
+  the same frames, collected once, resumably, by several workers);
 * **demonstrations** (optional): frames of ``hf-specvla collect`` folders, sampled per task.
 
 Validation runs the speculative engine itself (draft-head chain, ``bin_tolerance=0``) on the held-out rollouts'
@@ -31,6 +33,7 @@ from ..speculative import DraftHead
 from .configuration import HEAD_VERSIONS, DraftDataConfig, DraftTrainingConfig
 from .draft_head import PREVIOUS_ACTION, distil_draft_head, head_v2_settings
 from .loop import VALIDATION_LOG
+from .rollouts import read_rollout_frames
 
 logger = logging.getLogger(__name__)
 
@@ -112,6 +115,7 @@ def train_policy_draft_head(
     progress: bool = True,
     command: str | None = None,
     head_version: str = "v1",
+    rollouts: str | Path | None = None,
 ) -> DraftHead:
     """Trains a [`DraftHead`] for ``policy`` (see module docstring) into ``training_config.output_dir``.
 
@@ -123,6 +127,10 @@ def train_policy_draft_head(
     ``head_version``: "v1" (the last hidden state, no previous action: every head before v2) or "v2"
     ([`head_v2_settings`]: a low, a middle and the top layer, and the robot's previous action; train it with
     ``training_config.unroll_steps`` > 1, training-time test).
+
+    ``rollouts``: a folder of ``hf-specvla rollouts`` of this policy to read the on-policy frames from (those
+    ``data_config`` asks for) instead of rolling the policy out here; ``run.json`` and the model card record its path
+    and the fingerprint of the episodes read. A folder of another policy is refused.
     """
     if head_version not in HEAD_VERSIONS:
         raise ValueError(f"head_version must be one of {HEAD_VERSIONS}, got {head_version!r}")
@@ -138,11 +146,22 @@ def train_policy_draft_head(
                        "demonstration_fingerprints": [dataset_fingerprint(root) for root in demonstrations],
                        "demonstration_info": [dataset_info(root) for root in demonstrations]}}  # fmt: skip
     paths = {"demonstrations": demonstrations}
+    read = None  # the frames of a rollouts folder, read (and fingerprinted) before the folder rule is checked
+    if rollouts is not None:
+        read = read_rollout_frames(rollouts, policy, data_config)
+        recipe["data"]["rollouts_fingerprint"] = read.fingerprint
+        paths["rollouts"] = str(rollouts)
+        logger.info("read %d episodes (%d + %d frames) from %s (fingerprint %s)", read.episodes, len(read.train),
+                    len(read.validation), rollouts, read.fingerprint)  # fmt: skip
     sequences = 0  # training sequences, one per frame (for the model card)
 
     def prompts() -> tuple[list, list]:
-        logger.info("on-policy rollouts: %d per task on %d tasks", data_config.rollout_episodes, len(data_config.tasks))
-        train_frames, validation_frames = rollout_frames(policy, data_config, env_config)
+        if read is not None:
+            train_frames, validation_frames = list(read.train), read.validation
+        else:
+            logger.info("on-policy rollouts: %d per task on %d tasks", data_config.rollout_episodes,
+                        len(data_config.tasks))  # fmt: skip
+            train_frames, validation_frames = rollout_frames(policy, data_config, env_config)
         if demonstrations:
             train_frames += demonstration_frames(demonstrations, data_config, policy)
         validation_frames = _spread(validation_frames, data_config.validation_frames)
@@ -160,7 +179,8 @@ def train_policy_draft_head(
         head_settings=head_v2_settings(policy.model) if head_version == "v2" else None,
     )  # fmt: skip
     write_model_card(output_dir, head, training_config, data_config, demonstrations, sequences, command,
-                     policy.config.action_tokens)  # fmt: skip
+                     policy.config.action_tokens, paths.get("rollouts"),
+                     read.fingerprint if read else None)  # fmt: skip
     return head
 
 
@@ -174,8 +194,11 @@ def write_model_card(
     num_examples: int,
     command: str | None,
     tokens_per_call: int | None = None,
+    rollouts: str | None = None,
+    rollouts_fingerprint: str | None = None,
 ) -> None:
-    """``README.md`` with YAML metadata, as hub models have: target, data, command, measured acceptance."""
+    """``README.md`` with YAML metadata, as hub models have: target, data, command, measured acceptance (and the
+    ``rollouts`` folder the on-policy frames were read from, with its episodes' fingerprint)."""
     validations = read_jsonl(output_dir / VALIDATION_LOG)
     final = validations[-1] if validations else {}
     acceptance = final.get("acceptance_per_position", [])
@@ -190,6 +213,8 @@ def write_model_card(
                    f"draft steps of its own features (training-time test).\n")  # fmt: skip
     tasks = ", ".join(data_config.tasks)
     kept_rollouts = data_config.rollout_episodes - data_config.validation_episodes
+    source = (f", read from the `hf-specvla rollouts` folder `{rollouts}` (episodes fingerprint "
+              f"`{rollouts_fingerprint}`)" if rollouts else "")  # fmt: skip
     demo_text = (
         f"and {data_config.demo_frames_per_task} demonstration frames per task from {', '.join(demonstrations)}"
         if demonstrations
@@ -225,7 +250,7 @@ action = policy.predict_action(image, instruction, state, assistant_model=draft_
 
 Self-distillation on the policy's own greedy actions (`hf-specvla train-draft`), {num_examples} frames:
 greedy rollouts of the policy on {tasks} ({kept_rollouts} per task, seeds from {data_config.rollout_seed_start},
-cut at {data_config.rollout_max_steps} steps) {demo_text}; {training_config.max_steps} steps, batch
+cut at {data_config.rollout_max_steps} steps{source}) {demo_text}; {training_config.max_steps} steps, batch
 {training_config.batch_size}, learning rate {training_config.learning_rate} ({training_config.lr_schedule}), chain
 length {config.num_draft_tokens}.
 

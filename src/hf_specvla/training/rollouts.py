@@ -402,3 +402,99 @@ def write_manifest(folder: Path, wanted: set[tuple[str, int]]) -> dict:
     manifest = {"episodes": entries, "fingerprint": rollouts_fingerprint(entries), "complete": wanted <= done}
     write_json_atomic(folder / MANIFEST, manifest)
     return manifest
+
+
+# ----------------------------------------------------------------------------- reading, for train-draft
+def read_rollouts_record(folder: str | Path) -> dict:
+    """The ``run.json`` settings of a rollouts folder (policy fingerprint, env, seed_start, max_steps, method).
+
+    Raises:
+        FileNotFoundError: no such folder, or one without the ``run.json`` of ``hf-specvla rollouts``.
+    """
+    from ..run_folder import RUN_FILE
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"rollouts folder {str(folder)!r} does not exist; collect one with hf-specvla rollouts")
+    run_file = folder / RUN_FILE
+    record = json.loads(run_file.read_text()) if run_file.is_file() else {}
+    if record.get("command") != COMMAND:
+        raise FileNotFoundError(f"{str(folder)!r} is not a rollouts folder (no {RUN_FILE} of hf-specvla rollouts); "
+                                f"collect one with hf-specvla rollouts --policy ... --output-dir {folder}")  # fmt: skip
+    return record["settings"]
+
+
+def finished_episodes_per_task(folder: str | Path, tasks: list[str], seed_start: int) -> int:
+    """How many seeds from ``seed_start`` on, without a gap, every task of ``tasks`` has finished in ``folder``."""
+    done = finished_pairs(folder)
+    count = 0
+    while all((task, seed_start + count) in done for task in tasks):
+        count += 1
+    return count
+
+
+@dataclass
+class RolloutFrames:
+    """What ``train-draft --rollouts`` trains on: the frames of a rollouts folder (observation dicts as
+    ``record_observations`` gives them), split as the in-process collection splits them.
+
+    Attributes:
+        train / validation: frames of the first ``rollout_episodes - validation_episodes`` seeds of each task / of the
+            last ``validation_episodes`` (task by task, seed by seed, frame by frame).
+        fingerprint: [`rollouts_fingerprint`] of the episodes used (the same episodes, the same fingerprint, whatever
+            else the folder holds).
+        episodes: how many episodes were read.
+    """
+
+    train: list[dict]
+    validation: list[dict]
+    fingerprint: str
+    episodes: int
+
+
+def read_rollout_frames(folder: str | Path, policy: VLAPolicy, data_config) -> RolloutFrames:
+    """The frames ``data_config`` (a ``DraftDataConfig``: tasks, ``rollout_episodes`` per task from
+    ``rollout_seed_start``, cut at ``rollout_max_steps``, the last ``validation_episodes`` held out) asks for, read from
+    a rollouts folder of ``policy``: the frames the in-process collection (``policy_draft.rollout_frames``) gives.
+
+    Raises:
+        FileNotFoundError: not a rollouts folder.
+        ValueError: a folder of another policy (weights fingerprint) or env, another first seed, shorter episodes than
+            asked for, or too few finished episodes (naming how many there are and how to collect the rest).
+    """
+    folder = Path(folder)
+    settings = read_rollouts_record(folder)
+    if settings["policy"] != policy.weights_fingerprint():
+        raise ValueError(f"rollouts folder {str(folder)!r} holds rollouts of another policy (weights fingerprint "
+                         f"{settings['policy']}; {policy.name_or_path or 'this policy'} is "
+                         f"{policy.weights_fingerprint()}); collect this policy's with hf-specvla rollouts --policy "
+                         f"{policy.name_or_path or '<folder>'}")  # fmt: skip
+    env = asdict(env_config_for(policy.config))
+    if settings["env"] != env:
+        raise ValueError(f"rollouts folder {str(folder)!r} was rendered with {settings['env']}, the policy sees {env}")
+    if settings["seed_start"] != data_config.rollout_seed_start:
+        raise ValueError(f"rollouts folder {str(folder)!r} starts at seed {settings['seed_start']}, "
+                         f"rollout_seed_start is {data_config.rollout_seed_start}: give --rollout-seed-start "
+                         f"{settings['seed_start']}")  # fmt: skip
+    if data_config.rollout_max_steps > settings["max_steps"]:
+        raise ValueError(f"rollouts folder {str(folder)!r} cut its episodes at {settings['max_steps']} policy calls, "
+                         f"rollout_max_steps is {data_config.rollout_max_steps}: give --rollout-max-steps <= "
+                         f"{settings['max_steps']}")  # fmt: skip
+    available = finished_episodes_per_task(folder, data_config.tasks, settings["seed_start"])
+    if available < data_config.rollout_episodes:
+        raise ValueError(
+            f"rollouts folder {str(folder)!r} holds {available} finished episodes of every task of "
+            f"{data_config.tasks} (seeds from {settings['seed_start']}), rollout_episodes asks for "
+            f"{data_config.rollout_episodes}: give --rollout-episodes <= {available}, or collect more with hf-specvla "
+            f"rollouts --policy {policy.name_or_path or '<folder>'} --output-dir {folder} --episodes-per-task "
+            f"{data_config.rollout_episodes} --resume (and the folder's other settings)"
+        )
+    seeds = [data_config.rollout_seed_start + i for i in range(data_config.rollout_episodes)]
+    held_out = set(seeds[-data_config.validation_episodes :])
+    train, validation, entries = [], [], []
+    for task in data_config.tasks:
+        for seed in seeds:
+            arrays = load_episode(episode_path(folder, task, seed))
+            entries.append(_manifest_entry(arrays))
+            (validation if seed in held_out else train).extend(episode_frames(arrays, data_config.rollout_max_steps))
+    return RolloutFrames(train, validation, rollouts_fingerprint(entries), len(entries))
