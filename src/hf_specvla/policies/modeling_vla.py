@@ -249,16 +249,22 @@ class VLAPolicy:
             kwargs["assistant_model"] = drafter
             kwargs.setdefault("action_layout", self.action_layout)
         elif action_prior:  # the episodes' first step: nothing to draft from, plain greedy decoding
-            for name in SPECULATION_KWARGS:
+            for name in (*SPECULATION_KWARGS, "on_row_finished"):  # rows then finish together, after the call
                 kwargs.pop(name, None)
         output = self.model.generate(**inputs, **kwargs)
-        sequences = output.sequences if hasattr(output, "sequences") else output
-        chunk, dim = self.config.chunk_length, self.config.action_dim
-        action_ids = sequences[:, -chunk * dim :].reshape(-1, chunk, dim)  # [B, H, A]
+        actions, action_ids = self.actions_from_generated(output.sequences if hasattr(output, "sequences") else output)
         for history, ids in zip(histories, action_ids):
             remember_actions(history, ids, self.action_layout)
+        return actions, output
+
+    def actions_from_generated(self, sequences: torch.Tensor) -> tuple[np.ndarray, torch.Tensor]:
+        """``generate``'s rows ``[B, T]`` (or a row's new tokens, e.g. ``on_row_finished``'s, as ``[1, n]``) -> the
+        un-normalised actions, float64 ``[B, action_dim]`` (``[B, H, action_dim]`` for a chunked policy), and their
+        token ids ``[B, H, action_dim]``: the rows' last ``H x action_dim`` tokens."""
+        chunk, dim = self.config.chunk_length, self.config.action_dim
+        action_ids = sequences[:, -chunk * dim :].reshape(-1, chunk, dim)  # [B, H, A]
         actions = self.actions_from_token_ids(action_ids)  # [B, H, A]
-        return (actions[:, 0] if chunk == 1 else actions), output
+        return (actions[:, 0] if chunk == 1 else actions), action_ids
 
     def _generation_settings(self, generation_config: GenerationConfig | None, pad_id: int, return_output: bool,
                              generate_kwargs: dict) -> dict:  # fmt: skip
