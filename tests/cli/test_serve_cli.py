@@ -54,6 +54,8 @@ def _run(*flags: str, env: dict | None = None) -> subprocess.CompletedProcess:
         (["--max-prompt-tokens", "0"], "argument --max-prompt-tokens: must be >= 1, got 0"),
         (["--port", "99999"], "must be a TCP port 0..65535"),
         (["--replicas", "2"], "--replicas / --ray-address are for Ray Serve: add --ray"),
+        (["--ray", "--port", "0"], "--port 0 (any free port) is for the server on one machine"),
+        (["--ray", "--replicas", "4096"], "--replicas 4096 x --threads 1 need 4096 CPUs; this machine has"),
         (["--policy", "no/such/policy"], "no/such/policy"),
     ],
 )
@@ -112,9 +114,10 @@ def test_serve_answers_act_and_exits_0_on_sigterm():
         process.kill()
 
 
-def test_serve_on_ray_serve_answers_and_stops_on_sigterm():
-    """``serve --ray``: a local Ray cluster, one replica, the same API; SIGTERM stops the deployment and the cluster
-    (exit 0)."""
+def test_serve_on_ray_serve_answers_and_stops_on_ctrl_c():
+    """``serve --ray``: the flags become a Serve config file that Ray Serve's own ``serve run`` runs on a local Ray
+    cluster (one replica, the same API); Ctrl-C (SIGINT) is ``serve run``'s: Serve shut down, exit 0, and the local
+    cluster with it: the port closes."""
     pytest.importorskip("ray")
     from hf_specvla.serving import PolicyClient
 
@@ -125,17 +128,22 @@ def test_serve_on_ray_serve_answers_and_stops_on_sigterm():
                "--buckets", "1", "--calibration-calls", "0", "--port", str(port), "--ray", "--replicas", "1",
                "--threads", "1"]  # fmt: skip
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               env={**os.environ, "OMP_NUM_THREADS": "1"})  # fmt: skip
+                               env={**os.environ, "OMP_NUM_THREADS": "1", "RAY_USAGE_STATS_ENABLED": "0"})  # fmt: skip
     try:
         line = process.stdout.readline()
+        while line and not line.startswith("serving "):  # serve run's own lines come first
+            line = process.stdout.readline()
         assert line.startswith("serving ") and "Ray Serve, 1 replicas" in line, process.stderr.read()[-3000:]
         url = line.split(" on ", 1)[1].split(": POST", 1)[0]
+        assert url == f"http://127.0.0.1:{port}"
         info = PolicyClient(url).info()
-        assert info["deployment"] == "ray" and info["method"] == "prior+jacobi"
+        assert info["deployment"] == "ray" and info["method"] == "prior+jacobi" and info["buckets"] == [1]
         size = info["image_size"]
         reply = PolicyClient(url).act(np.zeros((size, size, 3), np.uint8), "reach the goal", np.zeros(4))
         assert reply.action.shape == (info["chunk_length"], info["action_dim"])
-        process.send_signal(signal.SIGTERM)
+        process.send_signal(signal.SIGINT)
         assert process.wait(timeout=120) == 0, process.stderr.read()[-3000:]
     finally:
         process.kill()
+    with socket.socket() as probe:  # nothing answers there any more
+        assert probe.connect_ex(("127.0.0.1", port)) != 0

@@ -1,6 +1,8 @@
-"""The policy server on Ray Serve (``serving.ray_deployment``): a local Ray cluster, 2 replicas of the small shipped
-policy ``mt10_vla`` (64-pixel images, 3 layers) with an eager method (no compile), the same HTTP API as the server on
-one machine, the policy's own actions whichever replica answers, and a replica killed under load."""
+"""The policy server on Ray Serve (``serving.ray_deployment``): the application builder's arguments and the example
+Serve config files (no cluster); then a local Ray cluster started and stopped here, serving the builder's application
+as ``serve run`` does (its ``key=value`` arguments as text): 2 replicas of the small shipped policy ``mt10_vla``
+(64-pixel images, 3 layers) with an eager method (no compile), the same HTTP API as the server on one machine, the
+policy's own actions whichever replica answers, and a replica killed under load."""
 
 from __future__ import annotations
 
@@ -24,12 +26,24 @@ from hf_specvla.serving import ray_deployment  # noqa: E402
 from hf_specvla.serving.client import PolicyClient  # noqa: E402
 from hf_specvla.serving.config import ServeConfig  # noqa: E402
 from hf_specvla.serving.protocol import ActReply, ActRequest, dumps  # noqa: E402
-from hf_specvla.serving.ray_deployment import APP_NAME, DEPLOYMENT_NAME, deploy, policy_deployment  # noqa: E402
+from hf_specvla.serving.ray_deployment import (  # noqa: E402
+    APP_NAME,
+    DEPLOYMENT_NAME,
+    IMPORT_PATH,
+    PolicyAppArgs,
+    build_app,
+    policy_deployment,
+)
 from hf_specvla.serving.server import PolicyServer  # noqa: E402
 from hf_specvla.serving.service import PolicyService  # noqa: E402
 
-POLICY = Path(__file__).resolve().parents[2] / "policies" / "mt10_vla"
+ROOT = Path(__file__).resolve().parents[2]
+POLICY = ROOT / "policies" / "mt10_vla"
 CONFIG = ServeConfig(method="prior+jacobi", buckets=(1, 2, 4), calibration_calls=0)
+#: the builder's arguments as ``serve run ... key=value`` passes them: text
+ARGS = {"policy": str(POLICY), "method": "prior+jacobi", "buckets": "1,2,4", "calibration_calls": "0",
+        "num_replicas": "2", "threads": "1"}  # fmt: skip
+EXAMPLE_CONFIGS = sorted((ROOT / "examples" / "serving").glob("serve_config*.yaml"))
 INSTRUCTION = "reach the goal"
 REPLICAS = 2
 #: Ray 2.60's proxy's answer for a request in flight on a replica that died (plain text, not this API's JSON)
@@ -45,17 +59,17 @@ def _free_port() -> int:
 
 @pytest.fixture(scope="module")
 def url():
-    """A local Ray cluster (2 CPUs, no dashboard) serving ``mt10_vla`` with 2 replicas of 1 thread; its URL."""
+    """A local Ray cluster (2 CPUs, no dashboard) serving ``mt10_vla`` with 2 replicas of 1 thread, the builder's
+    application run as ``serve run`` runs it; its URL."""
     saved = {name: os.environ.get(name) for name in ("RAY_USAGE_STATS_ENABLED", "OMP_NUM_THREADS")}
     os.environ.update(RAY_USAGE_STATS_ENABLED="0", OMP_NUM_THREADS="1")
     ray.init(address="local", num_cpus=2, num_gpus=0, include_dashboard=False, object_store_memory=100 * 2**20,
              log_to_driver=False)  # fmt: skip
     try:
-        ready = []
-        served = deploy(POLICY, CONFIG, replicas=REPLICAS, port=_free_port(), threads_per_replica=1, blocking=False,
-                        on_ready=ready.append)  # fmt: skip
-        assert ready == [served]
-        yield served
+        port = _free_port()
+        serve.start(http_options={"host": "127.0.0.1", "port": port})
+        serve.run(build_app(ARGS), name=APP_NAME, route_prefix="/")
+        yield f"http://127.0.0.1:{port}"
     finally:
         serve.shutdown()
         ray.shutdown()
@@ -97,22 +111,73 @@ def test_without_ray_the_error_says_what_to_install(monkeypatch):
         ray_deployment.require_ray()
 
 
-def test_a_public_host_needs_an_api_key_before_ray_starts():
-    with pytest.raises(ValueError, match="0.0.0.0"):
-        deploy(POLICY, CONFIG, replicas=1, host="0.0.0.0", port=_free_port(), blocking=False)
-    with pytest.raises(ValueError, match="replicas must be an integer >= 1, got 0"):
-        deploy(POLICY, CONFIG, replicas=0, port=_free_port(), blocking=False)
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"policy": None}, "the argument policy is required"),
+        ({"bukets": "1,2"}, "unknown argument(s) ['bukets']; the arguments are ["),
+        ({"buckets": "1,two"}, "argument buckets must be integers (a list, or '1,2,4'), got '1,two'"),
+        ({"buckets": "4,2"}, "buckets must be increasing"),
+        ({"max_wait_ms": "soon"}, "argument max_wait_ms must be a number, got 'soon'"),
+        ({"num_replicas": "0"}, "num_replicas must be an integer >= 1, got 0"),
+        ({"threads": 1.5}, "argument threads must be an integer, got 1.5"),
+        ({"method": "prior+bogus"}, "unknown decoding method"),
+        ({"method": "prior+tree"}, "method prior+tree drafts with the draft head: give draft_head=<its folder>"),
+        ({"policy": "no/such/policy"}, "argument policy: no folder 'no/such/policy' (looked in"),
+        ({"policy": str(ROOT / "examples")}, "holds no policy_config.json: not a saved policy folder"),
+    ],
+)
+def test_a_bad_argument_is_refused_naming_it_before_any_replica_starts(change, message):
+    args = {k: v for k, v in {**ARGS, **change}.items() if v is not None}
+    with pytest.raises(ValueError) as refused:
+        build_app(args)
+    assert message in str(refused.value)
 
 
-def test_the_deployment_takes_its_batching_and_overload_limits_from_the_config():
-    config = ServeConfig(method="prior+jacobi", buckets=(1, 2, 8), max_queue=5)
-    deployment = policy_deployment(config, replicas=3, threads_per_replica=2)
+def test_the_builder_reads_text_and_typed_arguments_alike():
+    from_text = PolicyAppArgs.from_args(ARGS)
+    typed = PolicyAppArgs.from_args({**ARGS, "buckets": [1, 2, 4], "calibration_calls": 0, "num_replicas": 2,
+                                     "threads": 1})  # fmt: skip
+    assert from_text == typed and from_text.serve == CONFIG and from_text.num_replicas == 2
+    assert PolicyAppArgs.from_args(from_text.to_args()) == from_text  # what serve_config writes reads back
+    assert PolicyAppArgs.from_args({**ARGS, "speculate_buckets": ""}).serve.speculate_buckets == ()  # never
+
+
+@pytest.mark.parametrize("path", EXAMPLE_CONFIGS, ids=lambda p: p.name)
+def test_the_example_serve_configs_are_valid_and_name_our_application(path):
+    """Each example file passes Serve's own schema, names the builder and the deployment, and its arguments pass
+    the builder's checks (the policy read from the repository root, as ``serve run`` there reads it)."""
+    import yaml
+    from ray.serve.schema import ServeDeploySchema
+
+    config = ServeDeploySchema.model_validate(yaml.safe_load(path.read_text()))
+    (application,) = config.applications
+    assert application.import_path == IMPORT_PATH and application.route_prefix == "/"
+    assert [d.name for d in application.deployments] == [DEPLOYMENT_NAME]
+    deployment = application.deployments[0].model_dump(exclude_unset=True)
+    assert {"max_ongoing_requests", "ray_actor_options"} <= set(deployment)
+    assert {"num_replicas", "autoscaling_config"} & set(deployment)
+    cwd = os.getcwd()
+    os.chdir(ROOT)
+    try:
+        app_args = PolicyAppArgs.from_args(application.args)
+    finally:
+        os.chdir(cwd)
+    assert deployment["max_ongoing_requests"] == ray_deployment.max_ongoing_requests(app_args.serve)
+
+
+def test_the_deployment_takes_its_batching_and_overload_limits_from_the_arguments():
+    app_args = PolicyAppArgs(str(POLICY), ServeConfig(method="prior+jacobi", buckets=(1, 2, 8), max_queue=5),
+                             threads=2, num_replicas=3)  # fmt: skip
+    deployment = policy_deployment(app_args)
     assert deployment.name == DEPLOYMENT_NAME and deployment.num_replicas == 3
     assert deployment.ray_actor_options["num_cpus"] == 2
     assert deployment.max_ongoing_requests == 16  # the batch being decoded (8) and the next one filling
     assert deployment.max_queued_requests == 5
     backpressure = deployment._deployment_config.backpressure_config
     assert backpressure.status_code == 503 and backpressure.retry_after_s == ray_deployment.OVERLOAD_RETRY_AFTER_S
+    unset = policy_deployment(PolicyAppArgs(str(POLICY)))._deployment_config
+    assert "num_replicas" not in unset.user_configured_option_names  # a config file's autoscaling_config is free
 
 
 # ----------------------------------------------------------------------------- on a local cluster

@@ -226,14 +226,14 @@ def test_an_oversize_body_is_refused_before_it_is_read(policy):
 
 def _slowed(service: PolicyService, seconds: float) -> PolicyService:
     """``service`` whose every call sleeps ``seconds`` first; ``service.decoding`` is set once a call started."""
-    act, service.decoding = service.act, threading.Event()
+    act_each, service.decoding = service.act_each, threading.Event()
 
-    def slow_act(requests, arrived=None):
+    def slow_act_each(requests, arrived=None, on_reply=None):
         service.decoding.set()
         time.sleep(seconds)
-        return act(requests, arrived)
+        return act_each(requests, arrived, on_reply)
 
-    service.act = slow_act
+    service.act_each = slow_act_each
     return service
 
 
@@ -307,8 +307,9 @@ from hf_specvla.serving import PolicyService, ServeConfig
 from hf_specvla.serving.server import PolicyServer
 service = PolicyService.from_pretrained({str(POLICY)!r}, ServeConfig(method={METHOD!r}, buckets=(1,), max_wait_ms=0.0,
                                                                      calibration_calls=0))
-act = service.act
-service.act = lambda requests, arrived=None: (time.sleep(0.5), act(requests, arrived))[1]
+act_each = service.act_each
+service.act_each = lambda requests, arrived=None, on_reply=None: (time.sleep(0.5), act_each(requests, arrived,
+                                                                                        on_reply))[1]
 server = PolicyServer(service, port=0)
 print(server.url, flush=True)
 server.run()
@@ -394,7 +395,7 @@ def test_every_decode_runs_on_the_services_thread_with_room_for_every_buckets_gr
     recompile limit, whichever thread (the batcher's, a Ray replica's pool) asks for an action."""
     import torch
 
-    from hf_specvla.serving.service import GRAPHS_MARGIN, GRAPHS_PER_BUCKET
+    from hf_specvla.serving.decoding import GRAPHS_MARGIN, GRAPHS_PER_BUCKET
 
     service = _service(policy, buckets=(1, 2))
     seen = []
@@ -433,7 +434,7 @@ def test_compiled_greedy_keeps_one_graph_per_bucket_whatever_the_prompt_length(p
                 assert reply.served.method == "greedy:compile"
     finally:
         service.close()
-    assert [bucket for bucket, _ in service._greedy_caches] == [2]  # one cache, one graph, for every prompt
+    assert [bucket for bucket, _ in service.step._greedy_caches] == [2]  # one cache, one graph, for every prompt
 
 
 def test_a_lone_robot_never_waits_for_a_batch_that_will_not_come(policy):
@@ -458,23 +459,3 @@ def test_a_lone_robot_never_waits_for_a_batch_that_will_not_come(policy):
     assert max(queued) < 100, queued  # not the 400 ms window
     later = [reply.served.batch_size for step, reply in replies if step > 0]  # both robots active by then
     assert sorted(later) in ([2, 2, 2, 2], [1, 2, 2, 2]), later  # out of step by one: the last request is alone
-
-
-def test_the_other_mode_is_explored_less_often_when_the_choice_is_clear(policy):
-    from hf_specvla.serving.service import CLEAR_GAP_EXPLORE_FACTOR
-
-    service = _service(policy, buckets=(1,), explore_every=4)
-    try:
-        explored = []
-        for spec_ms, greedy_ms in ((10.0, 11.0), (10.0, 20.0)):  # a 10% gap, then a clear 2x
-            service.timings[(1, True)].extend([spec_ms] * 5)
-            service.timings[(1, False)].extend([greedy_ms] * 5)
-            modes = []
-            for call in range(1, 33):
-                service.calls[1] = call
-                modes.append(service._mode_for(1))
-            explored.append(modes.count(False))
-            service.timings[(1, True)].clear(), service.timings[(1, False)].clear()
-    finally:
-        service.close()
-    assert explored == [32 // 4, 32 // (4 * CLEAR_GAP_EXPLORE_FACTOR)]

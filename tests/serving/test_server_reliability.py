@@ -68,11 +68,11 @@ def test_a_prompt_longer_than_the_compiled_graphs_is_refused_before_any_forward(
         del policy.predict_action
         service.close()
     limit = info["max_prompt_tokens"]
-    assert info["prompt_tiers"] == [[service.shortest_prompt, limit]] and limit > service.shortest_prompt
+    assert info["prompt_tiers"] == [[service.step.shortest_prompt, limit]] and limit > service.step.shortest_prompt
     assert len(policy.prompt_ids(long["instruction"], long["state"])) > limit  # the probe's case
     assert (code, body["field"]) == (422, "instruction") and f"at most {limit} tokens" in body["error"], body
     assert calls == []
-    within = service.tier_instruction((limit, limit))  # the longest prompt served: it parses
+    within = service.step.tier_instruction((limit, limit))  # the longest prompt served: it parses
     assert service.parse({**_observation(policy, 0), "instruction": within}).instruction == within
 
 
@@ -89,9 +89,9 @@ def test_the_slot_counts_the_service_plans_for_are_the_engines(policy):
     service.close()
     for tree in (DraftTreeConfig(), DraftTreeConfig(top_k=1, depth=7, total_tokens=7)):  # the head's key_length
         extra = policy.config.action_tokens + tree.depth + 1 + num_head_entries(tree.top_k, tree.depth)
-        assert service._head_rule(tree) == (extra, SLOT_MULTIPLE)
-    (extra, multiple), *_ = service._slot_rules(None)
-    first, last = service.prompt_tiers[0]
+        assert service.step._head_rule(tree) == (extra, SLOT_MULTIPLE)
+    (extra, multiple), *_ = service.step._slot_rules(None)
+    first, last = service.step.prompt_tiers[0]
     text_config = policy.model.config.get_text_config(decoder=True)
     slots = set()
     for length in range(first - 2, last + 3):
@@ -112,12 +112,12 @@ def test_warm_up_compiles_every_prompt_tier_and_the_limit_follows_max_prompt_tok
     finally:
         del policy.predict_action
         service.close()
-    assert service.max_prompt_tokens == 150 and len(service.prompt_tiers) == 2
+    assert service.step.max_prompt_tokens == 150 and len(service.step.prompt_tiers) == 2
     state = np.zeros(policy.config.state_dim)
     assert len(policy.prompt_ids(calls[0][0], state)) == 150  # the longest first: generate's cache keeps its size
     for bucket in (1, 2):
         widths = {len(policy.prompt_ids(rows[0], state)) for rows in calls if len(rows) == bucket}
-        for first, last in service.prompt_tiers:
+        for first, last in service.step.prompt_tiers:
             assert any(first <= w <= last for w in widths), (bucket, (first, last), widths)
     with pytest.raises(ValueError, match="max_prompt_tokens 10 is shorter than this policy's shortest prompt"):
         _service(policy, method="exact", max_prompt_tokens=10)
@@ -126,12 +126,12 @@ def test_warm_up_compiles_every_prompt_tier_and_the_limit_follows_max_prompt_tok
 def test_the_default_limit_leaves_the_instruction_room(policy, monkeypatch):
     """A policy whose shortest prompt sits just below a slot boundary (many image tokens) still serves instructions
     of ``MIN_INSTRUCTION_TOKENS`` by default: one more tier, compiled at start-up."""
-    from hf_specvla.serving import service as service_module
+    from hf_specvla.serving import decoding
 
-    monkeypatch.setattr(service_module, "MIN_INSTRUCTION_TOKENS", 100)
+    monkeypatch.setattr(decoding, "MIN_INSTRUCTION_TOKENS", 100)
     service = _service(policy, method="exact")
     service.close()
-    assert service.max_prompt_tokens == service.shortest_prompt + 100 and len(service.prompt_tiers) == 2
+    assert service.step.max_prompt_tokens == service.step.shortest_prompt + 100 and len(service.step.prompt_tiers) == 2
 
 
 # ----------------------------------------------------------------------------- settings
@@ -189,15 +189,15 @@ def test_a_backlog_behind_a_slow_batch_is_decoded_in_full_batches(policy):
     """The first batch takes longer than the "active robot" window while 12 robots queue a request each: they are
     decoded 4 at a time (the largest bucket), not one by one (as 190 of 200 requests from 32 robots once were)."""
     service = _service(policy)
-    act, first_started, release = service.act, threading.Event(), threading.Event()
+    act_each, first_started, release = service.act_each, threading.Event(), threading.Event()
 
-    def slow_first(requests, arrived=None):
+    def slow_first(requests, arrived=None, on_reply=None):
         if not first_started.is_set():
             first_started.set()
             assert release.wait(30)
-        return act(requests, arrived)
+        return act_each(requests, arrived, on_reply)
 
-    service.act = slow_first
+    service.act_each = slow_first
     replies: dict = {}
     with PolicyServer(service, port=0) as server:
 

@@ -164,19 +164,46 @@ def _run_local(args, parser, config, method) -> int:
 
 
 def _run_ray(args, parser, config) -> int:
-    from ..serving.ray_deployment import deploy, require_ray
+    """A thin wrapper over Ray Serve's own ``serve run``: the flags become a Serve config file (the application
+    ``serving.ray_deployment:build_app`` and its arguments, the HTTP host and port), which ``serve run`` deploys."""
+    import json
+    import tempfile
+    from pathlib import Path
+
+    from ..serving.config import API_KEY_VARIABLE
+    from ..serving.ray_deployment import PolicyAppArgs, require_ray, serve_config, serve_run
 
     with usage_errors(parser, "--ray", (ImportError,)):
         require_ray()
+    if args.port == 0:
+        parser.error("--port 0 (any free port) is for the server on one machine: give Ray Serve's proxy a port")
+    replicas, threads = args.replicas or 1, args.threads or 1
+    local = args.ray_address is None and not os.environ.get("RAY_ADDRESS")
+    if local and replicas * threads > (os.cpu_count() or 1):
+        parser.error(f"--replicas {replicas} x --threads {threads} need {replicas * threads} CPUs; this machine has "
+                     f"{os.cpu_count()}: fewer --replicas or --threads (or a --ray-address)")  # fmt: skip
+    with usage_errors(parser, errors=(ValueError,)):
+        app_args = PolicyAppArgs(policy=str(Path(args.policy).resolve()), serve=config, threads=threads,
+                                 draft_head=str(Path(args.draft_head).resolve()) if args.draft_head else None,
+                                 num_replicas=replicas, max_request_bytes=args.max_request_bytes)  # fmt: skip
+    settings = serve_config(app_args, args.host, args.port)
+    if args.api_key and local:  # the local cluster inherits this environment: the key stays out of Serve's config
+        os.environ[API_KEY_VARIABLE] = args.api_key
+    elif args.api_key:
+        logger.warning("--api-key with --ray-address: the key travels in the application's arguments (`serve config` "
+                       "shows it); set %s on the cluster's nodes instead to keep it out", API_KEY_VARIABLE)  # fmt: skip
+        settings["applications"][0]["args"]["api_key"] = args.api_key
+    host = f"[{args.host}]" if ":" in args.host else args.host
+    url = f"http://{host}:{args.port}"
 
     def ready(url: str) -> None:
         print(f"serving {args.policy} ({config.method}) on {url}: POST /act, GET /info, GET /stats "
-              f"(Ray Serve, {args.replicas or 1} replicas)", flush=True)  # fmt: skip
+              f"(Ray Serve, {replicas} replicas)", flush=True)  # fmt: skip
 
-    with usage_errors(parser, errors=(ValueError,)):  # e.g. more replicas x threads than the cluster's CPUs
-        url = deploy(args.policy, config, replicas=args.replicas or 1, host=args.host, port=args.port,
-                     api_key=args.api_key, draft_head_folder=args.draft_head, threads_per_replica=args.threads or 1,
-                     max_request_bytes=args.max_request_bytes, ray_address=args.ray_address, blocking=True,
-                     on_ready=ready)  # fmt: skip
-    logger.info("Ray Serve deployment on %s stopped", url)
-    return 0
+    with tempfile.TemporaryDirectory(prefix="hf-specvla-serve-") as folder:
+        config_file = Path(folder) / "serve_config.yaml"  # JSON is YAML: serve run reads it as such
+        config_file.write_text(json.dumps(settings, indent=2))
+        logger.info("serve run %s:\n%s", config_file, config_file.read_text())
+        status = serve_run(config_file, args.ray_address, on_ready=ready, url=url)
+    logger.info("Ray Serve application on %s stopped", url)
+    return status

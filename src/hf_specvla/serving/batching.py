@@ -5,11 +5,12 @@ but only for robots that may send one: not once it holds a request of every sess
 ``ACTIVE_WINDOW_S`` (one robot alone never waits; while requests without a session arrive, it always may). Requests
 already queued always join (a backlog behind a slow batch is drained in full batches, not one by one), and a robot
 counts as active from its request's arrival until ``ACTIVE_WINDOW_S`` after its reply (however long it queued). It drops
-the requests whose robots gave up meanwhile (their futures cancelled) and hands the rest to [`PolicyService.act`].
-The queue is bounded: past ``max_queue`` waiting requests, [`submit`] raises [`Overloaded`] with the seconds after
-which a retry is likely to be served (HTTP 503 + Retry-After), rather than letting latency grow without bound. A
-batch whose call fails is retried one request at a time, so one request's failure never fails the others. (On Ray
-Serve, ``serve.batch`` forms the batches instead.)
+the requests whose robots gave up meanwhile (their futures cancelled) and hands the rest to
+[`PolicyService.act_each`], which answers each robot as soon as its row is decoded. The queue is bounded: past
+``max_queue`` waiting requests, [`submit`] raises [`Overloaded`] with the seconds after which a retry is likely to be
+served (HTTP 503 + Retry-After), rather than letting latency grow without bound. A
+batch whose call fails is retried one request at a time (by the service, as on Ray Serve), so one request's failure
+never fails the others. (On Ray Serve, ``serve.batch`` forms the batches instead.)
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import time
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 
-from .protocol import ActReply, ActRequest, Overloaded
+from .protocol import ActRequest, Overloaded
 from .service import PolicyService
 
 logger = logging.getLogger(__name__)
@@ -155,37 +156,26 @@ class Batcher:
         return self.max_batch_size if None in recent else max(len(recent), in_hand)
 
     def _decode(self, batch: list[_Pending]) -> None:
-        started = time.perf_counter()
-        try:
-            replies = self.service.act([p.request for p in batch], [p.arrived for p in batch])
-        except Exception:  # one request at a time: a failing one fails alone
-            logger.exception("a batch of %d failed; decoding its requests one at a time", len(batch))
-            self._count(batch, started)
-            for pending in batch:
-                self._decode_alone(pending)
-        else:
-            self._count(batch, started)
-            self._finish(batch, replies)
+        """Decodes the batch; each robot's future gets its reply the moment its row is decoded (a failing batch is
+        retried one request at a time by the service: a failure reaches only its own robot)."""
+        started, left = time.perf_counter(), [len(batch)]
+
+        def on_reply(index: int, result) -> None:
+            left[0] -= 1
+            if not left[0]:  # booked before the batch's last reply, so that /stats after a reply counts it
+                self._count(batch, started)
+            future = batch[index].future
+            if isinstance(result, BaseException):
+                future.set_exception(result)
+            else:
+                future.set_result(result)
+
+        self.service.act_each([p.request for p in batch], [p.arrived for p in batch], on_reply)
 
     def _count(self, batch: list[_Pending], started: float) -> None:
-        """Books a decoded batch (before its robots get their replies, so that ``/stats`` after a reply counts it)."""
+        """Books a decoded batch."""
         done = time.perf_counter()
         for pending in batch:  # a robot is active until a while after its reply, however long it queued
             self._seen(pending, done)
         self.batches += 1
         self._recent_batch_s = 0.8 * self._recent_batch_s + 0.2 * (done - started)
-
-    def _decode_alone(self, pending: _Pending) -> None:
-        try:
-            (reply,) = self.service.act([pending.request], [pending.arrived])
-        except Exception as error:  # noqa: BLE001 (reported to that request's robot)
-            pending.future.set_exception(error)
-        else:
-            self._finish([pending], [reply])
-
-    @staticmethod
-    def _finish(batch: list[_Pending], replies: list[ActReply]) -> None:
-        done = time.perf_counter()
-        for pending, reply in zip(batch, replies):
-            reply.served.server_ms = 1000 * (done - pending.arrived)
-            pending.future.set_result(reply)

@@ -1,12 +1,17 @@
-"""The policy server as a Ray Serve deployment: ``hf-specvla serve --ray --replicas N``. The same HTTP API as the server
-on one machine (``app``: ``POST /act``, ``GET /info``, ``GET /stats``, ``GET /health``), served by N replicas, each
-with its own [`PolicyService`] (the policy loaded, every bucket compiled and calibrated before it takes a request).
+"""The policy server as a Ray Serve application, deployed the way Ray users deploy: an application builder that
+``serve run`` and a Serve config file start (``build_app``), with the policy, the method, the buckets and the key as
+its arguments. The same HTTP API as the server on one machine (``app``: ``POST /act``, ``GET /info``, ``GET /stats``,
+``GET /health``), served by replicas that each hold their own [`PolicyService`] (the policy loaded, every bucket
+compiled and calibrated before it takes a request).
 
-    from hf_specvla.serving import PolicyClient, ServeConfig
-    from hf_specvla.serving.ray_deployment import deploy
+    serve run hf_specvla.serving.ray_deployment:build_app policy=policies/mt10_vla3 method=exact num_replicas=2
+    serve run examples/serving/serve_config.yaml       # replicas, max_ongoing_requests, autoscaling, ray_actor_options
+    hf-specvla serve --policy policies/mt10_vla3 --method exact --ray --replicas 2   # writes such a file, serve runs it
 
-    url = deploy("policies/mt10_vla3", ServeConfig(method="exact"), replicas=2, blocking=False)
-    PolicyClient(url).act(...)                         # any replica answers; the drafts travel with the robot
+Serve does the rest: it starts or joins the Ray cluster, starts the HTTP proxy, replaces a replica that dies, scales
+with ``autoscaling_config``, and on Ctrl-C deletes the application (``serve run``'s own handling). A config file's
+``deployments:`` entry for ``PolicyDeployment`` overrides the options this module sets from the arguments
+(``num_replicas``, ``max_ongoing_requests``, ``max_queued_requests``, ``ray_actor_options``...).
 
 **Batching.** Each replica forms its batches with Ray Serve's own ``serve.batch`` (up to the largest bucket, waiting
 at most ``max_wait_ms`` after the first request) and decodes them in a worker thread, so its event loop keeps
@@ -32,22 +37,32 @@ are routed around the dead replica at once. A request in flight on it fails: Ray
 The robot's drafts survive in its ``draft_state``; a robot that does not echo it gets its next action without prior
 drafts (one step at the method's speed without the previous action), the same action.
 
+**The key.** ``api_key`` among the arguments, else ``HF_SPECVLA_API_KEY`` in the replicas' environment (a local
+cluster inherits the environment of the process that started it; on a cluster set it on the nodes or in the
+``runtime_env``'s ``env_vars``): arguments are shown by ``serve config``, the environment is not. The builder cannot
+see Serve's ``http_options``: serving on a host other than loopback without a key is refused by ``hf-specvla serve``,
+not by a config file.
+
 Needs Ray Serve (``pip install 'hf_specvla[ray]'``). This module imports Ray (and starlette, torch) only inside its
-functions: it imports without them, and [`deploy`] says what to install.
+functions: it imports without them, and [`require_ray`] says what to install.
 """
 
 from __future__ import annotations
 
+import _thread
 import asyncio
+import dataclasses
+import json
 import logging
-import signal
+import os
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
-from .config import DEFAULT_HOST, DEFAULT_MAX_REQUEST_BYTES, DEFAULT_PORT, ServeConfig, check_exposure
+from .config import API_KEY_VARIABLE, DEFAULT_MAX_REQUEST_BYTES, ServeConfig
 from .protocol import ActReply, ActRequest
 
 if TYPE_CHECKING:
@@ -57,8 +72,10 @@ logger = logging.getLogger(__name__)
 
 #: the Ray Serve application's name (``serve status`` shows it)
 APP_NAME = "hf_specvla"
-#: the deployment's name within the application
+#: the deployment's name within the application (a config file's ``deployments:`` entry names it)
 DEPLOYMENT_NAME = "PolicyDeployment"
+#: what ``serve run`` / a config file's ``import_path`` names
+IMPORT_PATH = "hf_specvla.serving.ray_deployment:build_app"
 #: the Retry-After (seconds) of Ray's own 503 on overload
 OVERLOAD_RETRY_AFTER_S = 1
 #: how often Ray checks that each replica is alive (Ray's default, 10 s, leaves a dead replica unnoticed that long)
@@ -86,25 +103,182 @@ def max_ongoing_requests(config: ServeConfig) -> int:
     return 2 * config.max_batch_size
 
 
-class PolicyDeployment:
-    """One Ray Serve replica: a [`PolicyService`] behind the routes of ``app`` (this object is their backend).
-
-    Built by Ray in the replica's process ([`policy_deployment`] makes the deployment, [`deploy`] runs it): loads the
-    policy (and draft head), warms the service up (compiles every bucket, calibrates), then answers HTTP.
+# ----------------------------------------------------------------------------- the builder's arguments
+@dataclass
+class PolicyAppArgs:
+    """The application's arguments, as ``serve run ... key=value`` or a config file's ``args:`` give them.
 
     Args:
-        policy_folder: the policy's folder (readable on every node that runs a replica).
-        config: the service's [`ServeConfig`]: the method, the buckets (the largest is ``serve.batch``'s
-            ``max_batch_size``), ``max_wait_ms`` (its ``batch_wait_timeout_s``).
-        api_key: every request but ``/health`` must carry it (None: open).
-        draft_head_folder: for methods that draft with a head.
-        threads: torch CPU threads of this replica.
+        policy: the policy's folder (a relative path is read from the directory the local cluster was started in;
+            on a cluster of several machines, a path that exists on every node).
+        serve: the service's [`ServeConfig`]; its fields are arguments of their own (``method``, ``buckets``,
+            ``max_wait_ms``, ``max_queue``, ``calibration_calls``, ``speculate_buckets``, ``explore_every``,
+            ``max_sessions``, ``max_prompt_tokens``).
+        draft_head: a draft head's folder, for methods that draft with one.
+        api_key: every request but ``/health`` must carry it (None: ``HF_SPECVLA_API_KEY`` in the replica's
+            environment, else an open server).
+        threads: torch CPU threads per replica (and its ``ray_actor_options.num_cpus`` unless the config file
+            sets them).
+        num_replicas: replicas (None: Serve's default, 1, or what the config file sets: ``num_replicas`` or
+            ``autoscaling_config``, which the code's own ``num_replicas`` would clash with).
         max_request_bytes: the largest request body.
     """
 
-    def __init__(self, policy_folder: str, config: ServeConfig, api_key: str | None = None,
-                 draft_head_folder: str | None = None, threads: int | None = 1,
-                 max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES):  # fmt: skip
+    policy: str
+    serve: ServeConfig = field(default_factory=ServeConfig)
+    draft_head: str | None = None
+    api_key: str | None = None
+    threads: int = 1
+    num_replicas: int | None = None
+    max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES
+
+    def __post_init__(self):
+        for name in ("threads", "num_replicas", "max_request_bytes"):
+            value = getattr(self, name)
+            if value is None and name == "num_replicas":
+                continue
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+
+    @classmethod
+    def from_args(cls, args: dict[str, Any]) -> PolicyAppArgs:
+        """Reads the builder's arguments: text (``serve run``'s ``key=value``) or typed values (YAML); lists as
+        YAML lists or ``"1,2,4"``; ``speculate_buckets=""`` never speculates. Checks the policy's folder and the
+        method against it (cheap: the weights are not loaded).
+
+        Raises:
+            ValueError: an unknown argument, a value of the wrong kind or out of range, no ``policy``, a folder
+                without a policy, an unknown method, a method that needs a draft head without one.
+        """
+        known = {f.name for f in dataclasses.fields(cls) if f.name != "serve"}
+        serve_fields = {f.name: f for f in dataclasses.fields(ServeConfig)}
+        unknown = sorted(set(args) - known - set(serve_fields))
+        if unknown:
+            raise ValueError(f"unknown argument(s) {unknown}; the arguments are {sorted(known | set(serve_fields))}")
+        if not args.get("policy"):
+            raise ValueError("the argument policy is required: policy=<a policy folder>")
+        values = {name: _read_arg(name, value, _ARG_KINDS.get(name, "text")) for name, value in args.items()}
+        serve = ServeConfig(**{k: v for k, v in values.items() if k in serve_fields})
+        kept = {k: v for k, v in values.items() if k in known}
+        kept["policy"] = _existing_folder(kept["policy"], "policy")
+        if kept.get("draft_head") is not None:
+            kept["draft_head"] = _existing_folder(kept["draft_head"], "draft_head")
+        app_args = cls(serve=serve, **kept)
+        app_args.check_method()
+        return app_args
+
+    def check_method(self) -> None:
+        """The method is one this policy decodes with (and has its draft head if it drafts with one).
+
+        Raises:
+            ValueError: the policy's folder holds no policy config; an unknown method; a head missing.
+        """
+        from ..policies import POLICY_CONFIG_NAME, VLAPolicyConfig
+        from ..policies.decoding_methods import DecodingMethod
+
+        path = Path(self.policy) / POLICY_CONFIG_NAME
+        if not path.is_file():
+            raise ValueError(f"policy {self.policy!r} holds no {POLICY_CONFIG_NAME}: not a saved policy folder")
+        layout = VLAPolicyConfig(**json.loads(path.read_text()))
+        method = DecodingMethod.parse(self.serve.method, self.draft_head is not None, layout.action_dim)
+        if method.uses_draft_head and self.draft_head is None:
+            raise ValueError(f"method {method.name} drafts with the draft head: give draft_head=<its folder>")
+
+    def to_args(self) -> dict[str, Any]:
+        """The arguments that [`from_args`] reads back to this (a config file's ``args:``); the key is left out."""
+        serve = {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self.serve).items()}
+        mine = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in ("serve", "api_key")}
+        return {k: v for k, v in {**mine, **serve}.items() if v is not None}
+
+
+#: how each argument is read (the rest are text)
+_ARG_KINDS = {"buckets": "ints", "speculate_buckets": "ints", "max_wait_ms": "number", "max_queue": "int",
+              "calibration_calls": "int", "explore_every": "int", "max_sessions": "int", "max_prompt_tokens": "int",
+              "threads": "int", "num_replicas": "int", "max_request_bytes": "int"}  # fmt: skip
+
+
+def _read_arg(name: str, value: Any, kind: str) -> Any:
+    """One argument as ``kind`` (``text``, ``int``, ``number``, ``ints``); None stays None."""
+    if value is None:
+        return None
+    try:
+        if kind == "ints":
+            items = value if isinstance(value, list | tuple) else str(value).replace(",", " ").split()
+            return tuple(_read_arg(name, item, "int") for item in items)
+        if kind == "int":
+            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+                raise ValueError
+            return int(value)
+        if kind == "number":
+            if isinstance(value, bool):
+                raise ValueError
+            return float(value)
+    except (TypeError, ValueError):
+        wanted = {"ints": "integers (a list, or '1,2,4')", "int": "an integer", "number": "a number"}[kind]
+        raise ValueError(f"argument {name} must be {wanted}, got {value!r}") from None
+    if not isinstance(value, str):
+        raise ValueError(f"argument {name} must be text, got {value!r}")
+    return value
+
+
+def _existing_folder(folder: str, name: str) -> str:
+    """``folder`` as an absolute path (the replicas' working directory may not be this one)."""
+    path = Path(folder).expanduser()
+    if not path.is_dir():
+        raise ValueError(f"argument {name}: no folder {folder!r} (looked in {os.getcwd()}; give an absolute path, one "
+                         f"that exists on the machine that builds the application)")  # fmt: skip
+    return str(path.resolve())
+
+
+# ----------------------------------------------------------------------------- the application
+def build_app(args: dict[str, Any]):
+    """The application builder that ``serve run`` and a Serve config file call: the [`PolicyDeployment`] bound to
+    its arguments ([`PolicyAppArgs.from_args`]), with its options set from them (``num_replicas``,
+    ``ray_actor_options.num_cpus = threads``, ``max_ongoing_requests`` = 2 x the largest bucket,
+    ``max_queued_requests`` = ``max_queue``, the health check's period and the overload's Retry-After); a config
+    file's ``deployments:`` entry overrides any of them.
+
+    Raises:
+        ValueError: a bad argument (see [`PolicyAppArgs.from_args`]), before any replica starts.
+        ImportError: Ray Serve is not installed.
+    """
+    return policy_app(PolicyAppArgs.from_args(args))
+
+
+def policy_app(app_args: PolicyAppArgs):
+    """[`build_app`] for arguments already read."""
+    return policy_deployment(app_args).bind(app_args)
+
+
+def policy_deployment(app_args: PolicyAppArgs):
+    """The Ray Serve ``Deployment`` of [`PolicyDeployment`] with the options [`build_app`] names (unbound)."""
+    _, serve = require_ray()
+    options = {}
+    try:  # Ray >= 2.5x: the 503's Retry-After
+        from ray.serve.config import BackpressureConfig
+
+        options["backpressure_config"] = BackpressureConfig(status_code=503, retry_after_s=OVERLOAD_RETRY_AFTER_S)
+    except ImportError:
+        pass
+    if app_args.num_replicas is not None:
+        options["num_replicas"] = app_args.num_replicas
+    config = app_args.serve
+    return serve.deployment(
+        PolicyDeployment, name=DEPLOYMENT_NAME, ray_actor_options={"num_cpus": app_args.threads},
+        max_ongoing_requests=max_ongoing_requests(config), max_queued_requests=config.max_queue,
+        health_check_period_s=HEALTH_CHECK_PERIOD_S, **options,
+    )  # fmt: skip
+
+
+class PolicyDeployment:
+    """One Ray Serve replica: a [`PolicyService`] behind the routes of ``app`` (this object is their backend).
+
+    Built by Ray in the replica's process from [`PolicyAppArgs`]: loads the policy (and draft head), warms the
+    service up (compiles every bucket, calibrates), then answers HTTP. Each robot's reply leaves as soon as its row
+    is decoded (``PolicyService.act_each``), while the rest of its batch may still decode.
+    """
+
+    def __init__(self, app_args: PolicyAppArgs):
         _, serve = require_ray()
         from .app import PolicyRoutes
         from .service import PolicyService
@@ -114,16 +288,18 @@ class PolicyDeployment:
         self.replica, self.replica_actor = context.replica_id.unique_id, context.replica_id.to_full_id_str()
         self.world_size = getattr(context, "world_size", None)  # Ray >= 2.5x
         started = time.perf_counter()
-        self.service: PolicyService = PolicyService.from_pretrained(policy_folder, config, draft_head_folder, threads)
+        config = app_args.serve
+        self.service: PolicyService = PolicyService.from_pretrained(app_args.policy, config, app_args.draft_head,
+                                                                    app_args.threads)  # fmt: skip
         self.service.warm_up()
-        logger.info("replica %s: %s (%s) ready in %.1f s", self.replica, policy_folder, self.service.method.name,
+        logger.info("replica %s: %s (%s) ready in %.1f s", self.replica, app_args.policy, self.service.method.name,
                     time.perf_counter() - started)  # fmt: skip
-        self.routes = PolicyRoutes(self, api_key, max_request_bytes)
+        api_key = app_args.api_key if app_args.api_key is not None else os.environ.get(API_KEY_VARIABLE) or None
+        self.routes = PolicyRoutes(self, api_key, app_args.max_request_bytes)
         # built here, not with a decorator, so that the batch size follows this deployment's config
         batch = serve.batch(max_batch_size=config.max_batch_size, batch_wait_timeout_s=config.max_wait_ms / 1000)
         self._batched = batch(self._decode_batch)
         self.batches = 0  # batches decoded by this replica
-        self.failed_batches = 0  # batches whose call failed (then decoded one request at a time)
         self.started = time.time()
 
     async def __call__(self, request):
@@ -141,7 +317,7 @@ class PolicyDeployment:
     def stats(self) -> dict:
         """This replica's figures (each replica counts its own; ``replica`` says which answered)."""
         return {**self.service.stats(), "deployment": "ray", "replica": self.replica, "batches": self.batches,
-                "failed_batches": self.failed_batches, "uptime_s": round(time.time() - self.started, 1)}  # fmt: skip
+                "uptime_s": round(time.time() - self.started, 1)}  # fmt: skip
 
     def unhealthy(self) -> str | None:
         """None: a replica that answers is serving (Ray replaces one that is not, see ``HEALTH_CHECK_PERIOD_S``)."""
@@ -151,171 +327,98 @@ class PolicyDeployment:
         return self.service.parse(payload)
 
     async def act(self, request: ActRequest, arrived: float) -> ActReply:
-        """The request's reply, decoded in a batch with the requests that arrived with it."""
-        result = await self._batched((request, arrived))
+        """The request's reply, decoded in a batch with the requests that arrived with it; it comes as soon as its
+        row is done (the answer future), not when the batch's call returns."""
+        answer = asyncio.get_running_loop().create_future()
+        batch = asyncio.ensure_future(self._batched((request, arrived, answer)))
+        try:
+            await asyncio.wait({answer, batch}, return_when=asyncio.FIRST_COMPLETED)
+        except asyncio.CancelledError:  # the robot went away: its request leaves the batch if it has not started
+            batch.cancel()
+            raise
+        result = answer.result() if answer.done() else batch.result()
         if isinstance(result, BaseException):
             raise result
         return result
 
     # ----------------------------------------------------------------------------- decoding
-    async def _decode_batch(self, items: list[tuple[ActRequest, float]]) -> list[ActReply | Exception]:
-        """``serve.batch``'s function: one batch, decoded in a worker thread (the event loop stays free)."""
-        return await asyncio.to_thread(self._decode, items)
+    async def _decode_batch(self, items: list[tuple[ActRequest, float, asyncio.Future]]) -> list[Any]:
+        """``serve.batch``'s function: one batch, decoded in a worker thread (the event loop stays free); each
+        request's answer future is settled from that thread the moment its reply is ready."""
+        loop = asyncio.get_running_loop()
 
-    def _decode(self, items: list[tuple[ActRequest, float]]) -> list[ActReply | Exception]:
-        """Replies (or, for a request that fails alone, its exception) in order: a failing batch is decoded one
-        request at a time, so one request's failure never fails the others (as the local batcher does)."""
-        requests, arrived = [r for r, _ in items], [a for _, a in items]
+        def on_reply(index: int, result) -> None:
+            loop.call_soon_threadsafe(_settle, items[index][2], result)
+
         self.batches += 1
-        try:
-            results: list[ActReply | Exception] = list(self.service.act(requests, arrived))
-        except Exception:
-            self.failed_batches += 1
-            logger.exception("a batch of %d failed; decoding its requests one at a time", len(items))
-            results = []
-            for request, at in items:
-                try:
-                    results += self.service.act([request], [at])
-                except Exception as error:  # noqa: BLE001 (reported to that request's robot)
-                    results.append(error)
-        done = time.perf_counter()
-        for result, at in zip(results, arrived):
-            if isinstance(result, ActReply):
-                result.served.server_ms = 1000 * (done - at)
-        return results
+        requests, arrived = [r for r, _, _ in items], [a for _, a, _ in items]
+        return await asyncio.to_thread(self.service.act_each, requests, arrived, on_reply)
 
 
-def policy_deployment(config: ServeConfig, *, replicas: int = 1, threads_per_replica: int = 1):
-    """The Ray Serve ``Deployment`` of [`PolicyDeployment`]: ``replicas`` replicas of ``threads_per_replica`` CPUs
-    each, overload limits from ``config`` (see the module's docstring). Bind it to the replicas' arguments
-    (``.bind(policy_folder, config, api_key, draft_head_folder, threads, max_request_bytes)``) or use
-    [`policy_app`].
-
-    Raises:
-        ValueError: ``replicas`` or ``threads_per_replica`` below 1.
-        ImportError: Ray Serve is not installed.
-    """
-    for name, value in (("replicas", replicas), ("threads_per_replica", threads_per_replica)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-    _, serve = require_ray()
-    options = {}
-    try:  # Ray >= 2.5x: the 503's Retry-After
-        from ray.serve.config import BackpressureConfig
-
-        options["backpressure_config"] = BackpressureConfig(status_code=503, retry_after_s=OVERLOAD_RETRY_AFTER_S)
-    except ImportError:
-        pass
-    return serve.deployment(
-        PolicyDeployment, name=DEPLOYMENT_NAME, num_replicas=replicas,
-        ray_actor_options={"num_cpus": threads_per_replica},
-        max_ongoing_requests=max_ongoing_requests(config), max_queued_requests=config.max_queue,
-        health_check_period_s=HEALTH_CHECK_PERIOD_S, **options,
-    )  # fmt: skip
+def _settle(answer: asyncio.Future, result) -> None:
+    if not answer.done():  # cancelled: its robot went away
+        answer.set_result(result)
 
 
-def policy_app(policy_folder, config: ServeConfig, *, replicas: int = 1, api_key: str | None = None,
-               draft_head_folder=None, threads_per_replica: int = 1,
-               max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES):  # fmt: skip
-    """The Ray Serve application (``serve.run(policy_app(...), route_prefix="/")``): [`policy_deployment`] bound to
-    its replicas' arguments. A folder that exists here is passed as an absolute path (the replicas' working
-    directory is not this one); on a cluster of several machines it must exist at that path on each."""
-    return policy_deployment(config, replicas=replicas, threads_per_replica=threads_per_replica).bind(
-        _absolute(policy_folder), config, api_key, _absolute(draft_head_folder), threads_per_replica, max_request_bytes
-    )
+# ----------------------------------------------------------------------------- serve run, for hf-specvla serve --ray
+def serve_config(app_args: PolicyAppArgs, host: str, port: int) -> dict:
+    """A Serve config (what ``serve run`` / ``serve deploy`` read) serving ``app_args`` on ``host:port``: the
+    application [`build_app`] builds, at ``/``, named ``APP_NAME``."""
+    application = {"name": APP_NAME, "route_prefix": "/", "import_path": IMPORT_PATH, "args": app_args.to_args()}
+    return {"http_options": {"host": host, "port": port}, "applications": [application]}
 
 
-def deploy(policy_folder, config: ServeConfig, *, replicas: int = 1, host: str = DEFAULT_HOST,
-           port: int = DEFAULT_PORT, api_key: str | None = None, draft_head_folder=None,
-           threads_per_replica: int = 1, max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
-           ray_address: str | None = None, blocking: bool = True,
-           on_ready: Callable[[str], None] | None = None) -> str:  # fmt: skip
-    """Serves the policy on Ray Serve: ``replicas`` replicas behind Ray's HTTP proxy on ``host:port``; returns the
-    URL once every replica has loaded the policy and warmed up.
-
-    Connects to Ray when this process has not already (``ray_address``: None is Ray's default: ``RAY_ADDRESS``, else
-    a cluster started with ``ray start`` on this machine, else a new local one; ``"local"`` always a new local one;
-    ``"auto"`` or ``"ray://host:10001"`` a running one), starts Serve there if it
-    is not running (with ``host:port``; a Serve already running keeps its own HTTP options) and runs the application
-    (``APP_NAME``) at ``/``. With ``blocking``, serves until SIGTERM or Ctrl-C, then deletes the application (its
-    replicas finish the requests in flight), shuts Serve down if this call started it and Ray if this call started it.
+def serve_run(config_file: str | Path, address: str | None = None, on_ready: Callable[[str], None] | None = None,
+              url: str | None = None) -> int:  # fmt: skip
+    """Runs Ray Serve's own ``serve run <config_file>`` in this process (it starts or joins the Ray cluster, deploys,
+    blocks, and on Ctrl-C / SIGINT shuts Serve down); ``on_ready(url)`` once the application is running. Returns the
+    exit status: 0 after Ctrl-C, 1 when the application failed to deploy (its message logged). SIGTERM is left to
+    Ray's own handlers, which end the process at once (Ray 2.60: it aborts); the local cluster it started goes with
+    it.
 
     Raises:
-        ValueError: a host reachable from other machines without an API key; ``replicas`` or
-            ``threads_per_replica`` below 1; a local cluster with fewer CPUs than the replicas need.
         ImportError: Ray Serve is not installed.
     """
-    check_exposure(host, api_key)
-    application = policy_app(policy_folder, config, replicas=replicas, api_key=api_key,
-                             draft_head_folder=draft_head_folder, threads_per_replica=threads_per_replica,
-                             max_request_bytes=max_request_bytes)  # fmt: skip
-    ray, serve = require_ray()
-    started_ray = not ray.is_initialized()
-    if started_ray:
-        ray.init(address=ray_address)
-    if started_ray and ray_address in (None, "local"):
-        cpus = ray.cluster_resources().get("CPU", 0)
-        needed = replicas * threads_per_replica
-        if needed > cpus:
-            ray.shutdown()
-            raise ValueError(f"{replicas} replicas x {threads_per_replica} threads need {needed} CPUs; this machine's "
-                             f"Ray cluster has {cpus:g}: fewer --replicas or --threads")  # fmt: skip
-    status = serve.status()
-    started_serve = not status.proxies and not status.applications
-    if not started_serve:
-        logger.warning("Ray Serve is already running on this cluster: it keeps its HTTP options (host %s, port %s "
-                       "ignored)", host, port)  # fmt: skip
-    try:
-        serve.start(http_options={"host": host, "port": port})
-        logger.info("starting %d replica(s) of %s (%s): each loads the policy and warms up", replicas, policy_folder,
-                    config.method)  # fmt: skip
-        serve.run(application, name=APP_NAME, route_prefix="/")
-    except BaseException:
-        _stop(ray, serve, started_serve, started_ray)
-        raise
-    url = f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
-    logger.info("serving %s (%s) on Ray Serve, %d replica(s), at %s", policy_folder, config.method, replicas, url)
-    if on_ready is not None:
-        on_ready(url)
-    if not blocking:
-        return url
-    try:
-        _wait_for_a_signal()
-    finally:
-        logger.info("stopping the Ray Serve application %s", APP_NAME)
-        _stop(ray, serve, started_serve, started_ray)
-    return url
+    require_ray()
+    from ray.serve.scripts import run
 
-
-def _stop(ray, serve, started_serve: bool, started_ray: bool) -> None:
-    """Deletes the application; shuts Serve and Ray down where [`deploy`] started them."""
+    failure: list[str] = []
+    watcher = threading.Thread(target=_watch, args=(on_ready, url, failure), daemon=True, name="hf-specvla-ready")
+    watcher.start()
+    command = [str(config_file)] + (["--address", address] if address else [])
     try:
-        serve.delete(APP_NAME)
-    except Exception as error:  # noqa: BLE001 (stopping anyway)
-        logger.warning("could not delete the Ray Serve application %s: %s", APP_NAME, error)
-    if started_serve:
-        serve.shutdown()
-    if started_ray:
+        run.main(command, prog_name="serve run", standalone_mode=False)
+    except SystemExit as stop:  # Ctrl-C: serve run shut Serve down and exits
+        status = stop.code if isinstance(stop.code, int) else 0
+    else:
+        status = 0
+    ray, _ = require_ray()
+    if ray.is_initialized():  # the cluster serve run started (or joined), left here rather than at exit
         ray.shutdown()
+    if failure:
+        logger.error("the Ray Serve application %s failed to deploy: %s", APP_NAME, failure[0])
+        return 1
+    return status
 
 
-def _wait_for_a_signal() -> None:
-    """Returns on SIGTERM or Ctrl-C (SIGINT)."""
-    stop = threading.Event()
-    if threading.current_thread() is not threading.main_thread():
-        stop.wait()  # signals reach the main thread only: wait for the process to end
-        return
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        while not stop.wait(1.0):
-            pass
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
-def _absolute(folder) -> str | None:
-    if folder is None:
-        return None
-    path = Path(folder).expanduser()
-    return str(path.resolve()) if path.exists() else str(folder)
+def _watch(on_ready: Callable[[str], None] | None, url: str | None, failure: list[str], poll_s: float = 0.5) -> None:
+    """On a thread beside ``serve run``: once the application runs, ``on_ready(url)``; if it fails to deploy, the
+    failure noted and ``serve run`` interrupted as by Ctrl-C (so that it shuts Serve down)."""
+    ray, serve = require_ray()
+    while True:
+        time.sleep(poll_s)
+        if not ray.is_initialized():
+            continue
+        try:
+            application = serve.status().applications.get(APP_NAME)
+        except Exception:  # noqa: BLE001 (Serve not started yet)
+            continue
+        status = str(getattr(application, "status", ""))
+        if status.endswith("RUNNING"):
+            if on_ready is not None:
+                on_ready(url)
+            return
+        if status.endswith(("DEPLOY_FAILED", "UNHEALTHY")):
+            failure.append(application.message or status)
+            _thread.interrupt_main()
+            return

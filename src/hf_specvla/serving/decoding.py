@@ -1,0 +1,314 @@
+"""The decode step: one batched ``predict_action`` over a bucket's rows, each robot's drafts its own
+([`DecodeStep.run`]), each row handed back the moment it is decoded; and what its compiled graphs fix: the prompt
+lengths served (prompt tiers) and the greedy baseline's static caches. No HTTP, no sessions, no choice of mode here.
+
+**Rows answered when done.** A speculative call's rows need their own numbers of target forwards (the batch runs as
+many as its slowest row), and the engine calls ``on_row_finished(row, new_tokens)`` the moment a row stops: the step
+turns the row's tokens into its action and the robot's new draft state there and hands them on, so a robot's reply
+leaves while the rest of its batch decodes. A row's target forwards are known only when the call returns: a row
+handed on before that carries ``target_forwards=None``. The idle rows that fill a bucket copy the first row, its
+drafts included, so they never outlast the robots' rows. (A new request cannot take a finished row's place at the
+next round: the engine's call holds the rows it started with.)
+
+**The greedy baseline's cache.** transformers' compiled greedy decoding sizes its static cache to each call's prompt
+length plus the new tokens, so every new prompt length (another instruction, another batch's widest prompt) compiles
+a new graph mid-traffic. The step passes it a static cache of its own per bucket and prompt tier instead (below),
+with room for the tier's longest prompt (emptied before each call): one graph per bucket and tier, the same tokens.
+
+**Prompt tiers: no compile under load.** A compiled method's graphs hold its static caches' slot counts, and those
+grow with the batch's widest prompt (64 slots at a time: the target's cache with room for a draft tree, a draft
+head's own). A prompt that needs more slots than any warmed-up call compiled new graphs mid-traffic: minutes on a
+CPU, every robot waiting. So the prompt lengths served are bounded: [`DecodeStep.prompt_tiers`] groups the lengths
+from this policy's shortest prompt up to ``max_prompt_tokens`` (default: as far as the shortest prompt's verification
+cache stretches) by the slot counts they need; the service's warm-up compiles every tier and refuses a longer prompt
+(422, field ``instruction``) before any forward.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..policies.decoding_methods import COMPILED_GREEDY, GREEDY, DecodingMethod
+from .config import ServeConfig
+from .protocol import ActRequest
+
+if TYPE_CHECKING:
+    from ..policies import VLAPolicy
+
+logger = logging.getLogger(__name__)
+
+#: the default prompt limit leaves the instruction at least this many tokens (MT50's longest takes 13 on policy v3;
+#: on v3 the shortest prompt's verification cache leaves 54, so the default is that one tier)
+MIN_INSTRUCTION_TOKENS = 32
+#: dynamo graphs allowed per bucket and prompt tier on the decoding thread (verification widths, prefill, greedy
+#: steps, with and without hidden states) beyond the engine's own raise, and a margin for transformers' own
+GRAPHS_PER_BUCKET, GRAPHS_MARGIN = 16, 16
+
+
+@dataclass
+class DecodedRow:
+    """One robot's row of a decoded batch.
+
+    Attributes:
+        action: the un-normalised action, float64 ``[action_dim]`` (``[chunk, action_dim]`` for a chunked policy).
+        history: the robot's previous actions after this one (token ids, oldest first): its next drafts.
+        target_forwards: target forwards the row took part in (None: handed on before the call returned).
+        done: ``time.perf_counter()`` when the row was handed on.
+        batch_forwards: target forwards the batch ran (None: handed on before the call returned).
+    """
+
+    action: np.ndarray
+    history: list[list[int]]
+    target_forwards: int | None
+    done: float
+    batch_forwards: int | None = None
+
+
+@dataclass
+class DecodedBatch:
+    """A batched call: ``decode_ms`` the whole call, ``batch_forwards`` the target forwards it ran, ``rows`` the
+    rows not handed on before it returned (request index -> row)."""
+
+    decode_ms: float
+    batch_forwards: int
+    rows: dict[int, DecodedRow]
+
+
+class DecodeStep:
+    """Decodes batches of requests for one policy and method, in either mode (speculative or the greedy baseline).
+
+    Args:
+        policy: the loaded policy.
+        config: [`ServeConfig`] (its method, buckets and ``max_prompt_tokens`` are read).
+        draft_head: for methods that draft with a head.
+
+    Raises:
+        ValueError: an unknown method; ``max_prompt_tokens`` shorter than this policy's shortest prompt.
+    """
+
+    def __init__(self, policy: VLAPolicy, config: ServeConfig, draft_head=None):
+        self.policy, self.config = policy, config
+        layout = policy.config
+        self.method = DecodingMethod.parse(config.method, draft_head is not None, layout.action_dim)
+        device = policy.model.device.type
+        self.baseline = COMPILED_GREEDY if self.method.compiled else GREEDY
+        self._kwargs = {
+            True: self.method.generate_kwargs(draft_head, device, action_dim=layout.action_dim),
+            False: self.baseline.generate_kwargs(None, device),
+        }
+        #: whether the method speculates at all (``greedy`` / ``greedy:compile`` do not)
+        self.speculates = self.method.drafters != "greedy"
+        self._greedy_caches: dict[tuple[int, int], object] = {}  # (bucket, slots) -> the baseline's static cache
+        self.shortest_prompt = len(policy.prompt_ids("", self._zero_state()))  # image, state and the prompt's words
+        self.prompt_tiers = self._prompt_tiers(draft_head)
+
+    def name(self, speculative: bool) -> str:
+        """The decoding a mode runs: the method's name, or the baseline's."""
+        return self.method.name if speculative else self.baseline.name
+
+    @property
+    def max_prompt_tokens(self) -> int | None:
+        """The longest prompt served, in tokens (None: no limit beyond the instruction's characters: eager)."""
+        return self.prompt_tiers[-1][1] if self.prompt_tiers else None
+
+    def run(self, requests: list[ActRequest], histories: list[list[list[int]]], bucket: int, speculative: bool,
+            on_row: Callable[[int, DecodedRow], None] | None = None) -> DecodedBatch:  # fmt: skip
+        """Decodes ``requests`` (each with its robot's ``histories``, left as they were) in one call of ``bucket``
+        rows (``speculative``: the method, else the greedy baseline). ``on_row(i, row)`` is called (in this thread)
+        for each request's row the engine hands on before the call returns, all but the last of the robots' rows to
+        finish; the batch returned holds the rest.
+
+        Raises:
+            ValueError: more requests than ``bucket``, or none.
+        """
+        rows = len(requests)
+        if not 0 < rows <= bucket:
+            raise ValueError(f"a batch of {bucket} rows decodes 1..{bucket} requests, got {rows}")
+        padded = requests + [requests[0]] * (bucket - rows)  # idle rows: the first row's copies, its drafts too
+        memories = [[list(a) for a in history] for history in histories]  # predict_action updates them in place
+        memories += [[list(a) for a in histories[0]] for _ in range(bucket - rows)]
+        images = np.stack([r.image for r in padded])
+        states = np.stack([r.state for r in padded]) if self.policy.config.use_state else None
+        instructions = [r.instruction for r in padded]
+        kwargs = self._kwargs[True] if speculative else self._greedy_kwargs(bucket, instructions, states)
+        early: set[int] = set()
+        if speculative and on_row is not None:
+            from ..speculative import remember_actions
+
+            def finished(row: int, new_tokens) -> None:  # the engine's on_row_finished, in finishing order
+                if row < rows and len(early) < rows - 1:  # the last robot row comes back with the batch
+                    early.add(row)
+                    action, action_ids = self.policy.actions_from_generated(new_tokens[None])
+                    history = [list(a) for a in histories[row]]
+                    remember_actions(history, action_ids[0], self.policy.action_layout)
+                    on_row(row, DecodedRow(action[0], history, None, time.perf_counter()))
+
+            kwargs = {**kwargs, "on_row_finished": finished}
+        started = time.perf_counter()
+        actions, output = self.policy.predict_action(images, instructions, states, return_output=True,
+                                                     previous_action_ids=memories, **kwargs)  # fmt: skip
+        done = time.perf_counter()
+        forwards = self._target_forwards(output, bucket)
+        stats = getattr(output, "speculation", None)
+        batch_forwards = stats.num_batch_forwards if stats is not None else self.policy.config.action_tokens
+        rest = {row: DecodedRow(np.asarray(actions[row]), memories[row], forwards[row], done, batch_forwards)
+                for row in range(rows) if row not in early}  # fmt: skip
+        return DecodedBatch(1000 * (done - started), batch_forwards, rest)
+
+    def _target_forwards(self, output, bucket: int) -> list[int]:
+        stats = getattr(output, "speculation", None)
+        if stats is None:  # greedy: one forward per token
+            return [self.policy.config.action_tokens] * bucket
+        rows = stats.rows or [stats]
+        return [row.num_target_forwards for row in rows]
+
+    # ----------------------------------------------------------------------------- the greedy baseline's graphs
+    def _greedy_kwargs(self, bucket: int, instructions: list[str], states) -> dict:
+        """The baseline's ``generate`` arguments; for compiled greedy, an emptied static cache of this bucket with
+        room for the widest prompt (see the module docstring) in place of ``cache_implementation``."""
+        kwargs = self._kwargs[False]
+        if kwargs.get("cache_implementation") != "static":
+            return kwargs
+        from transformers import StaticCache
+
+        from ..speculative import CACHE_KEY, SLOT_MULTIPLE
+
+        rows = states if states is not None else [None] * len(instructions)
+        width = max(len(self.policy.prompt_ids(i, s)) for i, s in zip(instructions, rows))
+        width = next((last for first, last in self.prompt_tiers if first <= width <= last), width)  # the tier's
+        slots = SLOT_MULTIPLE * math.ceil((width + self.policy.config.action_tokens) / SLOT_MULTIPLE)
+        cache = self._greedy_caches.get((bucket, slots))
+        if cache is None:
+            logger.info("greedy baseline: a static cache of %d slots for batches of %d", slots, bucket)
+            config = self.policy.model.config.get_text_config()
+            cache = self._greedy_caches[(bucket, slots)] = StaticCache(config=config, max_cache_len=slots)
+        else:
+            cache.reset()
+        return {**{k: v for k, v in kwargs.items() if k != "cache_implementation"}, CACHE_KEY: cache}
+
+    def allow_graphs(self) -> None:
+        """On the decoding thread: dynamo's recompile limit (a per-thread setting) raised for the graphs of every
+        bucket and prompt tier."""
+        import torch
+
+        config = torch._dynamo.config
+        name = "recompile_limit" if hasattr(config, "recompile_limit") else "cache_size_limit"
+        wanted = GRAPHS_PER_BUCKET * len(self.config.buckets) * max(1, len(self.prompt_tiers)) + GRAPHS_MARGIN
+        if getattr(config, name) < wanted:
+            setattr(config, name, wanted)
+
+    # ----------------------------------------------------------------------------- prompt tiers
+    def _zero_state(self) -> np.ndarray | None:
+        return np.zeros(self.policy.config.state_dim) if self.policy.config.use_state else None
+
+    def _slot_rules(self, draft_head) -> list[tuple[int, int]]:
+        """``(extra, multiple)`` per static cache a compiled call decodes on: a prompt of ``P`` tokens needs
+        ``multiple * ceil((P + extra) / multiple)`` slots in it (the graphs hold that count). Empty: eager, no graphs.
+        The engine's own sizing, restated (tests check it against the engine's): the target's cache
+        ([`_verification_rule`]); a draft head's holds the prompt, the action tokens, its padded catch-up pairs and
+        its tree's entries; the greedy baseline's is the service's own (``_greedy_kwargs``).
+
+        transformers' ``generate`` never shrinks the target's cache (it keeps the largest size it made, so as not to
+        recompile): once [`warm_up`] decoded the longest tier, every speculative call decodes on that tier's cache,
+        whatever its prompt; the other caches follow each call's prompt."""
+        from ..speculative import SLOT_MULTIPLE
+
+        rules = []
+        if self.method.compiled and self.speculates:
+            rules.append(self._verification_rule())
+            rules += [self._head_rule(tree) for tree in self._head_trees(draft_head)]
+        if self.baseline.compiled and not rules:  # greedy only: its cache's own tiers (else it follows the method's)
+            rules.append((self.policy.config.action_tokens, SLOT_MULTIPLE))
+        return rules
+
+    def _verification_rule(self) -> tuple[int, int]:
+        """The target's cache in a compiled speculative call (``_slot_rules``): ``generate`` sizes its static cache
+        ``max_length - 1`` (the prompt and the action tokens but the last, which is never fed), the engine adds room
+        for the widest verification and rounds up."""
+        from ..speculative import NODE_BUCKETS, SLOT_MULTIPLE
+
+        return self.policy.config.action_tokens - 1 + NODE_BUCKETS[-1], SLOT_MULTIPLE
+
+    def _head_rule(self, tree) -> tuple[int, int]:
+        """A draft head's cache in a compiled call (``_slot_rules``; the engine's ``DraftHeadSession.key_length``):
+        ``max_length`` (the prompt and the action tokens), the padded catch-up pairs (``depth + 1``) and the entries
+        one expansion writes (``num_head_entries``), rounded up."""
+        from ..speculative import SLOT_MULTIPLE, num_head_entries
+
+        tokens = self.policy.config.action_tokens
+        return tokens + tree.depth + 1 + num_head_entries(tree.top_k, tree.depth), SLOT_MULTIPLE
+
+    def _head_trees(self, draft_head) -> list:
+        """The tree settings of the draft-head drafters the method runs (a chain is a tree of top-k 1)."""
+        from ..speculative import ComposedDrafter, DraftHead, DraftHeadDrafter
+
+        if draft_head is None:
+            return []
+        kwargs, trees = self._kwargs[True], []
+        pending = [kwargs.get("assistant_model")]
+        while pending:
+            drafter = pending.pop()
+            if isinstance(drafter, ComposedDrafter):
+                pending += drafter.drafters
+            elif isinstance(drafter, DraftHead):
+                trees.append(DraftHeadDrafter(drafter, kwargs.get("num_draft_tokens")).tree_config)
+            elif isinstance(drafter, DraftHeadDrafter):
+                trees.append(drafter.tree_config)
+        return trees
+
+    def _prompt_tiers(self, draft_head) -> list[tuple[int, int]]:
+        """The prompt lengths served, grouped by the slot counts they decode on: ``[(first, last), ...]`` tokens,
+        from the shortest prompt to ``max_prompt_tokens`` (default: the longest prompt whose verification cache has
+        the shortest prompt's slot count, and at least ``MIN_INSTRUCTION_TOKENS`` for the instruction); each tier's
+        graphs are compiled by [`warm_up`]. Empty for an eager method
+        (no graphs: any prompt is served, unless ``max_prompt_tokens`` says otherwise).
+
+        Raises:
+            ValueError: ``max_prompt_tokens`` shorter than this policy's shortest prompt.
+        """
+        rules, shortest, longest = self._slot_rules(draft_head), self.shortest_prompt, self.config.max_prompt_tokens
+        if longest is not None and longest < shortest:
+            raise ValueError(f"max_prompt_tokens {longest} is shorter than this policy's shortest prompt ({shortest} "
+                             f"tokens: image, state and the prompt's words without an instruction)")  # fmt: skip
+        if not rules:
+            return [] if longest is None else [(shortest, longest)]
+
+        def slots(length: int) -> tuple[int, ...]:
+            return tuple(multiple * math.ceil((length + extra) / multiple) for extra, multiple in rules)
+
+        if longest is None:  # as far as the shortest prompt's verification cache goes (whatever the method)
+            extra, multiple = self._verification_rule()
+            longest = max(multiple * math.ceil((shortest + extra) / multiple) - extra,
+                          shortest + MIN_INSTRUCTION_TOKENS)  # fmt: skip
+        tiers = [(shortest, shortest)]
+        for length in range(shortest + 1, longest + 1):
+            first, _ = tiers[-1]
+            tiers[-1:] = [(first, length)] if slots(length) == slots(first) else [tiers[-1], (length, length)]
+        return tiers
+
+    def tier_instruction(self, tier: tuple[int, int]) -> str:
+        """A synthetic instruction whose prompt is the longest of ``tier`` (or near it) that words make: what
+        [`warm_up`] compiles the tier with (the longest, so that the caches sized for it hold every prompt of the
+        tier)."""
+        first, last = tier
+        state = self._zero_state()
+
+        def length(words: int) -> int:
+            return len(self.policy.prompt_ids(" ".join(["go"] * words), state))
+
+        step = max(1, length(2) - length(1))  # tokens per word
+        words = max(1, 1 + (last - length(1)) // step)  # then a few steps to the longest that fits
+        while words > 1 and length(words) > last:
+            words -= 1
+        while length(words + 1) <= last:
+            words += 1
+        if not first <= length(words) <= last:
+            raise RuntimeError(f"no synthetic instruction makes a prompt of {first}..{last} tokens for the warm-up")
+        return " ".join(["go"] * words)
