@@ -14,10 +14,13 @@ these observations, and the load is the real one without K simulators competing 
 2 cores (on a lab's network the robots are other machines). ``simulate`` runs K Meta-World robots
 (``hf_specvla.metaworld.fleet``, as ``hf-specvla robots``): actions per second then include the simulators' time.
 
-Reported per K and server (medians over repeats): actions per second (actions returned to all robots / wall time;
+Reported per K and server (medians over repeats, ``[min-max]`` for actions/s, the ratio to the same repeat's
+greedy run and p95): actions per second (actions returned to all robots / wall time;
 a chunked policy returns its chunk), request latency p50 / p95 (client side), and where a request's time goes:
 waiting for its batch (queue), the batch's decode (the server's own ``predict_action`` call: a local call on the
-same observations) and the rest (HTTP, serialisation, the client). Every server's actions are checked equal.
+same observations) and the rest (HTTP, serialisation, the client); ``early``: the share of replies that left before
+their batch's call returned (their row done first; they carry no forward counts, so fwd/req is over the others).
+Every server's actions are checked equal.
 
     python examples/benchmarks/serving_load.py --output runs/serving_load.json            # ~30 min on 2 CPU cores
     python examples/benchmarks/serving_load.py --tiny --output /tmp/serving_load.json     # a minute: eager, K = 1, 2
@@ -50,7 +53,7 @@ def parse_args(argv=None):
     parser.add_argument("--method", default="exact", help="the speculative method (a preset or a method name)")
     parser.add_argument("--robots", type=int, nargs="+", default=[1, 2, 4, 8, 16], help="the K values")
     parser.add_argument("--buckets", type=int, nargs="+", default=None, help="default: 1 2 4 ... up to the largest K")
-    parser.add_argument("--repeats", type=int, default=2, help="rounds over the three servers (ABC, BCA, ...)")
+    parser.add_argument("--repeats", type=int, default=3, help="rounds over the three servers (ABC, BCA, ...)")
     parser.add_argument("--episodes", type=int, default=None, help="episodes per run (default: max(2 K, 6))")
     parser.add_argument("--max-episode-steps", type=int, default=60)
     parser.add_argument("--seed-start", type=int, default=100000)
@@ -188,7 +191,7 @@ def replay(url: str, robots: int, episodes: list[list[dict]], chunk_length: int)
     requests = sum(len(r["latencies_ms"]) for r in records)
     summary = {"actions_per_second": requests * chunk_length / wall, "env_steps": requests * chunk_length,
                "speculative_fraction": sum(x for r in records for x in r["speculative"]) / requests,
-               "target_forwards_per_request": sum(x for r in records for x in r["target_forwards"]) / requests,
+               "target_forwards_per_request": _known_mean(x for r in records for x in r["target_forwards"]),
                }  # fmt: skip
     return _figures(summary, sorted(records, key=lambda r: int(r["key"])))
 
@@ -225,7 +228,8 @@ def _figures(summary: dict, records: list[dict]) -> dict:
         "mean_batch_size": statistics.mean(x for r in records for x in r["batch_sizes"]),
         "speculative_fraction": summary["speculative_fraction"],
         "forwards_per_request": summary["target_forwards_per_request"],
-        "batch_forwards_per_request": statistics.mean(x for r in records for x in r.get("batch_forwards", [0])),
+        "batch_forwards_per_request": _known_mean(x for r in records for x in r.get("batch_forwards", [0])),
+        "answered_early_share": statistics.mean(x is None for r in records for x in r["target_forwards"]),
         "requests": len(latency),
         "env_steps": summary["env_steps"],
         "actions": {r["key"]: r["actions"] for r in records},
@@ -253,24 +257,39 @@ def record(args) -> tuple[list[list[dict]], int]:
     return episodes[:needed], chunk
 
 
+def _known_mean(values) -> float | None:
+    """The mean of the values that are not None: a reply that left before its batch's call returned (its row done
+    early) carries no forward counts, so the mean of the others leans high."""
+    known = [v for v in values if v is not None]
+    return statistics.mean(known) if known else None
+
+
+def _spread(runs: list[dict], key: str, digits: int = 1, unit: str = "") -> str:
+    """``median [min-max]`` of ``key`` over the repeats."""
+    values = [r[key] for r in runs]
+    low, median, high = (f"{v:.{digits}f}{unit}" for v in (min(values), statistics.median(values), max(values)))
+    return f"{median} [{low}-{high}]"
+
+
 def table(rows: list[dict], robots: list[int]) -> str:
-    header = (
-        "| K | server | actions/s | vs greedy | p50 ms | p95 ms | queue / decode / rest ms | batch | spec. | fwd/req |"
-    )
-    lines = [header, "|---:|---|---:|---:|---:|---:|---|---:|---:|---:|"]
+    header = ("| K | server | actions/s | vs greedy | p50 ms | p95 ms | queue / decode / rest ms | batch | spec. "
+              "| early | fwd/req |")  # fmt: skip
+    lines = [header, "|---:|---|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
     for k in robots:
-        medians = {}
+        runs = {kind: sorted((r for r in rows if r["robots"] == k and r["kind"] == kind), key=lambda r: r["repeat"])
+                for kind in KINDS}  # fmt: skip
         for kind in KINDS:
-            runs = [r for r in rows if r["robots"] == k and r["kind"] == kind]
-            medians[kind] = {key: statistics.median(r[key] for r in runs) for key in runs[0] if
-                             isinstance(runs[0][key], int | float) and key not in ("robots", "repeat")}  # fmt: skip
-        for kind in KINDS:
-            m = medians[kind]
-            ratio = m["actions_per_second"] / medians["greedy"]["actions_per_second"]
-            lines.append(f"| {k} | {kind} | {m['actions_per_second']:.1f} | {ratio:.2f}x | {m['latency_p50_ms']:.1f} | "
-                         f"{m['latency_p95_ms']:.1f} | {m['queue_mean_ms']:.1f} / {m['decode_mean_ms']:.1f} / "
-                         f"{m['rest_mean_ms']:.1f} | {m['mean_batch_size']:.2f} | {m['speculative_fraction']:.0%} | "
-                         f"{m['forwards_per_request']:.2f} |")  # fmt: skip
+            m = {key: statistics.median(r[key] for r in runs[kind]) for key in runs[kind][0] if
+                 isinstance(runs[kind][0][key], int | float) and key not in ("robots", "repeat")}  # fmt: skip
+            ratios = [{"ratio": r["actions_per_second"] / g["actions_per_second"]}  # the same repeat's greedy run
+                      for r, g in zip(runs[kind], runs["greedy"])]  # fmt: skip
+            forwards = m.get("forwards_per_request")
+            lines.append(f"| {k} | {kind} | {_spread(runs[kind], 'actions_per_second')} | "
+                         f"{_spread(ratios, 'ratio', 2, 'x')} | {m['latency_p50_ms']:.1f} | "
+                         f"{_spread(runs[kind], 'latency_p95_ms')} | {m['queue_mean_ms']:.1f} / "
+                         f"{m['decode_mean_ms']:.1f} / {m['rest_mean_ms']:.1f} | {m['mean_batch_size']:.2f} | "
+                         f"{m['speculative_fraction']:.0%} | {m.get('answered_early_share', 0):.0%} | "
+                         f"{'-' if forwards is None else f'{forwards:.2f}'} |")  # fmt: skip
     return "\n".join(lines)
 
 
