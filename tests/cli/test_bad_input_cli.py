@@ -40,6 +40,7 @@ def afile(tmp_path) -> Path:
         ["eval", "--policy", str(POLICY), "--tasks", "reach", "--episodes", "1"],
         ["train-vla", "--data", "{tmp}/nodata"],
         ["train-draft", "--policy", str(POLICY)],
+        ["rollouts", "--policy", str(POLICY), "--tasks", "reach"],
     ],
 )
 @pytest.mark.parametrize("under", [True, False])

@@ -112,6 +112,11 @@ def run(args, parser) -> int:
         training_config.unroll_steps = args.unroll_steps
     elif args.head == "v2":  # as deep as it drafts
         training_config.unroll_steps = args.num_draft_tokens or policy.config.action_tokens - 1
+    if args.rollouts is not None:  # another policy's rollouts, too few: refused before the training starts
+        from ..training.rollouts import check_rollouts_for
+
+        with usage_errors(parser, "--rollouts", (ValueError, FileNotFoundError)):
+            check_rollouts_for(args.rollouts, policy, data_config)
     command = shlex.join(["hf-specvla", *args.argv])
     with usage_errors(parser, errors=(FileExistsError,)):
         head = train_policy_draft_head(policy, training_config, data_config, args.data or [], args.num_draft_tokens,

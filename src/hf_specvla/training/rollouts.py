@@ -303,7 +303,7 @@ def _collect_in_workers(policy_dir: str, config: RolloutConfig, pending: list, f
     from multiprocessing import get_context
 
     shards = [pending[i :: config.workers] for i in range(config.workers)]
-    start = len(finished_pairs(folder))
+    start, shown = len(finished_pairs(folder)), 0
     with ProcessPoolExecutor(config.workers, mp_context=get_context("spawn")) as pool:
         running = {pool.submit(_worker_main, policy_dir, asdict(config), shard, str(folder))
                    for shard in shards if shard}  # fmt: skip
@@ -311,7 +311,9 @@ def _collect_in_workers(policy_dir: str, config: RolloutConfig, pending: list, f
             finished, running = wait(running, timeout=5, return_when=FIRST_EXCEPTION)
             for future in finished:
                 future.result()  # a worker's exception surfaces here
-            bar.update(len(finished_pairs(folder)) - start - (bar.n - bar.initial))
+            saved = len(finished_pairs(folder)) - start
+            bar.update(saved - shown)
+            shown = saved
 
 
 def collect_rollouts(policy: VLAPolicy, config: RolloutConfig, output_dir: str | Path, resume: bool = False,
@@ -452,10 +454,8 @@ class RolloutFrames:
     episodes: int
 
 
-def read_rollout_frames(folder: str | Path, policy: VLAPolicy, data_config) -> RolloutFrames:
-    """The frames ``data_config`` (a ``DraftDataConfig``: tasks, ``rollout_episodes`` per task from
-    ``rollout_seed_start``, cut at ``rollout_max_steps``, the last ``validation_episodes`` held out) asks for, read from
-    a rollouts folder of ``policy``: the frames the in-process collection (``policy_draft.rollout_frames``) gives.
+def check_rollouts_for(folder: str | Path, policy: VLAPolicy, data_config) -> None:
+    """Refuses a rollouts folder that cannot give the frames ``data_config`` asks of ``policy`` (reads no episode).
 
     Raises:
         FileNotFoundError: not a rollouts folder.
@@ -489,6 +489,18 @@ def read_rollout_frames(folder: str | Path, policy: VLAPolicy, data_config) -> R
             f"rollouts --policy {policy.name_or_path or '<folder>'} --output-dir {folder} --episodes-per-task "
             f"{data_config.rollout_episodes} --resume (and the folder's other settings)"
         )
+
+
+def read_rollout_frames(folder: str | Path, policy: VLAPolicy, data_config) -> RolloutFrames:
+    """The frames ``data_config`` (a ``DraftDataConfig``: tasks, ``rollout_episodes`` per task from
+    ``rollout_seed_start``, cut at ``rollout_max_steps``, the last ``validation_episodes`` held out) asks for, read from
+    a rollouts folder of ``policy``: the frames the in-process collection (``policy_draft.rollout_frames``) gives.
+
+    Raises:
+        FileNotFoundError / ValueError: as [`check_rollouts_for`].
+    """
+    folder = Path(folder)
+    check_rollouts_for(folder, policy, data_config)
     seeds = [data_config.rollout_seed_start + i for i in range(data_config.rollout_episodes)]
     held_out = set(seeds[-data_config.validation_episodes :])
     train, validation, entries = [], [], []
