@@ -485,3 +485,31 @@ def test_the_compiled_path_is_chosen_by_device_with_cuda_graphs_on_cuda(monkeypa
     monkeypatch.setattr(type(model), "device", property(lambda self: torch.device("cuda")))
     assert compiles_verification(model, GenerationConfig(compile_config=on_cuda), cache)
     assert not compiles_verification(model, GenerationConfig(compile_config=on_cuda), None)  # no static cache
+
+
+def test_the_graph_budget_is_what_dynamo_holds_and_reset_forgets_every_verifier():
+    """The recompile limit is raised from dynamo's own count of a code object's graphs (every caller's, not a count of
+    ours), and ``reset_compilation`` drops them and makes every model's verifier anew."""
+    from hf_specvla.speculative.compiled import CompiledVerifier, allow_graphs_held, graphs_held
+
+    def double(x):
+        return 2 * x
+
+    compiled = torch.compile(double, backend="eager", dynamic=False)
+    for n in (1, 2, 3):
+        compiled(torch.ones(n))
+    assert graphs_held(double) == 3
+    model = _model("llama")
+    config = eager_compile_config()
+    verifier = CompiledVerifier.for_model(model, config)
+    assert CompiledVerifier.for_model(model, config) is verifier
+    greedy(model, torch.randint(6, 64, (1, 6)), cache_implementation="static", compile_config=config,
+           draft_ids=torch.randint(6, 64, (1, 3)))  # fmt: skip
+    held = graphs_held(type(model).forward)
+    assert held >= 3  # the prefill's graph and the widths of 3 drafts (0, 2, 4)
+    with torch._dynamo.config.patch(recompile_limit=1):
+        allow_graphs_held(model)  # a thread that did not compile: its limit holds every graph and transformers'
+        assert torch._dynamo.config.recompile_limit >= held + 8
+    reset_compilation()
+    assert graphs_held(double) == 0 and graphs_held(type(model).forward) == 0
+    assert CompiledVerifier.for_model(model, config) is not verifier

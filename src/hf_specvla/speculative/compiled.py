@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
+from functools import cache
 
 import torch
 from transformers import GenerationConfig, PreTrainedModel
@@ -51,11 +52,6 @@ SLOT_MULTIPLE = 64
 _GRAPHS_BESIDE_OURS = 16
 
 _DEVICES_COMPILED_BY_DEFAULT = ("cuda", "xpu", "neuron", "tpu")
-
-#: the graphs compiled up front in this process (every width and prefill of every key: cache slots, batch size, ...):
-#: dynamo's recompile limit counts the graphs of one code object, a model class's forward, across its instances
-_graphs_compiled = 0
-_WARNED_EAGER_DEVICES: set[str] = set()  # device types already told that compile_config is ignored there
 
 
 def compiled_decoding_kwargs(device_type: str = "cpu") -> dict:
@@ -84,16 +80,21 @@ def compiles_verification(model: PreTrainedModel, generation_config: GenerationC
     compile_config = getattr(generation_config, "compile_config", None)
     all_devices = compile_config is not None and bool(getattr(compile_config, "_compile_all_devices", False))
     if model.device.type not in _DEVICES_COMPILED_BY_DEFAULT and not all_devices:
-        if compile_config is not None and model.device.type not in _WARNED_EAGER_DEVICES:  # once per device type
-            _WARNED_EAGER_DEVICES.add(model.device.type)
-            logger.warning(
-                "compile_config is set but the target is on %s, which transformers compiles only with "
-                "compile_config._compile_all_devices = True: verifying eagerly",
-                model.device.type,
-            )
+        if compile_config is not None:
+            _warn_eager_device(model.device.type)
         return False
     quantizer = getattr(model, "hf_quantizer", None)
     return quantizer is None or bool(getattr(quantizer, "is_compileable", False))
+
+
+@cache
+def _warn_eager_device(device_type: str) -> None:
+    """Says once per device type that a ``compile_config`` is ignored there."""
+    logger.warning(
+        "compile_config is set but the target is on %s, which transformers compiles only with "
+        "compile_config._compile_all_devices = True: verifying eagerly",
+        device_type,
+    )
 
 
 def compile_settings(compile_config) -> str:
@@ -102,13 +103,10 @@ def compile_settings(compile_config) -> str:
 
 
 def reset_compilation() -> None:
-    """``torch._dynamo.reset()`` and forgets what hf_specvla compiled up front (so that the next call compiles every
-    width, prefill and draft-head graph again, before its first compiled round): every model's [`CompiledVerifier`],
-    which owns all of it, is made anew at its next use."""
-    global _graphs_compiled, _compilation_epoch
-    torch._dynamo.reset()
-    _graphs_compiled = 0
-    _compilation_epoch += 1  # every model's CompiledVerifier forgets its graphs
+    """``torch._dynamo.reset()`` and every [`CompiledVerifier`] forgets what it compiled up front (the next call
+    compiles every width, prefill and draft-head graph again, before its first compiled round): see
+    [`CompiledVerifier.reset_compilation`]."""
+    CompiledVerifier.reset_compilation()
 
 
 #: the model inputs with a sequence dimension in a prefill, and that dimension, from the end ([`mark_length_dynamic`])
@@ -147,10 +145,6 @@ class PrefillCall:
         return outputs
 
 
-#: bumped by [`reset_compilation`]: a [`CompiledVerifier`] made before forgets what it compiled
-_compilation_epoch = 0
-
-
 class CompiledVerifier:
     """Everything hf_specvla compiles for one model under one ``CompileConfig``: transformers' compiled model call
     (shared with its compiled greedy decoding) and what was compiled up front for it, by what the graphs depend on
@@ -161,12 +155,22 @@ class CompiledVerifier:
 
     On a CUDA device transformers' ``CompileConfig`` compiles with ``mode="reduce-overhead"``: each (batch size,
     width) graph is captured as a CUDA graph, its inputs copied into static buffers at each replay (the outputs, which
-    the next replay overwrites, are copied by [`verify_trees`]); elsewhere inductor's default mode."""
+    the next replay overwrites, are copied by [`verify_trees`]); elsewhere inductor's default mode.
+
+    It also owns the graph budget: dynamo's recompile limit (a per-thread setting, counted per code object across
+    every caller) is raised from the graphs dynamo itself holds for the model's forward and the drafters' functions
+    ([`graphs_held`]) plus the ones about to be compiled, never from a count of our own; and
+    [`reset_compilation`] (``torch._dynamo.reset()`` + every verifier forgets its graphs) is its method."""
+
+    #: bumped by [`reset_compilation`]: a verifier made before it forgets what it compiled (class state: the one
+    #: thing every model's verifier shares, as ``torch._dynamo.reset()`` drops every model's graphs at once)
+    _epoch = 0
 
     def __init__(self, model: PreTrainedModel, compile_config):
         self.compile_config = compile_config
+        self.model_forward = type(model).forward  # the code dynamo compiles for ``call`` (its graphs: graphs_held)
         self.call: Callable = model.get_compiled_call(compile_config)
-        self.epoch = _compilation_epoch
+        self.epoch = CompiledVerifier._epoch
         self.widths_compiled: set[tuple] = set()  # (slots, hidden states, buckets, batch size)
         self.prefills_compiled: set[tuple] = set()  # (slots, hidden states, batch size)
         self.prefills_eager: set[tuple] = set()  # the same keys, whose forward over the prompt did not compile
@@ -178,22 +182,36 @@ class CompiledVerifier:
         """``model``'s verifier for ``compile_config`` (made at its first use), its model call fetched again (a caller
         may have wrapped ``get_compiled_call``, as the benchmarks' clock does), dynamo's recompile limit raised to
         hold one graph per bucket (past the limit dynamo would silently run eagerly)."""
-        allow_graphs(max(2 * len(NODE_BUCKETS), _graphs_compiled) + _GRAPHS_BESIDE_OURS)  # with / without hidden
         verifiers = model.__dict__.setdefault("_hf_specvla_verifiers", {})
         settings = compile_settings(compile_config)
         verifier = verifiers.get(settings)
-        if verifier is None or verifier.epoch != _compilation_epoch:
+        if verifier is None or verifier.epoch != CompiledVerifier._epoch:
             verifier = verifiers[settings] = cls(model, compile_config)
         else:
             verifier.call = model.get_compiled_call(compile_config)
+        verifier.reserve_graphs(2 * len(NODE_BUCKETS))  # every width, with / without hidden states
         return verifier
+
+    @classmethod
+    def reset_compilation(cls) -> None:
+        """``torch._dynamo.reset()``, and every model's verifier (made anew at its next use) forgets what it
+        compiled: the target's widths and prefills and its drafters' graphs."""
+        torch._dynamo.reset()
+        cls._epoch += 1
+
+    # ----------------------------------------------------------------- the graph budget
+    def reserve_graphs(self, count: int, function: Callable | None = None) -> None:
+        """Raises this thread's recompile limit so that ``count`` more graphs of ``function`` (default: the model's
+        forward) fit beside the graphs dynamo holds for it already and transformers' own (past the limit dynamo
+        would refuse under ``fullgraph=True``, or silently run eagerly)."""
+        allow_graphs(graphs_held(function or self.model_forward) + count + _GRAPHS_BESIDE_OURS)
 
     # ----------------------------------------------------------------- drafters' graphs
     def compiled_function(self, function: Callable, graphs: int) -> Callable:
         """``torch.compile(function)`` with this verifier's ``CompileConfig`` settings (as transformers'
         ``get_compiled_call`` compiles a model's call), made once; dynamo's recompile limit is raised so that
         ``graphs`` graphs (one per input shape the caller will meet) fit beside others."""
-        allow_graphs(graphs + _GRAPHS_BESIDE_OURS)
+        self.reserve_graphs(graphs, function)
         if function not in self.functions:
             self.functions[function] = torch.compile(function, **self.compile_config.to_dict())
         return self.functions[function]
@@ -238,7 +256,7 @@ class CompiledVerifier:
         from torch.fx.experimental.symbolic_shapes import ConstraintViolationError
 
         start = time.perf_counter()
-        _count_graphs(1)
+        self.reserve_graphs(1)
         try:
             with preserved_entries(model_inputs[CACHE_KEY]):
                 verify_trees(
@@ -278,7 +296,7 @@ class CompiledVerifier:
             return 0.0
         start, length = time.perf_counter(), cache_length(cache)
         widths = [b for b in buckets if b <= slots - length - pending_ids.shape[1]]
-        _count_graphs(len(widths))
+        self.reserve_graphs(len(widths))
         empty = [DraftTree.empty(pending_ids.device)] * pending_ids.shape[0]
         for width in widths:
             verify_trees(model, {CACHE_KEY: cache}, pending_ids, pending_positions,
@@ -292,20 +310,31 @@ class CompiledVerifier:
         return seconds
 
 
-def _count_graphs(count: int) -> None:
-    """Books ``count`` graphs about to be compiled up front and raises dynamo's recompile limit to hold them beside
-    every graph compiled before (past the limit dynamo would refuse, or silently run eagerly)."""
-    global _graphs_compiled
-    _graphs_compiled += count
-    allow_graphs(_graphs_compiled + _GRAPHS_BESIDE_OURS)
+def graphs_held(function: Callable) -> int:
+    """The graphs dynamo holds for ``function``'s code, compiled by any caller (its recompile limit counts them per
+    code object: a model class's forward is shared by its instances, and transformers' decorated forwards share
+    their decorator's code); 0 when torch does not tell."""
+    try:
+        from torch._dynamo.eval_frame import _debug_get_cache_entry_list
+    except ImportError:  # a torch without it: the limits fall back to the graphs about to be compiled
+        return 0
+    held = 0
+    while function is not None:  # the function and what it wraps (dynamo may have compiled either)
+        code = getattr(function, "__code__", None)
+        if code is not None:
+            held = max(held, len(_debug_get_cache_entry_list(code)))
+        function = getattr(function, "__wrapped__", None)
+    return held
 
 
-def allow_graphs_compiled_so_far() -> None:
-    """Raises this thread's recompile limit to hold every graph compiled up front in the process, and transformers'
-    own beside them: dynamo's settings are per thread (a ``ContextVar``), so a model compiled in one thread and
-    decoding in another (a server's worker) would meet the default limit there, with more graphs than it allows on
-    the model's forward, and fail at its next compile (``FailOnRecompileLimitHit`` under ``fullgraph=True``)."""
-    allow_graphs(_graphs_compiled + _GRAPHS_BESIDE_OURS)
+def allow_graphs_held(model: PreTrainedModel) -> None:
+    """Raises this thread's recompile limit to hold every graph dynamo holds for ``model``'s forward and for its
+    verifiers' drafter functions ([`graphs_held`]), and transformers' own beside them: dynamo's settings are per
+    thread (a ``ContextVar``), so a model compiled in one thread and decoding in another (a server's worker) would
+    meet the default limit there, with more graphs than it allows, and fail at its next compile
+    (``FailOnRecompileLimitHit`` under ``fullgraph=True``)."""
+    functions = [f for verifier in model.__dict__.get("_hf_specvla_verifiers", {}).values() for f in verifier.functions]
+    allow_graphs(max(graphs_held(f) for f in [type(model).forward, *functions]) + _GRAPHS_BESIDE_OURS)
 
 
 def allow_graphs(count: int) -> None:

@@ -15,7 +15,7 @@ import inspect
 from transformers import GenerationConfig, PreTrainedModel
 
 from .compat import check_transformers_support
-from .compiled import allow_graphs_compiled_so_far
+from .compiled import allow_graphs_held
 from .config import SpeculationConfig
 from .drafter import Drafter
 from .loop import speculative_generate
@@ -61,7 +61,7 @@ class SpeculativeGenerationMixin:
     def generate(self, *args, assistant_model=None, draft_ids=None, **kwargs):
         keep_greedy_exact(self)
         if kwargs.get("compile_config") is not None:  # this thread may not have compiled the graphs it meets
-            allow_graphs_compiled_so_far()
+            allow_graphs_held(self)
         ours = isinstance(assistant_model, (DraftHead, Drafter))
         if ours or draft_ids is not None:
             check_transformers_support()
