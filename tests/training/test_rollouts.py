@@ -110,6 +110,7 @@ def test_the_folder_gives_the_frames_of_the_in_process_collection(one_shot, poli
                         assert a[key] == b[key], key
     two = read_rollout_frames(one_shot, policy, DraftDataConfig(TASKS, rollout_episodes=2, rollout_max_steps=5))
     assert read.episodes == 6 and two.episodes == 4 and two.fingerprint != read.fingerprint
+    assert read.fingerprint == json.loads((one_shot / MANIFEST).read_text())["fingerprint"]  # every episode read
 
 
 def test_in_parts_and_with_two_workers_the_arrays_are_those_of_one_go(policy, one_shot, tmp_path):

@@ -224,8 +224,9 @@ def _manifest_entry(arrays: dict[str, np.ndarray]) -> dict:
 
 
 def rollouts_fingerprint(entries: list[dict]) -> str:
-    """Fingerprint (16 hex digits) of a set of episodes: their (task, seed, content fingerprint), in order."""
-    text = json.dumps([[e["task"], e["seed"], e["fingerprint"]] for e in entries])
+    """Fingerprint (16 hex digits) of a set of episodes: their (task, seed, content fingerprint), in any order (a
+    ``train-draft --rollouts`` that reads every episode of a folder records its ``manifest.json`` fingerprint)."""
+    text = json.dumps(sorted([e["task"], e["seed"], e["fingerprint"]] for e in entries))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
