@@ -6,6 +6,9 @@ from transformers import LlamaConfig, PretrainedConfig
 
 from ..actions.tokenizer import DEFAULT_N_BINS, ActionLayout, ActionTokenizer
 
+#: how a head drafts after the prefill: autoregressive levels (heads v1, v2) or one block per forward (head v3)
+DRAFT_MODES = ("chain", "block")
+
 
 class DraftHeadConfig(PretrainedConfig):
     r"""Configuration of a [`DraftHead`].
@@ -36,6 +39,13 @@ class DraftHeadConfig(PretrainedConfig):
         previous_action_input: the head also reads the robot's previous action: the input that predicts the
             generated token k carries the previous action's bin at the same dimension (``k mod action_dim``), or a
             learned "no previous action" vector (prompt positions, an episode's first step). False: heads before v2.
+        draft_mode: how the head drafts after the prefill: ``"chain"`` (autoregressive: one head forward per drafted
+            level, EAGLE; every head before v3) or ``"block"`` (head v3, DFlash-style: one head forward feeds the
+            target's committed pairs and ``num_draft_tokens - 1`` mask queries after them, and drafts every
+            remaining token of the action in parallel; a round costs one head forward whatever its depth).
+        prefill_drafts: head v3: the head also drafts before the target's prefill (the whole action, its first
+            token included) from what is known then: the prompt's tokens (instruction, state) and the previous
+            action, in one head forward; verified inside the prefill. False: heads before v3 draft nothing there.
         target_model_type, target_name_or_path: what the head was built for (informational + compatibility check).
         target_fingerprint: content fingerprint of the target weights the head was distilled from (set by
             ``hf-specvla train-draft``); a head whose fingerprint differs from a target's was trained for another
@@ -67,6 +77,8 @@ class DraftHeadConfig(PretrainedConfig):
         final_logit_softcapping: float | None = None,
         feature_layers: list[int] | None = None,
         previous_action_input: bool = False,
+        draft_mode: str = "chain",
+        prefill_drafts: bool = False,
         target_model_type: str | None = None,
         target_name_or_path: str | None = None,
         target_fingerprint: str | None = None,
@@ -93,6 +105,8 @@ class DraftHeadConfig(PretrainedConfig):
         self.final_logit_softcapping = final_logit_softcapping
         self.feature_layers = None if feature_layers is None else list(feature_layers)
         self.previous_action_input = previous_action_input
+        self.draft_mode = draft_mode
+        self.prefill_drafts = prefill_drafts
         self.target_model_type = target_model_type
         self.target_name_or_path = target_name_or_path
         self.target_fingerprint = target_fingerprint
@@ -130,8 +144,21 @@ class DraftHeadConfig(PretrainedConfig):
             raise ValueError(
                 f"DraftHeadConfig.previous_action_input must be True or False, got {self.previous_action_input!r}"
             )
+        if self.draft_mode not in DRAFT_MODES:
+            raise ValueError(
+                f"DraftHeadConfig.draft_mode must be one of {DRAFT_MODES} (autoregressive levels, or one forward per "
+                f"block), got {self.draft_mode!r}"
+            )
+        if not isinstance(self.prefill_drafts, bool):
+            raise ValueError(f"DraftHeadConfig.prefill_drafts must be True or False, got {self.prefill_drafts!r}")
         # Delegates the action-layout checks (n_bins >= 2, room for text ids) to the tokenizer.
         self.action_tokenizer()
+
+    @property
+    def uses_mask_queries(self) -> bool:
+        """Whether the head drafts positions whose token or hidden state it does not know (block mode, drafts
+        before the prefill): it then has learned inputs for them (``DraftHead.mask_embedding``, ``missing_hidden``)."""
+        return self.draft_mode == "block" or self.prefill_drafts
 
     @property
     def hidden_state_layers(self) -> tuple[int, ...]:

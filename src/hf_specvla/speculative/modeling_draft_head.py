@@ -18,6 +18,16 @@ Head v2 (config options, each off in every head saved before it):
   the robot's previous action's bin at the dimension of the token being predicted, or a learned "none" row (a
   prompt position, or no previous action): the head drafts "the last action, corrected" ([`slot_bins`]).
 * trained with training-time test (``training.draft_head``): later draft steps see the head's own outputs.
+
+Head v3 (config options ``draft_mode="block"`` and ``prefill_drafts``; DFlash, Chen et al. 2026, drafts a block per
+forward): positions whose token or target hidden state is not known yet are fed as *mask queries*, two learned
+vectors (``mask_inputs``: row 0 stands for an unknown token, row 1 for a missing target hidden state) with their own
+positions (rotary) and previous-action bins. A block round feeds the committed pairs and ``num_draft_tokens - 1``
+mask queries after them in one forward (causal): the last pair's feature drafts depth 0, query j drafts depth j.
+Before the prefill, the prompt's tokens stand as pairs with a missing hidden state, followed by the mask queries:
+the whole action drafted from the prompt (instruction, state) and the previous action. Deviation from DFlash: the
+target's context reaches the block through the head's own KV cache (EAGLE's pairs), not through injected target
+keys, and the block attends causally.
 """
 
 from __future__ import annotations
@@ -160,6 +170,8 @@ class DraftHead(PreTrainedModel):
             nn.Embedding(config.n_action_bins + 1, hidden) if config.previous_action_input else None
         )
         self.fuse = nn.Linear((3 if config.previous_action_input else 2) * hidden, hidden, bias=True)
+        #: head v3's mask-query inputs (row 0: an unknown token, row 1: a missing target hidden state); None before v3
+        self.mask_inputs = nn.Embedding(2, hidden) if config.uses_mask_queries else None
         self.layer = LlamaDecoderLayer(layer_config, layer_idx=0)
         self.norm = LlamaRMSNorm(hidden, eps=config.rms_norm_eps)
         self.rotary_emb = LlamaRotaryEmbedding(layer_config)
@@ -369,6 +381,31 @@ class DraftHead(PreTrainedModel):
         bins = rows.gather(1, dim)
         return torch.where(generated >= 0, bins, torch.full_like(bins, self.config.n_action_bins))
 
+    # ------------------------------------------------------------------ mask queries (head v3)
+    def fuse_features(self, target_hidden: torch.Tensor) -> torch.Tensor:
+        """``[..., n H]`` the target's hidden states of the ``feature_layers`` -> ``[..., H]`` the head's hidden input
+        (fused by ``feature_fuse``; H-wide inputs, the head's own features, pass unchanged)."""
+        if self.feature_fuse is not None and target_hidden.shape[-1] != self.config.hidden_size:
+            return self.feature_fuse(target_hidden)
+        return target_hidden
+
+    def mask_query_inputs(self, batch_size: int, count: int, unknown_token: bool = True):
+        """Inputs of ``count`` positions the head knows nothing of: ``(token_embeds [B, count, H], hidden [B, count,
+        H])``, the learned "unknown token" (``unknown_token``; else None: the caller embeds known tokens) and
+        "missing hidden state" vectors.
+
+        Raises:
+            ValueError: a head without mask queries (``draft_mode="chain"`` and no ``prefill_drafts``).
+        """
+        if self.mask_inputs is None:
+            raise ValueError(
+                "this draft head has no mask queries: it drafts autoregressively (draft_mode='chain') and not before "
+                "the prefill (prefill_drafts=False); build a head v3 (draft_mode='block' or prefill_drafts=True)"
+            )
+        width = self.config.hidden_size
+        token = self.mask_inputs.weight[0].expand(batch_size, count, width) if unknown_token else None
+        return token, self.mask_inputs.weight[1].expand(batch_size, count, width)
+
     # ------------------------------------------------------------------ forward
     def forward(
         self,
@@ -397,8 +434,7 @@ class DraftHead(PreTrainedModel):
         past_len = 0 if cache is None else cache.get_seq_length()
         if attention_mask is None:
             attention_mask = causal_mask(token_embeds.shape[1], past_len, token_embeds.dtype, token_embeds.device)
-        if self.feature_fuse is not None and target_hidden.shape[-1] != self.config.hidden_size:
-            target_hidden = self.feature_fuse(target_hidden)  # the target's layers -> [B, q, H]
+        target_hidden = self.fuse_features(target_hidden)  # the target's layers -> [B, q, H]
         inputs = [token_embeds, target_hidden]
         if (previous_bins is None) != (self.previous_embedding is None):
             raise ValueError(

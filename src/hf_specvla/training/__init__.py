@@ -13,7 +13,8 @@ _EXPORTS = {
                        "VLATrainingConfig"),
     ".loop": ("TRAINING_LOG", "VALIDATION_LOG", "TrainingJob", "learning_rate_factor", "run_training"),
     ".draft_head": ("build_distillation_dataset", "collate_distillation", "distillation_loss", "draft_training_record",
-                    "head_v2_settings", "speculative_acceptance", "train_draft_head"),
+                    "head_settings", "head_v2_settings", "head_v3_settings", "speculative_acceptance",
+                    "train_draft_head", "accuracy_by_position"),
     ".behaviour_cloning": ("train_vla",),
 }  # fmt: skip
 __all__ = sorted(name for names in _EXPORTS.values() for name in names)

@@ -12,9 +12,10 @@ from .._validation import check_ranges
 from ..metaworld.env import resolve_tasks
 from ..metaworld.seeds import DRAFT_SEED_START
 
-#: the draft-head architectures ``train-draft`` builds: v1 (the target's last hidden state) and v2 (a low, a middle and
-#: the top layer, and the robot's previous action; see ``training.draft_head.head_v2_settings``)
-HEAD_VERSIONS = ("v1", "v2")
+#: the draft-head architectures ``train-draft`` builds: v1 (the target's last hidden state), v2 (a low, a middle and
+#: the top layer, and the robot's previous action; see ``training.draft_head.head_v2_settings``) and v3 (v2's inputs,
+#: a block per head forward and the whole action drafted before the prefill: ``head_v3_settings``)
+HEAD_VERSIONS = ("v1", "v2", "v3")
 
 
 @dataclass

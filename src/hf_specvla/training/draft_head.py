@@ -49,15 +49,18 @@ from ..speculative import (
     to_additive_mask,
 )
 from .checkpoints import check_output_dir, latest_checkpoint, prepare_output_dir, training_record
-from .configuration import DraftTrainingConfig
+from .configuration import HEAD_VERSIONS, DraftTrainingConfig
 from .loop import TrainingJob, default_accelerator, run_training
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
     "DraftTrainingConfig",
+    "accuracy_by_position",
     "build_distillation_dataset",
+    "head_settings",
     "head_v2_settings",
+    "head_v3_settings",
     "latest_checkpoint",
     "speculative_acceptance",
     "train_draft_head",
@@ -231,6 +234,64 @@ def unrolled_features(
     return outputs
 
 
+def block_features(
+    draft_head: DraftHead,
+    handles: TargetHandles,
+    batch: dict[str, torch.Tensor],
+    inputs_hidden: torch.Tensor | None,
+    roots: torch.Tensor,
+    num_queries: int,
+) -> torch.Tensor:
+    """The head's block from one root per example, in one forward (head v3; what ``head_block.block_round`` drafts):
+    the teacher-forced pairs ``(x[p+1], h[p])`` at p = 0..r, then ``num_queries`` mask queries at r + 1 .., each
+    seeing the pairs and the queries before it.
+
+    Args:
+        batch: a [`collate_distillation`] batch (right-padded).
+        inputs_hidden: ``[B, T, n H]`` the pairs' hidden inputs h[p] (noise added by the caller), or None: missing (the
+            block drafted before the prefill).
+        roots: ``[B]`` int64, each example's root r (its last pair).
+    Returns:
+        ``[B, 1 + M, H]``: entry j estimates ``h[r+j+1]`` (drafts x[r+j+2]).
+    """
+    input_ids = batch["input_ids"]
+    batch_size, device = input_ids.shape[0], input_ids.device
+    num_pairs = roots[:, None] + 1  # [B, 1]
+    length = int(num_pairs.max()) + num_queries
+    slots = torch.arange(length, device=device)[None]  # [1, N]: slot n holds position n
+    is_pair = slots < num_pairs
+    token_ids = torch.cat([input_ids[:, 1:], input_ids.new_zeros(batch_size, length)], dim=1)[:, :length]
+    query_embeds, missing = draft_head.mask_query_inputs(batch_size, length)
+    embeds = torch.where(is_pair[..., None], embed_tokens(handles, token_ids).to(query_embeds.dtype), query_embeds)
+    if inputs_hidden is None:
+        hidden = missing
+    else:
+        fused = draft_head.fuse_features(inputs_hidden)[:, :length]
+        fused = torch.cat([fused, missing[:, : length - fused.shape[1]]], dim=1)
+        hidden = torch.where(is_pair[..., None], fused.to(missing.dtype), missing)
+    valid_keys = slots < num_pairs + num_queries  # [B, N]
+    allowed = (slots.T >= slots)[None] & valid_keys[:, None, :]  # [B, N, N] causal over the row's slots
+    mask = to_additive_mask(allowed, embeds.dtype)
+    positions = slots.expand(batch_size, -1)
+    bins = None
+    if draft_head.config.previous_action_input:
+        first_position = batch["first_position"].to(device)
+        bins = draft_head.slot_bins(_previous_bins(draft_head, batch), first_position, positions)
+    features = draft_head(embeds, hidden, positions, mask, None, bins)  # [B, N, H]
+    drafting = roots[:, None] + torch.arange(num_queries + 1, device=device)[None]  # the last pair, the queries
+    return features.gather(1, drafting[..., None].expand(-1, -1, features.shape[-1]))
+
+
+def _block_roots(batch: dict[str, torch.Tensor], generator: torch.Generator | None) -> torch.Tensor:
+    """``[B]`` one root per example for block training: drawn uniformly among the roots a block is drafted from after
+    the prefill (the last pair at or after the prompt's end - 1, with a token left to draft)."""
+    first = batch["first_position"][:, 0]
+    last = batch["padding_mask"].sum(1) - 3  # the last root with a token x[r+2] to draft
+    low = (first - 1).clamp(min=0).minimum(last)
+    draw = torch.rand(first.shape, generator=generator, device="cpu")
+    return (low + (draw * (last - low + 1)).long()).minimum(last)
+
+
 def distillation_loss(
     draft_head: DraftHead,
     handles: TargetHandles,
@@ -239,9 +300,12 @@ def distillation_loss(
     generator: torch.Generator | None = None,
 ) -> dict[str, torch.Tensor]:
     """EAGLE objective on one batch (see module docstring), unrolled ``config.unroll_steps`` draft steps
-    ([`unrolled_features`]). Returns ``loss``, ``feature_loss``, ``token_loss`` and ``token_accuracy`` (draft argmax
-    == target argmax on the loss positions), each averaged over the steps, and ``step_accuracy`` ``[n]`` (each
-    step's accuracy)."""
+    ([`unrolled_features`]; a block head's steps are its mask queries). Returns ``loss``, ``feature_loss``,
+    ``token_loss`` and ``token_accuracy`` (draft argmax == target argmax on the loss positions), each averaged over the
+    steps, and ``step_accuracy`` ``[n]`` (each step's accuracy). A head that drafts before the prefill
+    (``prefill_drafts``) adds the same objective on its pre-prefill block (the prompt's tokens with missing hidden
+    states, scored from the root before the first action token only) to ``loss``, and reports
+    ``prefill_token_accuracy`` and ``prefill_step_accuracy`` ``[n]`` (step j: the action's token j)."""
     input_ids, hidden = batch["input_ids"], batch["hidden"]  # [B, L], [B, L, n H (+ H)]
     dtype = next(draft_head.parameters()).dtype
     hidden = hidden.to(dtype)
@@ -260,25 +324,64 @@ def distillation_loss(
     if config.feature_noise > 0:
         noise = torch.rand(inputs_hidden.shape, generator=generator, device="cpu").to(inputs_hidden.device)
         inputs_hidden = inputs_hidden + (noise - 0.5) * config.feature_noise
-    all_features = unrolled_features(draft_head, handles, batch, inputs_hidden, config.unroll_steps)
     positions = torch.arange(input_ids.shape[1] - 1, device=input_ids.device)[None]
     cap = head_config.final_logit_softcapping  # the target caps its logits (Gemma-2): so does the loss
     target_features_all = target_top[:, 1:]  # [B, T, H]: h[p+1], what input p's feature estimates
     with torch.no_grad():
         target_logits_all = softcap_logits(handles.lm_head(target_features_all).float(), cap)  # [B, T, V]
-    totals = {"feature_loss": 0.0, "token_loss": 0.0, "token_accuracy": 0.0}
-    step_accuracy = []
-    for step, features in enumerate(all_features):
+    targets = (target_features_all, target_logits_all, batch["loss_mask"][:, :-1])
+    if head_config.draft_mode == "block":  # one block from one root per example (no training-time test to do)
+        roots = _block_roots(batch, generator).to(input_ids.device)
+        features = block_features(draft_head, handles, batch, inputs_hidden, roots, config.unroll_steps - 1)
+        losses = _step_losses(handles, _block_steps(features, roots, targets), config, cap)
+    else:
+        all_features = unrolled_features(draft_head, handles, batch, inputs_hidden, config.unroll_steps)
         # root r's step predicts x[r+step+2], the target's h[r+step+1]; scored where that is a generated action
         # token (and, past step 0, where r is a root a chain is drafted from: at or after the prompt's end - 2)
-        loss_mask = _shifted(batch["loss_mask"][:, :-1], step)
-        target_features = _shifted(target_features_all, step)
-        if step:
-            loss_mask = loss_mask & (positions + 2 >= batch["first_position"].to(positions.device))
+        roots = positions + 2 >= batch["first_position"].to(positions.device)
+        steps = []
+        for step, features in enumerate(all_features):
+            target_features, target_logits, loss_mask = (_shifted(values, step) for values in targets)
+            steps.append((features, target_features, target_logits, loss_mask & roots if step else loss_mask))
+        losses = _step_losses(handles, steps, config, cap)
+    if head_config.prefill_drafts:  # the block drafted before the prefill: from the prompt's last pair
+        roots = (batch["first_position"][:, 0] - 2).to(input_ids.device)
+        features = block_features(draft_head, handles, batch, None, roots, config.unroll_steps - 1)
+        prefill = _step_losses(handles, _block_steps(features, roots, targets), config, cap)
+        losses["loss"] = losses["loss"] + prefill.pop("loss")
+        losses["prefill_token_accuracy"] = prefill["token_accuracy"]
+        losses["prefill_step_accuracy"] = prefill["step_accuracy"]
+    return losses
+
+
+def _block_steps(features: torch.Tensor, roots: torch.Tensor, targets: tuple) -> list[tuple]:
+    """A block's ``[B, 1 + M, H]`` features (entry j of root r drafts x[r+j+2]) as [`_step_losses`]' steps: each
+    ``(features [B, 1, H], target features, target logits, loss mask [B, 1])``, the targets (``[B, T, ...]`` each, at
+    input p: h[p+1], its logits, whether x[p+2] is a generated action token) read at r + j."""
+    steps = []
+    for step in range(features.shape[1]):
+        index = roots[:, None] + step  # [B, 1]
+        inside = index < targets[0].shape[1]
+        index = index.clamp(max=targets[0].shape[1] - 1)
+        read = []
+        for values in targets:
+            spread = index.reshape(index.shape + (1,) * (values.ndim - 2)).expand(-1, -1, *values.shape[2:])
+            read.append(values.gather(1, spread))
+        steps.append((features[:, step : step + 1], read[0], read[1], read[2] & inside))
+    return steps
+
+
+def _step_losses(handles: TargetHandles, steps: list[tuple], config: DraftTrainingConfig, cap: float | None) -> dict:
+    """The objective over draft steps, each ``(features [B, X, H], target features [B, X, H], target logits
+    [B, X, V], loss mask [B, X])``: SmoothL1 on the features and soft cross-entropy on the logits where the mask is
+    True, each averaged over ``config.unroll_steps``; ``step_accuracy`` ``[n]`` each step's top-1."""
+    totals = {"feature_loss": 0.0, "token_loss": 0.0, "token_accuracy": 0.0}
+    step_accuracy = []
+    for features, target_features, target_logits, loss_mask in steps:
         n = loss_mask.sum().clamp(min=1)
         feature_loss = torch.nn.functional.smooth_l1_loss(features, target_features, reduction="none").mean(-1)
         feature_loss = (feature_loss * loss_mask).sum() / n
-        target_logits = _shifted(target_logits_all, step)[loss_mask]
+        target_logits = target_logits[loss_mask]
         target_probs = target_logits.softmax(-1)
         draft_logits = softcap_logits(handles.lm_head(features[loss_mask]).float(), cap)
         if len(draft_logits):
@@ -292,6 +395,52 @@ def distillation_loss(
         step_accuracy.append(accuracy.detach())
     loss = config.feature_loss_weight * totals["feature_loss"] + config.token_loss_weight * totals["token_loss"]
     return {"loss": loss, **totals, "step_accuracy": torch.stack(step_accuracy)}
+
+
+@torch.no_grad()
+def accuracy_by_position(
+    draft_head: DraftHead, target: PreTrainedModel, dataset: DistillationDataset, batch_size: int = 32
+) -> dict[str, list[float]]:
+    """Top-1 of the head's drafts at each token of the action on ``dataset`` (its tokens are the target's own greedy
+    ones), computed as the head drafts: no feature noise, the tokens its drafting scores (``draft_action_tokens_only``).
+
+    Returns:
+        ``after_prefill``: ``[n]`` (n = ``num_draft_tokens``) from the root after a prefill that emitted the action's
+        token 0: entry j is the action's token j + 1 (a chain's step j given right drafts before it, a block's entry
+        j); and for a head with ``prefill_drafts`` ``before_prefill``: ``[n]``, the pre-prefill block's token j.
+    """
+    handles = draft_head.target_handles(target)
+    scorer = draft_head.scorer(handles.lm_head, _eos_ids(target))
+    steps, config = draft_head.config.num_draft_tokens, draft_head.config
+    width, layers = config.hidden_size, config.hidden_state_layers
+    modes = ["after_prefill"] + (["before_prefill"] if config.prefill_drafts else [])
+    right, counted = torch.zeros(len(modes), steps), torch.zeros(len(modes), steps)
+    for start in range(0, len(dataset), batch_size):
+        batch = collate_distillation([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))])
+        batch = {name: value.to(draft_head.device) for name, value in batch.items()}
+        input_ids, first = batch["input_ids"], batch["first_position"][:, 0]
+        inputs_hidden = batch["hidden"][:, :-1, : len(layers) * width].to(next(draft_head.parameters()).dtype)
+        for m, mode in enumerate(modes):
+            roots = first - (1 if mode == "after_prefill" else 2)  # [B]
+            if mode == "after_prefill" and config.draft_mode == "chain":
+                unrolled = unrolled_features(draft_head, handles, batch, inputs_hidden, steps)  # every root
+                index = roots[:, None, None].expand(-1, 1, width)
+                features = torch.cat([f.gather(1, index) for f in unrolled], dim=1)  # [B, n, H]
+            else:
+                hidden = inputs_hidden if mode == "after_prefill" else None
+                features = block_features(draft_head, handles, batch, hidden, roots, steps - 1)  # [B, n, H]
+            label_at = roots[:, None] + torch.arange(steps, device=input_ids.device)[None] + 2  # [B, n]
+            valid = label_at < batch["padding_mask"].sum(1, keepdim=True)
+            labels = input_ids.gather(1, label_at.clamp(max=input_ids.shape[1] - 1))
+            right[m] += ((scorer.token_ids(features) == labels) & valid).sum(0).float().cpu()
+            counted[m] += valid.sum(0).float().cpu()
+    return {mode: [round(x, 4) for x in (right[m] / counted[m].clamp(min=1)).tolist()] for m, mode in enumerate(modes)}
+
+
+def _eos_ids(target: PreTrainedModel) -> list[int]:
+    """The target's EOS ids (what a drafting scorer scores beside the action tokens)."""
+    eos = getattr(target.generation_config, "eos_token_id", None)
+    return [] if eos is None else [eos] if isinstance(eos, int) else list(eos)
 
 
 def _shifted(values: torch.Tensor, step: int) -> torch.Tensor:
@@ -432,9 +581,21 @@ def distil_draft_head(
                                          progress=progress, hidden_state_layers=head.config.hidden_state_layers,
                                          action_dim=action_dim)  # fmt: skip
 
+    by_position = {}  # head v3: top-1 by token position on training and held-out frames, so overfitting shows
+    if head.config.uses_mask_queries:
+        held_out = build_distillation_dataset(target, held_out_prompts, tokens_per_call, action_tokenizer,
+                                              progress=False, hidden_state_layers=head.config.hidden_state_layers,
+                                              action_dim=action_dim)  # fmt: skip
+        spread = torch.linspace(0, len(dataset) - 1, min(len(held_out), len(dataset))).round().long().tolist()
+        by_position = {"train": DistillationDataset([dataset[i] for i in spread]), "held_out": held_out}
+
     def validate(draft_head: DraftHead) -> dict:
-        return speculative_acceptance(target, draft_head, held_out_prompts, tokens_per_call,
-                                      action_layout=action_layout)  # fmt: skip
+        metrics = speculative_acceptance(target, draft_head, held_out_prompts, tokens_per_call,
+                                         action_layout=action_layout)  # fmt: skip
+        if by_position:
+            metrics["accuracy_by_position"] = {name: accuracy_by_position(draft_head, target, frames)
+                                               for name, frames in by_position.items()}  # fmt: skip
+        return metrics
 
     return train_draft_head(head, target, dataset, training_config, progress=progress, validate=validate,
                             inputs=recipe, target_fingerprint=target_fingerprint, paths=paths)  # fmt: skip
@@ -447,6 +608,26 @@ def head_v2_settings(target: PreTrainedModel) -> dict:
     num_layers = target.config.get_text_config().num_hidden_layers
     layers = list(dict.fromkeys(i for i in (min(2, num_layers), num_layers // 2) if 0 < i < num_layers))
     return {"feature_layers": [*layers, -1], "previous_action_input": True}
+
+
+def head_v3_settings(target: PreTrainedModel) -> dict:
+    """Head v3's [`DraftHeadConfig`] fields for ``target``: head v2's ([`head_v2_settings`]) and its new modes: a block
+    per forward after the prefill (``draft_mode="block"``) and the whole action drafted before the prefill
+    (``prefill_drafts``)."""
+    return {**head_v2_settings(target), "draft_mode": "block", "prefill_drafts": True}
+
+
+def head_settings(version: str, target: PreTrainedModel) -> dict:
+    """The [`DraftHeadConfig`] fields of head ``version`` (one of ``training.configuration.HEAD_VERSIONS``) for
+    ``target``: none for v1 (the last hidden state, a chain), [`head_v2_settings`], [`head_v3_settings`].
+
+    Raises:
+        ValueError: an unknown version, naming the valid ones.
+    """
+    if version not in HEAD_VERSIONS:
+        raise ValueError(f"head_version must be one of {HEAD_VERSIONS}, got {version!r}")
+    builders = {"v1": lambda _: {}, "v2": head_v2_settings, "v3": head_v3_settings}
+    return builders[version](target)
 
 
 def draft_training_record(

@@ -31,7 +31,7 @@ from ..policies import VLAPolicy
 from ..run_folder import read_jsonl
 from ..speculative import DraftHead
 from .configuration import HEAD_VERSIONS, DraftDataConfig, DraftTrainingConfig
-from .draft_head import PREVIOUS_ACTION, distil_draft_head, head_v2_settings
+from .draft_head import PREVIOUS_ACTION, distil_draft_head, head_settings
 from .loop import VALIDATION_LOG
 from .rollouts import read_rollout_frames
 
@@ -124,9 +124,10 @@ def train_policy_draft_head(
     (``README.md``, with the measured acceptance and ``command``). The folder rule (``run.json``: the policy's
     weights, the data recipe, the training settings) is checked before any rollout runs.
 
-    ``head_version``: "v1" (the last hidden state, no previous action: every head before v2) or "v2"
+    ``head_version``: "v1" (the last hidden state, no previous action: every head before v2), "v2"
     ([`head_v2_settings`]: a low, a middle and the top layer, and the robot's previous action; train it with
-    ``training_config.unroll_steps`` > 1, training-time test).
+    ``training_config.unroll_steps`` > 1, training-time test) or "v3" ([`head_v3_settings`]: v2's inputs, a block per
+    head forward and drafts before the prefill; ``unroll_steps`` = the block's length).
 
     ``rollouts``: a folder of ``hf-specvla rollouts`` of this policy to read the on-policy frames from (those
     ``data_config`` asks for) instead of rolling the policy out here; ``run.json`` and the model card record its path
@@ -176,7 +177,7 @@ def train_policy_draft_head(
         action_tokenizer=policy.action_tokenizer, action_dim=policy.config.action_dim,
         num_draft_tokens=num_draft_tokens, action_layout=policy.action_layout, target_name_or_path=policy.name_or_path,
         target_fingerprint=policy.weights_fingerprint(), paths=paths, progress=progress,
-        head_settings=head_v2_settings(policy.model) if head_version == "v2" else None,
+        head_settings=head_settings(head_version, policy.model),
     )  # fmt: skip
     write_model_card(output_dir, head, training_config, data_config, demonstrations, sequences, command,
                      policy.config.action_tokens, paths.get("rollouts"),
@@ -185,6 +186,30 @@ def train_policy_draft_head(
 
 
 # ----------------------------------------------------------------------------- model card
+def _head_v3_card(config, training_config: DraftTrainingConfig, by_position: dict) -> str:
+    """The model card's head-v3 paragraph: its modes, and its top-1 by token position on training and held-out frames
+    (``accuracy_by_position`` of the last validation), side by side so that overfitting shows."""
+    modes = [f"drafts a block of {config.num_draft_tokens} tokens per head forward" if config.draft_mode == "block"
+             else "drafts a chain (one head forward per token)"]  # fmt: skip
+    if config.prefill_drafts:
+        modes.append("drafts the whole action before the prefill (from the prompt and the previous action)")
+    text = (
+        f"\nHead v3: it reads the policy's hidden states of layers {list(config.hidden_state_layers)} and the "
+        f"robot's previous action; it {' and '.join(modes)}; {training_config.unroll_steps} steps per example.\n"
+    )
+    for mode in ("before_prefill", "after_prefill"):
+        train, held_out = by_position.get("train", {}).get(mode), by_position.get("held_out", {}).get(mode)
+        if not train or not held_out:
+            continue
+        first = 0 if mode == "before_prefill" else 1  # the action's token each entry drafts
+        header = " | ".join(f"token {first + i}" for i in range(len(train)))
+        text += (f"\nTop-1 by token {mode.replace('_', ' ')} (teacher-forced, the policy's own greedy tokens):\n\n"
+                 f"| frames | {header} |\n|---|{'---:|' * len(train)}\n"
+                 f"| training | {' | '.join(f'{x:.1%}' for x in train)} |\n"
+                 f"| held-out | {' | '.join(f'{x:.1%}' for x in held_out)} |\n")  # fmt: skip
+    return text
+
+
 def write_model_card(
     output_dir: Path,
     head: DraftHead,
@@ -211,6 +236,8 @@ def write_model_card(
             reads.append("the robot's previous action")
         version = (f"\nHead v2: it reads {' and '.join(reads)}; trained on {training_config.unroll_steps} unrolled "
                    f"draft steps of its own features (training-time test).\n")  # fmt: skip
+    if config.uses_mask_queries:
+        version = _head_v3_card(config, training_config, final.get("accuracy_by_position", {}))
     tasks = ", ".join(data_config.tasks)
     kept_rollouts = data_config.rollout_episodes - data_config.validation_episodes
     source = (f", read from the `hf-specvla rollouts` folder `{rollouts}` (episodes fingerprint "

@@ -55,6 +55,7 @@ from ..masks import causal_allowed, sequence_key_padding, to_additive_mask
 from ..modeling_draft_head import DraftHead, DraftScorer, TargetHandles
 from ..tree import DraftTree
 from .eagle_tree import catch_up_and_expand, expand_tree, num_head_entries
+from .head_block import block_round, product_tree
 
 logger = logging.getLogger(__name__)
 
@@ -264,8 +265,12 @@ class _DraftHeadSession(DraftSession):
             bins = self.drafter.previous_bins
             bins = self.head.no_previous_action(self.head.device) if bins is None else bins
             self.previous = (bins, (draft_round.root_position.reshape(()) + 1).clone())
+        if draft_round.at_prefill and self.head.config.prefill_drafts and depth >= 1:
+            return self._prefill_block(draft_round, depth)
         if draft_round.at_prefill or depth < 1:
             return DraftTree.empty(draft_round.sequence.device)
+        if self.head.config.draft_mode == "block":
+            return self._block(depth) if self.unfed else DraftTree.empty(draft_round.sequence.device)
         root_position = draft_round.root_position.reshape(1, 1).clone(memory_format=torch.contiguous_format)
         if self.key_length is not None and self.unfed:
             # the deepest round of the call: after a prefill that emitted one token (whatever the prefill accepted)
@@ -281,6 +286,57 @@ class _DraftHeadSession(DraftSession):
                 return DraftTree.empty(draft_round.sequence.device)
             token_ids, parents = self._expand(depth, root_position)
         return self._tree(token_ids, parents, depth)
+
+    # ------------------------------------------------------------------ head v3: blocks (head_block.py)
+    def _prefill_block(self, draft_round: DraftRound, depth: int) -> DraftTree:
+        """The whole action drafted before the prefill, in one head forward over the prompt's tokens (as pairs with a
+        missing hidden state) and ``depth - 1`` mask queries, on a scratch cache (the head's own cache starts with the
+        target's true hidden states after the prefill). Eager on every path (the prompt's length varies)."""
+        sequence = draft_round.sequence  # [1, S]
+        num_pairs = sequence.shape[1] - 1
+        if num_pairs < 1:  # a one-token prompt: nothing to read
+            return DraftTree.empty(sequence.device)
+        start = draft_round.root_position.reshape(1, 1) - num_pairs  # the first token's position
+        positions = start + torch.arange(num_pairs, device=sequence.device)[None]  # [1, S - 1]
+        key_valid = None
+        if self.prompt_padding is not None:  # the fed prompt's padding, aligned with the sequence's end
+            known = self.prompt_padding[0].bool()
+            key_valid = torch.cat([known.new_ones(max(sequence.shape[1] - known.shape[0], 0)), known])[:num_pairs]
+        table = block_round(self.head, self.embed, self.scorer, sequence[:, 1:], None, positions, num_pairs,
+                            DynamicCache(), 0, depth - 1, self.config.top_k, key_valid=key_valid,
+                            previous=self.previous)  # fmt: skip
+        self.num_forwards += 1
+        return self._block_tree(table, depth)
+
+    def _block(self, depth: int) -> DraftTree:
+        """A block round: the pairs the target committed and ``depth - 1`` mask queries in one head forward (eager,
+        on the session's cache, dynamic or static); the queries' entries are dropped afterwards."""
+        tokens, hidden, positions, committed = self._take_unfed()
+        truncate_cache(self.cache, self.cache_length)
+        key_valid = sequence_key_padding(self.prompt_padding, self.cache_length + tokens.shape[1])
+        try:
+            table = block_round(
+                self.head, self.embed, self.scorer, tokens, hidden, positions, tokens.shape[1], self.cache,
+                self.cache_length, depth - 1, self.config.top_k, key_length=self.key_length,
+                key_valid=None if key_valid is None else key_valid[0], previous=self.previous,
+            )  # fmt: skip
+        finally:
+            truncate_cache(self.cache, committed)
+        self.num_forwards += 1
+        self.cache_length = committed
+        if self.key_length is not None:
+            set_static_length(self.cache, committed)
+        return self._block_tree(table, depth)
+
+    def _block_tree(self, table: torch.Tensor, depth: int) -> DraftTree:
+        """``[depth, k]`` per-position candidates -> the chain of top-1 tokens, or their [`product_tree`]."""
+        if self.config.top_k == 1 or table.shape[1] == 1:
+            return DraftTree.chain(table[:, 0], self.name)
+        picks, parents = product_tree(depth, table.shape[1], self.config.total_tokens)
+        index = torch.tensor(picks, device=table.device)
+        token_ids = table.flatten().index_select(0, index)
+        parent_ids = torch.tensor(parents, device=table.device)
+        return DraftTree(token_ids, parent_ids, [self.name] * len(picks), list(parents))
 
     def _tree(self, token_ids: torch.Tensor, parents: torch.Tensor, depth: int) -> DraftTree:
         """The drafted tree, its structure left on the device (nothing read back while drafting); a chain's is known
