@@ -12,8 +12,10 @@ next round: the engine's call holds the rows it started with.)
 
 **The greedy baseline's cache.** transformers' compiled greedy decoding sizes its static cache to each call's prompt
 length plus the new tokens, so every new prompt length (another instruction, another batch's widest prompt) compiles
-a new graph mid-traffic. The step passes it a static cache of its own per bucket and prompt tier instead (below),
-with room for the tier's longest prompt (emptied before each call): one graph per bucket and tier, the same tokens.
+a new graph mid-traffic. The step passes it the engine's reusable static cache per bucket and prompt tier instead
+(``speculative.reusable_static_cache``), with room for the tier's longest prompt (emptied before each call): one
+graph per bucket and tier, the same tokens. The recompile limit is the engine's too: ``generate`` raises it, in the
+decoding thread, from what dynamo holds for the model.
 
 **Prompt tiers: no compile under load.** A compiled method's graphs hold its static caches' slot counts, and those
 grow with the batch's widest prompt (64 slots at a time: the target's cache with room for a draft tree, a draft
@@ -47,9 +49,6 @@ logger = logging.getLogger(__name__)
 #: the default prompt limit leaves the instruction at least this many tokens (MT50's longest takes 13 on policy v3;
 #: on v3 the shortest prompt's verification cache leaves 54, so the default is that one tier)
 MIN_INSTRUCTION_TOKENS = 32
-#: dynamo graphs allowed per bucket and prompt tier on the decoding thread (verification widths, prefill, greedy
-#: steps, with and without hidden states) beyond the engine's own raise, and a margin for transformers' own
-GRAPHS_PER_BUCKET, GRAPHS_MARGIN = 16, 16
 
 
 @dataclass
@@ -105,7 +104,6 @@ class DecodeStep:
         }
         #: whether the method speculates at all (``greedy`` / ``greedy:compile`` do not)
         self.speculates = self.method.drafters != "greedy"
-        self._greedy_caches: dict[tuple[int, int], object] = {}  # (bucket, slots) -> the baseline's static cache
         self.shortest_prompt = len(policy.prompt_ids("", self._zero_state()))  # image, state and the prompt's words
         self.prompt_tiers = self._prompt_tiers(draft_head)
 
@@ -176,33 +174,14 @@ class DecodeStep:
         kwargs = self._kwargs[False]
         if kwargs.get("cache_implementation") != "static":
             return kwargs
-        from transformers import StaticCache
-
-        from ..speculative import CACHE_KEY, SLOT_MULTIPLE
+        from ..speculative import CACHE_KEY, SLOT_MULTIPLE, reusable_static_cache
 
         rows = states if states is not None else [None] * len(instructions)
         width = max(len(self.policy.prompt_ids(i, s)) for i, s in zip(instructions, rows))
         width = next((last for first, last in self.prompt_tiers if first <= width <= last), width)  # the tier's
         slots = SLOT_MULTIPLE * math.ceil((width + self.policy.config.action_tokens) / SLOT_MULTIPLE)
-        cache = self._greedy_caches.get((bucket, slots))
-        if cache is None:
-            logger.info("greedy baseline: a static cache of %d slots for batches of %d", slots, bucket)
-            config = self.policy.model.config.get_text_config()
-            cache = self._greedy_caches[(bucket, slots)] = StaticCache(config=config, max_cache_len=slots)
-        else:
-            cache.reset()
+        cache = reusable_static_cache(self.policy.model, slots, bucket)  # the engine's, emptied: one graph per shape
         return {**{k: v for k, v in kwargs.items() if k != "cache_implementation"}, CACHE_KEY: cache}
-
-    def allow_graphs(self) -> None:
-        """On the decoding thread: dynamo's recompile limit (a per-thread setting) raised for the graphs of every
-        bucket and prompt tier."""
-        import torch
-
-        config = torch._dynamo.config
-        name = "recompile_limit" if hasattr(config, "recompile_limit") else "cache_size_limit"
-        wanted = GRAPHS_PER_BUCKET * len(self.config.buckets) * max(1, len(self.prompt_tiers)) + GRAPHS_MARGIN
-        if getattr(config, name) < wanted:
-            setattr(config, name, wanted)
 
     # ----------------------------------------------------------------------------- prompt tiers
     def _zero_state(self) -> np.ndarray | None:

@@ -73,7 +73,7 @@ class PolicyService:
         self.chooser = ModeChooser(self.config.buckets, self.step.speculates, self.config.speculate_buckets,
                                    self.config.explore_every)  # fmt: skip
         self.failed_batches = 0  # batches whose call failed (then decoded one request at a time)
-        self._decoder = ThreadPoolExecutor(1, "hf-specvla-decode", initializer=self.step.allow_graphs)
+        self._decoder = ThreadPoolExecutor(1, "hf-specvla-decode")  # generate raises its recompile limit there
 
     @classmethod
     def from_pretrained(cls, policy_folder, config: ServeConfig | None = None, draft_head_folder=None,

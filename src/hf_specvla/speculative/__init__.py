@@ -17,6 +17,7 @@ from .acceptance import (
     make_acceptance_rule,
 )
 from .assistant import as_drafter
+from .cache import reusable_static_cache
 from .compat import (
     CACHE_KEY,
     NEWEST_TESTED_TRANSFORMERS,
@@ -81,6 +82,7 @@ __all__ = [
     "compiles_verification",
     "verification_width",
     "cache_of",
+    "reusable_static_cache",
     "check_transformers_support",
     "TargetHandles",
     "as_drafter",

@@ -101,8 +101,8 @@ def check_rollback_cache(cache: Cache, max_length: int) -> None:
                 )
 
 
-#: per model, the static caches [`with_draft_slots`] built, by (slots, offloading, dtype, device): reused by later calls
-_DRAFT_SLOT_CACHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+#: per model, the static caches [`reusable_static_cache`] built, by (slots, offloading, dtype, device, batch size)
+_STATIC_CACHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def with_draft_slots(model, cache: Cache | None, slots: int, multiple: int = 1, batch_size: int = 1) -> Cache | None:
@@ -133,15 +133,30 @@ def with_draft_slots(model, cache: Cache | None, slots: int, multiple: int = 1, 
         if slots <= 0 or any(w != capacity for w in windows):
             return cache
     offloading = bool(getattr(cache, "offloading", False))
-    key = (capacity + slots, offloading, model.dtype, model.device, batch_size)
-    built = _DRAFT_SLOT_CACHES.setdefault(model, {})
-    larger = built.get(key)
-    if larger is not None and [type(layer) for layer in larger.layers] == [type(layer) for layer in cache.layers]:
-        larger.reset()
-        return larger
+    return reusable_static_cache(model, capacity + slots, batch_size, offloading, like=cache)
+
+
+def reusable_static_cache(
+    model, slots: int, batch_size: int, offloading: bool = False, like: StaticCache | None = None
+) -> StaticCache:
+    """An empty ``StaticCache`` of ``slots`` slots for ``batch_size`` rows of ``model``, made once per (slots,
+    offloading, dtype, device, batch size) and model, then emptied and handed out again: its buffers keep their
+    addresses, so compiled graphs (which hold the cache's shape) and CUDA graphs (its buffers) are reused. What
+    [`with_draft_slots`] puts in place of ``generate``'s own cache, and what a caller passes as ``past_key_values``
+    for transformers' compiled greedy decoding to keep one graph per shape (a server's greedy baseline).
+
+    Args:
+        like: a cache whose layer types the reused one must have (a sliding-window model's); None: any.
+    """
+    key = (slots, offloading, model.dtype, model.device, batch_size)
+    built = _STATIC_CACHES.setdefault(model, {})
+    cache = built.get(key)
+    if cache is not None and (like is None or [type(a) for a in cache.layers] == [type(b) for b in like.layers]):
+        cache.reset()
+        return cache
     text_config = model.config.get_text_config(decoder=True)
-    larger = built[key] = StaticCache(config=text_config, max_cache_len=capacity + slots, offloading=offloading)
-    return larger
+    cache = built[key] = StaticCache(config=text_config, max_cache_len=slots, offloading=offloading)
+    return cache
 
 
 def static_capacity(cache: Cache) -> int | None:
