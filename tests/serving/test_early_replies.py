@@ -100,7 +100,7 @@ def test_the_decode_step_hands_on_a_row_the_moment_it_is_decoded(policy):
     assert 0 in handed and set(handed) | set(batch.rows) == {0, 1, 2} and not set(handed) & set(batch.rows)
     row, at = handed[0]
     assert at < call_returned - SLOW_FORWARD_S / 2  # before the rounds the other rows needed
-    assert row.target_forwards is None and row.batch_forwards is None
+    assert row.target_forwards == row.batch_forwards == 1  # drafted right: the prefill's forward alone
     assert len(batch.rows) >= 1 and batch.batch_forwards > 1
     for i, (action, memory) in enumerate(expected):
         got = handed[i][0] if i in handed else batch.rows[i]
@@ -186,7 +186,8 @@ def test_a_robot_whose_row_finishes_early_gets_its_reply_before_its_batch_ends(p
     call_returned = returned[-1]
     (early, early_at), (late, late_at) = received["repeat"], received["new"]
     assert early.served.batch_size == late.served.batch_size == 2
-    assert early.served.target_forwards is None and late.served.target_forwards == late.served.batch_forwards > 1
+    assert early.served.target_forwards == early.served.batch_forwards == 1  # its forwards when it finished
+    assert late.served.target_forwards == late.served.batch_forwards > 1
     assert early_at < call_returned - SLOW_FORWARD_S / 2 < late_at, (early_at, call_returned, late_at)
     assert early.served.server_ms < late.served.server_ms - 1000 * SLOW_FORWARD_S / 2
     np.testing.assert_array_equal(early.action, expected["repeat"])

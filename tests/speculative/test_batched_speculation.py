@@ -309,15 +309,16 @@ def test_on_row_finished_reports_each_row_when_it_stops(tiny_llama, cache_implem
     reported = []
     out = tiny_llama.generate(
         **batch, max_new_tokens=8, eos_token_id=eos, pad_token_id=PAD, draft_ids=draft_ids,
-        on_row_finished=lambda row, new_tokens: reported.append((row, new_tokens.clone())),
+        on_row_finished=lambda row, new_tokens, stats: reported.append((row, new_tokens.clone(), stats)),
         cache_implementation=cache_implementation, return_dict_in_generate=True,
     )  # fmt: skip
     assert torch.equal(out.sequences, expected)
-    assert sorted(row for row, _ in reported) == [0, 1, 2, 3]
-    for row, tokens in reported:
+    assert sorted(row for row, _, _ in reported) == [0, 1, 2, 3]
+    for row, tokens, stats in reported:
         generated = out.sequences[row, width:]
         assert torch.equal(tokens, generated[: len(tokens)]) and bool((generated[len(tokens) :] == PAD).all())
-    forwards = [out.speculation.rows[row].num_target_forwards for row, _ in reported]
+        assert stats.accept_lengths == out.speculation.rows[row].accept_lengths  # the row's final statistics
+    forwards = [out.speculation.rows[row].num_target_forwards for row, _, _ in reported]
     assert forwards == sorted(forwards) and forwards[0] < forwards[-1], forwards  # early rows reported first
 
 

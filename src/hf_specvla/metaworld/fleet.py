@@ -193,8 +193,7 @@ class RobotEpisode:
         actions: ``[length][action_dim]``, the actions sent to ``env.step`` in order (the env clips to [-1, 1]).
         latencies_ms: per request, client side: from sending the observation to holding the action.
         server_ms / queue_ms: per request, the server's own time and the part its request waited for a batch.
-        target_forwards: per request, the target forwards its batch row took part in (None: the server answered
-            before its batch's call returned, when the count is not known yet).
+        target_forwards: per request, the target forwards its batch row took part in.
         batch_sizes: per request, the robots' requests the server decoded together.
         buckets: per request, the batch size the server's call ran at.
         methods: per request, the decoding that ran.
@@ -214,7 +213,7 @@ class RobotEpisode:
     latencies_ms: list[float] = field(default_factory=list)
     server_ms: list[float] = field(default_factory=list)
     queue_ms: list[float] = field(default_factory=list)
-    target_forwards: list[int | None] = field(default_factory=list)
+    target_forwards: list[int] = field(default_factory=list)
     batch_sizes: list[int] = field(default_factory=list)
     buckets: list[int] = field(default_factory=list)
     methods: list[str] = field(default_factory=list)
@@ -439,8 +438,7 @@ def summarize(episodes: list[RobotEpisode]) -> dict:
         ``latency_ms`` (client side) and ``server_ms``: ``p50`` / ``p95`` / ``p99`` / ``mean`` over requests;
         ``batch_sizes``: the server's batch size -> requests; ``methods``: the decoding that ran -> requests;
         ``speculative_fraction``: the share of requests decoded speculatively;
-        ``target_forwards_per_request``: the mean over the requests whose count came back (a row answered before
-            its batch's call returned carries none: such rows finished early, so the mean leans high).
+        ``target_forwards_per_request``: the mean.
 
     Raises:
         ValueError: no episodes.
@@ -460,7 +458,7 @@ def summarize(episodes: list[RobotEpisode]) -> dict:
     steps = sum(e.length for e in episodes)
     latencies = [x for e in episodes for x in e.latencies_ms]
     server = [x for e in episodes for x in e.server_ms]
-    forwards = [x for e in episodes for x in e.target_forwards if x is not None]
+    forwards = [x for e in episodes for x in e.target_forwards]
     speculative = [x for e in episodes for x in e.speculative]
     return {
         "episodes": len(episodes),

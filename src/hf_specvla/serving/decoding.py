@@ -3,10 +3,10 @@
 lengths served (prompt tiers) and the greedy baseline's static caches. No HTTP, no sessions, no choice of mode here.
 
 **Rows answered when done.** A speculative call's rows need their own numbers of target forwards (the batch runs as
-many as its slowest row), and the engine calls ``on_row_finished(row, new_tokens)`` the moment a row stops: the step
-turns the row's tokens into its action and the robot's new draft state there and hands them on, so a robot's reply
-leaves while the rest of its batch decodes. A row's target forwards are known only when the call returns: a row
-handed on before that carries ``target_forwards=None``. The idle rows that fill a bucket copy the first row, its
+many as its slowest row), and the engine calls ``on_row_finished(row, new_tokens, stats)`` the moment a row stops:
+the step turns the row's tokens into its action and the robot's new draft state there and hands them on (with the
+row's target forwards, from its statistics), so a robot's reply leaves while the rest of its batch decodes. The idle
+rows that fill a bucket copy the first row, its
 drafts included, so they never outlast the robots' rows. (A new request cannot take a finished row's place at the
 next round: the engine's call holds the rows it started with.)
 
@@ -58,16 +58,17 @@ class DecodedRow:
     Attributes:
         action: the un-normalised action, float64 ``[action_dim]`` (``[chunk, action_dim]`` for a chunked policy).
         history: the robot's previous actions after this one (token ids, oldest first): its next drafts.
-        target_forwards: target forwards the row took part in (None: handed on before the call returned).
+        target_forwards: target forwards the row took part in.
         done: ``time.perf_counter()`` when the row was handed on.
-        batch_forwards: target forwards the batch ran (None: handed on before the call returned).
+        batch_forwards: target forwards the batch ran (a row handed on before the call returned: those run until
+            it finished, its own).
     """
 
     action: np.ndarray
     history: list[list[int]]
-    target_forwards: int | None
+    target_forwards: int
     done: float
-    batch_forwards: int | None = None
+    batch_forwards: int
 
 
 @dataclass
@@ -140,13 +141,14 @@ class DecodeStep:
         if speculative and on_row is not None:
             from ..speculative import remember_actions
 
-            def finished(row: int, new_tokens) -> None:  # the engine's on_row_finished, in finishing order
+            def finished(row: int, new_tokens, stats) -> None:  # the engine's on_row_finished, in finishing order
                 if row < rows and len(early) < rows - 1:  # the last robot row comes back with the batch
                     early.add(row)
                     action, action_ids = self.policy.actions_from_generated(new_tokens[None])
                     history = [list(a) for a in histories[row]]
                     remember_actions(history, action_ids[0], self.policy.action_layout)
-                    on_row(row, DecodedRow(action[0], history, None, time.perf_counter()))
+                    forwards = stats.num_target_forwards  # the batch's forwards so far: the row took part in each
+                    on_row(row, DecodedRow(action[0], history, forwards, time.perf_counter(), forwards))
 
             kwargs = {**kwargs, "on_row_finished": finished}
         started = time.perf_counter()

@@ -289,8 +289,7 @@ class ServedFigures:
     Attributes:
         method: the decoding that ran: the speculative method's name, or the greedy baseline's.
         speculative: whether the request was decoded speculatively (False: the batch's size pays better greedy).
-        target_forwards: target forwards this row took part in (None: the reply left before its batch's call
-            returned, the row decoded while the rest of the batch still was; the count is known only then).
+        target_forwards: target forwards this row took part in.
         batch_size: requests decoded together (the robots' rows; idle rows filling the bucket not counted).
         bucket: the batch size the call ran at (a compiled shape).
         queue_ms: from the request's arrival to its batch's start.
@@ -299,12 +298,13 @@ class ServedFigures:
         session: the robot's id, as sent.
         draft_state: the robot's previous actions as token ids (one list per action): echo it as the next
             request's ``draft_state``.
-        batch_forwards: target forwards the batch ran (its slowest row's count; None as for ``target_forwards``).
+        batch_forwards: target forwards the batch ran (its slowest row's count; for a reply that left before its
+            batch's call returned, those the batch had run when the row finished: its own).
     """
 
     method: str
     speculative: bool
-    target_forwards: int | None
+    target_forwards: int
     batch_size: int
     bucket: int
     queue_ms: float
@@ -312,7 +312,7 @@ class ServedFigures:
     server_ms: float = 0.0
     session: str | None = None
     draft_state: list[list[int]] = field(default_factory=list)
-    batch_forwards: int | None = 0
+    batch_forwards: int = 0
 
 
 @dataclass

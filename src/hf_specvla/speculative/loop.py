@@ -54,6 +54,7 @@ from .drafter import Drafter
 from .outputs import SpeculativeDecoderOnlyOutput
 from .rounds import decode_round, emit_tokens, prefill
 from .state import RowState
+from .stats import SpeculationStats
 
 if TYPE_CHECKING:
     from .modeling_draft_head import DraftHead
@@ -81,7 +82,7 @@ def speculative_generate(
     motion_scale: float | Sequence[float] | None = SpeculationConfig.motion_scale,
     max_deviation: float | Sequence[float] | None = SpeculationConfig.max_deviation,
     confirm_strict_tail: bool = SpeculationConfig.confirm_strict_tail,
-    on_row_finished: Callable[[int, torch.Tensor], None] | None = None,
+    on_row_finished: Callable[[int, torch.Tensor, SpeculationStats], None] | None = None,
     **model_kwargs,
 ) -> SpeculativeDecoderOnlyOutput | torch.LongTensor:
     """Greedy speculative decoding of a batch; a ``custom_generate`` callable for ``model.generate``.
@@ -100,10 +101,11 @@ def speculative_generate(
             (``draft_head=`` is the same, deprecated: a ``FutureWarning``).
         draft_ids: ``[B, k]`` or ``[B, C, k]`` drafts of the first generated tokens of each row, known up front:
             verified inside the prefill forward, with or without a drafter.
-        on_row_finished: called as ``on_row_finished(row, new_tokens)`` the moment a row stops (EOS, its length,
-            a stopping criterion), while the rest of the batch may still be decoding: ``row`` its index in the
-            batch, ``new_tokens`` ``[n]`` its generated tokens (final: what the returned row holds after the
-            prompt, without the right padding). Once per row, in the calling thread, in finishing order (rows that
+        on_row_finished: called as ``on_row_finished(row, new_tokens, stats)`` the moment a row stops (EOS, its
+            length, a stopping criterion), while the rest of the batch may still be decoding: ``row`` its index in
+            the batch, ``new_tokens`` ``[n]`` its generated tokens (final: what the returned row holds after the
+            prompt, without the right padding), ``stats`` the row's [`SpeculationStats`] (final: its forwards,
+            accepted lengths; no times). Once per row, in the calling thread, in finishing order (rows that
             stop in one round in batch order). A server answers each request from it without waiting for the
             batch's slowest row; an exception raised by it ends the call.
     Returns:
@@ -114,7 +116,8 @@ def speculative_generate(
     check_transformers_support()
     if on_row_finished is not None and not callable(on_row_finished):
         raise TypeError(
-            f"on_row_finished must be a callable (row: int, new_tokens: Tensor) -> None or None, got "
+            f"on_row_finished must be a callable (row: int, new_tokens: Tensor, stats: SpeculationStats) -> None or "
+            f"None, got "
             f"{type(on_row_finished).__name__}"
         )
     if draft_head is not None:

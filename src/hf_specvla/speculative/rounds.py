@@ -383,7 +383,8 @@ def settle(call: SpeculativeCall, trees: TreeBatch, output: TargetOutput, logits
     if call.on_row_finished is not None:
         for row in state.rows:
             if row.finished:  # finished this round: finished rows leave the batch at the end of every round
-                call.on_row_finished(row.index, row.sequence[0, row.sequence.shape[1] - row.num_generated :])
+                new_tokens = row.sequence[0, row.sequence.shape[1] - row.num_generated :]
+                call.on_row_finished(row.index, new_tokens, row.stats)
     commits = commit_paths(state, trees, paths, output.hidden, target_ids)
     with call.stopwatch.section("draft_seconds"):
         observe(state, commits)

@@ -121,5 +121,5 @@ class SpeculativeCall:
     cached_tokens: int  # the rows' first tokens the cache held before the call
     pad_token_id: int | None
     total_start: float
-    #: ``(row, new_tokens [n])`` -> None, called as each row stops (``speculative_generate``'s argument), or None
-    on_row_finished: Callable[[int, torch.Tensor], None] | None = None
+    #: ``(row, new_tokens [n], row stats)`` -> None, called as each row stops (``speculative_generate``'s argument)
+    on_row_finished: Callable[[int, torch.Tensor, SpeculationStats], None] | None = None
