@@ -2,7 +2,7 @@
 
 Invariants: at r=0 a v3 head's block chain, block tree, drafts before the prefill, and their compositions with the
 action prior and Jacobi decode exactly greedy's tokens (one row, a left-padded batch with a previous action per row,
-dynamic, static and compiled caches, sampling keeps the target's distribution); a block round costs one head forward
+dynamic, static and compiled caches; sampling keeps the target's distribution); a block round costs one head forward
 whatever its depth; drafts known before the prefill are verified inside it (right ones: one target forward); the
 block's first draft is the chain's; the training features are the drafting features (after and before the prefill);
 v3 heads save and load; bad settings are refused naming the value and what is valid.
@@ -30,10 +30,14 @@ from hf_specvla.training.draft_head import (
     collate_distillation,
     distillation_loss,
     head_settings,
+    train_draft_head,
 )
 
 from ..conftest import VOCAB, tiny_llama_config
 from .test_draft_head_v2 import NEW_TOKENS, Recorder, _action, _compile_config, _greedy, _ids
+from .test_speculative_sampling import NEW_TOKENS as SAMPLING_TOKENS
+from .test_speculative_sampling import PROMPT, ROWS, SAMPLES, TOP_P, chi_square_p_value, exact_distribution
+from .test_speculative_sampling import peaked as sampling_target  # noqa: F401 (a fixture, by this name)
 
 ACTION_DIM = 4
 TREE = DraftTreeConfig(top_k=3, depth=7, total_tokens=14)
@@ -284,3 +288,47 @@ def test_head_v3_causal_mask_helper_matches_the_heads_default():
 
     mask = block_mask(5, 5, 0, 3, None, None, torch.float32, torch.device("cpu"))
     torch.testing.assert_close(mask, causal_mask(5, 3, torch.float32, torch.device("cpu")))
+
+
+# ----------------------------------------------------------------------------- sampling
+@pytest.fixture(scope="module")
+def distilled_v3(sampling_target, action_tokenizer, tmp_path_factory):  # noqa: F811 (the imported fixture)
+    """A v3 head (block, drafts before the prefill) distilled for a moment from the peaked target of the sampling
+    tests, on the prompt and its likely 1- and 2-token prefixes: its drafts are accepted often and rejected often."""
+    likely = sorted(exact_distribution(sampling_target, action_tokenizer, 1.0).items(), key=lambda item: -item[1])[:40]
+    prefixes = sorted({outcome[:length] for outcome, _ in likely for length in (0, 1, 2)})
+    prompts = [{"input_ids": torch.tensor([PROMPT + list(prefix)])} for prefix in prefixes]
+    dataset = build_distillation_dataset(sampling_target, prompts, SAMPLING_TOKENS, action_tokenizer, progress=False)
+    torch.manual_seed(8)
+    head = DraftHead.from_target(sampling_target, action_tokenizer, action_dim=SAMPLING_TOKENS, draft_mode="block",
+                                 draft_action_tokens_only=False, prefill_drafts=True,
+                                 num_draft_tokens=SAMPLING_TOKENS)  # fmt: skip
+    config = DraftTrainingConfig(str(tmp_path_factory.mktemp("distilled_v3")), max_steps=300, learning_rate=1e-3,
+                                 feature_noise=0.0, unroll_steps=SAMPLING_TOKENS)  # fmt: skip
+    return train_draft_head(head, sampling_target, dataset, config, progress=False)
+
+
+@pytest.mark.parametrize("tree", [None, DraftTreeConfig(top_k=2, depth=3, total_tokens=6)])
+def test_speculative_sampling_with_a_v3_head_keeps_the_targets_distribution(
+    sampling_target,  # noqa: F811 (the imported fixture)
+    action_tokenizer,
+    distilled_v3,
+    tree,
+):
+    """Drafts before the prefill and blocks after it, verified by speculative sampling: the first 3 tokens are
+    distributed as the target samples them (chi-square), and drafts were accepted (the speculative path ran)."""
+    expected = exact_distribution(sampling_target, action_tokenizer, 1.0)
+    counts, accepted = {}, 0
+    torch.manual_seed(100)
+    for _ in range(SAMPLES // ROWS):
+        out = sampling_target.generate(
+            input_ids=torch.tensor([PROMPT] * ROWS), max_new_tokens=SAMPLING_TOKENS, do_sample=True, temperature=1.0,
+            top_p=TOP_P, top_k=0, suppress_tokens=list(range(action_tokenizer.action_token_begin)),
+            assistant_model=DraftHeadDrafter(distilled_v3, tree=tree), return_dict_in_generate=True,
+        )  # fmt: skip
+        for row in out.sequences[:, len(PROMPT) :].tolist():
+            counts[tuple(row)] = counts.get(tuple(row), 0) + 1
+        accepted += sum(out.speculation.accepted_per_position)
+    p_value, cells = chi_square_p_value(counts, expected, SAMPLES)
+    assert cells >= 5 and p_value > 0.01, (p_value, cells)
+    assert accepted > SAMPLES // 10, accepted
