@@ -513,3 +513,40 @@ def test_the_graph_budget_is_what_dynamo_holds_and_reset_forgets_every_verifier(
     reset_compilation()
     assert graphs_held(double) == 0 and graphs_held(type(model).forward) == 0
     assert CompiledVerifier.for_model(model, config) is not verifier
+
+
+def test_every_compiled_round_of_a_width_is_fed_the_same_input_tensors(monkeypatch):
+    """The engine's own input buffers per (batch size, width): every compiled verification of one shape, round after
+    round and call after call, reads its ids, positions and mask from the same tensors (what a CUDA graph needs to
+    copy nothing in), and the tokens stay greedy's."""
+    from hf_specvla.speculative.compiled import CompiledVerifier
+
+    model = _model("llama")
+    config = eager_compile_config()
+    fed: dict[tuple, set] = {}
+    original = model.get_compiled_call
+
+    def spied_call(compile_config):
+        call = original(compile_config)
+
+        def spy(**inputs):
+            if not isinstance(inputs["logits_to_keep"], torch.Tensor):  # a round (the prefill keeps a tensor index)
+                tensors = [inputs[name] for name in ("input_ids", "position_ids", "attention_mask")]
+                fed.setdefault(tuple(inputs["input_ids"].shape), set()).add(tuple(t.data_ptr() for t in tensors))
+            return call(**inputs)
+
+        return spy
+
+    monkeypatch.setattr(model, "get_compiled_call", spied_call)
+    rounds = []
+    for seed in range(3):
+        input_ids = torch.randint(6, 64, (1, 6), generator=torch.Generator().manual_seed(seed))
+        expected = greedy(model, input_ids)
+        out = greedy(model, input_ids, cache_implementation="static", compile_config=config,
+                     assistant_model=JacobiDrafter(), return_dict_in_generate=True)  # fmt: skip
+        assert torch.equal(out.sequences, expected)
+        rounds.append(len(out.speculation.compiled_widths))
+    assert sum(rounds) >= 6 and max(len(v) for v in fed.values()) == 1, fed  # not vacuous: many rounds, one set each
+    verifier = CompiledVerifier.for_model(model, config)
+    owned = {tuple(t.data_ptr() for t in b.tensors()) for b in verifier.buffers.values()}
+    assert set().union(*fed.values()) <= owned  # the verifier's own buffers

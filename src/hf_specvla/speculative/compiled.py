@@ -36,7 +36,7 @@ from transformers.cache_utils import Cache
 from .cache import STATIC_LAYER_TYPES, cache_batch_size, cache_length, preserved_entries, truncate_cache
 from .compat import CACHE_KEY
 from .tree import DraftTree, TreeBatch
-from .verify import verify_trees
+from .verify import InputBuffers, verify_trees
 
 logger = logging.getLogger(__name__)
 
@@ -175,6 +175,8 @@ class CompiledVerifier:
         self.prefills_compiled: set[tuple] = set()  # (slots, hidden states, batch size)
         self.prefills_eager: set[tuple] = set()  # the same keys, whose forward over the prompt did not compile
         self.functions: dict[Callable, Callable] = {}  # drafters' functions, compiled ([`compiled_function`])
+        #: (batch size, query tokens, slots, dtype, device) -> the rounds' input tensors ([`input_buffers`])
+        self.buffers: dict[tuple, InputBuffers] = {}
         self.drafting_compiled: set[tuple] = set()  # drafters' work compiled up front ([`compile_once`])
 
     @classmethod
@@ -205,6 +207,20 @@ class CompiledVerifier:
         forward) fit beside the graphs dynamo holds for it already and transformers' own (past the limit dynamo
         would refuse under ``fullgraph=True``, or silently run eagerly)."""
         allow_graphs(graphs_held(function or self.model_forward) + count + _GRAPHS_BESIDE_OURS)
+
+    # ----------------------------------------------------------------- the rounds' inputs
+    def input_buffers(self, batch_size: int, queries: int, slots: int, dtype: torch.dtype, device) -> InputBuffers:
+        """The input tensors every verification of this shape writes into ([`InputBuffers`]): made at the first one
+        (the width's compile, [`compile_widths`]), the same tensors afterwards. On CUDA their addresses are marked
+        static, so the (batch size, width) CUDA graph reads them where they are instead of copying them in."""
+        key = (batch_size, queries, slots, dtype, torch.device(device))
+        buffers = self.buffers.get(key)
+        if buffers is None:
+            buffers = self.buffers[key] = InputBuffers.empty(batch_size, queries, slots, dtype, device)
+            if torch.device(device).type == "cuda":
+                for tensor in buffers.tensors():
+                    torch._dynamo.mark_static_address(tensor)
+        return buffers
 
     # ----------------------------------------------------------------- drafters' graphs
     def compiled_function(self, function: Callable, graphs: int) -> Callable:
@@ -299,9 +315,14 @@ class CompiledVerifier:
         self.reserve_graphs(len(widths))
         empty = [DraftTree.empty(pending_ids.device)] * pending_ids.shape[0]
         for width in widths:
+            buffers = None
+            if position_offsets is None:
+                queries = pending_ids.shape[1] + width
+                buffers = self.input_buffers(pending_ids.shape[0], queries, slots, model.dtype, pending_ids.device)
             verify_trees(model, {CACHE_KEY: cache}, pending_ids, pending_positions,
                          TreeBatch(empty, min_nodes=width), key_valid, output_hidden, sliding_window=sliding_window,
-                         position_offsets=position_offsets, key_length=slots, forward=self.call)  # fmt: skip
+                         position_offsets=position_offsets, key_length=slots, forward=self.call,
+                         buffers=buffers)  # fmt: skip
             truncate_cache(cache, length)
         self.widths_compiled.add(key)
         seconds = time.perf_counter() - start

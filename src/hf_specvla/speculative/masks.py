@@ -12,8 +12,11 @@ from __future__ import annotations
 import torch
 
 
-def to_additive_mask(allowed: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """Bool "may attend" mask ``[B, q, kv]`` -> additive float mask ``[B, 1, q, kv]``."""
+def to_additive_mask(allowed: torch.Tensor, dtype: torch.dtype, out: torch.Tensor | None = None) -> torch.Tensor:
+    """Bool "may attend" mask ``[B, q, kv]`` -> additive float mask ``[B, 1, q, kv]`` (written into ``out``, of that
+    shape and ``dtype``, when given)."""
+    if out is not None:
+        return out.zero_().masked_fill_(~allowed[:, None], torch.finfo(dtype).min)
     mask = torch.zeros(allowed.shape, dtype=dtype, device=allowed.device)
     mask.masked_fill_(~allowed, torch.finfo(dtype).min)
     return mask[:, None]

@@ -292,6 +292,11 @@ def verify(model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: T
         for tree, b in zip(trees.trees, state.cache_rows.tolist()):
             rows[b] = tree
         trees = TreeBatch(rows, min_nodes=trees.num_nodes)
+    buffers = None
+    if plan.verifier is not None and offsets is None:  # the compiled width's own input tensors
+        queries = pending_ids.shape[1] + trees.num_nodes
+        buffers = plan.verifier.input_buffers(pending_ids.shape[0], queries, plan.capacity, model.dtype,
+                                              pending_ids.device)  # fmt: skip
     output = verify_trees(
         model,
         {CACHE_KEY: state.target_cache},
@@ -304,6 +309,7 @@ def verify(model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: T
         position_offsets=offsets,
         key_length=plan.capacity,
         forward=None if plan.verifier is None else plan.verifier.call,
+        buffers=buffers,
     )
     if state.cache_rows is None:
         return output

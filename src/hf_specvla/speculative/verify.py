@@ -9,6 +9,7 @@ builds its own causal mask (the cheapest path, identical to a plain decoding ste
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -39,6 +40,32 @@ class TargetOutput(NamedTuple):
     hidden: torch.Tensor | None
 
 
+@dataclass(frozen=True)
+class InputBuffers:
+    """A compiled verification's inputs for one shape (batch size, query tokens, cache slots), written in place
+    round after round, so that the compiled graph (and on CUDA its CUDA graph, which then copies nothing in) is fed
+    the same tensors every time. Owned by the [`CompiledVerifier`] (``input_buffers``).
+
+    Attributes:
+        input_ids: ``[B, P + N]`` long, the pending tokens then the tree's nodes.
+        position_ids: ``[B, P + N]`` long, their positions.
+        attention_mask: ``[B, 1, P + N, slots]`` the model's dtype, the additive tree mask over the cache's slots.
+    """
+
+    input_ids: torch.Tensor
+    position_ids: torch.Tensor
+    attention_mask: torch.Tensor
+
+    @classmethod
+    def empty(cls, batch_size: int, queries: int, slots: int, dtype: torch.dtype, device) -> InputBuffers:
+        ids = torch.zeros(batch_size, queries, dtype=torch.long, device=device)
+        mask = torch.zeros(batch_size, 1, queries, slots, dtype=dtype, device=device)
+        return cls(ids, ids.clone(), mask)
+
+    def tensors(self) -> tuple[torch.Tensor, ...]:
+        return self.input_ids, self.position_ids, self.attention_mask
+
+
 def prefill_inputs(model: PreTrainedModel, input_ids: torch.Tensor, model_kwargs: dict) -> dict:
     """The model's own inputs for a first forward over ``input_ids`` ``[B, S]`` (cache, position ids, encoded
     images), as ``generate`` would build them."""
@@ -57,6 +84,7 @@ def verify_trees(
     position_offsets: torch.Tensor | None = None,
     key_length: int | None = None,
     forward: Callable | None = None,
+    buffers: InputBuffers | None = None,
 ) -> TargetOutput:
     """One target forward over ``[pending tokens ; each row's tree nodes]`` on top of the target cache.
 
@@ -82,15 +110,20 @@ def verify_trees(
             [`PrefillCall`]); None: ``model`` itself. A compiled call always gets the explicit tree mask (one mask
             kind, one shape per width) and its outputs are copied (a CUDA graph's outputs are overwritten by its next
             replay).
+        buffers: the tensors to write the forward's inputs into (a compiled verification's, of this forward's
+            shapes, with ``key_length`` slots and 2D positions); None: new tensors.
     Returns:
         [`TargetOutput`] with logits ``[B, 1 + N, V]`` and hidden states ``[B, P + N, n H]`` (n layers).
     """
     num_pending, num_nodes = pending_ids.shape[1], trees.num_nodes
     inputs = dict(model_inputs)
-    inputs["input_ids"] = torch.cat([pending_ids, trees.token_ids], dim=1)
+    if buffers is not None and (position_offsets is not None or key_length is None):
+        raise ValueError("verify_trees: input buffers take 2D positions and a static cache's key_length")
+    out = {} if buffers is None else {"input_ids": buffers.input_ids, "position_ids": buffers.position_ids}
+    inputs["input_ids"] = torch.cat([pending_ids, trees.token_ids], dim=1, out=out.get("input_ids"))
     node_positions = pending_positions[:, -1:] + 1 + trees.depths  # [B, N]
     if position_offsets is None:
-        inputs["position_ids"] = torch.cat([pending_positions, node_positions], dim=1)
+        inputs["position_ids"] = torch.cat([pending_positions, node_positions], dim=1, out=out.get("position_ids"))
     else:
         prepared = model_inputs.get("position_ids")
         pending = (
@@ -112,7 +145,8 @@ def verify_trees(
         allowed = tree_verification_allowed(past_length, num_pending, trees.ancestor_or_self, key_valid)
         if key_length is not None:  # [B, q, key_length]: the free slots after the new entries are hidden
             allowed = torch.nn.functional.pad(allowed, (0, key_length - allowed.shape[-1]), value=False)
-        inputs["attention_mask"] = to_additive_mask(allowed, model.dtype)
+        mask = None if buffers is None else buffers.attention_mask
+        inputs["attention_mask"] = to_additive_mask(allowed, model.dtype, out=mask)
     inputs["logits_to_keep"] = num_nodes + 1
     inputs["use_cache"] = True
     outputs = (forward or model)(**inputs, output_hidden_states=bool(output_hidden), return_dict=True)
