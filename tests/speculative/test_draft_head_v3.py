@@ -25,6 +25,7 @@ from hf_specvla.speculative.masks import causal_mask
 from hf_specvla.training.draft_head import (
     DraftTrainingConfig,
     accuracy_by_position,
+    block_entries,
     block_features,
     build_distillation_dataset,
     collate_distillation,
@@ -199,7 +200,8 @@ def test_block_training_features_are_the_drafting_features(target, head_v3, v3_b
     inputs_hidden = None if before_prefill else batch["hidden"][:, :-1, : 3 * width]
     roots = torch.full((batch["input_ids"].shape[0],), root)
     with torch.no_grad():
-        features = block_features(head_v3, handles, batch, inputs_hidden, roots, steps - 1)  # [B, steps, H]
+        features = block_features(head_v3, handles, batch, inputs_hidden, roots, steps - 1)
+        features = block_entries(features, roots, steps - 1)  # [B, steps, H]
     scorer = head_v3.scorer(handles.lm_head)
     trained = scorer.token_ids(features[row])
     ids = batch["input_ids"][row : row + 1]

@@ -252,7 +252,8 @@ def block_features(
             block drafted before the prefill).
         roots: ``[B]`` int64, each example's root r (its last pair).
     Returns:
-        ``[B, 1 + M, H]``: entry j estimates ``h[r+j+1]`` (drafts x[r+j+2]).
+        ``[B, N, H]`` (N = the longest row's pairs + M) the feature of every slot, slot n at position n: a pair's
+        (teacher-forced, as a chain's first step from root n) or a query's; [`block_entries`] reads a block's.
     """
     input_ids = batch["input_ids"]
     batch_size, device = input_ids.shape[0], input_ids.device
@@ -277,8 +278,13 @@ def block_features(
     if draft_head.config.previous_action_input:
         first_position = batch["first_position"].to(device)
         bins = draft_head.slot_bins(_previous_bins(draft_head, batch), first_position, positions)
-    features = draft_head(embeds, hidden, positions, mask, None, bins)  # [B, N, H]
-    drafting = roots[:, None] + torch.arange(num_queries + 1, device=device)[None]  # the last pair, the queries
+    return draft_head(embeds, hidden, positions, mask, None, bins)  # [B, N, H]
+
+
+def block_entries(features: torch.Tensor, roots: torch.Tensor, num_queries: int) -> torch.Tensor:
+    """[`block_features`]' ``[B, N, H]`` -> the blocks' ``[B, 1 + M, H]``: the last pair's feature (entry 0), then the
+    queries'; entry j estimates ``h[r+j+1]`` (drafts x[r+j+2])."""
+    drafting = roots[:, None] + torch.arange(num_queries + 1, device=features.device)[None]
     return features.gather(1, drafting[..., None].expand(-1, -1, features.shape[-1]))
 
 
@@ -330,10 +336,17 @@ def distillation_loss(
     with torch.no_grad():
         target_logits_all = softcap_logits(handles.lm_head(target_features_all).float(), cap)  # [B, T, V]
     targets = (target_features_all, target_logits_all, batch["loss_mask"][:, :-1])
+    queries = config.unroll_steps - 1
     if head_config.draft_mode == "block":  # one block from one root per example (no training-time test to do)
         roots = _block_roots(batch, generator).to(input_ids.device)
-        features = block_features(draft_head, handles, batch, inputs_hidden, roots, config.unroll_steps - 1)
-        losses = _step_losses(handles, _block_steps(features, roots, targets), config, cap)
+        features = block_features(draft_head, handles, batch, inputs_hidden, roots, queries)
+        # the first draft from every pair up to the root, teacher-forced (as a chain's first step), then the queries
+        pairs = min(features.shape[1], target_features_all.shape[1])
+        before_root = torch.arange(pairs, device=roots.device)[None] <= roots[:, None]
+        target_features, target_logits, loss_mask = (values[:, :pairs] for values in targets)
+        first = (features[:, :pairs], target_features, target_logits, loss_mask & before_root)
+        block = _block_steps(block_entries(features, roots, queries), roots, targets)
+        losses = _step_losses(handles, [first, *block[1:]], config, cap)
     else:
         all_features = unrolled_features(draft_head, handles, batch, inputs_hidden, config.unroll_steps)
         # root r's step predicts x[r+step+2], the target's h[r+step+1]; scored where that is a generated action
@@ -346,7 +359,7 @@ def distillation_loss(
         losses = _step_losses(handles, steps, config, cap)
     if head_config.prefill_drafts:  # the block drafted before the prefill: from the prompt's last pair
         roots = (batch["first_position"][:, 0] - 2).to(input_ids.device)
-        features = block_features(draft_head, handles, batch, None, roots, config.unroll_steps - 1)
+        features = block_entries(block_features(draft_head, handles, batch, None, roots, queries), roots, queries)
         prefill = _step_losses(handles, _block_steps(features, roots, targets), config, cap)
         losses["loss"] = losses["loss"] + prefill.pop("loss")
         losses["prefill_token_accuracy"] = prefill["token_accuracy"]
@@ -428,7 +441,8 @@ def accuracy_by_position(
                 features = torch.cat([f.gather(1, index) for f in unrolled], dim=1)  # [B, n, H]
             else:
                 hidden = inputs_hidden if mode == "after_prefill" else None
-                features = block_features(draft_head, handles, batch, hidden, roots, steps - 1)  # [B, n, H]
+                features = block_features(draft_head, handles, batch, hidden, roots, steps - 1)
+                features = block_entries(features, roots, steps - 1)  # [B, n, H]
             label_at = roots[:, None] + torch.arange(steps, device=input_ids.device)[None] + 2  # [B, n]
             valid = label_at < batch["padding_mask"].sum(1, keepdim=True)
             labels = input_ids.gather(1, label_at.clamp(max=input_ids.shape[1] - 1))

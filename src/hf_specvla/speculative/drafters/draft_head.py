@@ -32,6 +32,11 @@ deepest of the call); a shallower round passes its depth as data and gets the sh
 catch-up forward (the pairs the target committed, as many as were accepted) is in the same graph, padded to
 ``depth + 1`` pairs (the prompt's pairs after the prefill are fed eagerly, but for the last ones).
 
+Head v3 (``head_block.py``): a head with ``draft_mode="block"`` drafts each round with one forward (the pairs the
+target committed and mask queries after them), a head with ``prefill_drafts`` drafts the whole action before the
+prefill; both run eagerly, on the session's cache (static in a compiled call): one head forward, where the chain's
+compiled round fuses several.
+
 Per-call state (the head's KV cache, the pairs not yet fed) lives in the session, never on the model.
 Invariant: after a catch-up the head's cache holds exactly the target's committed positions, each computed from
 the target's true hidden state; tree-drafting entries are dropped at the end of every proposal.
