@@ -114,10 +114,11 @@ def test_serve_answers_act_and_exits_0_on_sigterm():
         process.kill()
 
 
-def test_serve_on_ray_serve_answers_and_stops_on_ctrl_c():
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
+def test_serve_on_ray_serve_answers_and_stops_on_ctrl_c_or_sigterm(stop):
     """``serve --ray``: the flags become a Serve config file that Ray Serve's own ``serve run`` runs on a local Ray
     cluster (one replica, the same API); Ctrl-C (SIGINT) is ``serve run``'s: Serve shut down, exit 0, and the local
-    cluster with it: the port closes."""
+    cluster with it: the port closes. SIGTERM (a supervisor's stop) does the same (Ray's own handler would abort)."""
     pytest.importorskip("ray")
     from hf_specvla.serving import PolicyClient
 
@@ -141,7 +142,7 @@ def test_serve_on_ray_serve_answers_and_stops_on_ctrl_c():
         size = info["image_size"]
         reply = PolicyClient(url).act(np.zeros((size, size, 3), np.uint8), "reach the goal", np.zeros(4))
         assert reply.action.shape == (info["chunk_length"], info["action_dim"])
-        process.send_signal(signal.SIGINT)
+        process.send_signal(stop)
         assert process.wait(timeout=120) == 0, process.stderr.read()[-3000:]
     finally:
         process.kill()

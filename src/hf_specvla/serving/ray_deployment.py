@@ -55,9 +55,11 @@ import dataclasses
 import json
 import logging
 import os
+import signal
 import threading
 import time
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -372,9 +374,12 @@ def serve_run(config_file: str | Path, address: str | None = None, on_ready: Cal
               url: str | None = None) -> int:  # fmt: skip
     """Runs Ray Serve's own ``serve run <config_file>`` in this process (it starts or joins the Ray cluster, deploys,
     blocks, and on Ctrl-C / SIGINT shuts Serve down); ``on_ready(url)`` once the application is running. Returns the
-    exit status: 0 after Ctrl-C, 1 when the application failed to deploy (its message logged). SIGTERM is left to
-    Ray's own handlers, which end the process at once (Ray 2.60: it aborts); the local cluster it started goes with
-    it.
+    exit status: 0 after Ctrl-C or SIGTERM, 1 when the application failed to deploy (its message logged).
+
+    SIGTERM (what a supervisor, systemd or Kubernetes sends) is made a Ctrl-C: Ray installs its own SIGTERM handlers
+    when it starts or joins a cluster (they exit at once: on Ray 2.60 the process aborts, status -6, before Serve has
+    shut down), so while ``serve run`` runs, Python's SIGINT handler takes SIGTERM again once Ray has started
+    ([`_sigterm_as_ctrl_c`]), and ``serve run``'s own Ctrl-C path shuts Serve down.
 
     Raises:
         ImportError: Ray Serve is not installed.
@@ -387,7 +392,8 @@ def serve_run(config_file: str | Path, address: str | None = None, on_ready: Cal
     watcher.start()
     command = [str(config_file)] + (["--address", address] if address else [])
     try:
-        run.main(command, prog_name="serve run", standalone_mode=False)
+        with _sigterm_as_ctrl_c():
+            run.main(command, prog_name="serve run", standalone_mode=False)
     except SystemExit as stop:  # Ctrl-C: serve run shut Serve down and exits
         status = stop.code if isinstance(stop.code, int) else 0
     else:
@@ -399,6 +405,33 @@ def serve_run(config_file: str | Path, address: str | None = None, on_ready: Cal
         logger.error("the Ray Serve application %s failed to deploy: %s", APP_NAME, failure[0])
         return 1
     return status
+
+
+@contextmanager
+def _sigterm_as_ctrl_c():
+    """Within the block, SIGTERM raises ``KeyboardInterrupt`` in the main thread, as Ctrl-C does: Python's SIGINT
+    handler is installed for it now and again right after every ``ray.init`` (which ``serve run`` calls there), as
+    Ray installs SIGTERM handlers of its own while it starts (Python ones, and its core worker's C++ failure handler,
+    which aborts); the handlers and ``ray.init`` are put back after. Outside the main thread nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    ray, _ = require_ray()
+    previous, init = signal.getsignal(signal.SIGTERM), ray.init
+
+    def init_then_sigterm_as_ctrl_c(*args, **kwargs):
+        try:
+            return init(*args, **kwargs)
+        finally:
+            signal.signal(signal.SIGTERM, signal.default_int_handler)
+
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    ray.init = init_then_sigterm_as_ctrl_c
+    try:
+        yield
+    finally:
+        ray.init = init
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
 def _watch(on_ready: Callable[[str], None] | None, url: str | None, failure: list[str], poll_s: float = 0.5) -> None:
