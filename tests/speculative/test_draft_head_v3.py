@@ -334,3 +334,14 @@ def test_speculative_sampling_with_a_v3_head_keeps_the_targets_distribution(
     p_value, cells = chi_square_p_value(counts, expected, SAMPLES)
     assert cells >= 5 and p_value > 0.01, (p_value, cells)
     assert accepted > SAMPLES // 10, accepted
+
+
+def test_the_model_card_shows_training_and_held_out_accuracy_by_token_side_by_side(head_v3):
+    from hf_specvla.training.policy_draft import _head_v3_card
+
+    by_position = {"train": {"after_prefill": [0.9, 0.8], "before_prefill": [0.7, 0.6]},
+                   "held_out": {"after_prefill": [0.5, 0.4], "before_prefill": [0.3, 0.2]}}  # fmt: skip
+    card = _head_v3_card(head_v3.config, DraftTrainingConfig("unused", unroll_steps=7), by_position)
+    assert "| training | 70.0% | 60.0% |\n| held-out | 30.0% | 20.0% |" in card  # before the prefill: tokens 0, 1
+    assert "| frames | token 1 | token 2 |" in card and "| held-out | 50.0% | 40.0% |" in card  # after it
+    assert "drafts a block of 7 tokens per head forward" in card
