@@ -2,6 +2,7 @@
 
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -189,16 +190,9 @@ def test_localization_probe_script_refuses_bad_counts_before_rendering():
     assert result.returncode == 2 and "--decoder-steps trains the policy's decoder on its own view" in result.stderr
 
 
-def test_serving_load_script_drives_three_servers_and_reports_every_k(tmp_path):
-    """The load benchmark's tiny mode: greedy / always / adaptive servers, K = 1 and 2 replayed robots, one repeat;
-    every server's actions equal (the script checks it), a row per K and server."""
-    output = tmp_path / "load.json"
-    result = run_example("benchmarks/serving_load.py", "--tiny", "--output", output, timeout=600)
-    assert "| K | server | actions/s | vs greedy |" in result.stdout
-    rows = json.loads(output.read_text())["rows"]
-    assert sorted((r["robots"], r["kind"]) for r in rows) == sorted(
-        (k, kind) for k in (1, 2) for kind in ("greedy", "always", "adaptive")
-    )
+def _check_load_rows(rows: list[dict], kinds: tuple[str, ...]) -> None:
+    """A row per K (1 and 2) and server; each row's forwards within what its share of speculative requests allows."""
+    assert sorted((r["robots"], r["kind"]) for r in rows) == sorted((k, kind) for k in (1, 2) for kind in kinds)
     # a greedy request takes one target forward per token (T, greedy's forwards per request); a speculative one
     # between 1 and T: a server that decoded a fraction f of its R requests speculatively made between R (T - f (T - 1))
     # and R T target forwards (adaptive: f is whatever its calibration and the traffic chose, each request one mode)
@@ -211,14 +205,58 @@ def test_serving_load_script_drives_three_servers_and_reports_every_k(tmp_path):
         tokens = greedy["forwards_per_request"]
         assert tokens == int(tokens) and tokens > 1
         assert tokens - fraction * (tokens - 1) - 1e-9 <= forwards <= tokens + 1e-9, row
-        if row["kind"] != "adaptive":
+        if row["kind"] in ("always", "greedy"):
             assert fraction == (1.0 if row["kind"] == "always" else 0.0), row
-        # what the run's server chose, per bucket: its final mode and its share of speculative batches
-        server = row["server"]
-        assert set(server["final_modes"].values()) <= {"speculative", "greedy"} and server["final_modes"]
-        assert 0 <= server["speculative_share"] <= 1
-    # every run on fresh servers: no sessions, timings or choices carried over from the runs before
-    assert sorted(row["server"]["generation"] for row in rows) == list(range(len(rows)))
+    # every embedded run on fresh servers: no sessions, timings or choices carried over from the runs before
+    embedded = [row for row in rows if row["kind"] != "ray"]
+    assert sorted(row["server"]["generation"] for row in embedded) == list(range(len(embedded)))
+    for choices in [row["server"] for row in embedded] + [
+        replica for row in rows if row["kind"] == "ray" for replica in row["server"]["replicas"].values()
+    ]:  # what each server (each replica) chose, per bucket: its final mode and its share of speculative batches
+        assert set(choices["final_modes"].values()) <= {"speculative", "greedy"} and choices["final_modes"]
+        assert 0 <= choices["speculative_share"] <= 1
+
+
+def test_serving_load_script_drives_three_servers_and_reports_every_k(tmp_path):
+    """The load benchmark's tiny mode without Ray: greedy / always / adaptive servers, K = 1 and 2 replayed robots,
+    one repeat; every server's actions equal (the script checks it), a row per K and server."""
+    output = tmp_path / "load.json"
+    result = run_example("benchmarks/serving_load.py", "--tiny", "--no-ray", "--output", output, timeout=600)
+    assert "| K | server | actions/s | vs greedy |" in result.stdout and "ray x" not in result.stdout
+    report = json.loads(output.read_text())
+    assert report["ray"] is None
+    _check_load_rows(report["rows"], ("greedy", "always", "adaptive"))
+
+
+@pytest.mark.slow
+def test_serving_load_script_drives_ray_serve_with_two_replicas_beside_the_embedded_servers(tmp_path):
+    """The tiny mode with Ray Serve (a local cluster, 2 replicas x 1 thread; about a minute on 2 cores): a Ray row
+    per K, each on a fresh deployment whose every replica reported its calibration and choices; its actions equal
+    the embedded servers' (the script checks it)."""
+    pytest.importorskip("ray.serve")
+    output = tmp_path / "load.json"
+    result = run_example("benchmarks/serving_load.py", "--tiny", "--ray-replicas", 2, "--ray-threads", 1, "--output",
+                         output, timeout=900)  # fmt: skip
+    assert "| 2 | ray x2 |" in result.stdout
+    report = json.loads(output.read_text())
+    assert report["ray"]["replicas"] == 2 and report["ray"]["app_args"]["num_replicas"] == 2
+    assert "speculate_buckets" not in report["ray"]["app_args"]  # adaptive, hf-specvla serve's default
+    rows = report["rows"]
+    _check_load_rows(rows, ("greedy", "always", "adaptive", "ray"))
+    ray_rows = [row["server"] for row in rows if row["kind"] == "ray"]
+    assert sorted(server["deployment"] for server in ray_rows) == [1, 2]  # a fresh deployment per run
+    for server in ray_rows:
+        assert len(server["replicas"]) == 2 and server["deploy_s"] > 0
+        assert all(replica["calibration"] for replica in server["replicas"].values())  # each calibrated itself
+
+
+def test_serving_load_script_refuses_more_ray_cpus_than_the_machine_has():
+    too_many = (os.cpu_count() or 1) + 1
+    result = run_example("benchmarks/serving_load.py", "--ray-replicas", too_many, "--output", "-", timeout=120,
+                         check=False)  # fmt: skip
+    assert result.returncode == 2
+    assert f"--ray-replicas {too_many} x --ray-threads 1 need {too_many} CPUs" in result.stderr
+    assert "or --no-ray" in result.stderr
 
 
 @pytest.mark.slow
