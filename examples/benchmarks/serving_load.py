@@ -34,7 +34,7 @@ greedy run and p95): actions per second (actions returned to all robots / wall t
 a chunked policy returns its chunk), request latency p50 / p95 (client side), and where a request's time goes:
 waiting for its batch (queue), the batch's decode (the server's own ``predict_action`` call: a local call on the
 same observations) and the rest (HTTP, serialisation, the client); ``early``: the share of replies that left before
-their batch's call returned (their row done first; they carry no forward counts, so fwd/req is over the others).
+their batch's call returned (their row done first: the reply's ``served.early``).
 Every server's actions are checked equal, Ray Serve's included.
 
     python examples/benchmarks/serving_load.py --output runs/serving_load.json            # 2 idle cores: ~30 min +
@@ -290,13 +290,22 @@ def replay(url: str, robots: int, episodes: list[list[dict]], chunk_length: int)
             except queue.Empty:
                 return
             record = {"key": str(index), "latencies_ms": [], "server_ms": [], "queue_ms": [], "batch_sizes": [],
-                      "target_forwards": [], "batch_forwards": [], "speculative": [], "actions": []}  # fmt: skip
+                      "target_forwards": [], "batch_forwards": [], "speculative": [], "early": [],
+                      "actions": []}  # fmt: skip
             for step, o in enumerate(episode):
                 sent = time.perf_counter()
                 reply = client.act(o["image"], o["instruction"], o["state"], session=f"{number}-{index}",
                                    reset=step == 0)  # fmt: skip
                 record["latencies_ms"].append(1000 * (time.perf_counter() - sent))
-                for key in ("server_ms", "queue_ms", "batch_size", "target_forwards", "batch_forwards", "speculative"):
+                for key in (
+                    "server_ms",
+                    "queue_ms",
+                    "batch_size",
+                    "target_forwards",
+                    "batch_forwards",
+                    "speculative",
+                    "early",
+                ):
                     record[key + "s" if key == "batch_size" else key].append(getattr(reply.served, key))
                 record["actions"].append(reply.action.tolist())
             records.append(record)
@@ -313,7 +322,7 @@ def replay(url: str, robots: int, episodes: list[list[dict]], chunk_length: int)
     requests = sum(len(r["latencies_ms"]) for r in records)
     summary = {"actions_per_second": requests * chunk_length / wall, "env_steps": requests * chunk_length,
                "speculative_fraction": sum(x for r in records for x in r["speculative"]) / requests,
-               "target_forwards_per_request": _known_mean(x for r in records for x in r["target_forwards"]),
+               "target_forwards_per_request": statistics.mean(x for r in records for x in r["target_forwards"]),
                }  # fmt: skip
     return _figures(summary, sorted(records, key=lambda r: int(r["key"])))
 
@@ -350,8 +359,8 @@ def _figures(summary: dict, records: list[dict]) -> dict:
         "mean_batch_size": statistics.mean(x for r in records for x in r["batch_sizes"]),
         "speculative_fraction": summary["speculative_fraction"],
         "forwards_per_request": summary["target_forwards_per_request"],
-        "batch_forwards_per_request": _known_mean(x for r in records for x in r.get("batch_forwards", [0])),
-        "answered_early_share": statistics.mean(x is None for r in records for x in r["target_forwards"]),
+        "batch_forwards_per_request": statistics.mean(x for r in records for x in r["batch_forwards"]),
+        "answered_early_share": statistics.mean(x for r in records for x in r["early"]),
         "requests": len(latency),
         "env_steps": summary["env_steps"],
         "actions": {r["key"]: r["actions"] for r in records},
@@ -377,13 +386,6 @@ def record(args) -> tuple[list[list[dict]], int]:
     n = len(seeds)  # task-major -> seed-major: a run of any size covers the tasks alike
     episodes = [episodes[t * n + i] for i in range(n) for t in range(len(TASKS))]
     return episodes[:needed], chunk
-
-
-def _known_mean(values) -> float | None:
-    """The mean of the values that are not None: a reply that left before its batch's call returned (its row done
-    early) carries no forward counts, so the mean of the others leans high."""
-    known = [v for v in values if v is not None]
-    return statistics.mean(known) if known else None
 
 
 def _spread(runs: list[dict], key: str, digits: int = 1, unit: str = "") -> str:

@@ -100,7 +100,7 @@ def test_the_decode_step_hands_on_a_row_the_moment_it_is_decoded(policy):
     assert 0 in handed and set(handed) | set(batch.rows) == {0, 1, 2} and not set(handed) & set(batch.rows)
     row, at = handed[0]
     assert at < call_returned - SLOW_FORWARD_S / 2  # before the rounds the other rows needed
-    assert row.target_forwards == row.batch_forwards == 1  # drafted right: the prefill's forward alone
+    assert row.target_forwards == row.batch_forwards == 1 and row.early  # drafted right: the prefill's forward alone
     assert len(batch.rows) >= 1 and batch.batch_forwards > 1
     for i, (action, memory) in enumerate(expected):
         got = handed[i][0] if i in handed else batch.rows[i]
@@ -108,7 +108,7 @@ def test_the_decode_step_hands_on_a_row_the_moment_it_is_decoded(policy):
         assert got.history == (memory if i else (histories[0] + memory)[-len(got.history) :]), i
     assert histories[1:] == [[], []]  # the caller's memories are left as they were
     late = next(iter(batch.rows.values()))
-    assert late.target_forwards == late.batch_forwards == batch.batch_forwards
+    assert late.target_forwards == late.batch_forwards == batch.batch_forwards and not late.early
 
 
 def test_greedy_batches_answer_every_row_after_the_call(policy):
@@ -187,6 +187,7 @@ def test_a_robot_whose_row_finishes_early_gets_its_reply_before_its_batch_ends(p
     (early, early_at), (late, late_at) = received["repeat"], received["new"]
     assert early.served.batch_size == late.served.batch_size == 2
     assert early.served.target_forwards == early.served.batch_forwards == 1  # its forwards when it finished
+    assert early.served.early and not late.served.early
     assert late.served.target_forwards == late.served.batch_forwards > 1
     assert early_at < call_returned - SLOW_FORWARD_S / 2 < late_at, (early_at, call_returned, late_at)
     assert early.served.server_ms < late.served.server_ms - 1000 * SLOW_FORWARD_S / 2

@@ -62,6 +62,7 @@ class DecodedRow:
         done: ``time.perf_counter()`` when the row was handed on.
         batch_forwards: target forwards the batch ran (a row handed on before the call returned: those run until
             it finished, its own).
+        early: whether the row was handed on before the call returned.
     """
 
     action: np.ndarray
@@ -69,6 +70,7 @@ class DecodedRow:
     target_forwards: int
     done: float
     batch_forwards: int
+    early: bool = False
 
 
 @dataclass
@@ -148,7 +150,7 @@ class DecodeStep:
                     history = [list(a) for a in histories[row]]
                     remember_actions(history, action_ids[0], self.policy.action_layout)
                     forwards = stats.num_target_forwards  # the batch's forwards so far: the row took part in each
-                    on_row(row, DecodedRow(action[0], history, forwards, time.perf_counter(), forwards))
+                    on_row(row, DecodedRow(action[0], history, forwards, time.perf_counter(), forwards, early=True))
 
             kwargs = {**kwargs, "on_row_finished": finished}
         started = time.perf_counter()

@@ -300,6 +300,8 @@ class ServedFigures:
             request's ``draft_state``.
         batch_forwards: target forwards the batch ran (its slowest row's count; for a reply that left before its
             batch's call returned, those the batch had run when the row finished: its own).
+        early: whether the reply left before its batch's call returned (its row finished while the rest of the
+            batch still decoded).
     """
 
     method: str
@@ -313,6 +315,7 @@ class ServedFigures:
     session: str | None = None
     draft_state: list[list[int]] = field(default_factory=list)
     batch_forwards: int = 0
+    early: bool = False
 
 
 @dataclass
