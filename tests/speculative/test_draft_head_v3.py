@@ -345,3 +345,17 @@ def test_the_model_card_shows_training_and_held_out_accuracy_by_token_side_by_si
     assert "| training | 70.0% | 60.0% |\n| held-out | 30.0% | 20.0% |" in card  # before the prefill: tokens 0, 1
     assert "| frames | token 1 | token 2 |" in card and "| held-out | 50.0% | 40.0% |" in card  # after it
     assert "drafts a block of 7 tokens per head forward" in card
+
+
+def test_a_v3_head_trained_on_blocks_shorter_than_it_drafts_is_refused_before_any_data(target, tmp_path):
+    from hf_specvla.training.draft_head import distil_draft_head
+
+    def no_data():
+        raise AssertionError("the data was built before the refusal")
+
+    config = DraftTrainingConfig(str(tmp_path), unroll_steps=1)
+    with pytest.raises(ValueError, match=r"num_draft_tokens=7.*unroll_steps=7 \(train-draft --unroll-steps 7\), got "
+                                         r"unroll_steps=1"):  # fmt: skip
+        distil_draft_head(target, config, {}, no_data, NEW_TOKENS, action_tokenizer=ActionTokenizer(VOCAB),
+                          action_dim=ACTION_DIM, num_draft_tokens=7,
+                          head_settings=head_settings("v3", target))  # fmt: skip

@@ -580,6 +580,14 @@ def distil_draft_head(
         head_settings: more [`DraftHeadConfig`] fields of the head (e.g. head v2's ``feature_layers`` and
             ``previous_action_input``; see [`head_v2_settings`]).
     """
+    settings = head_settings or {}
+    uses_blocks = settings.get("draft_mode") == "block" or settings.get("prefill_drafts", False)
+    if uses_blocks and training_config.unroll_steps != num_draft_tokens:
+        raise ValueError(
+            f"a head v3 drafts blocks of num_draft_tokens={num_draft_tokens} tokens and is trained on as many: set "
+            f"unroll_steps={num_draft_tokens} (train-draft --unroll-steps {num_draft_tokens}), got "
+            f"unroll_steps={training_config.unroll_steps}"
+        )
     target_fingerprint = target_fingerprint or fingerprint(target)
     torch.manual_seed(training_config.seed)  # the head's initialisation
     head = DraftHead.from_target(
