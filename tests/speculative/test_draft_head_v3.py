@@ -359,3 +359,18 @@ def test_a_v3_head_trained_on_blocks_shorter_than_it_drafts_is_refused_before_an
         distil_draft_head(target, config, {}, no_data, NEW_TOKENS, action_tokenizer=ActionTokenizer(VOCAB),
                           action_dim=ACTION_DIM, num_draft_tokens=7,
                           head_settings=head_settings("v3", target))  # fmt: skip
+
+
+@pytest.mark.parametrize("tree", [None, TREE])
+def test_a_v3_head_reads_the_device_once_a_round(target, head_v3, tree):
+    """Blocks and pre-prefill drafts leave their tokens on the device and their tree's structure on the host (it
+    depends on the settings only): the drafter adds no read of its own to a round's one."""
+    from hf_specvla.speculative.syncs import HostSyncCounter
+
+    drafter = DraftHeadDrafter(head_v3, tree=tree).with_previous_action(_action(1, 2, 3, 4))
+    _greedy(target, _ids(8), assistant_model=drafter)
+    with HostSyncCounter() as counter:
+        out = _greedy(target, _ids(8), assistant_model=drafter, return_dict_in_generate=True)
+    in_the_drafter = sum(n for site, n in counter.sites.items() if "drafters/" in site or "draft_head" in site)
+    assert in_the_drafter == 0, counter.sites.most_common()
+    assert counter.count <= out.speculation.num_target_forwards + 6, counter.sites.most_common()  # + per call
