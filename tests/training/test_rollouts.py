@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,7 @@ from hf_specvla.cli import rollouts as rollouts_command  # noqa: E402
 from hf_specvla.cli.main import build_parser  # noqa: E402
 from hf_specvla.policies import VLAPolicy  # noqa: E402
 from hf_specvla.training.configuration import DraftDataConfig  # noqa: E402
+from hf_specvla.training.draft_head import latest_checkpoint  # noqa: E402
 from hf_specvla.training.policy_draft import rollout_frames  # noqa: E402
 from hf_specvla.training.rollouts import (  # noqa: E402
     MANIFEST,
@@ -271,3 +273,67 @@ def test_rollout_config_validates():
         RolloutConfig(max_episodes=0)
     pairs = RolloutConfig(["reach", "push"], 2).pairs()
     assert pairs == [("reach-v3", 400000), ("push-v3", 400000), ("reach-v3", 400001), ("push-v3", 400001)]
+
+
+def test_train_draft_holds_one_batch_of_images_and_one_episode_at_a_time(policy, one_shot, tmp_path, monkeypatch):
+    """Memory that grows slowly with the frames: while the distillation set is built, the pixel values of only the
+    batch being run are alive (before: every training frame's, built up front), and of the episode files only the one
+    being read and the held-out frames' (before: every episode read)."""
+    from hf_specvla.training import policy_draft, rollouts
+    from hf_specvla.training.configuration import DraftTrainingConfig
+
+    pixels, images, alive = [], [], {"pixel_values": 0, "episode_images": 0}
+    preprocess, read, generate = policy.preprocess_images, rollouts.load_episode, policy.model.generate
+
+    def counting_preprocess(images_):
+        values = preprocess(images_)
+        pixels.append(weakref.ref(values))
+        return values
+
+    def counting_read(path):
+        arrays = read(path)
+        image = arrays["image"]
+        images.append(weakref.ref(image if image.base is None else image.base))  # the memory's owner (frames: views)
+        return arrays
+
+    def counting_generate(*args, **kwargs):
+        for name, refs in (("pixel_values", pixels), ("episode_images", images)):
+            alive[name] = max(alive[name], sum(ref() is not None for ref in refs))
+        return generate(*args, **kwargs)
+
+    monkeypatch.setattr(policy, "preprocess_images", counting_preprocess)
+    monkeypatch.setattr(rollouts, "load_episode", counting_read)
+    monkeypatch.setattr(policy.model, "generate", counting_generate)
+    data = DraftDataConfig(TASKS, rollout_episodes=3, rollout_max_steps=5, validation_frames=2, prompt_batch_size=2)
+    tokens = policy.config.action_tokens - 1
+    training = DraftTrainingConfig(str(tmp_path / "draft"), max_steps=1, batch_size=4, save_every=0, eval_every=0,
+                                   unroll_steps=tokens)  # fmt: skip
+    policy_draft.train_policy_draft_head(policy, training, data, rollouts=one_shot, progress=False, head_version="v3",
+                                         num_draft_tokens=tokens)  # fmt: skip
+    batches = 2 * 2 * 5 // 2  # 2 tasks x 2 training episodes x 5 frames, 2 frames a batch
+    assert len(pixels) > batches and alive["pixel_values"] == 1, (len(pixels), alive)
+    # the episode being read (1), and the 2 held-out episodes the 2 validation frames are views of; 6 episodes in all
+    assert alive["episode_images"] <= 3 < len(images), (len(images), alive)
+    record = json.loads((tmp_path / "draft" / "distillation_set.json").read_text())
+    assert record["data"]["examples"] == 20 and record["data"]["hidden_dtype"] == "float16"
+    assert 0 < record["measured"]["hidden_bytes"] < 1e9 * record["measured"]["peak_rss_gb"]
+
+
+def test_a_resumed_run_refuses_a_rebuilt_set_that_differs(policy_dirs, one_shot, tmp_path, capsys):
+    """--resume rebuilds the distillation set from the recipe: the same set (its token ids' fingerprint, recorded in
+    distillation_set.json), or a refusal naming what differs."""
+    out = tmp_path / "draft"
+    args = ["train-draft", "--policy", policy_dirs[0], "--tasks", *TASKS, "--rollouts", str(one_shot),
+            "--save-every", "1", "--eval-every", "0", "--batch-size", "4", "--validation-frames", "2",
+            "--output-dir", str(out)]  # fmt: skip
+    assert main([*args, "--max-steps", "1"]) == 0
+    assert main([*args, "--max-steps", "2", "--resume"]) == 0  # the same set rebuilt
+    record = json.loads((out / "distillation_set.json").read_text())
+    assert json.loads((out / "run.json").read_text())["settings"]["distillation"] == {"hidden_dtype": "float16"}
+    record["data"]["token_ids"] = "0" * 16  # as if the frames or the policy's greedy tokens had changed
+    (out / "distillation_set.json").write_text(json.dumps(record))
+    with pytest.raises(SystemExit) as exit_info:
+        main([*args, "--max-steps", "3", "--resume"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "another distillation set than the one rebuilt" in err and "token_ids" in err
+    assert latest_checkpoint(out).name == "checkpoint-2"

@@ -182,3 +182,44 @@ def test_overwrite_moves_the_old_run_aside_and_resume_needs_a_checkpoint(tmp_pat
     with pytest.raises(FileExistsError, match="no checkpoint-\\* to resume from"):
         train(finished, max_steps=3, resume=True)
     assert (finished / "config.json").exists()  # the finished run is untouched
+
+
+def test_a_half_precision_set_teaches_the_head_what_a_float32_one_does(tmp_path, toy_pipeline):
+    """train-draft stores the target's hidden states in float16 (half the memory): the same sequences, each hidden
+    state float32's rounded, and the same training run ends at the same held-out loss and accuracy, up to noise far
+    below what the training changes."""
+    from hf_specvla.training.draft_head import collate_distillation, distillation_loss
+
+    target, tokenizer, actions = toy_pipeline.target, toy_pipeline.tokenizer, toy_pipeline.action_tokenizer
+    train_scenes, held_out_scenes = split_scenes()
+    prompts = [toy_inputs(train_scenes[i : i + 32], tokenizer) for i in range(0, 96, 32)]
+    sets = {dtype: build_distillation_dataset(target, prompts, ACTION_DIM, actions, progress=False, hidden_dtype=dtype)
+            for dtype in (torch.float32, torch.float16)}  # fmt: skip
+    for full, half in zip(sets[torch.float32], sets[torch.float16]):
+        assert torch.equal(full["input_ids"], half["input_ids"]) and half["hidden"].dtype == torch.float16
+        assert torch.equal(full["hidden"].half(), half["hidden"])
+    held_out = build_distillation_dataset(target, [toy_inputs(held_out_scenes[:48], tokenizer)], ACTION_DIM, actions,
+                                          progress=False)  # fmt: skip
+    batch = collate_distillation(list(held_out))
+    exact = DraftTrainingConfig(str(tmp_path / "eval"), feature_noise=0.0)
+
+    def held_out_loss(head):
+        with torch.no_grad():
+            losses = distillation_loss(head.eval(), head.target_handles(target), batch, exact)
+        return float(losses["loss"]), float(losses["token_accuracy"])
+
+    def trained(dtype):
+        torch.manual_seed(0)
+        head = DraftHead.from_target(target, actions, action_dim=ACTION_DIM)
+        if dtype is None:
+            return head
+        config = DraftTrainingConfig(str(tmp_path / str(dtype)), max_steps=40, batch_size=16, learning_rate=3e-3,
+                                     save_every=0)  # fmt: skip
+        return train_draft_head(head, target, sets[dtype], config, progress=False)
+
+    (untrained, _), (full, full_accuracy), (half, half_accuracy) = (
+        held_out_loss(trained(dtype)) for dtype in (None, torch.float32, torch.float16)
+    )
+    assert full < 0.8 * untrained  # the training moves the loss...
+    assert abs(half - full) < 0.02 * (untrained - full), (untrained, full, half)  # ...float16 storage does not
+    assert abs(half_accuracy - full_accuracy) <= 0.02, (full_accuracy, half_accuracy)

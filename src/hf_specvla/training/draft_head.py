@@ -25,7 +25,10 @@ Recipe (Spec-VLA section 3.2, following EAGLE):
 
 from __future__ import annotations
 
+import json
 import logging
+import resource
+import sys
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -36,7 +39,7 @@ from transformers import PreTrainedModel
 from transformers.cache_utils import DynamicCache
 
 from ..progress import progress_bar
-from ..run_folder import fingerprint, fingerprint_arrays
+from ..run_folder import fingerprint, fingerprint_arrays, write_json_atomic
 from ..speculative import (
     DraftHead,
     DraftHeadDrafter,
@@ -106,6 +109,11 @@ def dataset_hidden_layers(hidden_state_layers: tuple[int, ...]) -> tuple[int, ..
 
 #: a prompt dict's optional key: each example's previous action (``[B, D]`` token ids, -1: none), not a model input
 PREVIOUS_ACTION = "previous_action"
+#: how [`distil_draft_head`] stores the target's hidden states: half of float32's memory (the set is most of a large
+#: run's memory); float16 keeps 11 significant bits (relative error < 5e-4), far below the training's feature noise
+STORED_HIDDEN_DTYPE = torch.float16
+#: the file in a run's folder that records its distillation set (what a resumed run's rebuilt set must equal)
+DATA_RECORD = "distillation_set.json"
 
 
 @torch.no_grad()
@@ -117,50 +125,95 @@ def build_distillation_dataset(
     progress: bool = True,
     hidden_state_layers: tuple[int, ...] = (-1,),
     action_dim: int | None = None,
+    hidden_dtype: torch.dtype = torch.float32,
 ) -> DistillationDataset:
     """Runs the target greedily on each prompt and records its sequence and hidden states.
+
+    The prompts are read one at a time (a lazy sequence such as ``policy_draft.PolicyPrompts`` builds each batch's
+    images only when it is read), so that only the distillation set itself grows with the frames.
 
     Args:
         target: the frozen target (any model ``generate`` works on; images go in the prompt dicts).
         prompts: model inputs, e.g. ``{"input_ids": [B, S], "pixel_values": [B, 3, H, W]}``, and optionally
             ``previous_action`` ``[B, D]`` (each example's previous action as token ids, -1: none; not a model
             input). A dict may hold several examples (batched generation) when it has no padding; with an
-            ``attention_mask`` that has padding, give one example per dict.
+            ``attention_mask`` that has padding, give one example per dict. The progress bar counts examples, of
+            ``prompts.num_examples`` (or, for a list, of its dicts' examples).
         max_new_tokens: tokens the target generates (an action's worth: OpenVLA 7).
         action_tokenizer: which generated tokens count for the loss.
         hidden_state_layers: the target hidden states the head reads (its ``config.hidden_state_layers``).
         action_dim: D, the previous action's length when no prompt gives one (default: 1).
+        hidden_dtype: how the hidden states are stored (the loss casts each batch back to the head's dtype):
+            ``torch.float16`` halves the set ([`STORED_HIDDEN_DTYPE`], what [`distil_draft_head`] stores).
+
+    Raises:
+        ValueError: a hidden state too large for ``hidden_dtype`` (naming the largest; store float32).
     """
     target.eval()
     examples = []
     layers = dataset_hidden_layers(hidden_state_layers)
-    for inputs in progress_bar(list(prompts), desc="self-distillation data", disable=not progress):
-        inputs = {k: v.to(target.device) if isinstance(v, torch.Tensor) else v for k, v in inputs.items()}
-        batch_size = inputs["input_ids"].shape[0]
-        previous = inputs.pop(PREVIOUS_ACTION, None)
-        if previous is None:
-            previous = torch.full((batch_size, action_dim or 1), -1, dtype=torch.long)
-        mask = inputs.get("attention_mask")
-        if inputs["input_ids"].shape[0] != 1 and mask is not None and not bool(mask.all()):
-            raise ValueError("prompts with padding must be given one example per dict (batch size 1)")
-        # Greedy to exactly max_new_tokens tokens, so every example has the same layout.
-        sequences = target.generate(
-            **inputs, max_new_tokens=max_new_tokens, min_new_tokens=max_new_tokens, do_sample=False
-        )  # [B, L]
-        forward_inputs = dict(inputs, input_ids=sequences)
-        if mask is not None:
-            forward_inputs["attention_mask"] = torch.cat([mask, mask.new_ones(mask.shape[0], max_new_tokens)], 1)
-        hidden = read_hidden_states(target(**forward_inputs, output_hidden_states=True).hidden_states, layers)
-        prompt_len, length = inputs["input_ids"].shape[1], sequences.shape[1]
-        positions = torch.arange(length)
-        for ids, row_states, row_previous in zip(sequences.cpu(), hidden.cpu(), previous.cpu()):
-            generated_action = (positions >= prompt_len) & action_tokenizer.is_action_token(ids)
-            loss_mask = torch.zeros(length, dtype=torch.bool)
-            loss_mask[: length - 2] = generated_action[2:]  # position p predicts token p+2
-            examples.append({"input_ids": ids, "hidden": row_states, "loss_mask": loss_mask,
-                             "first_position": torch.tensor(prompt_len),
-                             PREVIOUS_ACTION: row_previous.long()})  # fmt: skip
+    total = getattr(prompts, "num_examples", None)  # examples done / total (unknown for an iterator)
+    if total is None and isinstance(prompts, list | tuple):
+        total = sum(int(inputs["input_ids"].shape[0]) for inputs in prompts)
+    bar = progress_bar(total=total, desc="self-distillation data", unit="example", disable=not progress)
+    for inputs in prompts:
+        batch = _distil_prompt(target, inputs, max_new_tokens, action_tokenizer, layers, action_dim, hidden_dtype)
+        examples.extend(batch)
+        del inputs  # this prompt's images: only one prompt's are alive at a time
+        bar.update(len(batch))
+    bar.close()
     return DistillationDataset(examples)
+
+
+def _distil_prompt(
+    target: PreTrainedModel,
+    inputs: dict,
+    max_new_tokens: int,
+    action_tokenizer,
+    layers: tuple[int, ...],
+    action_dim: int | None,
+    hidden_dtype: torch.dtype,
+) -> list[dict]:
+    """[`build_distillation_dataset`]'s examples of one prompt dict (see there)."""
+    inputs = {k: v.to(target.device) if isinstance(v, torch.Tensor) else v for k, v in inputs.items()}
+    batch_size = inputs["input_ids"].shape[0]
+    previous = inputs.pop(PREVIOUS_ACTION, None)
+    if previous is None:
+        previous = torch.full((batch_size, action_dim or 1), -1, dtype=torch.long)
+    mask = inputs.get("attention_mask")
+    if inputs["input_ids"].shape[0] != 1 and mask is not None and not bool(mask.all()):
+        raise ValueError("prompts with padding must be given one example per dict (batch size 1)")
+    # Greedy to exactly max_new_tokens tokens, so every example has the same layout.
+    sequences = target.generate(
+        **inputs, max_new_tokens=max_new_tokens, min_new_tokens=max_new_tokens, do_sample=False
+    )  # [B, L]
+    forward_inputs = dict(inputs, input_ids=sequences)
+    if mask is not None:
+        forward_inputs["attention_mask"] = torch.cat([mask, mask.new_ones(mask.shape[0], max_new_tokens)], 1)
+    hidden = read_hidden_states(target(**forward_inputs, output_hidden_states=True).hidden_states, layers)
+    stored = _narrowed(hidden, hidden_dtype).cpu()  # [B, L, n H]
+    prompt_len, length = inputs["input_ids"].shape[1], sequences.shape[1]
+    positions = torch.arange(length)
+    examples = []
+    for ids, row_states, row_previous in zip(sequences.cpu(), stored, previous.cpu()):
+        generated_action = (positions >= prompt_len) & action_tokenizer.is_action_token(ids)
+        loss_mask = torch.zeros(length, dtype=torch.bool)
+        loss_mask[: length - 2] = generated_action[2:]  # position p predicts token p+2
+        examples.append({"input_ids": ids, "hidden": row_states, "loss_mask": loss_mask,
+                         "first_position": torch.tensor(prompt_len),
+                         PREVIOUS_ACTION: row_previous.long()})  # fmt: skip
+    return examples
+
+
+def _narrowed(hidden: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``hidden`` as ``dtype``, refused where that overflows (float16's largest value is 65504)."""
+    narrowed = hidden.to(dtype)
+    if narrowed.dtype != hidden.dtype and not bool(torch.isfinite(narrowed).all()) and bool(hidden.isfinite().all()):
+        raise ValueError(
+            f"the target's hidden states reach {hidden.abs().max().item():.4g}, more than {dtype} holds: build the "
+            f"distillation set with hidden_dtype=torch.float32"
+        )
+    return narrowed
 
 
 def collate_distillation(batch: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
@@ -501,6 +554,7 @@ def train_draft_head(
     inputs: dict | None = None,
     target_fingerprint: str | None = None,
     paths: dict | None = None,
+    data_record: dict | None = None,
 ) -> DraftHead:
     """Trains ``draft_head`` against the frozen ``target`` on a [`DistillationDataset`].
 
@@ -521,12 +575,16 @@ def train_draft_head(
             [`distil_draft_head`] does).
         target_fingerprint: ``run_folder.fingerprint(target)`` when the caller already has it (hashed otherwise).
         paths: where the inputs were read from, recorded in ``run.json`` for people (never compared).
+        data_record: what the set built from ``inputs`` is ([`distillation_set_record`]): written to
+            ``output_dir/distillation_set.json`` by a new run; a resumed run whose rebuilt set differs is refused.
     """
     output_dir = Path(config.output_dir)
     if inputs is None:
         inputs = {"data": fingerprint_arrays(*[example["input_ids"] for example in dataset.examples])}
     record = draft_training_record(draft_head, target_fingerprint or fingerprint(target), config, inputs, paths)
     with prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir) as run:
+        if data_record is not None:
+            _check_data_record(run.bound, data_record, run.continued)
         accelerator = accelerator or default_accelerator(config)  # the loop's: the loss seeds noise per process
         handles = draft_head.target_handles(target)
         for module in handles:
@@ -551,7 +609,7 @@ def distil_draft_head(
     target: PreTrainedModel,
     training_config: DraftTrainingConfig,
     recipe: dict,
-    prompts: Callable[[], tuple[list[dict], list[dict]]],
+    prompts: Callable[[], tuple[Iterable[dict], Iterable[dict]]],
     tokens_per_call: int,
     *,
     action_tokenizer=None,
@@ -563,22 +621,28 @@ def distil_draft_head(
     paths: dict | None = None,
     progress: bool = True,
     head_settings: dict | None = None,
+    hidden_dtype: torch.dtype | None = None,
 ) -> DraftHead:
     """The draft-head recipe every target shares (a Meta-World policy, OpenVLA): an untrained head sized for
     ``target`` (seeded by ``training_config.seed``) that records what it was distilled from; the folder's
     ``run.json`` (target weights, ``recipe``, settings) checked *before* ``prompts()`` builds the data (rollouts are
-    slow); the target's own greedy ``tokens_per_call`` tokens on the training prompts as the distillation set; the
-    engine at r=0 on the held-out prompts as validation; [`train_draft_head`].
+    slow); the target's own greedy ``tokens_per_call`` tokens on the training prompts as the distillation set (hidden
+    states in ``hidden_dtype``; its size and the peak memory logged and recorded with its token ids' fingerprint in
+    ``distillation_set.json``, which a resumed run's rebuilt set must match); the engine at r=0 on the held-out
+    prompts as validation; [`train_draft_head`].
 
     Args:
         recipe: what the data is, for the record (a fingerprint, or the settings of a deterministic recipe).
-        prompts: builds ``(training prompts, held-out prompts)``, each a list of ``generate`` inputs.
+        prompts: builds ``(training prompts, held-out prompts)``, each a list or a re-iterable lazy sequence of
+            ``generate`` inputs (such as ``policy_draft.PolicyPrompts``: each batch built when read).
         action_tokenizer / action_dim / num_draft_tokens: the head's action layout (default: the target's
             ``action_tokenizer``) and default chain length.
         action_layout: the target's ``ActionLayout`` for validation (which ids are actions, tokens per action).
         target_name_or_path: recorded in the head's config (for people; never compared).
         head_settings: more [`DraftHeadConfig`] fields of the head (e.g. head v2's ``feature_layers`` and
             ``previous_action_input``; see [`head_v2_settings`]).
+        hidden_dtype: how the set stores the target's hidden states (recorded in ``run.json``); None: float16 for a
+            float32 target ([`STORED_HIDDEN_DTYPE`]), a half-precision target's own dtype.
     """
     settings = head_settings or {}
     uses_blocks = settings.get("draft_mode") == "block" or settings.get("prefill_drafts", False)
@@ -594,20 +658,25 @@ def distil_draft_head(
         target, action_tokenizer, action_dim=action_dim, num_draft_tokens=num_draft_tokens,
         target_name_or_path=target_name_or_path, target_fingerprint=target_fingerprint, **(head_settings or {}),
     )  # fmt: skip
+    if hidden_dtype is None:  # half of a float32 target's; a half-precision target's stay as they are
+        hidden_dtype = STORED_HIDDEN_DTYPE if target.dtype == torch.float32 else target.dtype
+    recipe = {**recipe, "distillation": {"hidden_dtype": str(hidden_dtype).removeprefix("torch.")}}
     record = draft_training_record(head, target_fingerprint, training_config, recipe, paths)
     check_output_dir(Path(training_config.output_dir), record, training_config.resume,
                      training_config.overwrite_output_dir)  # fmt: skip
     training_prompts, held_out_prompts = prompts()
     action_tokenizer = action_tokenizer or target.action_tokenizer  # the labels' action ids, as the head's default
-    dataset = build_distillation_dataset(target, training_prompts, tokens_per_call, action_tokenizer,
-                                         progress=progress, hidden_state_layers=head.config.hidden_state_layers,
-                                         action_dim=action_dim)  # fmt: skip
+    build = dict(max_new_tokens=tokens_per_call, action_tokenizer=action_tokenizer, action_dim=action_dim,
+                 hidden_state_layers=head.config.hidden_state_layers, hidden_dtype=hidden_dtype)  # fmt: skip
+    dataset = build_distillation_dataset(target, training_prompts, progress=progress, **build)
+    data_record = distillation_set_record(dataset)
+    logger.info("distillation set: %d examples, %.2f GB of hidden states (%s); peak memory so far %.2f GB",
+                len(dataset), data_record["measured"]["hidden_bytes"] / 1e9, data_record["data"]["hidden_dtype"],
+                data_record["measured"]["peak_rss_gb"])  # fmt: skip
 
     by_position = {}  # head v3: top-1 by token position on training and held-out frames, so overfitting shows
     if head.config.uses_mask_queries:
-        held_out = build_distillation_dataset(target, held_out_prompts, tokens_per_call, action_tokenizer,
-                                              progress=False, hidden_state_layers=head.config.hidden_state_layers,
-                                              action_dim=action_dim)  # fmt: skip
+        held_out = build_distillation_dataset(target, held_out_prompts, progress=False, **build)
         spread = torch.linspace(0, len(dataset) - 1, min(len(held_out), len(dataset))).round().long().tolist()
         by_position = {"train": DistillationDataset([dataset[i] for i in spread]), "held_out": held_out}
 
@@ -620,7 +689,49 @@ def distil_draft_head(
         return metrics
 
     return train_draft_head(head, target, dataset, training_config, progress=progress, validate=validate,
-                            inputs=recipe, target_fingerprint=target_fingerprint, paths=paths)  # fmt: skip
+                            inputs=recipe, target_fingerprint=target_fingerprint, paths=paths,
+                            data_record=data_record)  # fmt: skip
+
+
+def distillation_set_record(dataset: DistillationDataset) -> dict:
+    """What [`distil_draft_head`] records of its set in ``distillation_set.json``: ``data`` (compared when a run is
+    resumed: the examples, their token ids' fingerprint, the hidden states' dtype) and ``measured`` (for people: the
+    hidden states' size in bytes and the process's peak memory when the set was built, in GB)."""
+    hidden = [example["hidden"] for example in dataset.examples]
+    data = {"examples": len(dataset),
+            "token_ids": fingerprint_arrays(*[example["input_ids"] for example in dataset.examples]),
+            "hidden_dtype": str(hidden[0].dtype).removeprefix("torch.")}  # fmt: skip
+    hidden_bytes = sum(h.numel() * h.element_size() for h in hidden)
+    return {"data": data, "measured": {"hidden_bytes": hidden_bytes, "peak_rss_gb": round(peak_rss_gb(), 3)}}
+
+
+def peak_rss_gb() -> float:
+    """This process's peak resident memory so far, in GB (``getrusage``: kilobytes on Linux, bytes on macOS)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 1e9 if sys.platform == "darwin" else peak * 1024 / 1e9
+
+
+def _check_data_record(folder: Path, data_record: dict, continued: bool) -> None:
+    """A new run writes ``data_record`` to ``folder/distillation_set.json``; a continued one checks that the set it
+    rebuilt is the one it was trained on.
+
+    Raises:
+        FileExistsError: the folder's run was trained on another set (as for a folder of another run), naming what
+            differs.
+    """
+    path = folder / DATA_RECORD
+    if continued and path.is_file():
+        saved = json.loads(path.read_text())["data"]
+        differences = [f"{key}: {data_record['data'].get(key)!r} here vs {value!r} there"
+                       for key, value in saved.items() if data_record["data"].get(key) != value]  # fmt: skip
+        if differences:
+            raise FileExistsError(
+                f"{str(folder)!r} was trained on another distillation set than the one rebuilt to resume it "
+                f"({'; '.join(differences)}): the policy or the frames changed; pass --overwrite-output-dir to train "
+                f"from scratch, or choose another folder"
+            )
+        return
+    write_json_atomic(path, data_record)
 
 
 def head_v2_settings(target: PreTrainedModel) -> dict:

@@ -18,11 +18,13 @@ benchmark 300000.., draft training 400000.., so that a head is never measured on
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import torch
+from torch.utils.data import ConcatDataset
 
 from ..metaworld.demonstrations import dataset_fingerprint, dataset_info, load_demonstrations
 from ..metaworld.env import TASK_INSTRUCTIONS, EnvConfig
@@ -33,7 +35,7 @@ from ..speculative import DraftHead
 from .configuration import HEAD_VERSIONS, DraftDataConfig, DraftTrainingConfig
 from .draft_head import PREVIOUS_ACTION, distil_draft_head, head_settings
 from .loop import VALIDATION_LOG
-from .rollouts import read_rollout_frames
+from .rollouts import EpisodeFrames, read_rollout_frames
 
 logger = logging.getLogger(__name__)
 
@@ -78,24 +80,50 @@ def demonstration_frames(roots: list[str | Path], config: DraftDataConfig, polic
     return frames
 
 
-def policy_prompts(policy: VLAPolicy, frames: list[dict], batch_size: int) -> list[dict[str, torch.Tensor]]:
-    """Model inputs for ``frames``, batched by instruction (one prompt length per batch, so no padding):
-    ``input_ids`` ``[B, S]``, ``pixel_values`` ``[B, 3, H, W]``, and each frame's ``previous_action`` ``[B, D]``
-    (token ids; -1 where a frame has none: an episode's first step, a demonstration frame)."""
-    by_instruction: dict[str, list[dict]] = {}
-    for frame in frames:
-        by_instruction.setdefault(frame["instruction"], []).append(frame)
-    prompts = []
-    for group in by_instruction.values():
-        for start in range(0, len(group), batch_size):
-            chunk = group[start : start + batch_size]
-            input_ids = torch.tensor([policy.prompt_ids(f["instruction"], f["state"]) for f in chunk])
-            pixel_values = policy.preprocess_images(np.stack([f["image"] for f in chunk]))
-            none = [-1] * policy.config.action_dim
-            previous = torch.tensor([list(f.get("previous_action") or none) for f in chunk])
-            prompts.append({"input_ids": input_ids.to(policy.model.device), "pixel_values": pixel_values,
-                            PREVIOUS_ACTION: previous})  # fmt: skip
-    return prompts
+class PolicyPrompts(Sequence):
+    """Model inputs for frames, batched by instruction (one prompt length per batch, so no padding), each batch built
+    when it is asked for: only the batch in use holds pixel values (``[B, 3, H, W]`` float32, 196 KB a frame at
+    128 x 128), never every frame's. Iterate it as often as needed (a batch is rebuilt each time, the same).
+
+    A batch: ``input_ids`` ``[B, S]``, ``pixel_values`` ``[B, 3, H, W]``, and each frame's ``previous_action``
+    ``[B, D]`` (token ids; -1 where a frame has none: an episode's first step, a demonstration frame).
+    ``num_examples``: the frames, over every batch.
+    """
+
+    def __init__(self, policy: VLAPolicy, frames: Sequence[dict], batch_size: int, instructions: list[str]):
+        self.policy, self.frames = policy, frames
+        by_instruction: dict[str, list[int]] = {}  # frame indices per instruction, in order of first appearance
+        for index, instruction in enumerate(instructions):
+            by_instruction.setdefault(instruction, []).append(index)
+        self.batches = [group[start : start + batch_size] for group in by_instruction.values()
+                        for start in range(0, len(group), batch_size)]  # fmt: skip
+        self.num_examples = len(instructions)
+
+    def __len__(self) -> int:
+        return len(self.batches)
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        policy, chunk = self.policy, [self.frames[i] for i in self.batches[index]]
+        input_ids = torch.tensor([policy.prompt_ids(f["instruction"], f["state"]) for f in chunk])
+        pixel_values = policy.preprocess_images(np.stack([f["image"] for f in chunk]))
+        none = [-1] * policy.config.action_dim
+        previous = torch.tensor([list(f.get("previous_action") or none) for f in chunk])
+        return {"input_ids": input_ids.to(policy.model.device), "pixel_values": pixel_values, PREVIOUS_ACTION: previous}
+
+
+def policy_prompts(policy: VLAPolicy, frames: Sequence[dict], batch_size: int) -> PolicyPrompts:
+    """[`PolicyPrompts`] for ``frames`` (observation dicts, or [`EpisodeFrames`] read lazily; a list of both kinds is
+    a ``ConcatDataset`` of them), in batches of at most ``batch_size`` frames of one instruction."""
+    return PolicyPrompts(policy, frames, batch_size, frame_instructions(frames))
+
+
+def frame_instructions(frames: Sequence[dict]) -> list[str]:
+    """Each frame's instruction, without reading an [`EpisodeFrames`]' images."""
+    if isinstance(frames, EpisodeFrames):
+        return frames.instructions
+    if isinstance(frames, ConcatDataset):
+        return [instruction for part in frames.datasets for instruction in frame_instructions(part)]
+    return [frame["instruction"] for frame in frames]
 
 
 def _spread(frames: list, count: int) -> list:
@@ -156,15 +184,15 @@ def train_policy_draft_head(
                     len(read.validation), rollouts, read.fingerprint)  # fmt: skip
     sequences = 0  # training sequences, one per frame (for the model card)
 
-    def prompts() -> tuple[list, list]:
-        if read is not None:
-            train_frames, validation_frames = list(read.train), read.validation
+    def prompts() -> tuple[PolicyPrompts, PolicyPrompts]:
+        if read is not None:  # read lazily, an episode at a time, as each batch of prompts is built
+            train_frames, validation_frames = read.train, read.validation
         else:
             logger.info("on-policy rollouts: %d per task on %d tasks", data_config.rollout_episodes,
                         len(data_config.tasks))  # fmt: skip
             train_frames, validation_frames = rollout_frames(policy, data_config, env_config)
         if demonstrations:
-            train_frames += demonstration_frames(demonstrations, data_config, policy)
+            train_frames = ConcatDataset([train_frames, demonstration_frames(demonstrations, data_config, policy)])
         validation_frames = _spread(validation_frames, data_config.validation_frames)
         logger.info("%d training frames, %d held-out frames", len(train_frames), len(validation_frames))
         nonlocal sequences

@@ -36,7 +36,7 @@ import json
 import logging
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -436,21 +436,56 @@ def finished_episodes_per_task(folder: str | Path, tasks: list[str], seed_start:
     return count
 
 
+class EpisodeFrames(Sequence):
+    """The frames of episode files, read one episode at a time: a frame's image is read when the frame is asked for,
+    so that ``train-draft --rollouts`` never holds every image of a large folder (~49 KB a frame at 128 x 128).
+
+    A sequence of observation dicts as [`episode_frames`] gives them (each a view into its episode's arrays); the
+    episode last read is kept, so reading the frames in order reads each file once. ``instructions`` gives every
+    frame's instruction without reading a file.
+
+    Args:
+        episodes: ``(path, frames, instruction)`` of each episode, in order: its file, how many of its first frames
+            count, and its instruction.
+    """
+
+    def __init__(self, episodes: list[tuple[Path, int, str]]):
+        self.episodes = list(episodes)
+        self.starts = np.cumsum([0] + [count for _, count, _ in self.episodes])  # [E + 1] each episode's first frame
+        self.instructions = [instruction for _, count, instruction in self.episodes for _ in range(count)]
+        self._read: tuple[int, list[dict]] = (-1, [])  # (episode, its frames): the episode last read
+
+    def __len__(self) -> int:
+        return int(self.starts[-1])
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(len(self)))]
+        index = index + len(self) if index < 0 else index
+        if not 0 <= index < len(self):
+            raise IndexError(f"frame {index} of {len(self)}")
+        episode = int(np.searchsorted(self.starts, index, side="right")) - 1
+        if self._read[0] != episode:
+            path, count, _ = self.episodes[episode]
+            self._read = (episode, episode_frames(load_episode(path), count))
+        return self._read[1][index - int(self.starts[episode])]
+
+
 @dataclass
 class RolloutFrames:
     """What ``train-draft --rollouts`` trains on: the frames of a rollouts folder (observation dicts as
     ``record_observations`` gives them), split as the in-process collection splits them.
 
     Attributes:
-        train / validation: frames of the first ``rollout_episodes - validation_episodes`` seeds of each task / of the
-            last ``validation_episodes`` (task by task, seed by seed, frame by frame).
+        train / validation: [`EpisodeFrames`] of the first ``rollout_episodes - validation_episodes`` seeds of each
+            task / of the last ``validation_episodes`` (task by task, seed by seed, frame by frame), read lazily.
         fingerprint: [`rollouts_fingerprint`] of the episodes used (the same episodes, the same fingerprint, whatever
             else the folder holds).
         episodes: how many episodes were read.
     """
 
-    train: list[dict]
-    validation: list[dict]
+    train: EpisodeFrames
+    validation: EpisodeFrames
     fingerprint: str
     episodes: int
 
@@ -507,7 +542,9 @@ def read_rollout_frames(folder: str | Path, policy: VLAPolicy, data_config) -> R
     train, validation, entries = [], [], []
     for task in data_config.tasks:
         for seed in seeds:
-            arrays = load_episode(episode_path(folder, task, seed))
+            path = episode_path(folder, task, seed)
+            arrays = load_episode(path)  # read once here for its fingerprint; its frames are read again when used
             entries.append(_manifest_entry(arrays))
-            (validation if seed in held_out else train).extend(episode_frames(arrays, data_config.rollout_max_steps))
-    return RolloutFrames(train, validation, rollouts_fingerprint(entries), len(entries))
+            count = min(data_config.rollout_max_steps, len(arrays["image"]))
+            (validation if seed in held_out else train).append((path, count, str(arrays["instruction"])))
+    return RolloutFrames(EpisodeFrames(train), EpisodeFrames(validation), rollouts_fingerprint(entries), len(entries))
