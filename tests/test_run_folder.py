@@ -281,3 +281,13 @@ def test_records_from_before_timing_conditions_were_recorded(tmp_path, caplog):
     write_timing(folder, adopted)  # once adopted, they count under those conditions only
     later = resolve_timing(folder, timing_conditions(1, 1, 1), [*untimed, {"timing": now}], restart=True)
     assert later.untimed_conditions == now and not later.timed(untimed[0])
+
+
+def test_a_draft_run_from_before_float16_hidden_states_is_told_what_changed():
+    """train-draft stored float32 hidden states before it recorded how: such a folder reads as float32, so a run that
+    stores float16 is refused naming the storage, and one that stores float32 continues it."""
+    old = RunRecord("train-draft", {"policy": "abc"})
+    half = RunRecord("train-draft", {"policy": "abc", "distillation": {"hidden_dtype": "float16"}})
+    full = RunRecord("train-draft", {"policy": "abc", "distillation": {"hidden_dtype": "float32"}})
+    assert old.differences(half) == ["distillation.hidden_dtype: 'float16' here vs 'float32' there"]
+    assert old.differences(full) == []

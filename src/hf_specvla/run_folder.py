@@ -105,6 +105,8 @@ NOT_COMPARED = object()
 #: value it implied then, or not compared on it (``NOT_COMPARED``)
 ADDED_SETTINGS = {
     "data.demonstration_fingerprints": NOT_COMPARED,
+    # train-draft stored the target's hidden states in float32 before it stored them in float16
+    "distillation.hidden_dtype": "float32",
     "draft_head_config.final_logit_softcapping": NOT_COMPARED,
     # train-vla's optimisation, hard-coded until the one training loop made it settings
     "betas": [0.9, 0.999],
