@@ -46,11 +46,14 @@ positive_number.__name__ = "number > 0"
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
     """Keeps the examples' line breaks and shows every option's default (but a flag's: ``--no-compile`` does not
-    default to True)."""
+    default to True; and an option whose help says its default itself, as one that depends on other options does,
+    gets no "(default: None)" after it)."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         if isinstance(action, argparse._StoreConstAction):  # store_true / store_false / store_const flags
             return action.help or ""
+        if "(default: " in (action.help or ""):
+            return action.help
         return super()._get_help_string(action)
 
 

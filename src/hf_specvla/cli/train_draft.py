@@ -44,14 +44,14 @@ def add_arguments(parser) -> None:
                         help="read the on-policy frames from this `hf-specvla rollouts` folder of the policy "
                              "instead of rolling it out here")  # fmt: skip
     parser.add_argument("--rollout-episodes", type=POSITIVE, default=None,
-                        help=f"greedy on-policy episodes per task (the last --validation-episodes held out; default: "
-                             f"{DraftDataConfig.rollout_episodes}, with --rollouts every finished one)")  # fmt: skip
+                        help=f"greedy on-policy episodes per task, the last --validation-episodes held out (default: "
+                             f"{DraftDataConfig.rollout_episodes}); with --rollouts, every finished one")  # fmt: skip
     parser.add_argument("--rollout-max-steps", type=POSITIVE, default=None,
-                        help=f"steps kept per rollout (default: {DraftDataConfig.rollout_max_steps}, with --rollouts "
-                             f"the folder's)")  # fmt: skip
+                        help=f"steps kept per rollout (default: {DraftDataConfig.rollout_max_steps}); with --rollouts, "
+                             f"the folder's")  # fmt: skip
     parser.add_argument("--rollout-seed-start", type=NON_NEGATIVE, default=None,
-                        help=f"first rollout seed (default: {DraftDataConfig.rollout_seed_start}, with --rollouts the "
-                             f"folder's)")  # fmt: skip
+                        help=f"first rollout seed (default: {DraftDataConfig.rollout_seed_start}); with --rollouts, "
+                             f"the folder's")  # fmt: skip
     parser.add_argument("--validation-episodes", type=POSITIVE, default=DraftDataConfig.validation_episodes,
                         help="held-out rollouts per task")  # fmt: skip
     parser.add_argument("--validation-frames", type=POSITIVE, default=DraftDataConfig.validation_frames,
