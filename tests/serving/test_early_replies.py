@@ -175,9 +175,12 @@ def test_a_robot_whose_row_finishes_early_gets_its_reply_before_its_batch_ends(p
             received[name] = (reply, time.perf_counter())
 
         def together(steps: dict[str, tuple]) -> None:
+            """The robots' requests in one batch: "repeat" first (answered early, it counts as active for
+            ACTIVE_WINDOW_S after its reply only; arriving first it is active), then "new", within max_wait_ms."""
             threads = [threading.Thread(target=robot, args=(name, *step)) for name, step in steps.items()]
             for thread in threads:
                 thread.start()
+                time.sleep(0.1)
             for thread in threads:
                 thread.join(120)
 

@@ -436,12 +436,17 @@ def test_every_decode_runs_on_the_services_thread_with_room_for_every_buckets_gr
     assert all(limit > held for _, limit, held in seen), seen
 
 
-def test_compiled_greedy_keeps_one_graph_per_bucket_whatever_the_prompt_length(policy):
+def test_compiled_greedy_keeps_one_graph_per_bucket_whatever_the_prompt_length(policy, monkeypatch):
     """The greedy baseline decodes on the service's own static cache per bucket: prompts of other lengths (other
     instructions) reuse it, and the actions are eager greedy's."""
+    import hf_specvla.speculative as speculative
+
     service = _service(policy, method="greedy:compile", buckets=(2,))
     observations = [_observation(policy, seed) for seed in range(4)]  # 4 instructions of different lengths
     assert len({len(policy.prompt_ids(o["instruction"], o["state"])) for o in observations}) > 1
+    caches, reusable = [], speculative.reusable_static_cache
+    monkeypatch.setattr(speculative, "reusable_static_cache",
+                        lambda *args, **kwargs: caches.append(reusable(*args, **kwargs)) or caches[-1])  # fmt: skip
     try:
         for pair in (observations[:2], observations[2:], observations[1:3]):
             replies = service.act([service.parse(o) for o in pair])
@@ -450,10 +455,7 @@ def test_compiled_greedy_keeps_one_graph_per_bucket_whatever_the_prompt_length(p
                 assert reply.served.method == "greedy:compile"
     finally:
         service.close()
-    from hf_specvla.speculative.cache import _STATIC_CACHES
-
-    # one cache, one graph, for every prompt (the engine's, per slots and batch size)
-    assert [key[-1] for key in _STATIC_CACHES[policy.model] if key[-1] == 2] == [2]
+    assert len(caches) == 3 and len({id(cache) for cache in caches}) == 1  # one cache (the engine's), one graph
 
 
 def test_a_lone_robot_never_waits_for_a_batch_that_will_not_come(policy):
