@@ -129,8 +129,11 @@ def test_serve_on_ray_serve_answers_and_stops_on_ctrl_c_or_sigterm(stop):
     command = [sys.executable, "-m", "hf_specvla.cli", "serve", "--policy", POLICY, "--method", "prior+jacobi",
                "--buckets", "1", "--calibration-calls", "0", "--port", str(port), "--ray", "--replicas", "1",
                "--threads", "1"]  # fmt: skip
+    # Ctrl-C's default: a runner that started this test in the background (SIGINT ignored, as shells do for `&`)
+    # would hand its children an ignored SIGINT, which Python then keeps
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               env={**os.environ, "OMP_NUM_THREADS": "1", "RAY_USAGE_STATS_ENABLED": "0"})  # fmt: skip
+                               env={**os.environ, "OMP_NUM_THREADS": "1", "RAY_USAGE_STATS_ENABLED": "0"},
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
     try:
         line = process.stdout.readline()
         while line and not line.startswith("serving "):  # serve run's own lines come first
