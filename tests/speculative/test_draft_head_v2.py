@@ -247,13 +247,18 @@ def test_a_head_saved_before_v2_drafts_what_it_drafted_before():
 
 
 # ----------------------------------------------------------------------------- training-time test
-@pytest.fixture(scope="module")
-def v2_batch(target, head_v2):
+def distilled_batch(target, head):
+    """(a distillation set of 4 examples for ``head``, one with a previous action per row, and it collated)."""
     previous = torch.tensor([_action(5, 6, 7, 8), [-1] * ACTION_DIM])
     prompts = [{"input_ids": _ids(seed, length=9, batch=2), "previous_action": previous} for seed in (4, 5)]
     dataset = build_distillation_dataset(target, prompts, NEW_TOKENS, ActionTokenizer(VOCAB), progress=False,
-                                         hidden_state_layers=head_v2.config.hidden_state_layers)  # fmt: skip
+                                         hidden_state_layers=head.config.hidden_state_layers)  # fmt: skip
     return dataset, collate_distillation([dataset[i] for i in range(len(dataset))])
+
+
+@pytest.fixture(scope="module")
+def v2_batch(target, head_v2):
+    return distilled_batch(target, head_v2)
 
 
 def test_unrolled_training_features_are_the_features_of_a_drafted_chain(target, head_v2, v2_batch):

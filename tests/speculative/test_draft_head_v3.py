@@ -28,14 +28,13 @@ from hf_specvla.training.draft_head import (
     block_entries,
     block_features,
     build_distillation_dataset,
-    collate_distillation,
     distillation_loss,
     head_settings,
     train_draft_head,
 )
 
 from ..conftest import VOCAB, tiny_llama_config
-from .test_draft_head_v2 import NEW_TOKENS, Recorder, _action, _compile_config, _greedy, _ids
+from .test_draft_head_v2 import NEW_TOKENS, Recorder, _action, _compile_config, _greedy, _ids, distilled_batch
 from .test_speculative_sampling import NEW_TOKENS as SAMPLING_TOKENS
 from .test_speculative_sampling import PROMPT, ROWS, SAMPLES, TOP_P, chi_square_p_value, exact_distribution
 from .test_speculative_sampling import peaked as sampling_target  # noqa: F401 (a fixture, by this name)
@@ -180,11 +179,7 @@ def test_product_tree_holds_the_backbone_then_alternatives_continued():
 # ----------------------------------------------------------------------------- training = drafting
 @pytest.fixture(scope="module")
 def v3_batch(target, head_v3):
-    previous = torch.tensor([_action(5, 6, 7, 8), [-1] * ACTION_DIM])
-    prompts = [{"input_ids": _ids(seed, length=9, batch=2), "previous_action": previous} for seed in (4, 5)]
-    dataset = build_distillation_dataset(target, prompts, NEW_TOKENS, ActionTokenizer(VOCAB), progress=False,
-                                         hidden_state_layers=head_v3.config.hidden_state_layers)  # fmt: skip
-    return dataset, collate_distillation([dataset[i] for i in range(len(dataset))])
+    return distilled_batch(target, head_v3)
 
 
 @pytest.mark.parametrize("before_prefill", [False, True])
