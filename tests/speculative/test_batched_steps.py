@@ -167,3 +167,27 @@ def test_rows_stop_where_per_token_stopping_stops(seed):
     num_kept = emit_tokens(rows, emitted, criteria)
     assert [(r.sequence.tolist(), k, r.finished) for r, k in zip(rows, num_kept)] == expected
     assert [r.num_generated for r in rows] == num_kept
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_batch_of_trees_is_its_rows_padded_with_filler_whether_or_not_the_structure_was_met_before(seed):
+    """TreeBatch makes a structure's tensors once (by N and every row's parents) and reuses them: every batch, made
+    fresh or from that store, is each row's own tree (tokens, parents, depths, tree mask) followed by filler nodes
+    (token 0, parent -1, depth 0, attending to themselves only)."""
+    generator = random.Random(seed)
+    trees = [random_tree(generator, generator.choice([0, 1, 3, 9])) for _ in range(4)]
+    width = max(t.num_nodes for t in trees) + generator.choice([0, 2])
+    for _ in range(2):  # first made, then from the store
+        batch = TreeBatch([DraftTree.from_lists(t.host_tokens, t.parent_list, t.sources) for t in trees], width)
+        for b, tree in enumerate(trees):
+            k = tree.num_nodes
+            assert batch.token_ids[b, :k].tolist() == tree.host_tokens and not batch.token_ids[b, k:].any()
+            assert batch.parents[b, :k].tolist() == tree.parent_list and (batch.parents[b, k:] == -1).all()
+            assert batch.depths[b, :k].tolist() == tree.depth_list and not batch.depths[b, k:].any()
+            assert torch.equal(batch.ancestor_or_self[b, :k, :k], tree.ancestor_or_self)
+            filler = batch.ancestor_or_self[b, k:]
+            assert (
+                torch.equal(filler, torch.eye(width, dtype=torch.bool)[k:])
+                and not batch.ancestor_or_self[b, :k, k:].any()
+            )
+            assert batch.is_real[b].tolist() == [i < k for i in range(width)]

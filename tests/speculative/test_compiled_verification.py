@@ -506,12 +506,13 @@ def test_the_graph_budget_is_what_dynamo_holds_and_reset_forgets_every_verifier(
     greedy(model, torch.randint(6, 64, (1, 6)), cache_implementation="static", compile_config=config,
            draft_ids=torch.randint(6, 64, (1, 3)))  # fmt: skip
     held = graphs_held(type(model).forward)
-    assert held >= 3  # the prefill's graph and the widths of 3 drafts (0, 2, 4)
+    (accepting,) = verifier.accepting.values()  # the rounds' forward with their acceptance
+    assert held >= 1 and graphs_held(accepting) >= 3  # the prefill's graph; the widths of 3 drafts (0, 2, 4)
     with torch._dynamo.config.patch(recompile_limit=1):
         allow_graphs_held(model)  # a thread that did not compile: its limit holds every graph and transformers'
-        assert torch._dynamo.config.recompile_limit >= held + 8
+        assert torch._dynamo.config.recompile_limit >= max(held, graphs_held(accepting)) + 8
     reset_compilation()
-    assert graphs_held(double) == 0 and graphs_held(type(model).forward) == 0
+    assert graphs_held(double) == 0 and graphs_held(type(model).forward) == 0 and graphs_held(accepting) == 0
     assert CompiledVerifier.for_model(model, config) is not verifier
 
 
@@ -519,25 +520,21 @@ def test_every_compiled_round_of_a_width_is_fed_the_same_input_tensors(monkeypat
     """The engine's own input buffers per (batch size, width): every compiled verification of one shape, round after
     round and call after call, reads its ids, positions and mask from the same tensors (what a CUDA graph needs to
     copy nothing in), and the tokens stay greedy's."""
-    from hf_specvla.speculative.compiled import CompiledVerifier
+    from hf_specvla.speculative.compiled import CALL_WRAPPER_ATTRIBUTE, CompiledVerifier
 
     model = _model("llama")
     config = eager_compile_config()
     fed: dict[tuple, set] = {}
-    original = model.get_compiled_call
 
-    def spied_call(compile_config):
-        call = original(compile_config)
-
-        def spy(**inputs):
-            if not isinstance(inputs["logits_to_keep"], torch.Tensor):  # a round (the prefill keeps a tensor index)
-                tensors = [inputs[name] for name in ("input_ids", "position_ids", "attention_mask")]
-                fed.setdefault(tuple(inputs["input_ids"].shape), set()).add(tuple(t.data_ptr() for t in tensors))
-            return call(**inputs)
+    def spied_round(call):  # the rounds' compiled call, its acceptance in its graph (``speculative.fused``)
+        def spy(inputs, *tensors):
+            fed_tensors = [inputs[name] for name in ("input_ids", "position_ids", "attention_mask")]
+            fed.setdefault(tuple(inputs["input_ids"].shape), set()).add(tuple(t.data_ptr() for t in fed_tensors))
+            return call(inputs, *tensors)
 
         return spy
 
-    monkeypatch.setattr(model, "get_compiled_call", spied_call)
+    monkeypatch.setattr(model, CALL_WRAPPER_ATTRIBUTE, spied_round, raising=False)
     rounds = []
     for seed in range(3):
         input_ids = torch.randint(6, 64, (1, 6), generator=torch.Generator().manual_seed(seed))

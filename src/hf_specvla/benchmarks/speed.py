@@ -359,8 +359,9 @@ class ForwardClock:
 
     A compiled model call (transformers' ``get_compiled_call``: its compiled greedy decoding, our compiled
     verifications) runs the hooks only while it is traced, so the clock also times every call of the compiled
-    function from outside (``model.get_compiled_call`` is wrapped on this instance); such a call counts as a language
-    forward (it is the whole model call: the language model and its head).
+    function from outside (``model.get_compiled_call`` is wrapped on this instance, and so is the engine's compiled
+    round whose graph holds the acceptance too, ``speculative.CALL_WRAPPER_ATTRIBUTE``); such a call counts
+    as a language forward (it is the whole model call: the language model and its head, and that acceptance).
 
     Args:
         model: a Llava-style model (``model.model.vision_tower`` / ``.language_model``, or the same on ``model``).
@@ -381,11 +382,11 @@ class ForwardClock:
         self._time_compiled_calls(model)
 
     def _time_compiled_calls(self, model) -> None:
+        from ..speculative import CALL_WRAPPER_ATTRIBUTE
+
         original = model.get_compiled_call
 
-        def get_compiled_call(compile_config):
-            compiled = original(compile_config)
-
+        def timed(compiled):
             def timed_call(*args, **kwargs):
                 start = time.perf_counter()
                 output = compiled(*args, **kwargs)
@@ -394,7 +395,8 @@ class ForwardClock:
 
             return timed_call
 
-        model.get_compiled_call = get_compiled_call
+        model.get_compiled_call = lambda compile_config: timed(original(compile_config))
+        setattr(model, CALL_WRAPPER_ATTRIBUTE, timed)  # the engine's own compiled rounds (forward + acceptance)
 
     def reset(self) -> None:
         self.vision_seconds, self.language_seconds = 0.0, []  # one entry per language-model forward

@@ -26,7 +26,14 @@ from .compat import (
     cache_of,
     check_transformers_support,
 )
-from .compiled import NODE_BUCKETS, SLOT_MULTIPLE, compiled_decoding_kwargs, compiles_verification, verification_width
+from .compiled import (
+    CALL_WRAPPER_ATTRIBUTE,
+    NODE_BUCKETS,
+    SLOT_MULTIPLE,
+    compiled_decoding_kwargs,
+    compiles_verification,
+    verification_width,
+)
 from .config import SpeculationConfig
 from .configuration_draft_head import DraftHeadConfig
 from .drafter import (
@@ -71,6 +78,7 @@ from .weights import named_weight_errors
 
 __all__ = [
     "CACHE_KEY",
+    "CALL_WRAPPER_ATTRIBUTE",
     "NEWEST_TESTED_TRANSFORMERS",
     "OLDEST_TESTED_TRANSFORMERS",
     "SUPPORTED_TRANSFORMERS",

@@ -582,6 +582,18 @@ def accept_trees(
         tokens, trees.ancestor_or_self, trees.parents, trees.depths, trees.is_real, target_ids, prior, earlier,
         top1_probs, rule, action_layout,
     ).tolist()  # fmt: skip
+    return read_paths(packed, trees)
+
+
+def read_paths(packed: list[list[int]], trees: TreeBatch) -> list[AcceptedPath]:
+    """The rows' [`AcceptedPath`]s from [`search_paths`]'s packed rows (read from the device in one go, by
+    [`accept_trees`] or from a compiled round's graph); a tree drafted on the device learns its tokens and parents
+    from them.
+
+    Args:
+        packed: per row, ``5 N + 2`` ints (N = ``trees.num_nodes``, see [`search_paths`]).
+    """
+    num_nodes = trees.num_nodes
     paths = []
     for row, tree in zip(packed, trees.trees):
         row_on_path, row_distances, bonus = row[:num_nodes], row[num_nodes : 2 * num_nodes], row[2 * num_nodes]

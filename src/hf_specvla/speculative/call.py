@@ -43,6 +43,7 @@ from .drafter import (
     Drafter,
     PerRowDrafter,
 )
+from .fused import GraphAcceptance, accepts_in_graph, eos_hiding
 from .outputs import SpeculativeDecoderOnlyOutput
 from .state import DecodeState, RoundPlan, RowState, SpeculativeCall, Stopwatch
 from .stats import SpeculationStats
@@ -413,7 +414,7 @@ def prepare(
     state = DecodeState(rows, prompt_ids, prompt_positions, position_offsets,
                         None if prompt_padding is None else prompt_padding.bool(), cache)  # fmt: skip
     plan, prefill_key = _round_plan(model, generation_config, settings, drafter, rule, layout, verifier, model_inputs,
-                                    position_offsets, past_length, num_new, input_ids)  # fmt: skip
+                                    position_offsets, past_length, num_new, input_ids, logits_processor)  # fmt: skip
     return SpeculativeCall(
         state, plan, list(rows), stats, Stopwatch(stats, input_ids.device, settings.profile_speculation),
         model_inputs, (prompt_ids, prompt_positions), prefill_key, past_length, cached_tokens,
@@ -424,7 +425,8 @@ def prepare(
 
 
 def _round_plan(model, generation_config, settings, drafter, rule, layout, verifier, model_inputs, position_offsets,
-                past_length: int, num_new: int, input_ids) -> tuple[RoundPlan, tuple | None]:  # fmt: skip
+                past_length: int, num_new: int, input_ids,
+                logits_processor) -> tuple[RoundPlan, tuple | None]:  # fmt: skip
     """What every round reads ([`RoundPlan`]), and the compiled prefill graph this call can use (None: eager)."""
     cache = model_inputs[CACHE_KEY]
     capacity = static_capacity(cache)
@@ -436,6 +438,15 @@ def _round_plan(model, generation_config, settings, drafter, rule, layout, verif
     if verifier is not None and not prefix_attention and position_offsets is None and not past_length:
         prefill_key = verifier.prefill_key(capacity, output_hidden, num_new, input_ids.shape[0])
     return_dict = generation_config.return_dict_in_generate
+    keep_scores = bool(return_dict and generation_config.output_scores)
+    keep_logits = bool(return_dict and generation_config.output_logits)
+    sampling = bool(generation_config.do_sample)
+    acceptance = None  # a compiled round's acceptance inside its forward's graph, where it can go
+    if verifier is not None and accepts_in_graph(rule, sampling, keep_scores, keep_logits, position_offsets):
+        eos = eos_hiding(logits_processor, input_ids.device)
+        if eos is not None:
+            acceptance = GraphAcceptance(verifier.accepting_call(model, output_hidden), *eos, model,
+                                         output_hidden, verifier.guarded_rounds)  # fmt: skip
     plan = RoundPlan(
         max_length=generation_config.max_length,
         rule=rule,
@@ -449,9 +460,11 @@ def _round_plan(model, generation_config, settings, drafter, rule, layout, verif
         buckets=buckets_up_to(_widest_tree(drafter, generation_config.max_length - input_ids.shape[1] - 1, settings)),
         prefix_attention=prefix_attention,
         max_drafts=settings.max_drafts_per_row,
-        keep_scores=bool(return_dict and generation_config.output_scores),
-        keep_logits=bool(return_dict and generation_config.output_logits),
-        sampling=bool(generation_config.do_sample),
+        keep_scores=keep_scores,
+        keep_logits=keep_logits,
+        sampling=sampling,
+        acceptance=acceptance,
+        dtype=model.dtype,
     )
     return plan, prefill_key
 

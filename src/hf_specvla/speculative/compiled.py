@@ -35,6 +35,7 @@ from transformers.cache_utils import Cache
 
 from .cache import STATIC_LAYER_TYPES, cache_batch_size, cache_length, preserved_entries, truncate_cache
 from .compat import CACHE_KEY
+from .fused import GraphAcceptance, accepting_forward
 from .tree import DraftTree, TreeBatch
 from .verify import InputBuffers, verify_trees
 
@@ -52,6 +53,11 @@ SLOT_MULTIPLE = 64
 _GRAPHS_BESIDE_OURS = 16
 
 _DEVICES_COMPILED_BY_DEFAULT = ("cuda", "xpu", "neuron", "tpu")
+
+#: a model attribute a clock may set: ``wrap(call) -> call``, applied to every compiled call the engine makes of its
+#: own around the model's forward (a round's forward with its acceptance, ``speculative.fused``), as the clock wraps
+#: transformers' ``get_compiled_call`` for the rest (``benchmarks.speed.ForwardClock``)
+CALL_WRAPPER_ATTRIBUTE = "_hf_specvla_wrap_compiled_call"
 
 
 def compiled_decoding_kwargs(device_type: str = "cpu") -> dict:
@@ -178,6 +184,10 @@ class CompiledVerifier:
         #: (batch size, query tokens, slots, dtype, device) -> the rounds' input tensors ([`input_buffers`])
         self.buffers: dict[tuple, InputBuffers] = {}
         self.drafting_compiled: set[tuple] = set()  # drafters' work compiled up front ([`compile_once`])
+        #: hidden states returned -> the round's forward and acceptance as one function ([`accepting_call`])
+        self.accepting: dict[tuple[int, ...] | None, Callable] = {}
+        #: the accepting rounds' input keys already run with every guard ([`GraphAcceptance`])
+        self.guarded_rounds: set[tuple] = set()
 
     @classmethod
     def for_model(cls, model: PreTrainedModel, compile_config) -> CompiledVerifier:
@@ -231,6 +241,17 @@ class CompiledVerifier:
         if function not in self.functions:
             self.functions[function] = torch.compile(function, **self.compile_config.to_dict())
         return self.functions[function]
+
+    def accepting_call(self, model: PreTrainedModel, output_hidden: tuple[int, ...] | None) -> Callable:
+        """The compiled round whose graph holds the forward and the acceptance ([`accepting_forward`]; one function
+        per ``output_hidden``, one graph per batch size and width), wrapped by the model's clock when it has one
+        ([`CALL_WRAPPER_ATTRIBUTE`])."""
+        function = self.accepting.get(output_hidden)
+        if function is None:
+            function = self.accepting[output_hidden] = accepting_forward(model, output_hidden)
+        compiled = self.compiled_function(function, len(NODE_BUCKETS))
+        wrap = model.__dict__.get(CALL_WRAPPER_ATTRIBUTE)
+        return compiled if wrap is None else wrap(compiled)
 
     def compile_once(self, key: tuple, compile_all: Callable[[], None]) -> float:
         """Runs ``compile_all`` (throw-away calls that compile every graph a drafter will need) the first time ``key``
@@ -298,22 +319,32 @@ class CompiledVerifier:
     def compile_widths(
         self, model: PreTrainedModel, cache: Cache, pending_ids, pending_positions, key_valid, position_offsets,
         output_hidden, sliding_window: int | None, slots: int, buckets: Sequence[int],
+        acceptance: GraphAcceptance | None = None,
     ) -> float:  # fmt: skip
         """Compiles every bucket width that fits the free slots the first time this model meets ``(slots, hidden
-        states, buckets, batch size)``: one throw-away filler-only verification each, after the committed entries
-        (``pending_ids`` / ``pending_positions`` ``[B, P]``, ``key_valid`` ``[B, C + P]`` or None, as the next round
-        feeds them), each rolled back, so that every graph is compiled before the first action, never mid-episode.
+        states, buckets, batch size, acceptance in the graph or not)``: one throw-away filler-only verification each,
+        after the committed entries (``pending_ids`` / ``pending_positions`` ``[B, P]``, ``key_valid`` ``[B, C + P]``
+        or None, as the next round feeds them), each rolled back, so that every graph is compiled before the first
+        action, never mid-episode. With ``acceptance`` the graphs compiled are the rounds' forward and acceptance
+        ([`accepting_call`]), else the model call's.
 
         Returns:
             the seconds it took (0 when the key was met before).
         """
-        key = (slots, output_hidden, tuple(buckets), cache_batch_size(cache))
+        key = (slots, output_hidden, tuple(buckets), cache_batch_size(cache), acceptance is not None)
         if key in self.widths_compiled:
             return 0.0
         start, length = time.perf_counter(), cache_length(cache)
         widths = [b for b in buckets if b <= slots - length - pending_ids.shape[1]]
-        self.reserve_graphs(len(widths))
+        self.reserve_graphs(len(widths), None if acceptance is None else self.accepting[output_hidden])
         empty = [DraftTree.empty(pending_ids.device)] * pending_ids.shape[0]
+        accept = None
+        if acceptance is not None:
+            lengths = torch.zeros(pending_ids.shape[0], 1, dtype=torch.long, device=pending_ids.device)
+
+            def accept(inputs: dict, trees: TreeBatch):
+                return acceptance(inputs, trees, lengths)
+
         for width in widths:
             buffers = None
             if position_offsets is None:
@@ -322,12 +353,12 @@ class CompiledVerifier:
             verify_trees(model, {CACHE_KEY: cache}, pending_ids, pending_positions,
                          TreeBatch(empty, min_nodes=width), key_valid, output_hidden, sliding_window=sliding_window,
                          position_offsets=position_offsets, key_length=slots, forward=self.call,
-                         buffers=buffers)  # fmt: skip
+                         buffers=buffers, accept=accept)  # fmt: skip
             truncate_cache(cache, length)
         self.widths_compiled.add(key)
         seconds = time.perf_counter() - start
-        logger.info("compiled verification widths %s (%d slots, hidden states %s) in %.1f s", widths, slots,
-                    output_hidden, seconds)  # fmt: skip
+        logger.info("compiled verification widths %s (%d slots, hidden states %s%s) in %.1f s", widths, slots,
+                    output_hidden, ", acceptance in the graph" if acceptance is not None else "", seconds)  # fmt: skip
         return seconds
 
 

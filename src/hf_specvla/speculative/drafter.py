@@ -19,7 +19,7 @@ front are verified at the prefill and a draft head continues from wherever they 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -107,16 +107,27 @@ class Commit:
             (what [`JacobiDrafter`] drafts next).
         path_nodes: the accepted path's node indices in ``tree`` (root's child first).
         tree_target_list: ``tree_target_ids`` on the host (read with the accepted path: no read of its own), or None.
+        kept_inputs: ``() -> (next_token_ids, positions)``, to make them when first read instead (the engine's
+            commits: most drafters never read them, and each is a few device ops a round); then pass None for both.
     """
 
-    next_token_ids: torch.Tensor
-    positions: torch.Tensor
+    next_token_ids: torch.Tensor | None
+    positions: torch.Tensor | None
     target_hidden: torch.Tensor | None
     cache_length: int
     tree: DraftTree | None = None
     tree_target_ids: torch.Tensor | None = None
     path_nodes: list[int] = field(default_factory=list)
     tree_target_list: list[int] | None = None
+    kept_inputs: Callable[[], tuple[torch.Tensor, torch.Tensor]] | None = field(default=None, repr=False)
+
+    def __getattribute__(self, name: str):
+        if name in ("next_token_ids", "positions"):
+            kept = object.__getattribute__(self, "kept_inputs")
+            if kept is not None:  # made on first read
+                self.next_token_ids, self.positions = kept()
+                self.kept_inputs = None
+        return object.__getattribute__(self, name)
 
 
 class DraftSession:

@@ -11,7 +11,7 @@ import torch
 from transformers import LogitsProcessorList, PreTrainedModel, StoppingCriteriaList
 from transformers.generation.stopping_criteria import EosTokenCriteria, MaxLengthCriteria, MaxTimeCriteria
 
-from .acceptance import AcceptedPath, accept_trees, sample_trees
+from .acceptance import AcceptedPath, accept_trees, read_paths, sample_trees
 from .cache import (
     cache_length,
     compact_rows,
@@ -86,25 +86,42 @@ def commit_paths(
             path_tokens = trees.token_ids[b, nodes][None]  # [1, A_b]
             if hidden is not None:
                 kept_hidden = torch.cat([hidden[b : b + 1, :num_pending], hidden[b : b + 1, num_pending + nodes]], 1)
-        bonus = path_tokens.new_full((1, 1), path.bonus_id)
-        path_positions = state.pending_positions[b : b + 1, -1:] + 1 + torch.arange(accepted, device=device)[None]
         row.committed_length += num_pending + accepted
         commits.append(
             Commit(
-                next_token_ids=torch.cat([state.pending_ids[b : b + 1, 1:], path_tokens, bonus], dim=1),
-                positions=torch.cat([state.pending_positions[b : b + 1], path_positions], dim=1),
+                None,
+                None,
                 target_hidden=kept_hidden,
                 cache_length=row.committed_length,
                 tree=trees.trees[b],
                 tree_target_ids=None if target_ids is None else target_ids[b, : 1 + trees.trees[b].num_nodes],
                 path_nodes=path.nodes,
                 tree_target_list=path.target_ids,
+                kept_inputs=_kept_inputs(
+                    state.pending_ids[b : b + 1], state.pending_positions[b : b + 1], path_tokens, path.bonus_id
+                ),  # fmt: skip
             )
         )
-    state.pending_ids = torch.cat([c.next_token_ids[:, -1:] for c in commits])  # [B, 1] the bonus tokens
-    state.pending_positions = torch.cat([c.positions[:, -1:] + 1 for c in commits])
+    # [B, 1] the bonus tokens, at the position after each row's path
+    state.pending_ids = torch.tensor([[p.bonus_id] for p in paths], dtype=state.pending_ids.dtype, device=device)
+    advance = torch.tensor([[len(p.nodes) + 1] for p in paths], dtype=state.pending_positions.dtype, device=device)
+    state.pending_positions = state.pending_positions[:, -1:] + advance
     state.key_valid = None if all_valid else torch.cat([key_valid, key_valid.new_ones(batch_size, 1)], 1)
     return commits
+
+
+def _kept_inputs(pending_ids, pending_positions, path_tokens, bonus_id: int):
+    """A [`Commit`]'s ``kept_inputs``: ``() -> (next_token_ids [1, K], positions [1, K])`` of one row's pending
+    tokens ``[1, P]`` (at ``pending_positions``) and its accepted path's tokens ``[1, A]``, made when a drafter reads
+    them."""
+
+    def make() -> tuple[torch.Tensor, torch.Tensor]:
+        bonus = path_tokens.new_full((1, 1), bonus_id)
+        steps = torch.arange(1, path_tokens.shape[1] + 1, device=pending_positions.device)[None]
+        return (torch.cat([pending_ids[:, 1:], path_tokens, bonus], dim=1),
+                torch.cat([pending_positions, pending_positions[:, -1:] + steps], dim=1))  # fmt: skip
+
+    return make
 
 
 def drop_finished_rows(state: DecodeState, fixed_batch: bool = False) -> None:
@@ -295,8 +312,16 @@ def verify(model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: T
     buffers = None
     if plan.verifier is not None and offsets is None:  # the compiled width's own input tensors
         queries = pending_ids.shape[1] + trees.num_nodes
-        buffers = plan.verifier.input_buffers(pending_ids.shape[0], queries, plan.capacity, model.dtype,
+        buffers = plan.verifier.input_buffers(pending_ids.shape[0], queries, plan.capacity, plan.dtype,
                                               pending_ids.device)  # fmt: skip
+    accept = None
+    if plan.acceptance is not None:  # the forward and the acceptance as one compiled call
+        lengths = in_cache_batch(state, torch.tensor([[row.sequence.shape[1]] for row in state.rows],
+                                                     device=pending_ids.device), 0)  # fmt: skip
+
+        def accept(inputs: dict, batch: TreeBatch):
+            return plan.acceptance(inputs, batch, lengths)
+
     output = verify_trees(
         model,
         {CACHE_KEY: state.target_cache},
@@ -310,11 +335,11 @@ def verify(model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: T
         key_length=plan.capacity,
         forward=None if plan.verifier is None else plan.verifier.call,
         buffers=buffers,
+        accept=accept,
     )
     if state.cache_rows is None:
         return output
-    hidden = None if output.hidden is None else output.hidden[state.cache_rows]
-    return TargetOutput(output.logits[state.cache_rows], hidden)
+    return TargetOutput(*(None if value is None else value[state.cache_rows] for value in output))
 
 
 def accept(
@@ -324,7 +349,12 @@ def accept(
     and bonus token drawn by speculative sampling, [`sample_trees`]).
 
     Returns:
-        (the accepted paths, the target's greedy ids ``[B, 1 + N]``, the processed scores ``[B, 1 + N, V]``)."""
+        (the accepted paths, the target's greedy ids ``[B, 1 + N]``, the processed scores ``[B, 1 + N, V]``, None
+        when the acceptance ran inside the forward's graph)."""
+    if output.accepted is not None:  # decided in the verification's graph: one read of its packed rows
+        num_nodes = trees.num_nodes
+        paths = read_paths(output.accepted.tolist(), trees)
+        return paths, output.accepted[:, 3 * num_nodes + 1 : 4 * num_nodes + 2], None
     target_ids, target_scores = target_greedy_ids(
         logits_processor, [row.sequence for row in state.rows], trees, output.logits
     )
@@ -414,7 +444,7 @@ def prefill(model, call: SpeculativeCall, logits_processor, stopping_criteria) -
     if plan.verifier is not None:  # every width compiled now, and the next call's prefill graph
         stats.compile_seconds = plan.verifier.compile_widths(
             model, state.target_cache, state.pending_ids, state.pending_positions, state.key_valid,
-            state.position_offsets, plan.output_hidden, plan.window, plan.capacity, plan.buckets,
+            state.position_offsets, plan.output_hidden, plan.window, plan.capacity, plan.buckets, plan.acceptance,
         )  # fmt: skip
         if call.prefill_key is not None and plan.compiled_prefill is None:
             stats.compile_seconds += plan.verifier.compile_prefill(

@@ -16,6 +16,7 @@ from .acceptance import AcceptanceRule
 from .cache import cache_batch_size
 from .compiled import CompiledVerifier, PrefillCall
 from .drafter import DraftSession
+from .fused import GraphAcceptance
 from .stats import SpeculationStats
 
 
@@ -102,6 +103,10 @@ class RoundPlan:
     keep_scores: bool
     keep_logits: bool
     sampling: bool = False  # do_sample: the drafts are verified by speculative sampling ([`sample_trees`])
+    #: a compiled round's forward and acceptance as one graph (``speculative.fused``), or None: the rounds verify
+    #: through the compiled model call (or eagerly) and accept after it
+    acceptance: GraphAcceptance | None = None
+    dtype: torch.dtype | None = None  # the target's (read once a call: ``model.dtype`` walks its parameters)
 
 
 @dataclass

@@ -313,6 +313,22 @@ class TreeBatch:
             raise ValueError("TreeBatch needs at least one tree")
         device = self.trees[0].token_ids.device
         n, b = max(self.min_nodes, *(t.num_nodes for t in self.trees)), len(self.trees)
+        if all(t.knows_structure() for t in self.trees):  # the structure's tensors, made once per structure
+            key = (n, device, tuple(tuple(t.host_parents) for t in self.trees))
+            structure = _STRUCTURES.pop(key, None)
+            if structure is None:
+                structure = _padded_structure(self.trees, n, device)
+            _STRUCTURES[key] = structure  # most recently used last
+            if len(_STRUCTURES) > _STRUCTURES_KEPT:
+                del _STRUCTURES[next(iter(_STRUCTURES))]
+            self.parents, self.depths, self.ancestor_or_self, self.is_real = structure
+            if all(t.num_nodes == n for t in self.trees):
+                self.token_ids = torch.stack([t.token_ids for t in self.trees])
+            else:
+                self.token_ids = torch.zeros(b, n, dtype=torch.long, device=device)
+                for row, tree in enumerate(self.trees):
+                    self.token_ids[row, : tree.num_nodes] = tree.token_ids
+            return
         if all(t.num_nodes == n for t in self.trees):  # no filler: the rows' own tensors, stacked
             self.token_ids = torch.stack([t.token_ids for t in self.trees])
             self.parents = torch.stack([t.parents for t in self.trees])
@@ -356,3 +372,32 @@ class TreeBatch:
         """True when every row's tree is a chain (filler after it is harmless under a causal mask, as nothing real
         attends to it): the causal mask then is every row's tree mask."""
         return all(tree.is_chain for tree in self.trees)
+
+
+#: TreeBatch structures (parents, depths, ancestor_or_self, is_real), by (N, device, every row's parents), least
+#: recently used out: a round's trees repeat a few shapes (a Jacobi tail of k tokens padded to its width), so their
+#: structure tensors are made once, never written (every user reads them)
+_STRUCTURES: dict[tuple, tuple[torch.Tensor, ...]] = {}
+_STRUCTURES_KEPT = 256
+
+
+def _padded_structure(trees: Sequence[DraftTree], n: int, device) -> tuple[torch.Tensor, ...]:
+    """(parents ``[B, N]``, depths ``[B, N]``, ancestor_or_self ``[B, N, N]``, is_real ``[B, N]``) of ``trees``
+    padded with filler to ``n`` nodes (see [`TreeBatch`]), from their host structure."""
+    parents = [t.host_parents + [-1] * (n - t.num_nodes) for t in trees]
+    depths = [t.depth_list + [0] * (n - t.num_nodes) for t in trees]
+    ancestors = []
+    for tree in trees:
+        rows = [[j == i for j in range(n)] for i in range(n)]
+        for i, parent in enumerate(tree.host_parents):
+            if parent >= 0:
+                rows[i] = list(rows[parent])
+                rows[i][i] = True
+        ancestors.append(rows)
+    is_real = [[i < t.num_nodes for i in range(n)] for t in trees]
+    return (
+        torch.tensor(parents, dtype=torch.long, device=device).reshape(len(trees), n),
+        torch.tensor(depths, dtype=torch.long, device=device).reshape(len(trees), n),
+        torch.tensor(ancestors, dtype=torch.bool, device=device).reshape(len(trees), n, n),
+        torch.tensor(is_real, dtype=torch.bool, device=device).reshape(len(trees), n),
+    )

@@ -34,10 +34,14 @@ class TargetOutput(NamedTuple):
     Attributes:
         logits: ``[B, 1 + N, V]`` float32 logits after the root (the last pending token) and after each node.
         hidden: ``[B, P + N, H]`` the last hidden state at every pending token and node, or None if not asked.
+        accepted: ``[B, 5 N + 2]`` long, the acceptance decided inside the forward's graph (packed as
+            [`search_paths`] packs it; see ``speculative.fused``), then ``logits`` is None; None when the round
+            accepts after the forward.
     """
 
-    logits: torch.Tensor
+    logits: torch.Tensor | None
     hidden: torch.Tensor | None
+    accepted: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -85,6 +89,7 @@ def verify_trees(
     key_length: int | None = None,
     forward: Callable | None = None,
     buffers: InputBuffers | None = None,
+    accept: Callable[[dict, TreeBatch], tuple[torch.Tensor, torch.Tensor | None]] | None = None,
 ) -> TargetOutput:
     """One target forward over ``[pending tokens ; each row's tree nodes]`` on top of the target cache.
 
@@ -112,6 +117,9 @@ def verify_trees(
             replay).
         buffers: the tensors to write the forward's inputs into (a compiled verification's, of this forward's
             shapes, with ``key_length`` slots and 2D positions); None: new tensors.
+        accept: the forward and the acceptance as one compiled call, ``accept(inputs, trees) -> (packed, hidden)``
+            (``speculative.fused``: a compiled round's), run instead of ``forward``; the output then holds the
+            packed acceptance, no logits.
     Returns:
         [`TargetOutput`] with logits ``[B, 1 + N, V]`` and hidden states ``[B, P + N, n H]`` (n layers).
     """
@@ -132,7 +140,7 @@ def verify_trees(
         inputs["position_ids"] = torch.cat([pending, node_positions[None] + position_offsets], dim=-1)  # [K, B, P + N]
     past_length = cache_length(model_inputs[CACHE_KEY])
     within_window = sliding_window is None or past_length + num_pending + num_nodes <= sliding_window
-    if trees.is_causal and within_window and forward is None:
+    if trees.is_causal and within_window and forward is None and accept is None:
         # Chains (or no drafts): the causal mask is every tree mask, so the model builds its own mask (the kernels a
         # plain decoding step uses; in bf16 an explicit 4D mask selects other kernels, whose rounding can flip a
         # near-tied argmax away from plain greedy decoding's). Invalid keys go in a 2D mask, as generate passes.
@@ -145,10 +153,14 @@ def verify_trees(
         allowed = tree_verification_allowed(past_length, num_pending, trees.ancestor_or_self, key_valid)
         if key_length is not None:  # [B, q, key_length]: the free slots after the new entries are hidden
             allowed = torch.nn.functional.pad(allowed, (0, key_length - allowed.shape[-1]), value=False)
-        mask = None if buffers is None else buffers.attention_mask
-        inputs["attention_mask"] = to_additive_mask(allowed, model.dtype, out=mask)
+        mask = None if buffers is None else buffers.attention_mask  # (a buffer has the model's dtype: no lookup)
+        inputs["attention_mask"] = to_additive_mask(allowed, model.dtype if mask is None else mask.dtype, out=mask)
     inputs["logits_to_keep"] = num_nodes + 1
     inputs["use_cache"] = True
+    if accept is not None:  # copies: a CUDA graph's outputs are overwritten by its next replay
+        accepted, hidden = accept(inputs, trees)
+        note_appended(model_inputs[CACHE_KEY], num_pending + num_nodes)
+        return TargetOutput(None, None if hidden is None else hidden.clone(), accepted.clone())
     outputs = (forward or model)(**inputs, output_hidden_states=bool(output_hidden), return_dict=True)
     note_appended(model_inputs[CACHE_KEY], num_pending + num_nodes)
     logits, hidden = outputs.logits.float(), None
