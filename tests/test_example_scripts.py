@@ -308,3 +308,16 @@ def test_host_overhead_benchmark_small_mode(tmp_path):
         assert parts["target_forwards"] > 0 and all(value >= 0 for value in parts.values())
     summary = report["summary"]
     assert summary["greedy_step_ms"] > 0 and summary["right_drafts_call_over_greedy_2"] > 0
+
+
+@pytest.mark.slow
+def test_compiled_round_benchmark_compares_the_acceptance_in_and_after_the_graph(tmp_path):
+    """The tiny mode of the before / after benchmark: both variants of every speculative method timed (their tokens
+    checked against greedy's inside the script), and --plain refused without a policy."""
+    output = tmp_path / "round.json"
+    run_example("benchmarks/compiled_round.py", "--rounds", 3, "--json", str(output), timeout=900)
+    rows = {row["method"]: row for row in json.loads(output.read_text())["rows"]}
+    assert set(rows) == {"jacobi", "drafts right", "jacobi B=4"}
+    assert all(row["ms_in_graph"] > 0 and row["ms_after"] > 0 for row in rows.values())
+    refused = run_example("benchmarks/compiled_round.py", "--plain", timeout=120, check=False)
+    assert refused.returncode == 2 and "--plain needs --policy" in refused.stderr

@@ -10,7 +10,9 @@ model call (as before), interleaved in a fresh random order with transformers' c
   eager greedy, with where the time goes (``ForwardClock``: vision, prefill, later forwards, drafting, rest).
 
     python examples/benchmarks/compiled_round.py --json round_tiny.json                     # ~2 min
-    python examples/benchmarks/compiled_round.py --policy policies/mt10_vla3 --json round_v3.json   # ~4 min
+    python examples/benchmarks/compiled_round.py --policy policies/mt10_vla3 --json round_v3.json   # ~2 min
+    PYTHONPATH=<checkout of another commit>/src python examples/benchmarks/compiled_round.py --policy \
+        policies/mt10_vla3 --plain --json before.json      # greedy, greedy:compile, exact on that engine
 
 Both variants' tokens are checked against greedy's (bin distance 0 on the policy).
 """
@@ -32,7 +34,7 @@ import hf_specvla.speculative.call as speculative_call
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-ORIGINAL = speculative_call.accepts_in_graph
+ORIGINAL = getattr(speculative_call, "accepts_in_graph", None)  # None: an engine from before the compiled round
 IN_GRAPH = {"on": True}
 
 
@@ -71,7 +73,7 @@ def tiny(rounds: int) -> dict:
     return {"rows": rows}
 
 
-def policy(path: str, tasks: list[str], steps: int, repeats: int) -> dict:
+def policy(path: str, tasks: list[str], steps: int, repeats: int, plain: bool) -> dict:
     from hf_specvla.benchmarks.speed import EpisodeMethod, ForwardClock, policy_actor, run_episode_benchmark
     from hf_specvla.metaworld.evaluation import record_observations
     from hf_specvla.policies import DecodingMethod, VLAPolicy
@@ -87,9 +89,12 @@ def policy(path: str, tasks: list[str], steps: int, repeats: int) -> dict:
 
     exact = DecodingMethod.parse("exact", False, target.config.action_dim).generate_kwargs(draft_head=None)
     prior = bool(exact.pop("action_prior", True))
-    methods = [EpisodeMethod("greedy"), EpisodeMethod("greedy:compile", compiled_decoding_kwargs("cpu")),
-               EpisodeMethod("exact, acceptance in the graph", {**exact, "_in_graph": True}, prior),
-               EpisodeMethod("exact, acceptance after the forward", {**exact, "_in_graph": False}, prior)]  # fmt: skip
+    methods = [EpisodeMethod("greedy"), EpisodeMethod("greedy:compile", compiled_decoding_kwargs("cpu"))]
+    if plain:
+        methods.append(EpisodeMethod("exact", exact, prior))
+    else:
+        for name, in_graph in (("in the graph", True), ("after the forward", False)):
+            methods.append(EpisodeMethod(f"exact, acceptance {name}", {**exact, "_in_graph": in_graph}, prior))
     results = run_episode_benchmark(act, episodes, methods, target.config.action_tokens, repeats=repeats,
                                     clock=ForwardClock(target.model), progress=False)  # fmt: skip
     compiled = next(r for r in results if r.name == "greedy:compile")
@@ -100,6 +105,7 @@ def policy(path: str, tasks: list[str], steps: int, repeats: int) -> dict:
             "method": result.name, "median_ms": 1000 * statistics.median(result.latencies),
             "vs_greedy_compile_median": statistics.median(compiled.latencies) / statistics.median(result.latencies),
             "vs_greedy_compile_total": sum(compiled.latencies) / sum(result.latencies),
+            "vs_greedy_total": sum(results[0].latencies) / sum(result.latencies),
             "target_forwards_per_call": statistics.mean(result.target_forwards),
             "max_bin_distance": max(result.bin_distances, default=0),
             "split_ms": {part: 1000 * seconds / calls for part, seconds in result.split_seconds.items()},
@@ -115,14 +121,23 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=20, help="steps recorded per task (policy)")
     parser.add_argument("--repeats", type=int, default=3, help="passes over the episodes (policy)")
     parser.add_argument("--rounds", type=int, default=300, help="interleaved rounds (tiny)")
+    parser.add_argument("--plain", action="store_true",
+                        help="policy: greedy, greedy:compile and exact only, no switch (runs on any engine version: "
+                             "PYTHONPATH=<another checkout>/src for a before / after across commits)")  # fmt: skip
     parser.add_argument("--json", default=None, help="also write the results here")
     args = parser.parse_args()
     for name in ("steps", "repeats", "rounds"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    if args.plain and args.policy is None:
+        parser.error("--plain needs --policy")
+    if ORIGINAL is None and not args.plain:
+        parser.error("this engine has no compiled round's acceptance to switch: run with --policy ... --plain")
     torch.set_num_threads(1)
-    speculative_call.accepts_in_graph = _switchable
-    result = tiny(args.rounds) if args.policy is None else policy(args.policy, args.tasks, args.steps, args.repeats)
+    if not args.plain:
+        speculative_call.accepts_in_graph = _switchable
+    result = (tiny(args.rounds) if args.policy is None
+              else policy(args.policy, args.tasks, args.steps, args.repeats, args.plain))  # fmt: skip
     result.update(torch=torch.__version__, transformers=transformers.__version__, settings=vars(args))
     print(json.dumps(result["rows"], indent=1))
     if args.json:
