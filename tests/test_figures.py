@@ -10,7 +10,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from hf_specvla.metaworld.comparison import figures
@@ -177,5 +176,6 @@ def test_the_serving_ratios_are_of_the_medians_as_the_serving_table():
     table = figures.load(figures.SERVING, RESULTS)["table"]
     for robots in (1, 2, 4, 8, 16):
         ratio, repeats = figures._throughput_ratios(RESULTS, robots)
-        assert f"| {robots} | adaptive |" in table and f"| {ratio:.2f}x |" in table
-        assert len(repeats) == 3 and np.min(repeats) <= ratio * 1.1
+        row = next(line for line in table.splitlines() if line.startswith(f"| {robots} | adaptive |"))
+        assert f"| {ratio:.2f}x [{min(repeats):.2f}x-{max(repeats):.2f}x] |" in row, row
+        assert len(repeats) == 3
