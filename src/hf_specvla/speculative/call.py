@@ -446,7 +446,8 @@ def _round_plan(model, generation_config, settings, drafter, rule, layout, verif
         eos = eos_hiding(logits_processor, input_ids.device)
         if eos is not None:
             acceptance = GraphAcceptance(verifier.accepting_call(model, output_hidden), *eos, model,
-                                         output_hidden, verifier.guarded_rounds)  # fmt: skip
+                                         output_hidden, verifier.guarded_rounds,
+                                         verifier.always_guarded_rounds)  # fmt: skip
     plan = RoundPlan(
         max_length=generation_config.max_length,
         rule=rule,

@@ -188,6 +188,7 @@ class CompiledVerifier:
         self.accepting: dict[tuple[int, ...] | None, Callable] = {}
         #: the accepting rounds' input keys already run with every guard ([`GraphAcceptance`])
         self.guarded_rounds: set[tuple] = set()
+        self.always_guarded_rounds: set[tuple] = set()  # ... and those that keep every guard (sliding windows)
 
     @classmethod
     def for_model(cls, model: PreTrainedModel, compile_config) -> CompiledVerifier:

@@ -104,6 +104,7 @@ class GraphAcceptance:
         model: the target (its attention implementation and training mode are part of the key).
         output_hidden: the hidden states the function returns (which function: part of the key).
         guarded: the keys already run with every guard (the verifier's set: forgotten with its graphs).
+        always_guarded: the keys whose rounds keep every guard (the verifier's set).
     """
 
     call: Callable
@@ -112,6 +113,7 @@ class GraphAcceptance:
     model: object = None
     output_hidden: tuple[int, ...] | None = None
     guarded: set = field(default_factory=set)
+    always_guarded: set = field(default_factory=set)
 
     def __call__(self, inputs: dict, trees: TreeBatch, lengths: torch.Tensor):
         """(packed ``[B, 5 N + 2]``, hidden or None) for one verification: ``lengths`` ``[B, 1]`` the rows' sequence
@@ -122,8 +124,6 @@ class GraphAcceptance:
         key = (self.output_hidden, tuple(mask.shape), mask.dtype, mask.device, tuple(trees.token_ids.shape),
                id(inputs[CACHE_KEY]), getattr(self.model.config, "_attn_implementation", None), self.model.training,
                torch.is_grad_enabled(), torch.is_autocast_enabled())  # fmt: skip
-        if key not in self.guarded and not _only_static_layers(inputs[CACHE_KEY]):
-            self.guarded.add(("recompiles", key))  # a layer with state of its own on the host: always guarded
         if key in self.guarded and _may_skip_guards():
             try:
                 with torch.compiler.set_stance("default", skip_guard_eval_unsafe=True):
@@ -131,12 +131,14 @@ class GraphAcceptance:
             except RuntimeError as error:  # no graph fits: raised before the function runs (nothing was done)
                 if "skip_guard_eval_unsafe" not in str(error):
                     raise
-                self.guarded.discard(key)  # a key whose graphs depend on more (a sliding window's length): guarded
-                self.guarded.add(("recompiles", key))
-                return self.call(*arguments)
+                self.guarded.discard(key)  # a key whose graphs depend on more (a sliding window's length)
+                self.always_guarded.add(key)
         result = self.call(*arguments)
-        if ("recompiles", key) not in self.guarded:
-            self.guarded.add(key)
+        if key not in self.always_guarded:
+            if _only_static_layers(inputs[CACHE_KEY]):
+                self.guarded.add(key)
+            else:  # a layer with state of its own on the host: its graphs differ by more than their inputs' shapes
+                self.always_guarded.add(key)
         return result
 
 

@@ -313,41 +313,23 @@ class TreeBatch:
             raise ValueError("TreeBatch needs at least one tree")
         device = self.trees[0].token_ids.device
         n, b = max(self.min_nodes, *(t.num_nodes for t in self.trees)), len(self.trees)
-        if all(t.knows_structure() for t in self.trees):  # the structure's tensors, made once per structure
-            key = (n, device, tuple(tuple(t.host_parents) for t in self.trees))
-            structure = _STRUCTURES.pop(key, None)
-            if structure is None:
-                structure = _padded_structure(self.trees, n, device)
-            _STRUCTURES[key] = structure  # most recently used last
-            if len(_STRUCTURES) > _STRUCTURES_KEPT:
-                del _STRUCTURES[next(iter(_STRUCTURES))]
-            self.parents, self.depths, self.ancestor_or_self, self.is_real = structure
-            if all(t.num_nodes == n for t in self.trees):
-                self.token_ids = torch.stack([t.token_ids for t in self.trees])
-            else:
-                self.token_ids = torch.zeros(b, n, dtype=torch.long, device=device)
-                for row, tree in enumerate(self.trees):
-                    self.token_ids[row, : tree.num_nodes] = tree.token_ids
-            return
         if all(t.num_nodes == n for t in self.trees):  # no filler: the rows' own tensors, stacked
             self.token_ids = torch.stack([t.token_ids for t in self.trees])
-            self.parents = torch.stack([t.parents for t in self.trees])
-            self.depths = torch.stack([t.depths for t in self.trees])
-            self.ancestor_or_self = torch.stack([t.ancestor_or_self for t in self.trees])
-            self.is_real = torch.ones(b, n, dtype=torch.bool, device=device)
+        else:
+            self.token_ids = torch.zeros(b, n, dtype=torch.long, device=device)
+            for row, tree in enumerate(self.trees):
+                self.token_ids[row, : tree.num_nodes] = tree.token_ids
+        if not all(t.knows_structure() for t in self.trees):  # a structure on the device: derived there
+            self.parents, self.depths, self.ancestor_or_self, self.is_real = _padded_structure(self.trees, n, device)
             return
-        self.token_ids = torch.zeros(b, n, dtype=torch.long, device=device)
-        self.parents = torch.full((b, n), -1, dtype=torch.long, device=device)
-        self.depths = torch.zeros(b, n, dtype=torch.long, device=device)
-        self.ancestor_or_self = torch.eye(n, dtype=torch.bool, device=device).repeat(b, 1, 1)
-        for row, tree in enumerate(self.trees):
-            k = tree.num_nodes
-            self.token_ids[row, :k] = tree.token_ids
-            self.parents[row, :k] = tree.parents
-            self.depths[row, :k] = tree.depths
-            self.ancestor_or_self[row, :k, :k] = tree.ancestor_or_self
-        num_real = torch.tensor([t.num_nodes for t in self.trees], device=device)
-        self.is_real = torch.arange(n, device=device)[None] < num_real[:, None]
+        key = (n, device, tuple(tuple(t.host_parents) for t in self.trees))  # made once per structure
+        structure = _STRUCTURES.pop(key, None)
+        if structure is None:
+            structure = _padded_structure(self.trees, n, device)
+        _STRUCTURES[key] = structure  # most recently used last
+        if len(_STRUCTURES) > _STRUCTURES_KEPT:
+            del _STRUCTURES[next(iter(_STRUCTURES))]
+        self.parents, self.depths, self.ancestor_or_self, self.is_real = structure
 
     @property
     def num_nodes(self) -> int:
@@ -383,21 +365,22 @@ _STRUCTURES_KEPT = 256
 
 def _padded_structure(trees: Sequence[DraftTree], n: int, device) -> tuple[torch.Tensor, ...]:
     """(parents ``[B, N]``, depths ``[B, N]``, ancestor_or_self ``[B, N, N]``, is_real ``[B, N]``) of ``trees``
-    padded with filler to ``n`` nodes (see [`TreeBatch`]), from their host structure."""
-    parents = [t.host_parents + [-1] * (n - t.num_nodes) for t in trees]
-    depths = [t.depth_list + [0] * (n - t.num_nodes) for t in trees]
-    ancestors = []
-    for tree in trees:
-        rows = [[j == i for j in range(n)] for i in range(n)]
-        for i, parent in enumerate(tree.host_parents):
-            if parent >= 0:
-                rows[i] = list(rows[parent])
-                rows[i][i] = True
-        ancestors.append(rows)
-    is_real = [[i < t.num_nodes for i in range(n)] for t in trees]
-    return (
-        torch.tensor(parents, dtype=torch.long, device=device).reshape(len(trees), n),
-        torch.tensor(depths, dtype=torch.long, device=device).reshape(len(trees), n),
-        torch.tensor(ancestors, dtype=torch.bool, device=device).reshape(len(trees), n, n),
-        torch.tensor(is_real, dtype=torch.bool, device=device).reshape(len(trees), n),
-    )
+    padded with filler to ``n`` nodes (see [`TreeBatch`]), from each tree's own tensors."""
+    b = len(trees)
+    if all(t.num_nodes == n for t in trees):  # no filler: the rows' own tensors, stacked
+        return (
+            torch.stack([t.parents for t in trees]),
+            torch.stack([t.depths for t in trees]),
+            torch.stack([t.ancestor_or_self for t in trees]),
+            torch.ones(b, n, dtype=torch.bool, device=device),
+        )
+    parents = torch.full((b, n), -1, dtype=torch.long, device=device)
+    depths = torch.zeros(b, n, dtype=torch.long, device=device)
+    ancestor_or_self = torch.eye(n, dtype=torch.bool, device=device).repeat(b, 1, 1)
+    for row, tree in enumerate(trees):
+        k = tree.num_nodes
+        parents[row, :k] = tree.parents
+        depths[row, :k] = tree.depths
+        ancestor_or_self[row, :k, :k] = tree.ancestor_or_self
+    is_real = torch.arange(n, device=device)[None] < torch.tensor([t.num_nodes for t in trees], device=device)[:, None]
+    return parents, depths, ancestor_or_self, is_real
