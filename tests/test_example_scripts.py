@@ -320,4 +320,4 @@ def test_compiled_round_benchmark_compares_the_acceptance_in_and_after_the_graph
     assert set(rows) == {"jacobi", "drafts right", "jacobi B=4"}
     assert all(row["ms_in_graph"] > 0 and row["ms_after"] > 0 for row in rows.values())
     refused = run_example("benchmarks/compiled_round.py", "--plain", timeout=120, check=False)
-    assert refused.returncode == 2 and "--plain needs --policy" in refused.stderr
+    assert refused.returncode == 2 and "--plain and --call-work need --policy" in refused.stderr

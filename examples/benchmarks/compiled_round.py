@@ -8,11 +8,14 @@ model call (as before), interleaved in a fresh random order with transformers' c
 * ``--policy DIR``: a Meta-World policy (policy v3: ``policies/mt10_vla3``) replaying its own greedy episodes
   (MT10's first ``--tasks``, ``--steps`` steps, ``--repeats`` passes), ``exact`` against ``greedy:compile`` and
   eager greedy, with where the time goes (``ForwardClock``: vision, prefill, later forwards, drafting, rest).
+  ``--call-work`` switches instead what a compiled call does once (the image encoder compiled,
+  ``speculative.vision``; the r=0 acceptance of host-drafted trees on the host), each off in turn.
 
     python examples/benchmarks/compiled_round.py --json round_tiny.json                     # ~2 min
     python examples/benchmarks/compiled_round.py --policy policies/mt10_vla3 --json round_v3.json   # ~2 min
     PYTHONPATH=<checkout of another commit>/src python examples/benchmarks/compiled_round.py --policy \
         policies/mt10_vla3 --plain --json before.json      # greedy, greedy:compile, exact on that engine
+    python examples/benchmarks/compiled_round.py --policy policies/mt10_vla3 --call-work --json work.json  # ~4 min
 
 Both variants' tokens are checked against greedy's (bin distance 0 on the policy).
 """
@@ -36,6 +39,28 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 ORIGINAL = getattr(speculative_call, "accepts_in_graph", None)  # None: an engine from before the compiled round
 IN_GRAPH = {"on": True}
+
+
+def _call_work_switch():
+    """(set(vision, host) -> None): switches the compiled image encoder (``speculative.vision``) and the r=0
+    acceptance of host-drafted trees on the host (``acceptance.exact_paths_on_host``, off: the device search) for the
+    calls that follow."""
+    import hf_specvla.speculative.acceptance as acceptance
+    import hf_specvla.speculative.generation as generation
+
+    encoder, on_host = generation.with_compiled_image_features, acceptance.exact_paths_on_host
+
+    def device_search(trees, target_ids):
+        packed = acceptance.search_paths(trees.token_ids, trees.ancestor_or_self, trees.parents, trees.depths,
+                                         trees.is_real, target_ids, None, None, None, acceptance.ExactMatch(),
+                                         None)  # fmt: skip
+        return acceptance.read_paths(packed.tolist(), trees)
+
+    def switch(vision: bool, host: bool) -> None:
+        generation.with_compiled_image_features = encoder if vision else (lambda model, kwargs: kwargs)
+        acceptance.exact_paths_on_host = on_host if host else device_search
+
+    return switch
 
 
 def _switchable(*args) -> bool:
@@ -73,7 +98,7 @@ def tiny(rounds: int) -> dict:
     return {"rows": rows}
 
 
-def policy(path: str, tasks: list[str], steps: int, repeats: int, plain: bool) -> dict:
+def policy(path: str, tasks: list[str], steps: int, repeats: int, plain: bool, call_work: bool = False) -> dict:
     from hf_specvla.benchmarks.speed import EpisodeMethod, ForwardClock, policy_actor, run_episode_benchmark
     from hf_specvla.metaworld.evaluation import record_observations
     from hf_specvla.policies import DecodingMethod, VLAPolicy
@@ -83,8 +108,12 @@ def policy(path: str, tasks: list[str], steps: int, repeats: int, plain: bool) -
     episodes = record_observations(target, tasks, [300000], steps)
     base = policy_actor(target)
 
-    def act(observation, history, prior, _in_graph=True, **kwargs):
+    switch = _call_work_switch() if call_work else None
+
+    def act(observation, history, prior, _in_graph=True, _vision=True, _host=True, **kwargs):
         IN_GRAPH["on"] = _in_graph
+        if switch is not None:
+            switch(_vision, _host)
         return base(observation, history, prior, **kwargs)
 
     exact = DecodingMethod.parse("exact", False, target.config.action_dim).generate_kwargs(draft_head=None)
@@ -92,6 +121,11 @@ def policy(path: str, tasks: list[str], steps: int, repeats: int, plain: bool) -
     methods = [EpisodeMethod("greedy"), EpisodeMethod("greedy:compile", compiled_decoding_kwargs("cpu"))]
     if plain:
         methods.append(EpisodeMethod("exact", exact, prior))
+    elif call_work:
+        for name, vision, host in (("exact", True, True), ("exact, eager image encoder", False, True),
+                                   ("exact, acceptance on the device", True, False),
+                                   ("exact, both off (before)", False, False)):  # fmt: skip
+            methods.append(EpisodeMethod(name, {**exact, "_vision": vision, "_host": host}, prior))
     else:
         for name, in_graph in (("in the graph", True), ("after the forward", False)):
             methods.append(EpisodeMethod(f"exact, acceptance {name}", {**exact, "_in_graph": in_graph}, prior))
@@ -124,20 +158,25 @@ def main() -> None:
     parser.add_argument("--plain", action="store_true",
                         help="policy: greedy, greedy:compile and exact only, no switch (runs on any engine version: "
                              "PYTHONPATH=<another checkout>/src for a before / after across commits)")  # fmt: skip
+    parser.add_argument("--call-work", action="store_true",
+                        help="policy: exact with the compiled image encoder and the r=0 acceptance on the host "
+                             "switched off in turn, interleaved (what each saves a call)")  # fmt: skip
     parser.add_argument("--json", default=None, help="also write the results here")
     args = parser.parse_args()
     for name in ("steps", "repeats", "rounds"):
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
-    if args.plain and args.policy is None:
-        parser.error("--plain needs --policy")
+    if (args.plain or args.call_work) and args.policy is None:
+        parser.error("--plain and --call-work need --policy")
+    if args.plain and args.call_work:
+        parser.error("--plain and --call-work are two different runs: pick one")
     if ORIGINAL is None and not args.plain:
         parser.error("this engine has no compiled round's acceptance to switch: run with --policy ... --plain")
     torch.set_num_threads(1)
-    if not args.plain:
+    if not args.plain and not args.call_work:
         speculative_call.accepts_in_graph = _switchable
     result = (tiny(args.rounds) if args.policy is None
-              else policy(args.policy, args.tasks, args.steps, args.repeats, args.plain))  # fmt: skip
+              else policy(args.policy, args.tasks, args.steps, args.repeats, args.plain, args.call_work))  # fmt: skip
     result.update(torch=torch.__version__, transformers=transformers.__version__, settings=vars(args))
     print(json.dumps(result["rows"], indent=1))
     if args.json:

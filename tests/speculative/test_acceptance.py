@@ -395,3 +395,53 @@ def test_the_acceptance_compiles_into_one_graph_that_finds_the_eager_paths(units
             compared += 1
             relaxed += int(eager[:, width : 2 * width].bool().any())
     assert compared == 24 and relaxed > 0  # relaxed paths were kept, not only exact ones
+
+
+def test_exact_acceptance_on_the_host_finds_the_device_searchs_paths():
+    """Trees drafted on the host (the previous action, Jacobi guesses) are accepted at r=0 by a walk in Python
+    (``exact_paths_on_host``) instead of the device search: on random batches of random trees of different sizes
+    (padded in the batch; duplicate siblings, so that equally deep passing paths tie), tokens right with
+    probability 0.7, the same nodes, bonus tokens, distances and target tokens as ``search_paths`` read back; and
+    ``accept_trees`` takes that walk only where every tree is on the host."""
+    from hf_specvla.speculative.acceptance import accept_trees, exact_paths_on_host, read_paths, search_paths
+    from hf_specvla.speculative.tree import TreeBatch
+
+    generator = torch.Generator().manual_seed(5)
+    compared, accepted, ties = 0, 0, 0
+    for trial in range(200):
+        batch_size = 1 + trial % 4
+        rows, targets = [], []
+        for _ in range(batch_size):
+            width = int(torch.randint(1, 12, (1,), generator=generator))
+            parents = [-1] + [int(torch.randint(-1, i, (1,), generator=generator)) for i in range(1, width)]
+            row_targets = torch.randint(64, 70, (1 + width,), generator=generator)
+            right = torch.rand(width, generator=generator) < 0.7
+            tokens = torch.where(
+                right, row_targets[torch.tensor(parents) + 1], torch.randint(64, 70, (width,), generator=generator)
+            )
+            rows.append(DraftTree.from_lists(tokens.tolist(), parents, ["test"] * width))
+            targets.append(row_targets)
+        trees = TreeBatch(rows)
+        target_ids = torch.stack([torch.nn.functional.pad(t, (0, 1 + trees.num_nodes - len(t)), value=64)
+                                  for t in targets])  # fmt: skip
+        on_host = exact_paths_on_host(trees, target_ids)
+        packed = search_paths(trees.token_ids, trees.ancestor_or_self, trees.parents, trees.depths, trees.is_real,
+                              target_ids, None, None, None, ExactMatch(), None)  # fmt: skip
+        on_device = read_paths(packed.tolist(), trees)
+        assert on_host == on_device, trial
+        assert accept_trees(trees, target_ids, ExactMatch(), None, [0] * batch_size) == on_device
+        compared += batch_size
+        accepted += sum(bool(path.nodes) for path in on_host)
+        for tree, path, row_targets in zip(rows, on_host, targets):  # another passing path as deep: a tie broken
+            passing = _passing_depths(tree, row_targets.tolist())
+            ties += sum(depth == len(path.nodes) > 0 for depth in passing) > 1
+    assert compared > 400 and accepted > compared // 2 and ties > 0
+
+
+def _passing_depths(tree, targets: list[int]) -> list[int]:
+    """Per node: the length of its path when every token on it is the target's, else 0."""
+    depths = []
+    for token, parent in zip(tree.token_list, tree.host_parents):
+        passes = token == targets[parent + 1] and (parent < 0 or depths[parent] > 0)
+        depths.append((1 if parent < 0 else depths[parent] + 1) if passes else 0)
+    return depths

@@ -9,6 +9,9 @@ buckets; generate's own static cache gets slots for the trees, a user's cache is
 
 from __future__ import annotations
 
+import functools
+import time
+
 import pytest
 import torch
 from transformers import AutoConfig, AutoModelForCausalLM, CompileConfig, LlamaForCausalLM
@@ -17,7 +20,14 @@ from transformers.cache_utils import StaticCache
 from hf_specvla import DraftHead, DraftHeadDrafter, DraftTreeConfig, JacobiDrafter, enable_speculation
 from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
 from hf_specvla.speculative import CACHE_KEY, NODE_BUCKETS, cache_of, verification_width
-from hf_specvla.speculative.compiled import SLOT_MULTIPLE, buckets_up_to, check_buckets, reset_compilation
+from hf_specvla.speculative.compiled import (
+    SLOT_MULTIPLE,
+    CompiledVerifier,
+    buckets_up_to,
+    check_buckets,
+    graphs_held,
+    reset_compilation,
+)
 from hf_specvla.speculative.drafter import Drafter, DraftSession
 
 from ..conftest import tiny_llama_config
@@ -547,3 +557,78 @@ def test_every_compiled_round_of_a_width_is_fed_the_same_input_tensors(monkeypat
     verifier = CompiledVerifier.for_model(model, config)
     owned = {tuple(t.data_ptr() for t in b.tensors()) for b in verifier.buffers.values()}
     assert set().union(*fed.values()) <= owned  # the verifier's own buffers
+
+
+def test_a_compiled_speculative_call_encodes_its_images_with_the_compiled_encoder(tiny_llava, monkeypatch):
+    """A compiled speculative call of a VLM hands ``generate`` its images encoded by the verifier's compiled
+    ``get_image_features`` (one graph per batch size), with greedy's tokens; greedy calls and eager speculative calls
+    leave the encoding to transformers (its eager ``get_image_features``, counted here)."""
+    from transformers.models.llava.modeling_llava import LlavaModel
+
+    from ..conftest import llava_prompt
+
+    config = eager_compile_config()
+    compiled = dict(cache_implementation="static", compile_config=config)
+    eager_encodings = []
+    original = LlavaModel.get_image_features
+
+    @functools.wraps(original)  # its signature: what transformers hands the encoder
+    def counted(self, *args, **kwargs):
+        if not torch.compiler.is_compiling():
+            eager_encodings.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(LlavaModel, "get_image_features", counted)
+    generator = torch.Generator().manual_seed(4)
+    for batch_size in (1, 2, 1):
+        prompts = [llava_prompt(generator, text_len=3) for _ in range(batch_size)]
+        prompt = {name: torch.cat([p[name] for p in prompts]) for name in prompts[0]}
+        expected = greedy(tiny_llava, **prompt)  # eager greedy: transformers encodes, once
+        assert len(eager_encodings) == 1
+        eager_encodings.clear()
+        drafts = expected[:, prompt["input_ids"].shape[1] : -1]
+        out = greedy(tiny_llava, **prompt, draft_ids=drafts, return_dict_in_generate=True, **compiled)
+        assert torch.equal(out.sequences, expected) and out.speculation.num_batch_forwards == 1
+        assert eager_encodings == []  # the compiled encoder's call, not transformers' eager one
+        assert torch.equal(greedy(tiny_llava, **prompt, **compiled), expected)  # compiled greedy: transformers'
+        assert torch.equal(greedy(tiny_llava, **prompt, draft_ids=drafts), expected)  # eager speculation: the same
+        assert len(eager_encodings) == 2
+        eager_encodings.clear()
+    verifier = CompiledVerifier.for_model(tiny_llava, config)
+    assert verifier.image_batch_sizes == {1, 2}
+    assert graphs_held(tiny_llava.base_model.get_image_features) >= 1
+
+
+def test_a_clock_times_the_compiled_image_encoder_as_vision():
+    """``ForwardClock`` times the engine's compiled image encoder from outside (``ENCODER_WRAPPER_ATTRIBUTE``), once
+    per call: its vision time is one encoder call's, not zero (the compiled graph runs no hooks) and not the hooks'
+    on top (a graph break may run them)."""
+    from hf_specvla.benchmarks.speed import ForwardClock
+
+    from ..policies.test_action_chunks import ACTIONS, INSTRUCTIONS, SMALL, STATES, action_only
+    from ..policies.test_action_chunks import observation as chunk_observation
+
+    torch.manual_seed(0)
+    policy = action_only(VLAPolicy.build(INSTRUCTIONS, ACTIONS, STATES, VLAPolicyConfig(**SMALL)))
+    clock = ForwardClock(policy.model)
+    timed = []
+    original = policy.model.__dict__["_hf_specvla_wrap_compiled_encoder"]
+
+    def counting(encoder):
+        def encode(*args, **kwargs):
+            start = time.perf_counter()
+            output = encoder(*args, **kwargs)
+            timed.append(time.perf_counter() - start)
+            return output
+
+        return original(encode)
+
+    policy.model._hf_specvla_wrap_compiled_encoder = counting
+    compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
+    image, state = chunk_observation(0)
+    for _ in range(2):
+        clock.reset()
+        policy.previous_action_ids = [[200, 210, 220, 230]]
+        policy.predict_action(image, "reach the goal", state, action_prior=True, bin_tolerance=0, **compiled)
+        assert len(timed) == 1 and 0 < clock.vision_seconds < 1.5 * timed[0]
+        timed.clear()

@@ -361,7 +361,8 @@ class ForwardClock:
     verifications) runs the hooks only while it is traced, so the clock also times every call of the compiled
     function from outside (``model.get_compiled_call`` is wrapped on this instance, and so is the engine's compiled
     round whose graph holds the acceptance too, ``speculative.CALL_WRAPPER_ATTRIBUTE``); such a call counts
-    as a language forward (it is the whole model call: the language model and its head, and that acceptance).
+    as a language forward (it is the whole model call: the language model and its head, and that acceptance). The
+    engine's compiled image encoder (``speculative.vision``) is timed from outside too, as vision.
 
     Args:
         model: a Llava-style model (``model.model.vision_tower`` / ``.language_model``, or the same on ``model``).
@@ -375,6 +376,7 @@ class ForwardClock:
             raise ValueError(f"{type(model).__name__} has no language_model to time")
         self.reset()
         self._starts: dict[str, float] = {}
+        self._inside_compiled_encoder = False
         for name, module in (("vision", self.vision_tower), ("language", self.language_model)):
             if module is not None:
                 module.register_forward_pre_hook(self._enter(name))
@@ -382,7 +384,7 @@ class ForwardClock:
         self._time_compiled_calls(model)
 
     def _time_compiled_calls(self, model) -> None:
-        from ..speculative import CALL_WRAPPER_ATTRIBUTE
+        from ..speculative import CALL_WRAPPER_ATTRIBUTE, ENCODER_WRAPPER_ATTRIBUTE
 
         original = model.get_compiled_call
 
@@ -395,22 +397,39 @@ class ForwardClock:
 
             return timed_call
 
+        def timed_encoder(compiled):
+            def timed_encoding(*args, **kwargs):
+                start, self._inside_compiled_encoder = time.perf_counter(), True
+                try:
+                    return compiled(*args, **kwargs)
+                finally:
+                    self._inside_compiled_encoder = False
+                    self.vision_seconds += time.perf_counter() - start
+
+            return timed_encoding
+
         model.get_compiled_call = lambda compile_config: timed(original(compile_config))
         setattr(model, CALL_WRAPPER_ATTRIBUTE, timed)  # the engine's own compiled rounds (forward + acceptance)
+        setattr(model, ENCODER_WRAPPER_ATTRIBUTE, timed_encoder)  # ... and its compiled image encoder
 
     def reset(self) -> None:
         self.vision_seconds, self.language_seconds = 0.0, []  # one entry per language-model forward
 
+    def _timed_from_outside(self) -> bool:
+        """Inside a compiled call (or the compiled image encoder, whose graph breaks may run a hook): timed from
+        outside it."""
+        return torch.compiler.is_compiling() or self._inside_compiled_encoder
+
     def _enter(self, name: str):
         def hook(module, args):
-            if not torch.compiler.is_compiling():  # inside a compiled call: timed from outside it
+            if not self._timed_from_outside():
                 self._starts[name] = time.perf_counter()
 
         return hook
 
     def _leave(self, name: str):
         def hook(module, args, output):
-            if torch.compiler.is_compiling():
+            if self._timed_from_outside():
                 return
             elapsed = time.perf_counter() - self._starts.pop(name)
             if name == "vision":

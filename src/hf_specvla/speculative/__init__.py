@@ -28,6 +28,7 @@ from .compat import (
 )
 from .compiled import (
     CALL_WRAPPER_ATTRIBUTE,
+    ENCODER_WRAPPER_ATTRIBUTE,
     NODE_BUCKETS,
     SLOT_MULTIPLE,
     compiled_decoding_kwargs,
@@ -79,6 +80,7 @@ from .weights import named_weight_errors
 __all__ = [
     "CACHE_KEY",
     "CALL_WRAPPER_ATTRIBUTE",
+    "ENCODER_WRAPPER_ATTRIBUTE",
     "NEWEST_TESTED_TRANSFORMERS",
     "OLDEST_TESTED_TRANSFORMERS",
     "SUPPORTED_TRANSFORMERS",

@@ -59,6 +59,9 @@ _DEVICES_COMPILED_BY_DEFAULT = ("cuda", "xpu", "neuron", "tpu")
 #: transformers' ``get_compiled_call`` for the rest (``benchmarks.speed.ForwardClock``)
 CALL_WRAPPER_ATTRIBUTE = "_hf_specvla_wrap_compiled_call"
 
+#: the same for the engine's compiled image encoder (``speculative.vision``): ``wrap(encoder) -> encoder``
+ENCODER_WRAPPER_ATTRIBUTE = "_hf_specvla_wrap_compiled_encoder"
+
 
 def compiled_decoding_kwargs(device_type: str = "cpu") -> dict:
     """``generate`` arguments for transformers' compiled decoding on ``device_type``: a static cache and a
@@ -78,12 +81,22 @@ def compiles_verification(model: PreTrainedModel, generation_config: GenerationC
     """Whether verifications run through the compiled model call: transformers' criteria for its compiled greedy
     decoding (a cache whose layers are all static; a CUDA / XPU device or ``compile_config._compile_all_devices``;
     ``disable_compile`` unset; no quantization that refuses compilation)."""
-    if getattr(generation_config, "disable_compile", False) or cache is None:
+    if cache is None:
         return False
     layers = getattr(cache, "layers", None)
     if not layers or not all(type(layer) in STATIC_LAYER_TYPES for layer in layers):
         return False
-    compile_config = getattr(generation_config, "compile_config", None)
+    return compile_allowed(
+        model, getattr(generation_config, "compile_config", None), getattr(generation_config, "disable_compile", False)
+    )
+
+
+def compile_allowed(model: PreTrainedModel, compile_config, disable_compile: bool | None) -> bool:
+    """transformers' criteria for compiling ``model``'s forwards, the cache aside: ``disable_compile`` unset; a CUDA /
+    XPU device, or ``compile_config._compile_all_devices`` (a warning once per device type where a ``compile_config``
+    is ignored); no quantizer that refuses compilation."""
+    if disable_compile:
+        return False
     all_devices = compile_config is not None and bool(getattr(compile_config, "_compile_all_devices", False))
     if model.device.type not in _DEVICES_COMPILED_BY_DEFAULT and not all_devices:
         if compile_config is not None:
@@ -181,6 +194,7 @@ class CompiledVerifier:
         self.prefills_compiled: set[tuple] = set()  # (slots, hidden states, batch size)
         self.prefills_eager: set[tuple] = set()  # the same keys, whose forward over the prompt did not compile
         self.functions: dict[Callable, Callable] = {}  # drafters' functions, compiled ([`compiled_function`])
+        self.image_batch_sizes: set[int] = set()  # the batch sizes the image encoder met ([`image_encoder`])
         #: (batch size, query tokens, slots, dtype, device) -> the rounds' input tensors ([`input_buffers`])
         self.buffers: dict[tuple, InputBuffers] = {}
         self.drafting_compiled: set[tuple] = set()  # drafters' work compiled up front ([`compile_once`])
@@ -234,14 +248,29 @@ class CompiledVerifier:
         return buffers
 
     # ----------------------------------------------------------------- drafters' graphs
-    def compiled_function(self, function: Callable, graphs: int) -> Callable:
+    def compiled_function(self, function: Callable, graphs: int, fullgraph: bool | None = None) -> Callable:
         """``torch.compile(function)`` with this verifier's ``CompileConfig`` settings (as transformers'
-        ``get_compiled_call`` compiles a model's call), made once; dynamo's recompile limit is raised so that
-        ``graphs`` graphs (one per input shape the caller will meet) fit beside others."""
+        ``get_compiled_call`` compiles a model's call; ``fullgraph`` overrides the config's), made once; dynamo's
+        recompile limit is raised so that ``graphs`` graphs (one per input shape the caller will meet) fit beside
+        others."""
         self.reserve_graphs(graphs, function)
         if function not in self.functions:
-            self.functions[function] = torch.compile(function, **self.compile_config.to_dict())
+            settings = self.compile_config.to_dict()
+            if fullgraph is not None:
+                settings["fullgraph"] = fullgraph
+            self.functions[function] = torch.compile(function, **settings)
         return self.functions[function]
+
+    def image_encoder(self, model: PreTrainedModel, batch_size: int) -> Callable:
+        """``model.base_model.get_image_features`` compiled (``speculative.vision``): one graph per batch size, graph
+        breaks allowed (transformers' output-capturing wrappers do not trace into one graph), the recompile limit
+        raised at each new batch size; wrapped by the model's clock when it has one ([`ENCODER_WRAPPER_ATTRIBUTE`])."""
+        function = model.base_model.get_image_features
+        if function not in self.functions or batch_size not in self.image_batch_sizes:
+            self.image_batch_sizes.add(batch_size)
+            self.compiled_function(function, len(self.image_batch_sizes), fullgraph=False)
+        wrap = model.__dict__.get(ENCODER_WRAPPER_ATTRIBUTE)
+        return self.functions[function] if wrap is None else wrap(self.functions[function])
 
     def accepting_call(self, model: PreTrainedModel, output_hidden: tuple[int, ...] | None) -> Callable:
         """The compiled round whose graph holds the forward and the acceptance ([`accepting_forward`]; one function

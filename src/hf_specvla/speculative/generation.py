@@ -21,6 +21,7 @@ from .drafter import Drafter
 from .loop import speculative_generate
 from .modeling_draft_head import DraftHead
 from .precision import EXACT_ATTRIBUTE, keep_greedy_exact
+from .vision import with_compiled_image_features
 
 #: generate() keyword arguments that only mean something with speculative decoding.
 SPECULATION_KWARGS = tuple(
@@ -55,7 +56,8 @@ class SpeculativeGenerationMixin:
     ``generate(..., assistant_model=draft_head_or_drafter, draft_ids=..., bin_tolerance=r)`` runs speculative
     decoding (see [`speculative_generate`]); every other call behaves exactly as the base class's ``generate``. In
     bf16 / fp16 every call first makes sure the model runs eager attention (``speculative.precision``), which keeps
-    r=0 speculative calls with greedy ones at near-ties.
+    r=0 speculative calls with greedy ones at near-ties. A compiled speculative call of a VLM encodes its images
+    with a compiled encoder too (``speculative.vision``).
     """
 
     def generate(self, *args, assistant_model=None, draft_ids=None, **kwargs):
@@ -74,6 +76,7 @@ class SpeculativeGenerationMixin:
                     f"draft_ids= speculates with hf_specvla's loop, whose assistant must be a DraftHead or a Drafter, "
                     f"got {type(assistant_model).__name__}"
                 )
+            kwargs = with_compiled_image_features(self, kwargs)  # a compiled call's images: a compiled encoder
             return super().generate(
                 *args, custom_generate=speculative_generate, drafter=assistant_model, draft_ids=draft_ids, **kwargs
             )
