@@ -49,6 +49,13 @@ ROLLBACK_LAYER_TYPES = (DynamicLayer, DynamicSlidingWindowLayer, *STATIC_LAYER_T
 _OPEN_WINDOW = 2**62
 
 
+def is_static_cache(cache) -> bool:
+    """Whether every layer of ``cache`` is static (a static cache, sliding windows included): what compiled decoding
+    needs of a cache."""
+    layers = getattr(cache, "layers", None)
+    return bool(layers) and all(type(layer) in STATIC_LAYER_TYPES for layer in layers)
+
+
 def _layers(cache: Cache) -> list:
     layers = getattr(cache, "layers", None)
     if layers is None:

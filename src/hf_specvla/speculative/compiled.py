@@ -33,7 +33,7 @@ import torch
 from transformers import GenerationConfig, PreTrainedModel
 from transformers.cache_utils import Cache
 
-from .cache import STATIC_LAYER_TYPES, cache_batch_size, cache_length, preserved_entries, truncate_cache
+from .cache import cache_batch_size, cache_length, is_static_cache, preserved_entries, truncate_cache
 from .compat import CACHE_KEY
 from .fused import GraphAcceptance, accepting_forward
 from .tree import DraftTree, TreeBatch
@@ -81,10 +81,7 @@ def compiles_verification(model: PreTrainedModel, generation_config: GenerationC
     """Whether verifications run through the compiled model call: transformers' criteria for its compiled greedy
     decoding (a cache whose layers are all static; a CUDA / XPU device or ``compile_config._compile_all_devices``;
     ``disable_compile`` unset; no quantization that refuses compilation)."""
-    if cache is None:
-        return False
-    layers = getattr(cache, "layers", None)
-    if not layers or not all(type(layer) in STATIC_LAYER_TYPES for layer in layers):
+    if not is_static_cache(cache):
         return False
     return compile_allowed(
         model, getattr(generation_config, "compile_config", None), getattr(generation_config, "disable_compile", False)

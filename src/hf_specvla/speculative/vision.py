@@ -19,7 +19,7 @@ from functools import cache
 
 from transformers import PreTrainedModel
 
-from .cache import STATIC_LAYER_TYPES
+from .cache import is_static_cache
 from .compiled import CompiledVerifier, compile_allowed
 
 #: the name transformers reads a VLM's pre-encoded images from (``generate`` kwargs and the model's forward)
@@ -52,11 +52,7 @@ def compiled_call_config(model: PreTrainedModel, kwargs: dict):
     if compile_config is None or not compile_allowed(model, compile_config, _setting(model, kwargs, "disable_compile")):
         return None
     cache = kwargs.get("past_key_values")
-    if cache is None:
-        static = _setting(model, kwargs, "cache_implementation") == "static"
-    else:
-        layers = getattr(cache, "layers", None)
-        static = bool(layers) and all(type(layer) in STATIC_LAYER_TYPES for layer in layers)
+    static = _setting(model, kwargs, "cache_implementation") == "static" if cache is None else is_static_cache(cache)
     return compile_config if static else None
 
 
