@@ -272,7 +272,9 @@ def test_gpu_openvla_benchmark_runs_on_the_cpu(tmp_path):
     assert rows["drafts p=1"]["target_forwards_per_call"] == 1 and rows["greedy"]["target_forwards_per_call"] == 7
     assert all(row["syncs_per_round"] > 0 and math.isfinite(row["ms_per_forward"]) for row in rows.values())
     report = json.loads(output.read_text())
-    assert report["complete"] and report["batches"] == [{"batch_size": 1, "rounds_run": 2, "skipped": []}]
+    assert report["complete"] and report["batches"] == [
+        {"batch_size": 1, "rounds_run": 2, "skipped": [], "failed": {}, "drafts_from": "greedy:compile"}]  # fmt: skip
+    assert rows["drafts p=0.5"]["warm_up_s"] < rows["drafts p=1"]["warm_up_s"]  # the graphs compiled once, shared
     assert all(row["tokens_unlike_greedy"] == 0 and len(row["samples_ms"]) == 2 for row in rows.values())
 
 

@@ -7,9 +7,10 @@ fresh random order; medians over the rounds):
 
 * ``greedy``: ``generate`` with plain greedy decoding (eager);
 * ``greedy:compile``: transformers' compiled greedy (static cache + ``CompileConfig``: CUDA graphs on a GPU);
-* ``drafts p=<p>``: the call's own greedy tokens drafted with each token right with probability p (the others
-  replaced by a wrong action token), verified inside the prefill, compiled: what ``exact``'s previous-action drafts
-  cost when they are right that often;
+* ``drafts p=<p>``: the call's own greedy tokens (compiled greedy's when speculation is compiled: in bf16 a static
+  cache and compiled kernels round near-ties unlike eager decoding) drafted with each token right with probability p
+  (the others replaced by a wrong action token), verified inside the prefill, compiled (the prefill too): what
+  ``exact``'s previous-action drafts cost when they are right that often;
 * ``head chain``: an (untrained, unless ``--draft-head``) draft head's chain, compiled.
 
 Per (method, batch size): ms per call, ms per action (a call decodes one action per row), target forwards per call,
@@ -20,7 +21,9 @@ as kernels round differently: a static cache and CUDA graphs are another roundin
 
 One-shot safe: ``--budget-s`` covers everything after the model is built (warm-ups and compiles included); each
 batch size gets an equal share of what is left when it starts, a method whose warm-up would not fit is skipped and
-listed, and the JSON is rewritten after every batch size (``"complete": false`` until the end).
+listed, a method that raises (in its warm-up or a timed round) is listed with its error and left out, and the JSON
+is rewritten after every batch size (``"complete": false`` until the end). The random weights are seeded (the same
+model every run).
 
     python examples/benchmarks/gpu_openvla.py --json gpu.json                  # OpenVLA-7B shapes, B 1 and 4
     python examples/benchmarks/gpu_openvla.py --batch-sizes 1 4 8 16 --budget-s 1500 --json gpu.json
@@ -31,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import random
 import statistics
 import time
@@ -45,6 +49,8 @@ from hf_specvla import DraftHead, DraftHeadDrafter
 from hf_specvla.openvla import OpenVLAConfig, OpenVLAForActionPrediction, VisionTowerSpec, register_vision_tower
 from hf_specvla.speculative import compiled_decoding_kwargs, enable_speculation
 from hf_specvla.speculative.syncs import HostSyncCounter
+
+logger = logging.getLogger("gpu_openvla")
 
 #: "In: What action should the robot take to pick up the red block?\nOut:" (Llama-2 tokenizer)
 PROMPT_IDS = [1, 512, 29901, 1724, 3158, 881, 278, 19964, 2125, 304, 5839, 701, 278, 2654, 2908, 29973, 13, 3744, 29901]
@@ -87,6 +93,7 @@ def build_model(args, device: torch.device, dtype: torch.dtype) -> OpenVLAForAct
     else:
         config = OpenVLAConfig.from_pretrained(args.config) if args.config else openvla_7b_config()
     config.text_config._attn_implementation = "sdpa"
+    torch.manual_seed(0)  # the same random weights every run (their near-ties decide the forwards a call takes)
     with torch.device(device):
         torch.set_default_dtype(dtype)
         model = OpenVLAForActionPrediction(config).eval()
@@ -115,38 +122,59 @@ def wrong_where(drafts: torch.Tensor, p: float, generator: torch.Generator) -> t
 
 class Method(NamedTuple):
     """One way to decode: ``run()`` times a call; ``run_uncompiled()`` is the same call without compilation (for
-    counting host syncs, which compiled graphs hide)."""
+    counting host syncs, which compiled graphs hide); ``graphs`` names what its warm-up compiles ("" for nothing
+    beyond its own call): methods with the same name share those graphs, so only the first at a batch size pays."""
 
     run: Callable[[], object]
     run_uncompiled: Callable[[], object]
+    graphs: str = ""
 
 
-def methods(model, inputs: dict, greedy_ids: torch.Tensor, args, device) -> dict[str, Method]:
-    """name -> [`Method`], in the order their warm-ups run (the baselines first, the most telling drafts next)."""
-    compiled = compiled_decoding_kwargs(device.type)
-    generator = torch.Generator().manual_seed(0)
+def baseline_methods(model, inputs: dict, device) -> dict[str, Method]:
+    """name -> [`Method`] of the baselines (``BASELINES``): eager greedy and transformers' compiled greedy."""
+    return {"greedy": method(model, inputs, False), "greedy:compile": method(model, inputs, True, device=device)}
+
+
+def head_drafter(model, args) -> DraftHeadDrafter:
+    """The head chain's drafter: ``--draft-head`` or an untrained head. Built once, before anything compiles:
+    building a model of a new class grows a registry of transformers' that compiled graphs guard on
+    (``_CAN_RECORD_REGISTRY``), so a head built after compiled greedy's warm-up recompiles its graph at its next call
+    (6.5-8.6 s on an H200)."""
     if args.draft_head:
         head = DraftHead.from_pretrained(args.draft_head)
     else:
         head = DraftHead.from_target(model, model.action_tokenizer, ACTION_DIM)
-    chain = DraftHeadDrafter(head.to(device=device, dtype=model.dtype).eval(), num_draft_tokens=ACTION_DIM - 1)
+    return DraftHeadDrafter(head.to(device=model.device, dtype=model.dtype).eval(), num_draft_tokens=ACTION_DIM - 1)
 
-    def method(compile_it: bool, **kwargs) -> Method:
-        def run(**extra):
-            def call():
-                with torch.no_grad():
-                    return model.generate(**inputs, **COMMON, **kwargs, **extra)
 
-            return call
-
-        return Method(run(**compiled) if compile_it else run(), run())
-
-    speculation_compiled = not args.eager_speculation
-    table = {"greedy": method(False), "greedy:compile": method(True)}
+def speculative_methods(
+    model, inputs: dict, reference_ids: torch.Tensor, chain: DraftHeadDrafter, args, device
+) -> dict[str, Method]:  # fmt: skip
+    """name -> [`Method`] of the speculative calls, in the order their warm-ups run (the most telling drafts first):
+    drafts made from ``reference_ids`` ``[B, ACTION_DIM]`` (the greedy tokens the method is compared with)."""
+    generator = torch.Generator().manual_seed(0)
+    compile_it = not args.eager_speculation
+    table = {}
     for p in sorted(args.right_probabilities, reverse=True):
-        table[f"drafts p={p:g}"] = method(speculation_compiled, draft_ids=wrong_where(greedy_ids[:, :-1], p, generator))
-    table["head chain"] = method(speculation_compiled, assistant_model=chain)
+        drafts = wrong_where(reference_ids[:, :-1], p, generator)
+        table[f"drafts p={p:g}"] = method(model, inputs, compile_it, "verification", device, draft_ids=drafts)
+    table["head chain"] = method(model, inputs, compile_it, "verification + head", device, assistant_model=chain)
     return table
+
+
+def method(model, inputs: dict, compile_it: bool, graphs: str = "", device=None, **kwargs) -> Method:
+    """``generate`` over ``inputs`` with ``kwargs``, compiled (static cache + ``CompileConfig``) or not."""
+
+    def run(**extra):
+        def call():
+            with torch.no_grad():
+                return model.generate(**inputs, **COMMON, **kwargs, **extra)
+
+        return call
+
+    if not compile_it:
+        return Method(run(), run())
+    return Method(run(**compiled_decoding_kwargs(device.type)), run(), graphs)
 
 
 def forwards_of(output, tokens: int) -> int:
@@ -197,90 +225,161 @@ def parse_args() -> argparse.Namespace:
     return args
 
 
+class Clock:
+    """Wall-clock times of whole calls on ``device`` (synchronised before and after on CUDA)."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+
+    def timed(self, fn) -> tuple[object, float]:
+        self.synchronize()
+        start = time.perf_counter()
+        out = fn()
+        self.synchronize()
+        return out, time.perf_counter() - start
+
+    def synchronize(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize()
+
+
+class BatchSizeRun:
+    """One batch size's share of the budget: warm-ups (compiles), tokens against greedy's, syncs, timed rounds.
+
+    A method whose warm-up would not fit before ``warm_ups_end`` is skipped; one that raises (in its warm-up or a
+    timed round) is listed with its error and left out, so that one method breaking on a device loses no other's
+    figures.
+    """
+
+    def __init__(
+        self, model, chain: DraftHeadDrafter, args, batch_size: int, clock: Clock, warm_up_s: dict[str, float],
+        warm_ups_end: float,
+    ):  # fmt: skip
+        self.model, self.chain, self.args, self.batch_size, self.clock = model, chain, args, batch_size, clock
+        self.warm_up_s = warm_up_s  # the longest warm-up of each method so far, across batch sizes
+        self.warm_ups_end = warm_ups_end
+        self.inputs = prompt(model, batch_size, model.device, model.dtype)
+        self.prompt_length = self.inputs["input_ids"].shape[1]
+        with torch.no_grad():
+            self.greedy_ids = new_tokens(model.generate(**self.inputs, **COMMON), self.prompt_length)
+        self.compiled_ids = None  # compiled greedy's tokens, once it has run
+        self.ran: dict[str, Method] = {}
+        self.skipped: list[str] = []
+        self.graphs_compiled: set[str] = set()  # the `Method.graphs` warmed up at this batch size
+        self.failed: dict[str, str] = {}
+        self.forwards, self.syncs, self.departures, self.departures_compiled = {}, {}, {}, {}
+
+    def warm_up_all(self) -> str:
+        """Warms up the baselines, then the speculative methods; returns whose tokens the drafts were made from."""
+        device = self.model.device
+        for name, method in baseline_methods(self.model, self.inputs, device).items():
+            self.warm_up(name, method)
+        # drafts from the tokens of the greedy a method is compared with: compiled greedy's for compiled speculation
+        # (in bf16 a static cache and compiled kernels round near-ties unlike eager decoding)
+        compiled_speculation = not self.args.eager_speculation and self.compiled_ids is not None
+        reference_ids = self.compiled_ids if compiled_speculation else self.greedy_ids
+        speculative = speculative_methods(self.model, self.inputs, reference_ids, self.chain, self.args, device)
+        for name, method in speculative.items():
+            self.warm_up(name, method)
+        return "greedy:compile" if compiled_speculation else "greedy"
+
+    def warm_up(self, name: str, method: Method) -> None:
+        """The method's first call (its compiles), its tokens against greedy's, the syncs of an uncompiled call."""
+        # a method met before: its own warm-up; one whose graphs another method compiled at this batch size: none;
+        # else the longest speculative warm-up so far, so that a ~200-300 s compile does not start with less left
+        speculative = [seconds for other, seconds in self.warm_up_s.items() if other not in BASELINES]
+        compiled_here = method.graphs and method.graphs in self.graphs_compiled
+        expected_s = self.warm_up_s.get(name, 0.0 if compiled_here else max(speculative, default=0.0))
+        if name not in BASELINES and time.perf_counter() + expected_s > self.warm_ups_end:
+            self.skipped.append(name)
+            return
+        try:
+            output, seconds = self.clock.timed(method.run)
+            with HostSyncCounter() as counter:
+                method.run_uncompiled()
+        except Exception as error:  # one-shot: a method that breaks on this device must not lose the others
+            self.failed[name] = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+            logger.exception("B=%d %s failed; left out", self.batch_size, name)
+            return
+        self.warm_up_s[name] = max(self.warm_up_s.get(name, 0.0), seconds)
+        self.forwards[name] = forwards_of(output, ACTION_DIM)
+        tokens = new_tokens(output, self.prompt_length)
+        self.compiled_ids = tokens if name == "greedy:compile" else self.compiled_ids
+        differ = int((tokens != self.greedy_ids).sum())
+        compiled = None if self.compiled_ids is None else int((tokens != self.compiled_ids).sum())
+        if differ and self.model.dtype == torch.float32:
+            raise AssertionError(f"{name} at B={self.batch_size} decoded {differ} tokens unlike greedy's in fp32")
+        self.departures[name], self.departures_compiled[name] = differ, compiled
+        self.syncs[name] = counter.count
+        self.ran[name] = method
+        self.graphs_compiled.add(method.graphs)
+        print(f"B={self.batch_size} {name}: warm-up {seconds:.1f} s, {self.forwards[name]} forwards, tokens unlike "
+              f"greedy's {differ} (compiled greedy's {compiled}), {counter.count} syncs uncompiled",
+              flush=True)  # fmt: skip
+
+    def time_rounds(self, share_end: float) -> tuple[dict[str, list[float]], int]:
+        """Interleaved rounds (every method once, in a fresh random order) until ``--rounds`` or ``share_end`` (at
+        least ``MIN_ROUNDS``); returns each method's ms per call and the rounds run."""
+        times = {name: [] for name in self.ran}
+        order, rng, rounds_run, round_s = list(self.ran), random.Random(self.batch_size), 0, 0.0
+        while rounds_run < self.args.rounds and (
+            rounds_run < MIN_ROUNDS or time.perf_counter() + round_s < share_end
+        ):  # fmt: skip
+            round_started = time.perf_counter()
+            rng.shuffle(order)
+            for name in [name for name in order if name not in self.failed]:
+                try:
+                    times[name].append(1000 * self.clock.timed(self.ran[name].run)[1])
+                except Exception as error:  # e.g. a graph that breaks on a later replay: keep what it timed
+                    self.failed[name] = f"{type(error).__name__} in round {rounds_run + 1}: {str(error)[:200]}"
+                    logger.exception("B=%d %s failed in a timed round; left out", self.batch_size, name)
+            rounds_run += 1
+            round_s = time.perf_counter() - round_started
+        return times, rounds_run
+
+    def rows(self, times: dict[str, list[float]]) -> list[dict]:
+        rows = []
+        for name, values in times.items():
+            ms = statistics.median(values) if values else None  # warmed up, but no round was timed
+            rows.append({"method": name, "batch_size": self.batch_size, "ms_per_call": ms,
+                         "ms_per_action": ms and ms / self.batch_size,
+                         "target_forwards_per_call": self.forwards[name],
+                         "ms_per_forward": ms and ms / self.forwards[name],
+                         "syncs_per_round": self.syncs[name] / self.forwards[name],
+                         "tokens_unlike_greedy": self.departures[name],
+                         "tokens_unlike_greedy_compiled": self.departures_compiled[name],
+                         "tokens": self.batch_size * ACTION_DIM,
+                         "warm_up_s": self.warm_up_s[name], "samples_ms": values})  # fmt: skip
+        return rows
+
+
 def main() -> None:
     args = parse_args()
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     dtype = torch.bfloat16 if device.type == "cuda" else torch.float32
     model = enable_speculation(build_model(args, device, dtype))
+    chain = head_drafter(model, args)
     started = time.perf_counter()
     deadline = started + args.budget_s
-
-    def synchronize():
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-
-    def timed(fn) -> tuple[object, float]:
-        synchronize()
-        start = time.perf_counter()
-        out = fn()
-        synchronize()
-        return out, time.perf_counter() - start
-
     report = {"settings": vars(args), "device": str(device), "dtype": str(dtype), "complete": False,
               "device_name": torch.cuda.get_device_name() if device.type == "cuda" else "cpu",
               "torch": torch.__version__, "transformers": transformers.__version__,
               "batches": [], "rows": []}  # fmt: skip
-    warm_up_s: dict[str, float] = {}  # the longest warm-up of each method so far
+    warm_up_s: dict[str, float] = {}
+    clock = Clock(device)
     for index, batch_size in enumerate(args.batch_sizes):
         share_start = time.perf_counter()
         share_end = share_start + (deadline - share_start) / (len(args.batch_sizes) - index)
         warm_ups_end = share_start + WARM_UP_SHARE * (share_end - share_start)
-        inputs = prompt(model, batch_size, device, dtype)
-        prompt_length = inputs["input_ids"].shape[1]
-        with torch.no_grad():
-            greedy_ids = new_tokens(model.generate(**inputs, **COMMON), prompt_length)
-        table = methods(model, inputs, greedy_ids, args, device)
-        ran: dict[str, Method] = {}
-        skipped, forwards, syncs, departures, departures_compiled = [], {}, {}, {}, {}
-        compiled_ids = None  # compiled greedy's tokens, once it has run
-        for name, method in table.items():  # warm-up (compiles), tokens against greedy's, syncs of an uncompiled call
-            # a method met before: its own warm-up; one not met yet: the longest speculative warm-up so far (each
-            # compiles the same widths), so that a ~200 s compile does not start with less than that left
-            speculative = [seconds for other, seconds in warm_up_s.items() if other not in BASELINES]
-            expected_s = warm_up_s.get(name, max(speculative, default=0.0))
-            if name not in BASELINES and time.perf_counter() + expected_s > warm_ups_end:
-                skipped.append(name)
-                continue
-            output, seconds = timed(method.run)
-            warm_up_s[name] = max(warm_up_s.get(name, 0.0), seconds)
-            forwards[name] = forwards_of(output, ACTION_DIM)
-            tokens = new_tokens(output, prompt_length)
-            compiled_ids = tokens if name == "greedy:compile" else compiled_ids
-            differ = int((tokens != greedy_ids).sum())
-            departures_compiled[name] = None if compiled_ids is None else int((tokens != compiled_ids).sum())
-            if differ and dtype == torch.float32:
-                raise AssertionError(f"{name} at B={batch_size} decoded {differ} tokens unlike greedy's in fp32")
-            departures[name] = differ
-            with HostSyncCounter() as counter:
-                method.run_uncompiled()
-            syncs[name] = counter.count
-            ran[name] = method
-            print(f"B={batch_size} {name}: warm-up {seconds:.1f} s, {forwards[name]} forwards, tokens unlike greedy's "
-                  f"{differ} (compiled greedy's {departures_compiled[name]}), {counter.count} syncs uncompiled",
-                  flush=True)  # fmt: skip
-        times = {name: [] for name in ran}
-        order, rng, rounds_run, round_s = list(ran), random.Random(batch_size), 0, 0.0
-        while rounds_run < args.rounds and (rounds_run < MIN_ROUNDS or time.perf_counter() + round_s < share_end):
-            round_started = time.perf_counter()
-            rng.shuffle(order)
-            for name in order:
-                times[name].append(1000 * timed(ran[name].run)[1])
-            rounds_run += 1
-            round_s = time.perf_counter() - round_started
-        for name, values in times.items():
-            ms = statistics.median(values) if values else None  # warmed up, but no round was timed
-            report["rows"].append({"method": name, "batch_size": batch_size, "ms_per_call": ms,
-                                   "ms_per_action": ms and ms / batch_size,
-                                   "target_forwards_per_call": forwards[name],
-                                   "ms_per_forward": ms and ms / forwards[name],
-                                   "syncs_per_round": syncs[name] / forwards[name],
-                                   "tokens_unlike_greedy": departures[name],
-                                   "tokens_unlike_greedy_compiled": departures_compiled[name],
-                                   "tokens": batch_size * ACTION_DIM,
-                                   "warm_up_s": warm_up_s[name], "samples_ms": values})  # fmt: skip
-        report["batches"].append({"batch_size": batch_size, "rounds_run": rounds_run, "skipped": skipped})
+        run = BatchSizeRun(model, chain, args, batch_size, clock, warm_up_s, warm_ups_end)
+        drafts_from = run.warm_up_all()
+        times, rounds_run = run.time_rounds(share_end)
+        report["rows"].extend(run.rows(times))
+        report["batches"].append({"batch_size": batch_size, "rounds_run": rounds_run, "skipped": run.skipped,
+                                  "failed": run.failed, "drafts_from": drafts_from})  # fmt: skip
         report["elapsed_s"] = time.perf_counter() - started
         if args.json:  # after every batch size: a call cut short keeps what it measured
             Path(args.json).write_text(json.dumps(report, indent=2))
@@ -295,9 +394,11 @@ def print_table(report: dict) -> None:
           f"transformers {report['transformers']}, {report['elapsed_s']:.0f} s; medians:\n")  # fmt: skip
     for batch in report["batches"]:
         skipped = f", skipped (budget): {', '.join(batch['skipped'])}" if batch["skipped"] else ""
-        print(f"B={batch['batch_size']}: {batch['rounds_run']} rounds{skipped}")
+        failed = "".join(f"; {name} failed ({error})" for name, error in batch["failed"].items())
+        print(f"B={batch['batch_size']}: {batch['rounds_run']} rounds, drafts from {batch['drafts_from']}'s tokens"
+              f"{skipped}{failed}")  # fmt: skip
     print("\n| method | B | ms / call | ms / action | target fwd / call | ms / fwd | syncs / round (uncompiled) | "
-          "tokens unlike greedy | vs greedy:compile |")  # fmt: skip
+          "tokens unlike greedy (eager / compiled) | vs greedy:compile |")  # fmt: skip
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     rows = report["rows"]
     baseline = {row["batch_size"]: row["ms_per_call"] for row in rows if row["method"] == "greedy:compile"}
@@ -310,7 +411,8 @@ def print_table(report: dict) -> None:
         versus = base / ms if ms and base else None
         print(f"| {row['method']} | {row['batch_size']} | {number(ms)} | {number(row['ms_per_action'])} | "
               f"{row['target_forwards_per_call']} | {number(row['ms_per_forward'])} | "
-              f"{row['syncs_per_round']:.1f} | {row['tokens_unlike_greedy']} / {row['tokens']} | "
+              f"{row['syncs_per_round']:.1f} | {row['tokens_unlike_greedy']} / "
+              f"{row['tokens_unlike_greedy_compiled']} of {row['tokens']} | "
               f"{number(versus, 'x')} |")  # fmt: skip
 
 

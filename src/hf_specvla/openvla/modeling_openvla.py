@@ -260,8 +260,11 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
             projected = self.get_image_features(pixel_values)
             inputs_embeds = self.get_input_embeddings()(input_ids)
             image_rows = input_ids == self.config.image_token_id
-            counts = image_rows.sum(dim=1)
-            if bool((counts == 0).all()):
+            # compiled (the speculative prefill graph): generate always puts the image tokens in place (the official
+            # layout is converted before), and a graph cannot branch on the ids' values, so the checks are left to
+            # eager calls, as transformers' VLMs do
+            counts = None if torch.compiler.is_compiling() else image_rows.sum(dim=1)
+            if counts is not None and bool((counts == 0).all()):
                 if position_ids is not None:
                     raise ValueError(
                         "position_ids cannot be given when the image is inserted after BOS (input_ids without image "
@@ -278,7 +281,7 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
                 if labels is not None:
                     ignored = labels.new_full((labels.shape[0], self.num_patches), IGNORE_INDEX)
                     labels = torch.cat([labels[:, :1], ignored, labels[:, 1:]], dim=1)
-            elif bool((counts == self.num_patches).all()):
+            elif counts is None or bool((counts == self.num_patches).all()):
                 inputs_embeds = inputs_embeds.masked_scatter(
                     image_rows[..., None].expand_as(inputs_embeds), projected.to(inputs_embeds.dtype)
                 )
