@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import time
 from contextlib import contextmanager, nullcontext
+from pathlib import Path
 
 # every read of a cache's length inside a speculative call checks the host's count against the cache's own counter
 os.environ["HF_SPECVLA_CHECK_CACHE_LENGTH"] = "1"
@@ -147,3 +149,27 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())) or item.path.name in SLOW_MODULES:
             item.add_marker(pytest.mark.slow)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """With pytest-xdist (tox runs ``-n 2``): whole modules per worker (a module's fixtures are built once, its servers
+    and Ray cluster are its own), and every module that uses a fixture of ``SLOW_FIXTURES`` on one worker, so that the
+    model it trains is trained once, not once per worker. (``--dist loadgroup`` cannot do it: xdist 3.8 renames the
+    nodes it groups, which pytest 9.2 no longer lets it.)"""
+    from xdist.scheduler import LoadScopeScheduling
+
+    uses = re.compile(r"\b(" + "|".join(SLOW_FIXTURES) + r")\b")
+    root = Path(__file__).resolve().parent
+    training = {
+        path.relative_to(root.parent).as_posix()
+        for path in root.rglob("test_*.py")
+        if uses.search(path.read_text(encoding="utf-8"))
+    }
+
+    class ModulesAndTrainedFixtures(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return "the modules that train a fixture's model" if module in training else module
+
+    return ModulesAndTrainedFixtures(config, log)

@@ -26,7 +26,8 @@ PAGE_QUOTES = {
         "greedy success", "fast vs exact range", "fast vs exact per call", "fast calls", "fast decided differently",
         "serve warm-up", "serve 1 robot", "serve 1 robot repeats", "serve 2 robots", "serve 2 robots repeats",
         "serve 4-16 robots", "serve 4-16 robots repeats", "serve calibration speculates up to",
-        "serve speculative at 4", "serve speculative at 16",
+        "serve speculative at 4", "serve speculative at 16", "compiled vs eager greedy",
+        "compiled vs eager greedy, other rows",
     ],
     "docs/index.md": ["greedy success"],
     "docs/metaworld.md": ["fast calls"],
@@ -170,6 +171,22 @@ def test_the_runs_are_the_same_pairs_under_the_same_conditions():
         )
         assert all(len(s["methods"][figures.GREEDY]["task_success_rates"]) == 10 for s in summaries), names
         assert {s["settings"]["policy"] for s in summaries} == {summaries[0]["settings"]["policy"]}
+
+
+def test_each_row_is_of_one_cpu_and_says_which():
+    """A speed-up holds for the CPU it was timed on: the table's plain rows are ``RUNS_CPU``'s, and a run timed on
+    another CPU is a row of its own whose label names that CPU (its timing conditions say it)."""
+    for names in figures.RUNS.values():
+        cpus = {figures.load(name, RESULTS)["timing"]["conditions"]["machine"]["cpu"] for name in names}
+        assert all(cpu.startswith(figures.RUNS_CPU) for cpu in cpus), (names, cpus)
+    for (_, seeds, label), names in figures.OTHER_RUNS.items():
+        summaries = [figures.load(name, RESULTS) for name in names]
+        assert len({repr(s["timing"]["conditions"]) for s in summaries}) == 1, names
+        for summary in summaries:
+            cpu = " ".join(summary["timing"]["conditions"]["machine"]["cpu"].replace("(R)", "").split())
+            assert label.split(",")[0] in cpu and summary["settings"]["seed_start"] == int(seeds.rstrip("+"))
+            assert (summary["timing"]["conditions"]["workers"], summary["timing"]["conditions"]["threads"]) == (2, 1)
+        assert f"{seeds} ({label})" in figures.measured_table(RESULTS)
 
 
 def test_the_serving_ratios_are_of_the_medians_as_the_serving_table():
