@@ -225,22 +225,15 @@ def parse_args() -> argparse.Namespace:
     return args
 
 
-class Clock:
-    """Wall-clock times of whole calls on ``device`` (synchronised before and after on CUDA)."""
-
-    def __init__(self, device: torch.device):
-        self.device = device
-
-    def timed(self, fn) -> tuple[object, float]:
-        self.synchronize()
-        start = time.perf_counter()
-        out = fn()
-        self.synchronize()
-        return out, time.perf_counter() - start
-
-    def synchronize(self) -> None:
-        if self.device.type == "cuda":
-            torch.cuda.synchronize()
+def timed(fn, device: torch.device) -> tuple[object, float]:
+    """``fn()``'s result and its wall-clock seconds on ``device`` (synchronised before and after on CUDA)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    start = time.perf_counter()
+    out = fn()
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+    return out, time.perf_counter() - start
 
 
 class BatchSizeRun:
@@ -252,10 +245,9 @@ class BatchSizeRun:
     """
 
     def __init__(
-        self, model, chain: DraftHeadDrafter, args, batch_size: int, clock: Clock, warm_up_s: dict[str, float],
-        warm_ups_end: float,
+        self, model, chain: DraftHeadDrafter, args, batch_size: int, warm_up_s: dict[str, float], warm_ups_end: float
     ):  # fmt: skip
-        self.model, self.chain, self.args, self.batch_size, self.clock = model, chain, args, batch_size, clock
+        self.model, self.chain, self.args, self.batch_size = model, chain, args, batch_size
         self.warm_up_s = warm_up_s  # the longest warm-up of each method so far, across batch sizes
         self.warm_ups_end = warm_ups_end
         self.inputs = prompt(model, batch_size, model.device, model.dtype)
@@ -294,7 +286,7 @@ class BatchSizeRun:
             self.skipped.append(name)
             return
         try:
-            output, seconds = self.clock.timed(method.run)
+            output, seconds = timed(method.run, self.model.device)
             with HostSyncCounter() as counter:
                 method.run_uncompiled()
         except Exception as error:  # one-shot: a method that breaks on this device must not lose the others
@@ -329,7 +321,7 @@ class BatchSizeRun:
             rng.shuffle(order)
             for name in [name for name in order if name not in self.failed]:
                 try:
-                    times[name].append(1000 * self.clock.timed(self.ran[name].run)[1])
+                    times[name].append(1000 * timed(self.ran[name].run, self.model.device)[1])
                 except Exception as error:  # e.g. a graph that breaks on a later replay: keep what it timed
                     self.failed[name] = f"{type(error).__name__} in round {rounds_run + 1}: {str(error)[:200]}"
                     logger.exception("B=%d %s failed in a timed round; left out", self.batch_size, name)
@@ -369,12 +361,11 @@ def main() -> None:
               "torch": torch.__version__, "transformers": transformers.__version__,
               "batches": [], "rows": []}  # fmt: skip
     warm_up_s: dict[str, float] = {}
-    clock = Clock(device)
     for index, batch_size in enumerate(args.batch_sizes):
         share_start = time.perf_counter()
         share_end = share_start + (deadline - share_start) / (len(args.batch_sizes) - index)
         warm_ups_end = share_start + WARM_UP_SHARE * (share_end - share_start)
-        run = BatchSizeRun(model, chain, args, batch_size, clock, warm_up_s, warm_ups_end)
+        run = BatchSizeRun(model, chain, args, batch_size, warm_up_s, warm_ups_end)
         drafts_from = run.warm_up_all()
         times, rounds_run = run.time_rounds(share_end)
         report["rows"].extend(run.rows(times))
