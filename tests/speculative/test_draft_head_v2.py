@@ -44,6 +44,7 @@ class Recorder(Drafter):
         self.inner, self.trees = inner, []
         self.name, self.action_layout = inner.name, inner.action_layout
         self.needs_hidden_states, self.hidden_state_layers = inner.needs_hidden_states, inner.hidden_state_layers
+        self.needs_prompt_embeddings = inner.needs_prompt_embeddings
 
     def start(self, context):
         session = self.inner.start(context)

@@ -48,6 +48,7 @@ from .outputs import SpeculativeDecoderOnlyOutput
 from .state import DecodeState, RoundPlan, RowState, SpeculativeCall, Stopwatch
 from .stats import SpeculationStats
 from .verify import prefill_inputs
+from .vision import prompt_input_embeddings
 
 logger = logging.getLogger(__name__)
 
@@ -116,9 +117,11 @@ def _draft_contexts(
     max_length: int,
     compile_config,
     cached_tokens: int = 0,
+    prompt_embeddings=None,
 ) -> list[DraftContext]:
     """What each row's drafter session starts from (the padding of the prompt tokens the prefill feeds, ``[1, P]``
-    or None; the row's first ``cached_tokens`` tokens, which a continued cache already held)."""
+    or None; the row's first ``cached_tokens`` tokens, which a continued cache already held; the prompt's input
+    embeddings ``[B, S, H]`` for drafters that read them, else None)."""
     rows = [None if prompt_padding is None else prompt_padding[b : b + 1] for b in range(batch_size)]
     return [
         DraftContext(
@@ -130,6 +133,7 @@ def _draft_contexts(
             max_length=max_length,
             compile_config=compile_config,
             cached_tokens=cached_tokens,
+            prompt_embeddings=None if prompt_embeddings is None else prompt_embeddings[b : b + 1],
         )
         for b, padding in enumerate(rows)
     ]
@@ -402,10 +406,13 @@ def prepare(
     if compiles_verification(model, generation_config, cache):
         verifier = CompiledVerifier.for_model(model, generation_config.compile_config)
     cached_tokens = input_ids.shape[1] - num_new  # the rows' first tokens the cache held before the call
+    prompt_embeddings = None
+    if drafter.needs_prompt_embeddings:  # a head drafting before the prefill from the encoded images
+        prompt_embeddings = prompt_input_embeddings(model, input_ids, model_kwargs, start=cached_tokens)
     contexts = _draft_contexts(
         model, batch_size, layout, eos_ids, None if prompt_padding is None else prompt_padding[:, -num_new:],
         generation_config.max_length, generation_config.compile_config if verifier is not None else None,
-        cached_tokens,
+        cached_tokens, prompt_embeddings,
     )  # fmt: skip
     rows = [
         RowState(b, input_ids[b : b + 1], drafter.start(context), SpeculationStats(), committed_length=cached_tokens)

@@ -46,6 +46,11 @@ class DraftHeadConfig(PretrainedConfig):
         prefill_drafts: head v3: the head also drafts before the target's prefill (the whole action, its first
             token included) from what is known then: the prompt's tokens (instruction, state) and the previous
             action, in one head forward; verified inside the prefill. False: heads before v3 draft nothing there.
+        prefill_image_features: with ``prefill_drafts``: the pre-prefill block reads the prompt as the target's
+            language model does, its image tokens replaced by the encoded image (the input embeddings ``generate``
+            builds from the vision tower's output, which it computes before the prefill): the current frame, not
+            only the previous action, informs the drafts. Needs a VLM whose ``generate`` encodes images first
+            (``mm_encoder_outputs``, e.g. Llava). False: the image tokens stand as their placeholder's embedding.
         target_model_type, target_name_or_path: what the head was built for (informational + compatibility check).
         target_fingerprint: content fingerprint of the target weights the head was distilled from (set by
             ``hf-specvla train-draft``); a head whose fingerprint differs from a target's was trained for another
@@ -79,6 +84,7 @@ class DraftHeadConfig(PretrainedConfig):
         previous_action_input: bool = False,
         draft_mode: str = "chain",
         prefill_drafts: bool = False,
+        prefill_image_features: bool = False,
         target_model_type: str | None = None,
         target_name_or_path: str | None = None,
         target_fingerprint: str | None = None,
@@ -107,6 +113,7 @@ class DraftHeadConfig(PretrainedConfig):
         self.previous_action_input = previous_action_input
         self.draft_mode = draft_mode
         self.prefill_drafts = prefill_drafts
+        self.prefill_image_features = prefill_image_features
         self.target_model_type = target_model_type
         self.target_name_or_path = target_name_or_path
         self.target_fingerprint = target_fingerprint
@@ -151,6 +158,15 @@ class DraftHeadConfig(PretrainedConfig):
             )
         if not isinstance(self.prefill_drafts, bool):
             raise ValueError(f"DraftHeadConfig.prefill_drafts must be True or False, got {self.prefill_drafts!r}")
+        if not isinstance(self.prefill_image_features, bool):
+            raise ValueError(
+                f"DraftHeadConfig.prefill_image_features must be True or False, got {self.prefill_image_features!r}"
+            )
+        if self.prefill_image_features and not self.prefill_drafts:
+            raise ValueError(
+                "DraftHeadConfig.prefill_image_features=True needs prefill_drafts=True (the image features are read by "
+                "the block drafted before the prefill)"
+            )
         # Delegates the action-layout checks (n_bins >= 2, room for text ids) to the tokenizer.
         self.action_tokenizer()
 

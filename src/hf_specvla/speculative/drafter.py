@@ -47,6 +47,9 @@ class DraftContext:
         cached_tokens: the row's first tokens the target cache already held when the call began (a continued
             conversation or episode on one cache): the prefill feeds only the tokens after them, so no hidden states
             exist for them and a drafter's own cache starts empty there (``prompt_padding`` covers the fed ones).
+        prompt_embeddings: ``[1, S, H]`` what the target's language model reads for the row's prompt (token
+            embeddings, image tokens replaced by the encoded images: ``speculative.vision.prompt_input_embeddings``),
+            given when the drafter ``needs_prompt_embeddings``, else None.
     """
 
     model: PreTrainedModel
@@ -57,6 +60,7 @@ class DraftContext:
     max_length: int | None = None
     compile_config: CompileConfig | None = None
     cached_tokens: int = 0
+    prompt_embeddings: torch.Tensor | None = None
 
     def __post_init__(self):
         if self.compile_config is not None and self.max_length is None:
@@ -155,6 +159,8 @@ class Drafter:
     Attributes:
         name: how statistics name the drafter's accepted tokens.
         needs_hidden_states: whether [`Commit`] must carry the target's hidden states (draft heads do).
+        needs_prompt_embeddings: whether [`DraftContext`] must carry the prompt's input embeddings, images encoded
+            (a draft head with ``prefill_image_features``).
         hidden_state_layers: which of them (indices into the target's ``hidden_states``; -1 the last, post-norm).
         action_layout: the action layout the drafter knows of (a draft head's config), or None.
         batch_size: the batch size the drafter is made for ([`PerRowDrafter`]), or None for any.
@@ -162,6 +168,7 @@ class Drafter:
 
     name: str = "drafter"
     needs_hidden_states: bool = False
+    needs_prompt_embeddings: bool = False
     hidden_state_layers: tuple[int, ...] = (-1,)
     action_layout: ActionLayout | None = None
     batch_size: int | None = None
@@ -304,6 +311,7 @@ class ComposedDrafter(Drafter):
         self.drafters = flat
         self.name = "+".join(d.name for d in flat)
         self.needs_hidden_states = any(d.needs_hidden_states for d in flat)
+        self.needs_prompt_embeddings = any(d.needs_prompt_embeddings for d in flat)
         self.hidden_state_layers = _common_hidden_state_layers(flat)
         self.action_layout = next((d.action_layout for d in flat if d.action_layout is not None), None)
         self.batch_size = _common_batch_size(flat)
@@ -342,6 +350,7 @@ class PerRowDrafter(Drafter):
         self.batch_size = len(drafters)
         self.name = "+".join(dict.fromkeys(d.name for d in drafters))
         self.needs_hidden_states = any(d.needs_hidden_states for d in drafters)
+        self.needs_prompt_embeddings = any(d.needs_prompt_embeddings for d in drafters)
         self.hidden_state_layers = _common_hidden_state_layers(drafters)
         self.action_layout = next((d.action_layout for d in drafters if d.action_layout is not None), None)
 

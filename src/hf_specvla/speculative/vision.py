@@ -77,3 +77,62 @@ def with_compiled_image_features(model: PreTrainedModel, kwargs: dict) -> dict:
     verifier = CompiledVerifier.for_model(model, compile_config)
     encoded = verifier.image_encoder(model, inputs["pixel_values"].shape[0])(**inputs, return_dict=True)
     return {**rest, ENCODED_INPUTS: {"image": encoded}}
+
+
+def encode_images(model: PreTrainedModel, inputs: dict):
+    """The images of ``inputs`` encoded as ``generate`` encodes them before the prefill (the base model's
+    ``get_image_features`` on the inputs it takes, ``return_dict=True``), or None when ``inputs`` hold no
+    ``pixel_values``. For a training set built from prompts; a ``generate`` call has them in ``mm_encoder_outputs``.
+
+    Raises:
+        ValueError: a model whose base model has no ``get_image_features``.
+    """
+    if inputs.get("pixel_values") is None:
+        return None
+    encoder = getattr(model.base_model, "get_image_features", None)
+    if encoder is None:
+        raise ValueError(f"{type(model).__name__} has no base_model.get_image_features: its images cannot be encoded "
+                         f"before its forward")  # fmt: skip
+    arguments = {name: inputs[name] for name in _encoder_parameters(encoder.__func__) if name in inputs}
+    return encoder(**arguments, return_dict=True)
+
+
+def prompt_input_embeddings(model: PreTrainedModel, input_ids, model_kwargs: dict, start: int = 0):
+    """``[B, S, H]`` what a Llava-style VLM's language model reads for ``input_ids`` ``[B, S]``: the token
+    embeddings, the image tokens (``config.image_token_id``) from ``start`` on replaced, in order, by the encoded
+    images of ``model_kwargs[mm_encoder_outputs]["image"]`` (their ``pooler_output``), as the model's forward
+    places them. Without encoded images the token embeddings alone.
+
+    Raises:
+        ValueError: ``model_kwargs`` hold raw ``pixel_values`` (the model's ``generate`` does not encode images
+            before the prefill), the model has no ``image_token_id``, or the images' features do not fill its
+            image tokens.
+    """
+    import torch
+
+    table = model.get_input_embeddings()
+    # ids past the table (some VLMs' placeholders) embed as id 0, as a draft head embeds them
+    embeddings = table(torch.where(input_ids < table.weight.shape[0], input_ids, torch.zeros_like(input_ids)))
+    encoded = (model_kwargs.get(ENCODED_INPUTS) or {}).get("image")
+    if encoded is None:
+        if model_kwargs.get("pixel_values") is not None:
+            raise ValueError(
+                f"{type(model).__name__}'s generate does not encode its images before the prefill "
+                f"({ENCODED_INPUTS}): a draft head with prefill_image_features cannot read them; use a head without "
+                f"(prefill_image_features=False)"
+            )
+        return embeddings
+    image_token_id = getattr(model.config, "image_token_id", None)
+    if image_token_id is None:
+        raise ValueError(f"{type(model).__name__}'s config has no image_token_id: its image tokens cannot be found")
+    pooled = encoded.pooler_output
+    pieces = pooled if isinstance(pooled, list | tuple) else [pooled]
+    features = torch.cat([piece.reshape(-1, piece.shape[-1]) for piece in pieces]).to(embeddings.dtype)
+    fed = embeddings[:, start:]
+    is_image = (input_ids[:, start:] == image_token_id)[..., None]  # [B, S - start, 1]
+    if int(is_image.sum()) != features.shape[0] or features.shape[-1] != fed.shape[-1]:
+        raise ValueError(
+            f"the encoded images give {features.shape[0]} features of width {features.shape[-1]} for "
+            f"{int(is_image.sum())} image tokens of width {fed.shape[-1]}"
+        )
+    return torch.cat([embeddings[:, :start], fed.masked_scatter(is_image, features)], dim=1)

@@ -51,6 +51,7 @@ from ..speculative import (
     speculative_generate,
     to_additive_mask,
 )
+from ..speculative.vision import encode_images, prompt_input_embeddings
 from .checkpoints import check_output_dir, latest_checkpoint, prepare_output_dir, training_record
 from .configuration import HEAD_VERSIONS, DraftTrainingConfig
 from .loop import TrainingJob, default_accelerator, run_training
@@ -126,6 +127,7 @@ def build_distillation_dataset(
     hidden_state_layers: tuple[int, ...] = (-1,),
     action_dim: int | None = None,
     hidden_dtype: torch.dtype = torch.float32,
+    image_features: bool = False,
 ) -> DistillationDataset:
     """Runs the target greedily on each prompt and records its sequence and hidden states.
 
@@ -145,6 +147,9 @@ def build_distillation_dataset(
         action_dim: D, the previous action's length when no prompt gives one (default: 1).
         hidden_dtype: how the hidden states are stored (the loss casts each batch back to the head's dtype):
             ``torch.float16`` halves the set ([`STORED_HIDDEN_DTYPE`], what [`distil_draft_head`] stores).
+        image_features: also record what the target's language model reads at each prompt image token (the encoded
+            image: ``image_positions`` ``[n]``, ``image_embeddings`` ``[n, H]`` in ``hidden_dtype``), for a head with
+            ``prefill_image_features``.
 
     Raises:
         ValueError: a hidden state too large for ``hidden_dtype`` (naming the largest; store float32).
@@ -157,7 +162,8 @@ def build_distillation_dataset(
         total = sum(int(inputs["input_ids"].shape[0]) for inputs in prompts)
     bar = progress_bar(total=total, desc="self-distillation data", unit="example", disable=not progress)
     for inputs in prompts:
-        batch = _distil_prompt(target, inputs, max_new_tokens, action_tokenizer, layers, action_dim, hidden_dtype)
+        batch = _distil_prompt(target, inputs, max_new_tokens, action_tokenizer, layers, action_dim, hidden_dtype,
+                               image_features)  # fmt: skip
         examples.extend(batch)
         del inputs  # this prompt's images: only one prompt's are alive at a time
         bar.update(len(batch))
@@ -173,6 +179,7 @@ def _distil_prompt(
     layers: tuple[int, ...],
     action_dim: int | None,
     hidden_dtype: torch.dtype,
+    image_features: bool = False,
 ) -> list[dict]:
     """[`build_distillation_dataset`]'s examples of one prompt dict (see there)."""
     inputs = {k: v.to(target.device) if isinstance(v, torch.Tensor) else v for k, v in inputs.items()}
@@ -193,16 +200,31 @@ def _distil_prompt(
     hidden = read_hidden_states(target(**forward_inputs, output_hidden_states=True).hidden_states, layers)
     stored = _narrowed(hidden, hidden_dtype).cpu()  # [B, L, n H]
     prompt_len, length = inputs["input_ids"].shape[1], sequences.shape[1]
+    images = _prompt_images(target, inputs, hidden_dtype) if image_features else [{}] * batch_size
     positions = torch.arange(length)
     examples = []
-    for ids, row_states, row_previous in zip(sequences.cpu(), stored, previous.cpu()):
+    for ids, row_states, row_previous, row_images in zip(sequences.cpu(), stored, previous.cpu(), images):
         generated_action = (positions >= prompt_len) & action_tokenizer.is_action_token(ids)
         loss_mask = torch.zeros(length, dtype=torch.bool)
         loss_mask[: length - 2] = generated_action[2:]  # position p predicts token p+2
         examples.append({"input_ids": ids, "hidden": row_states, "loss_mask": loss_mask,
                          "first_position": torch.tensor(prompt_len),
-                         PREVIOUS_ACTION: row_previous.long()})  # fmt: skip
+                         PREVIOUS_ACTION: row_previous.long(), **row_images})  # fmt: skip
     return examples
+
+
+def _prompt_images(target: PreTrainedModel, inputs: dict, dtype: torch.dtype) -> list[dict]:
+    """Per example of ``inputs``: ``image_positions`` ``[n]`` (the prompt's image tokens) and ``image_embeddings``
+    ``[n, H]`` (what the target's language model reads there: the encoded image), as a ``generate`` call gives a
+    drafter ([`prompt_input_embeddings`])."""
+    encoded = encode_images(target, inputs)
+    embeddings = prompt_input_embeddings(target, inputs["input_ids"], {"mm_encoder_outputs": {"image": encoded}})
+    image_token_id = getattr(target.config, "image_token_id", None)
+    rows = []
+    for ids, row in zip(inputs["input_ids"], embeddings):
+        where = (ids == image_token_id).nonzero()[:, 0] if image_token_id is not None else ids.new_zeros(0)
+        rows.append({"image_positions": where.cpu(), "image_embeddings": _narrowed(row[where], dtype).cpu()})
+    return rows
 
 
 def _narrowed(hidden: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -220,7 +242,8 @@ def collate_distillation(batch: list[dict[str, torch.Tensor]]) -> dict[str, torc
     """Right-pads a list of dataset items to ``input_ids`` ``[B, L]``, ``hidden`` ``[B, L, n H]``,
     ``loss_mask`` ``[B, L]``, ``padding_mask`` ``[B, L]`` (True = real token), ``first_position`` ``[B, 1]`` and
     ``previous_action`` ``[B, D]`` (items saved before head v2, without them: their prompt's end unknown, -1, and no
-    previous action)."""
+    previous action); from a set built with ``image_features``, ``image_embeddings`` ``[B, L, H]`` and ``image_mask``
+    ``[B, L]`` (True at the prompts' image tokens)."""
     length = max(item["input_ids"].shape[0] for item in batch)
     hidden_size = batch[0]["hidden"].shape[-1]
     out = {
@@ -241,6 +264,13 @@ def collate_distillation(batch: list[dict[str, torch.Tensor]]) -> dict[str, torc
     for i, item in enumerate(batch):
         if PREVIOUS_ACTION in item:
             out[PREVIOUS_ACTION][i, : item[PREVIOUS_ACTION].shape[0]] = item[PREVIOUS_ACTION]
+    if all("image_embeddings" in item for item in batch):  # a set built with image_features
+        width = batch[0]["image_embeddings"].shape[-1]
+        out["image_embeddings"] = torch.zeros(len(batch), length, width, dtype=batch[0]["image_embeddings"].dtype)
+        out["image_mask"] = torch.zeros(len(batch), length, dtype=torch.bool)
+        for i, item in enumerate(batch):
+            out["image_embeddings"][i, item["image_positions"]] = item["image_embeddings"]
+            out["image_mask"][i, item["image_positions"]] = True
     return out
 
 
@@ -316,7 +346,10 @@ def block_features(
     is_pair = slots < num_pairs
     token_ids = torch.cat([input_ids[:, 1:], input_ids.new_zeros(batch_size, length)], dim=1)[:, :length]
     query_embeds, missing = draft_head.mask_query_inputs(batch_size, length)
-    embeds = torch.where(is_pair[..., None], embed_tokens(handles, token_ids).to(query_embeds.dtype), query_embeds)
+    pair_embeds = embed_tokens(handles, token_ids).to(query_embeds.dtype)
+    if inputs_hidden is None and draft_head.config.prefill_image_features:  # the prompt as the target's LM reads it
+        pair_embeds = _with_image_embeddings(batch, pair_embeds)
+    embeds = torch.where(is_pair[..., None], pair_embeds, query_embeds)
     if inputs_hidden is None:
         hidden = missing
     else:
@@ -332,6 +365,28 @@ def block_features(
         first_position = batch["first_position"].to(device)
         bins = draft_head.slot_bins(_previous_bins(draft_head, batch), first_position, positions)
     return draft_head(embeds, hidden, positions, mask, None, bins)  # [B, N, H]
+
+
+def _with_image_embeddings(batch: dict[str, torch.Tensor], pair_embeds: torch.Tensor) -> torch.Tensor:
+    """``pair_embeds`` ``[B, N, H]`` (slot n: token x[n+1]) with the slots whose token is an image token holding the
+    encoded image there (the batch's ``image_embeddings``), as ``head_block.block_round`` reads them before the
+    prefill.
+
+    Raises:
+        ValueError: a batch without image embeddings (a set built without ``image_features``).
+    """
+    if "image_embeddings" not in batch:
+        raise ValueError(
+            "this draft head reads the prompt's encoded images before the prefill (prefill_image_features): build "
+            "its distillation set with build_distillation_dataset(..., image_features=True)"
+        )
+    length = pair_embeds.shape[1]
+    images = batch["image_embeddings"][:, 1 : length + 1].to(pair_embeds)
+    is_image = batch["image_mask"][:, 1 : length + 1].to(pair_embeds.device)
+    width = min(images.shape[1], length)
+    images = torch.cat([images, images.new_zeros(images.shape[0], length - width, images.shape[-1])], dim=1)
+    is_image = torch.cat([is_image, is_image.new_zeros(is_image.shape[0], length - width)], dim=1)
+    return torch.where(is_image[..., None], images, pair_embeds)
 
 
 def block_entries(features: torch.Tensor, roots: torch.Tensor, num_queries: int) -> torch.Tensor:
@@ -667,7 +722,8 @@ def distil_draft_head(
     training_prompts, held_out_prompts = prompts()
     action_tokenizer = action_tokenizer or target.action_tokenizer  # the labels' action ids, as the head's default
     build = dict(max_new_tokens=tokens_per_call, action_tokenizer=action_tokenizer, action_dim=action_dim,
-                 hidden_state_layers=head.config.hidden_state_layers, hidden_dtype=hidden_dtype)  # fmt: skip
+                 hidden_state_layers=head.config.hidden_state_layers, hidden_dtype=hidden_dtype,
+                 image_features=head.config.prefill_image_features)  # fmt: skip
     dataset = build_distillation_dataset(target, training_prompts, progress=progress, **build)
     data_record = distillation_set_record(dataset)
     logger.info("distillation set: %d examples, %.2f GB of hidden states (%s); peak memory so far %.2f GB",

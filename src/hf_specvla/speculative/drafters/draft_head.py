@@ -127,6 +127,8 @@ class DraftHeadDrafter(Drafter):
             )
         self.draft_head = draft_head
         self.hidden_state_layers = draft_head.config.hidden_state_layers
+        # a head drafting before the prefill from the encoded images reads the prompt as the target's LM does
+        self.needs_prompt_embeddings = draft_head.config.prefill_image_features
         #: ``[D]`` the robot's previous action's bins (see [`with_previous_action`]); None: none given
         self.previous_bins: torch.Tensor | None = None
         if tree is None:
@@ -201,6 +203,7 @@ class _DraftHeadSession(DraftSession):
         self.drafter = drafter
         self.head, self.config, self.name = drafter.draft_head, drafter.tree_config, drafter.name
         self.scorer, self.prompt_padding = scorer, context.prompt_padding
+        self.prompt_embeddings = context.prompt_embeddings  # [1, S, H] or None (see DraftContext)
         self.embed = partial(embed_tokens, handles)
         self.compile_config = context.compile_config if context.prompt_padding is None else None
         self.key_length: int | None = None  # the static cache's slots (every mask spans them), None: dynamic
@@ -307,9 +310,17 @@ class _DraftHeadSession(DraftSession):
         if self.prompt_padding is not None:  # the fed prompt's padding, aligned with the sequence's end
             known = self.prompt_padding[0].bool()
             key_valid = torch.cat([known.new_ones(max(sequence.shape[1] - known.shape[0], 0)), known])[:num_pairs]
+        pair_embeddings = None  # the pairs' tokens x[p + 1] embedded by the head, or as the target's LM reads them
+        if self.head.config.prefill_image_features:
+            if self.prompt_embeddings is None or self.prompt_embeddings.shape[1] != sequence.shape[1]:
+                raise ValueError(
+                    "this draft head reads the prompt's encoded images before the prefill (prefill_image_features): "
+                    "its drafter needs DraftContext.prompt_embeddings of the row's whole prompt"
+                )
+            pair_embeddings = self.prompt_embeddings[:, 1:]
         table = block_round(self.head, self.embed, self.scorer, sequence[:, 1:], None, positions, num_pairs,
                             DynamicCache(), 0, depth - 1, self.config.top_k, key_valid=key_valid,
-                            previous=self.previous)  # fmt: skip
+                            previous=self.previous, pair_embeddings=pair_embeddings)  # fmt: skip
         self.num_forwards += 1
         return self._block_tree(table, depth)
 

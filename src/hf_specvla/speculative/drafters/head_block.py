@@ -101,6 +101,7 @@ def block_round(
     key_length: int | None = None,
     key_valid: torch.Tensor | None = None,
     previous: tuple[torch.Tensor, torch.Tensor] | None = None,
+    pair_embeddings: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """One block forward (module docstring). Batch 1.
 
@@ -117,6 +118,8 @@ def block_round(
         top_k: candidates kept per position (capped at the scored tokens).
         key_length / key_valid: as [`block_mask`].
         previous: ``(previous_bins [D], first_position)`` for a head that reads the previous action, else None.
+        pair_embeddings: ``[1, Q, H]`` the pairs' token inputs when not ``embed(token_ids)`` (before the prefill, a
+            head with ``prefill_image_features``: the target's input embeddings, images encoded), else None.
     Returns:
         ``[1 + M, k]`` int64 vocabulary ids: each depth's best tokens, best first.
     """
@@ -128,7 +131,8 @@ def block_round(
         pair_hidden = head.mask_query_inputs(1, num_pairs, unknown_token=False)[1]
     else:
         pair_hidden = head.fuse_features(hidden)
-    embeds = torch.cat([embed(token_ids).to(query_embeds.dtype), query_embeds], dim=1)  # [1, Q + M, H]
+    pair_embeddings = embed(token_ids) if pair_embeddings is None else pair_embeddings
+    embeds = torch.cat([pair_embeddings.to(query_embeds.dtype), query_embeds], dim=1)  # [1, Q + M, H]
     all_hidden = torch.cat([pair_hidden.to(query_hidden.dtype), query_hidden], dim=1)
     all_positions = torch.cat([positions, query_positions], dim=1)
     mask = block_mask(num_pairs, num_new, num_queries, committed, key_length, key_valid, embeds.dtype, embeds.device)
