@@ -69,14 +69,16 @@ def untrained_toy(tmp_path_factory):
     action tokens' output rows are scaled up so that greedy decoding lands on action tokens, as the trained toy's
     does (the action prior drafts from them)."""
     from hf_specvla import DraftHead, enable_speculation
-    from hf_specvla.benchmarks.toy import ACTION_DIM, ToyPipeline, build_toy_target
+    from hf_specvla.benchmarks.toy import ACTION_DIM, TOY_HEAD_SETTINGS, ToyPipeline, build_toy_target
 
     target, tokenizer, action_tokenizer = build_toy_target(seed=0)
     with torch.no_grad():
         target.get_output_embeddings().weight[-action_tokenizer.n_bins :] *= 8.0
     target = enable_speculation(target.eval())
     torch.manual_seed(0)
-    head = DraftHead.from_target(target, action_tokenizer, action_dim=ACTION_DIM).eval()
+    head = DraftHead.from_target(
+        target, action_tokenizer, action_dim=ACTION_DIM, num_draft_tokens=ACTION_DIM - 1, **TOY_HEAD_SETTINGS
+    ).eval()  # the demo's head: drafts from the image too
     return ToyPipeline(str(tmp_path_factory.mktemp("toy")), target, tokenizer, action_tokenizer, head)
 
 

@@ -150,3 +150,11 @@ def test_demo_refuses_a_folder_holding_another_pipeline(toy_pipeline, capsys):
     assert exit_info.value.code == 2 and "holds another run: size.hidden_size: " in capsys.readouterr().err
     again = build_toy_pipeline(toy_pipeline.output_dir, progress=False)  # same settings: loaded, not retrained
     assert torch.equal(again.draft_head.fuse.weight, toy_pipeline.draft_head.fuse.weight)
+
+
+def test_the_demos_default_target_steps_are_the_toys():
+    """One default: ``demo --target-steps`` (parsed without importing the toy) is ``toy.TOY_TARGET_STEPS``."""
+    from hf_specvla.benchmarks.toy import TOY_TARGET_STEPS
+    from hf_specvla.cli.main import build_parser
+
+    assert build_parser().parse_args(["demo"]).target_steps == TOY_TARGET_STEPS

@@ -65,6 +65,21 @@ def test_eagle2_tree_with_a_trained_head_is_lossless_and_never_worse_than_the_ch
     assert stats.accepted_by_drafter["head-tree"] > 0
 
 
+def test_the_toy_head_drafts_most_actions_from_the_image_before_the_prefill(toy_pipeline):
+    """The demo's head (head v3 reading the encoded image before the prefill, ``TOY_HEAD_SETTINGS``) drafts the whole
+    action before the target's first forward: on held-out scenes (no previous action) most calls take one target
+    forward, every one greedy's tokens."""
+    assert toy_pipeline.draft_head.config.prefill_image_features
+    tree = DraftHeadDrafter(toy_pipeline.draft_head, tree=DraftTreeConfig())
+    forwards = []
+    for prompt in held_out_prompts(toy_pipeline, 32):
+        expected = toy_pipeline.target.generate(**prompt, max_new_tokens=ACTION_DIM, do_sample=False)
+        out = run(toy_pipeline, prompt, tree)
+        assert torch.equal(out.sequences, expected)  # r=0
+        forwards.append(out.speculation.num_target_forwards)
+    assert sum(f == 1 for f in forwards) >= 0.5 * len(forwards), forwards
+
+
 @pytest.mark.parametrize("bin_tolerance", [2, [4, 4, 4, 4, 4, 4, 0]])
 def test_relaxed_decoding_on_the_toy_target(toy_pipeline, bin_tolerance):
     tolerance = bin_tolerance if isinstance(bin_tolerance, list) else [bin_tolerance] * ACTION_DIM

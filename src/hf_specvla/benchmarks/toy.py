@@ -6,7 +6,9 @@ The task has real structure, so a draft head has something to learn:
 * the action (7 dims in [-1, 1], OpenVLA layout xyz / rpy / gripper) is a deterministic function of the dot's
   grid cell, its colour and the instruction: ``[x, y, z(task), colour, (x+y)/2, (x-y)/2, gripper(task)]``.
 
-Everything is built locally and trains in well under a minute on 2 CPU cores (see [`train_toy_target`]).
+Everything is built locally and trains in a few minutes on 2 CPU cores (see [`train_toy_target`]): the target for
+[`TOY_TARGET_STEPS`], enough for it to read the dot's cell off the image, then its draft head (head v3, drafting the
+whole action before the prefill from the instruction and the encoded image).
 """
 
 from __future__ import annotations
@@ -27,6 +29,13 @@ from ..training.configuration import TrainingConfig
 from ..training.loop import TrainingJob, run_training
 
 logger = logging.getLogger(__name__)
+
+#: the demo's toy target training steps: enough for it to read the dot's cell off the image (at 300 it had not: its
+#: x / y tokens were one answer per instruction, and every action of a moving-dot episode the same)
+TOY_TARGET_STEPS = 1500
+#: the toy draft head (head v3): one block per head forward, the whole action drafted before the prefill from the
+#: instruction and the encoded image (the target's vision output, which ``generate`` computes before the prefill)
+TOY_HEAD_SETTINGS = dict(draft_mode="block", prefill_drafts=True, prefill_image_features=True)
 
 GRID_SIZE = 8
 IMAGE_SIZE = 32
@@ -216,14 +225,15 @@ class ToyPipeline:
 def build_toy_pipeline(
     output_dir: str,
     size: ToyTargetSize | None = None,
-    target_steps: int = 300,
+    target_steps: int = TOY_TARGET_STEPS,
     draft_steps: int = 800,
     draft_learning_rate: float = 3e-3,
     seed: int = 0,
     progress: bool = True,
     overwrite: bool = False,
 ) -> ToyPipeline:
-    """Builds and trains the toy target, then self-distils a draft head for it (about a minute on 2 cores).
+    """Builds and trains the toy target, then self-distils a draft head for it ([`TOY_HEAD_SETTINGS`]; about three
+    minutes on 2 cores).
     Both see only the training scenes of [`split_scenes`].
 
     The target is saved to ``output_dir/target`` and the draft head to ``output_dir/draft_head``. The folder follows
@@ -239,7 +249,7 @@ def build_toy_pipeline(
     size = size or ToyTargetSize()
     root = Path(output_dir)
     settings = dict(size=asdict(size), target_steps=target_steps, draft_steps=draft_steps,
-                    draft_learning_rate=draft_learning_rate, seed=seed)  # fmt: skip
+                    draft_learning_rate=draft_learning_rate, seed=seed, draft_head=TOY_HEAD_SETTINGS)  # fmt: skip
     with claim_run_folder(root, RunRecord("demo", settings), overwrite) as run:
         target, tokenizer, action_tokenizer, draft_head = _build_or_load(
             run.bound, size, target_steps, draft_steps, draft_learning_rate, seed, progress
@@ -267,12 +277,14 @@ def _build_or_load(root, size: ToyTargetSize, target_steps: int, draft_steps: in
     else:
         scenes = split_scenes()[0]
         prompts = [toy_inputs(scenes[i : i + 64], tokenizer) for i in range(0, len(scenes), 64)]
-        dataset = build_distillation_dataset(target, prompts, ACTION_DIM, action_tokenizer, progress=progress)
+        dataset = build_distillation_dataset(target, prompts, ACTION_DIM, action_tokenizer, progress=progress,
+                                             image_features=True)  # fmt: skip
         torch.manual_seed(seed)  # the head's initialisation, independent of what ran before
-        draft_head = DraftHead.from_target(target, action_tokenizer, action_dim=ACTION_DIM)
+        draft_head = DraftHead.from_target(target, action_tokenizer, action_dim=ACTION_DIM,
+                                           num_draft_tokens=ACTION_DIM - 1, **TOY_HEAD_SETTINGS)  # fmt: skip
         config = DraftTrainingConfig(
             str(draft_dir), max_steps=draft_steps, batch_size=32, learning_rate=draft_learning_rate,
-            lr_schedule="cosine", warmup_steps=50, save_every=0, seed=seed,
+            lr_schedule="cosine", warmup_steps=50, save_every=0, seed=seed, unroll_steps=ACTION_DIM - 1,
         )  # fmt: skip
         draft_head = train_draft_head(draft_head, target, dataset, config, progress=progress)
     return target, tokenizer, action_tokenizer, draft_head

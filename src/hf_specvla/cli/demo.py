@@ -16,8 +16,8 @@ HELP = "train a toy VLA target + draft head on the spot and benchmark them"
 EXAMPLES = """
     # The main job: build and train a toy OpenVLA-style target and a draft head on the spot, then benchmark
     # plain greedy (eager and compiled) vs speculative decoding (strict and relaxed), ending with a verdict; the full
-    # tables go to runs/toy/demo_report.md. ~8 minutes on 2 idle CPU cores (7.5 min measured, set-up and training
-    # included), half of it compiling the compiled rows (--no-compile skips them).
+    # tables go to runs/toy/demo_report.md. ~11 minutes (11 min measured on one CPU thread, training included: the
+    # target 5 min, its draft head 1), 2 min of it compiling the compiled rows (--no-compile skips them).
     hf-specvla demo
 
     # A quick look at a pipeline already trained in runs/toy: few prompts, two episodes, one relaxed r, no compiled rows
@@ -42,7 +42,7 @@ def add_arguments(parser) -> None:
         "--output-dir", default="runs/toy", help="where target and draft head are kept (reused: same settings)"
     )
     parser.add_argument("--size", choices=sorted(SIZES), default="small", help="toy target size")
-    parser.add_argument("--target-steps", type=int, default=300, help="toy target training steps")
+    parser.add_argument("--target-steps", type=int, default=1500, help="toy target training steps")
     parser.add_argument("--draft-steps", type=int, default=800, help="draft head training steps")
     parser.add_argument(
         "--overwrite-output-dir", action="store_true", help="move a pipeline built with other settings aside"

@@ -79,6 +79,18 @@ def with_compiled_image_features(model: PreTrainedModel, kwargs: dict) -> dict:
     return {**rest, ENCODED_INPUTS: {"image": encoded}}
 
 
+def reads_encoded_images(model: PreTrainedModel) -> bool:
+    """Whether ``generate`` encodes ``model``'s images before its prefill and a drafter can find them in the prompt
+    ([`prompt_input_embeddings`]): an image VLM whose forward takes ``mm_encoder_outputs``, whose base model has
+    ``get_image_features`` and whose config names its ``image_token_id`` (Llava and its kind)."""
+    return (
+        "image" in getattr(model, "input_modalities", ())
+        and _forward_takes_encoded_images(type(model))
+        and getattr(model.base_model, "get_image_features", None) is not None
+        and getattr(model.config, "image_token_id", None) is not None
+    )
+
+
 def encode_images(model: PreTrainedModel, inputs: dict):
     """The images of ``inputs`` encoded as ``generate`` encodes them before the prefill (the base model's
     ``get_image_features`` on the inputs it takes, ``return_dict=True``), or None when ``inputs`` hold no

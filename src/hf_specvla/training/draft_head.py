@@ -51,7 +51,7 @@ from ..speculative import (
     speculative_generate,
     to_additive_mask,
 )
-from ..speculative.vision import encode_images, prompt_input_embeddings
+from ..speculative.vision import encode_images, prompt_input_embeddings, reads_encoded_images
 from .checkpoints import check_output_dir, latest_checkpoint, prepare_output_dir, training_record
 from .configuration import HEAD_VERSIONS, DraftTrainingConfig
 from .loop import TrainingJob, default_accelerator, run_training
@@ -802,8 +802,10 @@ def head_v2_settings(target: PreTrainedModel) -> dict:
 def head_v3_settings(target: PreTrainedModel) -> dict:
     """Head v3's [`DraftHeadConfig`] fields for ``target``: head v2's ([`head_v2_settings`]) and its new modes: a block
     per forward after the prefill (``draft_mode="block"``) and the whole action drafted before the prefill
-    (``prefill_drafts``)."""
-    return {**head_v2_settings(target), "draft_mode": "block", "prefill_drafts": True}
+    (``prefill_drafts``), from the encoded image too when ``generate`` encodes the target's images before its prefill
+    (``prefill_image_features``, [`reads_encoded_images`]: a Llava-style VLM)."""
+    settings = {**head_v2_settings(target), "draft_mode": "block", "prefill_drafts": True}
+    return {**settings, "prefill_image_features": True} if reads_encoded_images(target) else settings
 
 
 def head_settings(version: str, target: PreTrainedModel) -> dict:

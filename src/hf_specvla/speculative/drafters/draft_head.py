@@ -33,9 +33,9 @@ catch-up forward (the pairs the target committed, as many as were accepted) is i
 ``depth + 1`` pairs (the prompt's pairs after the prefill are fed eagerly, but for the last ones).
 
 Head v3 (``head_block.py``): a head with ``draft_mode="block"`` drafts each round with one forward (the pairs the
-target committed and mask queries after them), a head with ``prefill_drafts`` drafts the whole action before the
-prefill; both run eagerly, on the session's cache (static in a compiled call): one head forward, where the chain's
-compiled round fuses several.
+target committed and mask queries after them), eagerly on the session's cache (static in a compiled call): one head
+forward, where the chain's compiled round fuses several; a head with ``prefill_drafts`` drafts the whole action before
+the prefill in one forward without a cache, compiled in a compiled call (one graph per prompt length).
 
 Per-call state (the head's KV cache, the pairs not yet fed) lives in the session, never on the model.
 Invariant: after a catch-up the head's cache holds exactly the target's committed positions, each computed from
@@ -298,8 +298,9 @@ class _DraftHeadSession(DraftSession):
     # ------------------------------------------------------------------ head v3: blocks (head_block.py)
     def _prefill_block(self, draft_round: DraftRound, depth: int) -> DraftTree:
         """The whole action drafted before the prefill, in one head forward over the prompt's tokens (as pairs with a
-        missing hidden state) and ``depth - 1`` mask queries, on a scratch cache (the head's own cache starts with the
-        target's true hidden states after the prefill). Eager on every path (the prompt's length varies)."""
+        missing hidden state) and ``depth - 1`` mask queries, without a cache (the head's own cache starts with the
+        target's true hidden states after the prefill). Compiled when the target's rounds are (one graph per prompt
+        length: a policy has one), else eager."""
         sequence = draft_round.sequence  # [1, S]
         num_pairs = sequence.shape[1] - 1
         if num_pairs < 1:  # a one-token prompt: nothing to read
@@ -318,9 +319,21 @@ class _DraftHeadSession(DraftSession):
                     "its drafter needs DraftContext.prompt_embeddings of the row's whole prompt"
                 )
             pair_embeddings = self.prompt_embeddings[:, 1:]
-        table = block_round(self.head, self.embed, self.scorer, sequence[:, 1:], None, positions, num_pairs,
-                            DynamicCache(), 0, depth - 1, self.config.top_k, key_valid=key_valid,
-                            previous=self.previous, pair_embeddings=pair_embeddings)  # fmt: skip
+        arguments = (self.head, self.embed, self.scorer, sequence[:, 1:], None, positions, num_pairs, None, 0,
+                     depth - 1, self.config.top_k)  # no cache: the block's entries are never kept  # fmt: skip
+        settings = dict(key_valid=key_valid, previous=self.previous, pair_embeddings=pair_embeddings)
+        if self.compile_config is None:
+            table = block_round(*arguments, **settings)
+        else:  # one graph per prompt length and depth, compiled at its first call (a throw-away block)
+            key = ("draft-head prefill block", self.drafter.round_graph_key(self.compile_config, num_pairs, depth))
+            seconds = self.compiled.compile_once(
+                key, lambda: self.compiled.compiled_function(block_round, graphs=1)(*arguments, **settings)
+            )
+            if seconds:
+                self.compile_seconds += seconds
+                logger.info("compiled the draft head's block before the prefill (%d pairs) in %.1f s", num_pairs,
+                            seconds)  # fmt: skip
+            table = self.compiled.functions[block_round](*arguments, **settings)
         self.num_forwards += 1
         return self._block_tree(table, depth)
 
