@@ -213,3 +213,18 @@ def test_toy_timings_check_the_tolerances_first(tmp_path, capsys, monkeypatch, c
     monkeypatch.setattr(benchmark, "time_pipeline", lambda *a, **k: pytest.fail("timing started"))
     err = _usage_error([command, "--pipeline-dir", str(tmp_path), "--bin-tolerances", "256"], capsys)
     assert "--bin-tolerances 256: r is wider than the action range" in err
+
+
+def test_image_features_for_a_head_before_v3_is_a_usage_error_before_anything_loads(tmp_path, capsys, monkeypatch):
+    import hf_specvla.cli.train_draft as train_draft
+
+    monkeypatch.setattr(train_draft, "load_policy", lambda *args: pytest.fail("loaded the policy"))
+    argv = ["train-draft", "--policy", str(POLICY), "--head", "v2", "--prefill-image-features",
+            "--output-dir", str(tmp_path / "head")]  # fmt: skip
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert "--prefill-image-features is read by a head v3's drafts before the prefill; got --head v2" in (
+        capsys.readouterr().err
+    )
+    assert not (tmp_path / "head").exists()

@@ -54,10 +54,11 @@ def test_policy_v3_keeps_policy_v2s_cost_structure():
     assert part(v3, *tower) == part(v2, *tower)
 
 
-@pytest.mark.parametrize("head_folder", ["mt10_vla3_draft", "mt10_vla3_draft_v2"])
+@pytest.mark.parametrize("head_folder", ["mt10_vla3_draft", "mt10_vla3_draft_v2", "mt10_vla3_draft_v3"])
 def test_speculation_on_policy_v3_is_lossless(head_folder):
-    """Its draft heads (v1, and v2 reading the previous action the policy remembers) and the action prior on the
-    shipped weights: r=0 gives greedy's actions, in fewer forwards."""
+    """Its draft heads (v1; v2 reading the previous action the policy remembers; v3 drafting blocks, and the whole
+    action before the prefill) and the action prior on the shipped weights: r=0 gives greedy's actions, in fewer
+    forwards."""
     policy = VLAPolicy.from_pretrained(POLICIES / "mt10_vla3")
     head = DraftHead.from_pretrained(POLICIES / head_folder)
     policy.check_draft_head(head)

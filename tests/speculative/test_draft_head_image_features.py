@@ -27,6 +27,7 @@ from hf_specvla.training.draft_head import (
     block_features,
     build_distillation_dataset,
     collate_distillation,
+    head_settings,
 )
 
 from ..conftest import IMAGE_TOKEN, VOCAB, llava_prompt
@@ -197,6 +198,15 @@ def test_the_pre_prefill_training_block_is_the_drafting_block(tiny_llava, image_
     blind = {name: value for name, value in batch.items() if not name.startswith("image")}
     with torch.no_grad(), pytest.raises(ValueError, match="image_features=True"):
         block_features(image_head, handles, blind, None, roots, steps - 1)
+
+
+def test_head_v3_reads_the_image_only_when_asked_and_only_where_generate_encodes_it(tiny_llava, tiny_llama):
+    assert "prefill_image_features" not in head_settings("v3", tiny_llava)
+    assert head_settings("v3", tiny_llava, image_features=True)["prefill_image_features"] is True
+    with pytest.raises(ValueError, match="LlamaForCausalLM's generate does not encode its images before the prefill"):
+        head_settings("v3", tiny_llama, image_features=True)
+    with pytest.raises(ValueError, match="not by a v2 head"):
+        head_settings("v2", tiny_llava, image_features=True)
 
 
 def test_image_features_without_prefill_drafts_are_refused():

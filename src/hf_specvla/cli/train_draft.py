@@ -61,6 +61,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--head", choices=HEAD_VERSIONS, default=HEAD_VERSIONS[0],
                         help="v1: the policy's last hidden state; v2: a low, a middle and the top layer and the "
                              "robot's previous action (EAGLE-3 + the last action)")  # fmt: skip
+    parser.add_argument("--prefill-image-features", action="store_true",
+                        help="with --head v3: its drafts before the prefill read the encoded camera frame too (paid "
+                             "on the demo's toy target, not on policy v3)")  # fmt: skip
     parser.add_argument("--unroll-steps", type=POSITIVE, default=None,
                         help="draft steps trained per example on the head's own features (training-time test; "
                              "default: 1 for v1, the chain length for v2)")  # fmt: skip
@@ -91,6 +94,9 @@ def run(args, parser) -> int:
     from ..training.policy_draft import train_policy_draft_head
 
     check_output_dir_flag(args.output_dir, parser)
+    if args.prefill_image_features and args.head != "v3":
+        parser.error(f"--prefill-image-features is read by a head v3's drafts before the prefill; got --head "
+                     f"{args.head}: add --head v3")  # fmt: skip
     check_training_folder(args.output_dir, args.resume, args.overwrite_output_dir, parser)
     with usage_errors(parser, errors=(ValueError, FileNotFoundError)):
         episodes, max_steps, seed_start = rollout_defaults(args)
@@ -120,7 +126,8 @@ def run(args, parser) -> int:
     command = shlex.join(["hf-specvla", *args.argv])
     with usage_errors(parser, errors=(FileExistsError,)):
         head = train_policy_draft_head(policy, training_config, data_config, args.data or [], args.num_draft_tokens,
-                                       command=command, head_version=args.head, rollouts=args.rollouts)  # fmt: skip
+                                       command=command, head_version=args.head, rollouts=args.rollouts,
+                                       image_features=args.prefill_image_features)  # fmt: skip
     print(f"draft head saved to {args.output_dir} ({head.num_parameters():,} parameters); see its README.md")
     return 0
 

@@ -799,26 +799,41 @@ def head_v2_settings(target: PreTrainedModel) -> dict:
     return {"feature_layers": [*layers, -1], "previous_action_input": True}
 
 
-def head_v3_settings(target: PreTrainedModel) -> dict:
+def head_v3_settings(target: PreTrainedModel, image_features: bool = False) -> dict:
     """Head v3's [`DraftHeadConfig`] fields for ``target``: head v2's ([`head_v2_settings`]) and its new modes: a block
     per forward after the prefill (``draft_mode="block"``) and the whole action drafted before the prefill
-    (``prefill_drafts``), from the encoded image too when ``generate`` encodes the target's images before its prefill
-    (``prefill_image_features``, [`reads_encoded_images`]: a Llava-style VLM)."""
-    settings = {**head_v2_settings(target), "draft_mode": "block", "prefill_drafts": True}
-    return {**settings, "prefill_image_features": True} if reads_encoded_images(target) else settings
-
-
-def head_settings(version: str, target: PreTrainedModel) -> dict:
-    """The [`DraftHeadConfig`] fields of head ``version`` (one of ``training.configuration.HEAD_VERSIONS``) for
-    ``target``: none for v1 (the last hidden state, a chain), [`head_v2_settings`], [`head_v3_settings`].
+    (``prefill_drafts``); with ``image_features``, from the encoded image too (``prefill_image_features``: it paid on
+    the demo's toy target, not on policy v3, docs/training.md).
 
     Raises:
-        ValueError: an unknown version, naming the valid ones.
+        ValueError: ``image_features`` for a target whose ``generate`` does not encode its images before the prefill
+            ([`reads_encoded_images`]).
+    """
+    if image_features and not reads_encoded_images(target):
+        raise ValueError(
+            f"{type(target).__name__}'s generate does not encode its images before the prefill (a Llava-style VLM's "
+            f"does): a head cannot draft from them there; train it without image features"
+        )
+    settings = {**head_v2_settings(target), "draft_mode": "block", "prefill_drafts": True}
+    return {**settings, "prefill_image_features": True} if image_features else settings
+
+
+def head_settings(version: str, target: PreTrainedModel, image_features: bool = False) -> dict:
+    """The [`DraftHeadConfig`] fields of head ``version`` (one of ``training.configuration.HEAD_VERSIONS``) for
+    ``target``: none for v1 (the last hidden state, a chain), [`head_v2_settings`], [`head_v3_settings`] (with
+    ``image_features``: drafts before the prefill from the encoded image too).
+
+    Raises:
+        ValueError: an unknown version, naming the valid ones; ``image_features`` for a head before v3 or a target
+            that does not encode its images before the prefill.
     """
     if version not in HEAD_VERSIONS:
         raise ValueError(f"head_version must be one of {HEAD_VERSIONS}, got {version!r}")
-    builders = {"v1": lambda _: {}, "v2": head_v2_settings, "v3": head_v3_settings}
-    return builders[version](target)
+    if image_features and version != "v3":
+        raise ValueError(f"image features are read by a head v3's drafts before the prefill, not by a {version} head")
+    if version == "v3":
+        return head_v3_settings(target, image_features)
+    return head_v2_settings(target) if version == "v2" else {}
 
 
 def draft_training_record(

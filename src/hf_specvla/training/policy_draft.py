@@ -144,6 +144,7 @@ def train_policy_draft_head(
     command: str | None = None,
     head_version: str = "v1",
     rollouts: str | Path | None = None,
+    image_features: bool = False,
 ) -> DraftHead:
     """Trains a [`DraftHead`] for ``policy`` (see module docstring) into ``training_config.output_dir``.
 
@@ -155,7 +156,8 @@ def train_policy_draft_head(
     ``head_version``: "v1" (the last hidden state, no previous action: every head before v2), "v2"
     ([`head_v2_settings`]: a low, a middle and the top layer, and the robot's previous action; train it with
     ``training_config.unroll_steps`` > 1, training-time test) or "v3" ([`head_v3_settings`]: v2's inputs, a block per
-    head forward and drafts before the prefill; ``unroll_steps`` = the block's length).
+    head forward and drafts before the prefill; ``unroll_steps`` = the block's length); ``image_features``: a v3 head's
+    drafts before the prefill read the encoded image too.
 
     ``rollouts``: a folder of ``hf-specvla rollouts`` of this policy to read the on-policy frames from (those
     ``data_config`` asks for) instead of rolling the policy out here; ``run.json`` and the model card record its path
@@ -205,7 +207,7 @@ def train_policy_draft_head(
         action_tokenizer=policy.action_tokenizer, action_dim=policy.config.action_dim,
         num_draft_tokens=num_draft_tokens, action_layout=policy.action_layout, target_name_or_path=policy.name_or_path,
         target_fingerprint=policy.weights_fingerprint(), paths=paths, progress=progress,
-        head_settings=head_settings(head_version, policy.model),
+        head_settings=head_settings(head_version, policy.model, image_features),
     )  # fmt: skip
     write_model_card(output_dir, head, training_config, data_config, demonstrations, sequences, command,
                      policy.config.action_tokens, paths.get("rollouts"),
