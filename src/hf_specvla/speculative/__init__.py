@@ -75,6 +75,7 @@ from .modeling_draft_head import DraftHead, TargetHandles, check_draft_head_fold
 from .outputs import SpeculativeDecoderOnlyOutput
 from .stats import SpeculationStats
 from .tree import DraftTree
+from .vision import encode_images, prompt_input_embeddings, reads_encoded_images
 from .weights import named_weight_errors
 
 __all__ = [
@@ -99,6 +100,9 @@ __all__ = [
     "causal_mask",
     "to_additive_mask",
     "read_hidden_states",
+    "encode_images",
+    "prompt_input_embeddings",
+    "reads_encoded_images",
     "check_draft_head_folder",
     "embed_tokens",
     "num_head_entries",

@@ -46,12 +46,14 @@ from ..speculative import (
     SpeculationStats,
     TargetHandles,
     embed_tokens,
+    encode_images,
+    prompt_input_embeddings,
     read_hidden_states,
+    reads_encoded_images,
     softcap_logits,
     speculative_generate,
     to_additive_mask,
 )
-from ..speculative.vision import encode_images, prompt_input_embeddings, reads_encoded_images
 from .checkpoints import check_output_dir, latest_checkpoint, prepare_output_dir, training_record
 from .configuration import HEAD_VERSIONS, DraftTrainingConfig
 from .loop import TrainingJob, default_accelerator, run_training
