@@ -36,6 +36,11 @@ def _encoder_parameters(encoder_function) -> tuple[str, ...]:
     return tuple(name for name in inspect.signature(encoder_function).parameters if name not in ("self", "kwargs"))
 
 
+def _encoder_inputs(encoder, kwargs: dict) -> dict:
+    """The entries of ``kwargs`` the base model's ``get_image_features`` (``encoder``, bound) takes."""
+    return {name: kwargs[name] for name in _encoder_parameters(encoder.__func__) if name in kwargs}
+
+
 def _setting(model: PreTrainedModel, kwargs: dict, name: str):
     """A generation setting as ``generate`` resolves it: the call's keyword, else its ``generation_config``'s, else the
     model's."""
@@ -72,7 +77,7 @@ def with_compiled_image_features(model: PreTrainedModel, kwargs: dict) -> dict:
     compile_config = compiled_call_config(model, kwargs)
     if compile_config is None:
         return kwargs
-    inputs = {name: kwargs[name] for name in _encoder_parameters(encoder.__func__) if name in kwargs}
+    inputs = _encoder_inputs(encoder, kwargs)
     rest = {name: value for name, value in kwargs.items() if name not in inputs}
     verifier = CompiledVerifier.for_model(model, compile_config)
     encoded = verifier.image_encoder(model, inputs["pixel_values"].shape[0])(**inputs, return_dict=True)
@@ -105,8 +110,7 @@ def encode_images(model: PreTrainedModel, inputs: dict):
     if encoder is None:
         raise ValueError(f"{type(model).__name__} has no base_model.get_image_features: its images cannot be encoded "
                          f"before its forward")  # fmt: skip
-    arguments = {name: inputs[name] for name in _encoder_parameters(encoder.__func__) if name in inputs}
-    return encoder(**arguments, return_dict=True)
+    return encoder(**_encoder_inputs(encoder, inputs), return_dict=True)
 
 
 def prompt_input_embeddings(model: PreTrainedModel, input_ids, model_kwargs: dict, start: int = 0):
