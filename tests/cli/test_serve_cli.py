@@ -44,6 +44,7 @@ def _run(*flags: str, env: dict | None = None) -> subprocess.CompletedProcess:
         (["--host", "0.0.0.0"], "reachable from other machines: pass --api-key"),
         (["--method", "prior+bogus"], "unknown decoding method"),
         (["--method", "prior+tree"], "drafts with the draft head: give --draft-head"),
+        (["--method", "prior+jacobi", "exact"], "mix compiled and eager decoding"),
         (["--buckets", "4", "2"], "buckets must be increasing"),
         (["--buckets", "0"], "argument --buckets: must be >= 1, got 0"),
         (["--speculate-buckets", "3"], "speculate_buckets [3] are not buckets"),
@@ -79,15 +80,18 @@ def test_a_taken_port_is_a_usage_error_naming_it():
 
 def test_an_unused_draft_head_is_said_not_dropped_silently():
     """``--draft-head`` with a method that drafts without one: a warning naming both (as ``compare`` does); the
-    taken port then stops the command before the policy loads."""
+    taken port then stops the command before the policy loads. A preset with a head uses it: both named."""
+    head = str(ROOT / "policies" / "mt10_vla3_draft_v2")
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen(1)
-        head = str(ROOT / "policies" / "mt10_vla3_draft_v2")
-        result = _run("--policy", POLICY, "--method", "exact", "--draft-head", head, "--port",
-                      str(taken.getsockname()[1]))  # fmt: skip
-    assert result.returncode == 2
-    assert f"--draft-head {head} is not used: --method exact does not draft with a head" in result.stderr
+        port = str(taken.getsockname()[1])
+        unused = _run("--policy", POLICY, "--method", "prior+jacobi:compile", "--draft-head", head, "--port", port)
+        used = _run("--policy", POLICY, "--method", "exact", "--draft-head", head, "--port", port)
+    assert unused.returncode == 2 == used.returncode
+    assert f"--draft-head {head} is not used: --method prior+jacobi:compile does not draft" in unused.stderr
+    assert "is not used" not in used.stderr
+    assert "--method exact = prior+jacobi:compile prior+jacobi+tree:compile" in used.stderr
 
 
 def test_serve_answers_act_and_exits_0_on_sigterm():

@@ -197,3 +197,35 @@ def test_bad_motion_rule_options_are_named(text, message):
     with pytest.raises(ValueError) as error:
         DecodingMethod.parse(text, action_dim=4)
     assert message in str(error.value)
+
+
+def test_a_server_given_a_head_measures_each_preset_with_and_without_it():
+    """Offline, a preset resolves to one method, the same with a head; a server given a head measures the preset's
+    head composition beside it (issue 62, item 4), in the same relaxation; lists keep their order, repeats dropped."""
+    from hf_specvla.policies.decoding_methods import serving_methods
+
+    assert [m.name for m in serving_methods("exact")] == ["prior+jacobi:compile"]
+    assert [m.name for m in serving_methods("exact", draft_head_given=True)] == [
+        "prior+jacobi:compile", "prior+jacobi+tree:compile"]  # fmt: skip
+    assert DecodingMethod.parse("exact", draft_head_given=True).name == "prior+jacobi:compile"  # offline: unchanged
+    fast = [m.name for m in serving_methods("fast", True, 7)]
+    assert fast == [FAST[7], FAST[7].replace("prior+jacobi:", "prior+jacobi+tree:")]
+    listed = serving_methods(["prior+jacobi:compile", "exact", "prior+tree:compile"], True)
+    assert [m.name for m in listed] == ["prior+jacobi:compile", "prior+jacobi+tree:compile", "prior+tree:compile"]
+    assert [m.name for m in serving_methods("greedy:compile", True)] == ["greedy:compile"]
+
+
+@pytest.mark.parametrize(
+    ("methods", "message"),
+    [
+        (["prior+jacobi", "prior+jacobi:compile"], "mix compiled and eager"),
+        (["greedy:compile", "exact"], "greedy is the baseline"),
+        (["prior+bogus"], "unknown decoding method"),
+        ([], "a list of them"),
+    ],
+)
+def test_a_server_s_methods_that_cannot_be_measured_together_are_refused(methods, message):
+    from hf_specvla.policies.decoding_methods import serving_methods
+
+    with pytest.raises(ValueError, match=message):
+        serving_methods(methods)

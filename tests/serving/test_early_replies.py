@@ -95,7 +95,7 @@ def test_the_decode_step_hands_on_a_row_the_moment_it_is_decoded(policy):
     expected = [(_greedy(policy, *o), _previous_action(policy, *o)) for o in observations]
     handed: dict[int, tuple] = {}
     with _later_forwards_slowed(policy) as returned:
-        batch = step.run(requests, histories, 4, True, lambda i, row: handed.setdefault(i, (row, time.perf_counter())))
+        batch = step.run(requests, histories, 4, 1, lambda i, row: handed.setdefault(i, (row, time.perf_counter())))
     call_returned = returned[-1]
     assert 0 in handed and set(handed) | set(batch.rows) == {0, 1, 2} and not set(handed) & set(batch.rows)
     row, at = handed[0]
@@ -116,11 +116,11 @@ def test_greedy_batches_answer_every_row_after_the_call(policy):
     observations = [_observation(policy, seed) for seed in (4, 5)]
     requests = [ActRequest(image, INSTRUCTION, state) for image, state in observations]
     handed = []
-    batch = step.run(requests, [[], []], 2, False, lambda i, row: handed.append(i))
+    batch = step.run(requests, [[], []], 2, 0, lambda i, row: handed.append(i))
     assert handed == [] and sorted(batch.rows) == [0, 1]
     assert [r.target_forwards for r in batch.rows.values()] == [policy.config.action_tokens] * 2
     with pytest.raises(ValueError, match="a batch of 2 rows decodes 1..2 requests, got 3"):
-        step.run(requests + requests[:1], [[], [], []], 2, False)
+        step.run(requests + requests[:1], [[], [], []], 2, 0)
 
 
 def test_a_failed_batch_retries_only_the_requests_not_answered_yet(policy):

@@ -123,6 +123,7 @@ def test_without_ray_the_error_says_what_to_install(monkeypatch):
         ({"threads": 1.5}, "argument threads must be an integer, got 1.5"),
         ({"method": "prior+bogus"}, "unknown decoding method"),
         ({"method": "prior+tree"}, "method prior+tree drafts with the draft head: give draft_head=<its folder>"),
+        ({"method": ["prior+jacobi", "prior+tree"]}, "method prior+tree drafts with the draft head: give draft_head"),
         ({"policy": "no/such/policy"}, "argument policy: no folder 'no/such/policy' (looked in"),
         ({"policy": str(ROOT / "examples")}, "holds no policy_config.json: not a saved policy folder"),
     ],
@@ -141,6 +142,11 @@ def test_the_builder_reads_text_and_typed_arguments_alike():
     assert from_text == typed and from_text.serve == CONFIG and from_text.num_replicas == 2
     assert PolicyAppArgs.from_args(from_text.to_args()) == from_text  # what serve_config writes reads back
     assert PolicyAppArgs.from_args({**ARGS, "speculate_buckets": ""}).serve.speculate_buckets == ()  # never
+    # several methods, the faster per bucket: a YAML list (one method's options hold commas: never split text)
+    several = PolicyAppArgs.from_args({**ARGS, "method": ["prior+jacobi", "prior+jacobi:r=4,m=1"]})
+    assert several.serve.method == ("prior+jacobi", "prior+jacobi:r=4,m=1")
+    assert PolicyAppArgs.from_args(several.to_args()) == several
+    assert PolicyAppArgs.from_args({**ARGS, "method": "prior+jacobi:r=4,m=1"}).serve.method == "prior+jacobi:r=4,m=1"
 
 
 @pytest.mark.parametrize("path", EXAMPLE_CONFIGS, ids=lambda p: p.name)

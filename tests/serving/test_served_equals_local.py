@@ -16,6 +16,7 @@ from hf_specvla.serving.server import PolicyServer
 from .episodes import EPISODES, MAX_STEPS, ROBOTS, SEED_START, TASKS, check_served, greedy_episodes
 
 POLICY = Path(__file__).resolve().parents[2] / "policies" / "mt10_vla3"
+HEAD = POLICY.parent / "mt10_vla3_draft_v3"
 
 
 @pytest.fixture(scope="module")
@@ -23,8 +24,8 @@ def policy() -> VLAPolicy:
     return VLAPolicy.from_pretrained(POLICY)
 
 
-def _served_episodes(policy: VLAPolicy, tmp_path, **serve_settings) -> tuple[dict, dict]:
-    service = PolicyService(policy, ServeConfig(**serve_settings))
+def _served_episodes(policy: VLAPolicy, tmp_path, draft_head=None, **serve_settings) -> tuple[dict, dict]:
+    service = PolicyService(policy, ServeConfig(**serve_settings), draft_head)
     service.warm_up()
     with PolicyServer(service, port=0) as server:
         config = RobotsConfig(tasks=TASKS, episodes_per_task=EPISODES, robots=ROBOTS, seed_start=SEED_START,
@@ -47,11 +48,24 @@ def expected(policy) -> dict:
         pytest.param(dict(method="prior+jacobi", buckets=(1, 2, 4)), id="eager"),
         # the preset, compiled (static cache, compiled verification and greedy): one bucket holds the compile short
         pytest.param(dict(method="exact", buckets=(4,)), id="exact-compiled"),
+        # with the shipped head v3: each bucket picks greedy, prior+jacobi or the head's composition (eager), every
+        # other batch explores another, so the robots are served by all three
+        pytest.param(
+            dict(method=("prior+jacobi", "prior+jacobi+tree"), buckets=(1, 2, 4), explore_every=2),
+            id="with-a-draft-head",
+        ),  # fmt: skip
     ],
 )
 def test_robots_through_the_server_act_as_greedy_in_one_process(policy, expected, tmp_path, settings):
-    served, summary = _served_episodes(policy, tmp_path, max_wait_ms=5.0, calibration_calls=2, **settings)
+    head = None
+    if "tree" in str(settings["method"]):
+        from hf_specvla.speculative import DraftHead
+
+        head = DraftHead.from_pretrained(HEAD)
+    served, summary = _served_episodes(policy, tmp_path, head, max_wait_ms=5.0, calibration_calls=2, **settings)
     check_served(served, summary, expected)
-    assert set(summary["methods"]) <= {PolicyService(policy, ServeConfig(settings["method"])).method.name, "greedy",
-                                       "greedy:compile"}  # fmt: skip
+    methods = [m.name for m in PolicyService(policy, ServeConfig(settings["method"]), head).step.methods]
+    assert set(summary["methods"]) <= {*methods, "greedy", "greedy:compile"}
     assert summary["speculative_fraction"] > 0
+    if head is not None:
+        assert set(summary["methods"]) == {*methods, "greedy"}, summary["methods"]

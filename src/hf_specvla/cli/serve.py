@@ -21,6 +21,8 @@ EXAMPLES = """
     hf-specvla serve --policy policies/mt10_vla3 --method exact
     hf-specvla robots --server http://127.0.0.1:8000 --tasks reach-v3 --episodes 2 --robots 4 \\
         --output-dir runs/robots_reach
+    # With the shipped draft head: each batch size decodes with exact, exact + the head or greedy, the fastest
+    hf-specvla serve --policy policies/mt10_vla3 --method exact --draft-head policies/mt10_vla3_draft_v3 --port 8004
     # Quick start-up (eager decoding, no compile), small batches; a greedy-only server (the baseline)
     hf-specvla serve --policy policies/mt10_vla3 --method prior+jacobi --buckets 1 2 4 --port 8001
     hf-specvla serve --policy policies/mt10_vla3 --method greedy:compile --port 8002
@@ -45,10 +47,14 @@ def add_arguments(parser) -> None:
 
     defaults = ServeConfig()
     parser.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
-    parser.add_argument("--method", default=defaults.method,
+    parser.add_argument("--method", nargs="+", default=[defaults.method],
                         help="the speculative method or preset, as `compare` names it (exact, fast, "
-                             "prior+jacobi:compile, ...); greedy / greedy:compile serve greedy only")  # fmt: skip
-    parser.add_argument("--draft-head", default=None, help="a DraftHead folder, for methods that draft with one")
+                             "prior+jacobi:compile, ...), or several: each batch size decodes with the fastest of them "
+                             "and greedy (measured); a preset with --draft-head stands for its methods with and "
+                             "without the head; greedy / greedy:compile serve greedy only")  # fmt: skip
+    parser.add_argument("--draft-head", default=None,
+                        help="a DraftHead folder, for methods that draft with one (with a preset: measured beside "
+                             "the preset's head-less method)")  # fmt: skip
     parser.add_argument(
         "--host",
         default=DEFAULT_HOST,
@@ -104,14 +110,14 @@ def serve_config(args, parser):
 
     with usage_errors(parser, errors=(ValueError, TypeError)):
         speculate = None if args.speculate_buckets is None else tuple(args.speculate_buckets)
-        return ServeConfig(method=args.method, buckets=tuple(args.buckets), max_wait_ms=args.max_wait_ms,
+        return ServeConfig(method=tuple(args.method), buckets=tuple(args.buckets), max_wait_ms=args.max_wait_ms,
                            max_queue=args.max_queue, calibration_calls=args.calibration_calls,
                            speculate_buckets=speculate, explore_every=args.explore_every,
                            max_prompt_tokens=args.max_prompt_tokens)  # fmt: skip
 
 
 def run(args, parser) -> int:
-    from ..policies.decoding_methods import DecodingMethod
+    from ..policies.decoding_methods import serving_methods
     from ..serving.config import check_exposure
 
     if (args.replicas is not None or args.ray_address is not None) and not args.ray:
@@ -124,22 +130,25 @@ def run(args, parser) -> int:
     config = serve_config(args, parser)
     check_draft_head_flag(args.draft_head, parser)
     policy_config = read_policy_config(args.policy, parser)  # cheap: no weights loaded yet
+    given = " ".join(text.strip() for text in args.method)
     with usage_errors(parser, "--method", (ValueError,)):
-        method = DecodingMethod.parse(args.method, bool(args.draft_head), policy_config.action_dim)
-    if method.uses_draft_head and not args.draft_head:
-        parser.error(f"--method {method.name} drafts with the draft head: give --draft-head")
-    if args.draft_head and not method.uses_draft_head:  # as compare does: said, not silently dropped
+        methods = serving_methods(args.method, bool(args.draft_head), policy_config.action_dim)
+    for method in methods:
+        if method.uses_draft_head and not args.draft_head:
+            parser.error(f"--method {method.name} drafts with the draft head: give --draft-head")
+    if args.draft_head and not any(m.uses_draft_head for m in methods):  # as compare does: said, not dropped silently
         logger.warning("--draft-head %s is not used: --method %s does not draft with a head (head, tree, prior+head, "
-                       "prior+tree do); it is ignored", args.draft_head, args.method.strip())  # fmt: skip
+                       "prior+tree and the presets do); it is ignored", args.draft_head, given)  # fmt: skip
         args.draft_head = None
-    if args.method.strip() != method.name:
-        logger.info("--method %s = %s", args.method.strip(), method.name)
+    names = " ".join(method.name for method in methods)
+    if given != names:
+        logger.info("--method %s = %s", given, names)
     if args.ray:
         return _run_ray(args, parser, config)
-    return _run_local(args, parser, config, method)
+    return _run_local(args, parser, config, methods)
 
 
-def _run_local(args, parser, config, method) -> int:
+def _run_local(args, parser, config, methods) -> int:
     from ..metaworld.comparison.runner import check_method_rule
     from ..serving.server import PolicyServer, bind
     from ..serving.service import PolicyService
@@ -149,15 +158,17 @@ def _run_local(args, parser, config, method) -> int:
         sock = bind(args.host, args.port)  # a taken port is refused before the policy loads
     policy = load_policy(args.policy, parser)
     with usage_errors(parser, "--method", (ValueError, TypeError)):
-        check_method_rule(method, policy)
-    draft_head = load_draft_head_for(policy, args.draft_head, parser) if method.uses_draft_head else None
+        for method in methods:
+            check_method_rule(method, policy)
+    uses_head = any(method.uses_draft_head for method in methods)
+    draft_head = load_draft_head_for(policy, args.draft_head, parser) if uses_head else None
     with usage_errors(parser, errors=(ValueError,)):  # e.g. --max-prompt-tokens shorter than any prompt
         service = PolicyService(policy, config, draft_head)
     server = PolicyServer(service, args.host, args.port, args.api_key, args.max_request_bytes, sock=sock)
     logger.info("compiling and calibrating buckets %s (a compiled method: ~30 s per bucket on 2 CPU cores)",
                 list(config.buckets))  # fmt: skip
     service.warm_up()
-    print(f"serving {args.policy} ({service.method.name}) on {server.url}: POST /act, GET /info, GET /stats",
+    print(f"serving {args.policy} ({service.methods_name}) on {server.url}: POST /act, GET /info, GET /stats",
           flush=True)  # fmt: skip
     server.run()
     return 0
@@ -196,8 +207,10 @@ def _run_ray(args, parser, config) -> int:
     host = f"[{args.host}]" if ":" in args.host else args.host
     url = f"http://{host}:{args.port}"
 
+    given = " ".join(text.strip() for text in args.method)
+
     def ready(url: str) -> None:
-        print(f"serving {args.policy} ({config.method}) on {url}: POST /act, GET /info, GET /stats "
+        print(f"serving {args.policy} ({given}) on {url}: POST /act, GET /info, GET /stats "
               f"(Ray Serve, {replicas} replicas)", flush=True)  # fmt: skip
 
     with tempfile.TemporaryDirectory(prefix="hf-specvla-serve-") as folder:

@@ -20,14 +20,16 @@ Presets: ``exact`` (the fastest setting identical to greedy decoding) and ``fast
 v2, with ``confirm=1`` added on policy v3; there it flips episodes both ways beyond the fidelity criterion and is no
 faster than ``exact`` in total decode time), resolved per policy, with or without a draft head, and to the policy's
 action layout ([`PRESETS`], [`Preset`], chosen by the evidence in docs/results/record/metaworld-policies.md); every
-place that takes a method string takes them and names what they resolved to. A preset is defined by what it relaxes,
-not by a table: ``fast`` relaxes the position dimensions (x y z) with r=4 and keeps the rotation and the gripper
-strict, only where the target's top-1 probability is below 0.5, a relaxed token kept only when the gripper after it
-is confirmed (``confirm=1``). On this project's 4-dimensional actions (x y z gripper) that is ``r=4/4/4/0``; on
+place that takes a method string takes them and names what they resolved to. Given a draft head, a preset resolves to
+the same head-less method (its head composition was slower than ``exact`` on policy v3 on a CPU, docs/training.md), and
+a policy server measures both and decodes each batch size with the faster ([`serving_methods`]). A preset is defined by
+what it relaxes, not by a table: ``fast`` relaxes the position dimensions (x y z) with r=4 and keeps the rotation and
+the gripper strict, only where the target's top-1 probability is below 0.5, a relaxed token kept only when the gripper
+after it is confirmed (``confirm=1``). On this project's 4-dimensional actions (x y z gripper) that is ``r=4/4/4/0``; on
 OpenVLA's 7 (x y z roll pitch yaw gripper) ``r=4/4/4/0/0/0/0``; on 8 (x y z, a quaternion qx qy qz qw, gripper)
-``r=4/4/4/0/0/0/0/0`` ([`ACTION_LAYOUTS`]). Rotations stay strict because
-no measurement here relaxed one (Meta-World's hand does not rotate); any other number of dimensions is refused with
-the rule to spell out instead. ``exact`` relaxes nothing, so it fits every layout.
+``r=4/4/4/0/0/0/0/0`` ([`ACTION_LAYOUTS`]). Rotations stay strict because no measurement here relaxed one (Meta-World's
+hand does not rotate); any other number of dimensions is refused with the rule to spell out instead. ``exact`` relaxes
+nothing, so it fits every layout.
 
 ``:compile`` decodes on a static cache with transformers' ``CompileConfig``: ``greedy:compile`` is transformers' own
 compiled greedy decoding (the baseline a user who wants speed has), ``tree:compile`` / ``prior+tree:r=4:compile``
@@ -386,6 +388,8 @@ class Preset:
     Args:
         name: what users write (``fast``).
         drafters / drafters_with_head: what drafts for a policy without / with a draft head.
+        head_drafters: what drafts with the draft head in the same setting: a server given a head measures it
+            beside ``drafters_with_head`` and decodes each batch size with the faster ([`serving_methods`]).
         position_tolerance: r on the position dimensions (x y z).
         rotation_tolerance: r on the rotation dimensions (roll pitch yaw, or a quaternion's four).
         gripper_tolerance: r on the gripper.
@@ -398,6 +402,7 @@ class Preset:
     name: str
     drafters: str
     drafters_with_head: str
+    head_drafters: str = "prior+jacobi+tree"
     position_tolerance: int = 0
     rotation_tolerance: int = 0
     gripper_tolerance: int = 0
@@ -443,10 +448,25 @@ class Preset:
         Raises:
             ValueError: ``action_dim`` not a positive int, or a relaxed preset and a layout it cannot resolve to.
         """
+        return self._method(self.drafters_with_head if draft_head_given else self.drafters, action_dim)
+
+    def candidates(self, draft_head_given: bool = False, action_dim: int | None = None) -> tuple[DecodingMethod, ...]:
+        """The methods a server measures for this preset: [`resolve`]'s, and with a draft head also the head's
+        composition in the same setting (``head_drafters``), the faster of them chosen per batch size.
+
+        Raises:
+            ValueError: as [`resolve`].
+        """
+        resolved = self.resolve(draft_head_given, action_dim)
+        if not draft_head_given or self.head_drafters == resolved.drafters:
+            return (resolved,)
+        return resolved, self._method(self.head_drafters, action_dim)
+
+    def _method(self, drafters: str, action_dim: int | None) -> DecodingMethod:
         _check_action_dim(action_dim)
         action_dim = VLAPolicyConfig.action_dim if action_dim is None else action_dim
         return DecodingMethod(
-            self.drafters_with_head if draft_head_given else self.drafters,
+            drafters,
             self.tolerance(action_dim),
             compiled=self.compiled,
             confidence_gate=None if self.lossless else self.confidence_gate,
@@ -477,6 +497,35 @@ def resolve_preset(name: str, draft_head_given: bool, action_dim: int | None = N
     ``action_dim``-dimensional actions (see [`Preset.resolve`]); None for a method string that is not a preset."""
     preset = PRESETS.get(name.strip())
     return None if preset is None else preset.resolve(draft_head_given, action_dim).name
+
+
+def serving_methods(text: str | tuple[str, ...] | list[str], draft_head_given: bool = False,
+                    action_dim: int | None = None) -> tuple[DecodingMethod, ...]:  # fmt: skip
+    """The speculative methods a policy server measures and picks from per batch size (``ServeConfig.method``): one
+    method or preset, or several; a preset given a draft head stands for its methods with and without the head
+    ([`Preset.candidates`]: ``exact`` -> ``prior+jacobi:compile`` and ``prior+jacobi+tree:compile``). ``greedy`` /
+    ``greedy:compile`` alone: a greedy-only server (the one method returned is greedy).
+
+    Raises:
+        ValueError: an unknown method (as [`DecodingMethod.parse`]); none; greedy beside speculative methods; compiled
+            and eager methods mixed (the greedy baseline they are measured against is one of the two).
+    """
+    texts = [text] if isinstance(text, str) else list(text)
+    if not texts or not all(isinstance(t, str) for t in texts):
+        raise ValueError(f"method must be a decoding method or preset, or a list of them, got {text!r}")
+    methods: list[DecodingMethod] = []
+    for one in texts:
+        preset = PRESETS.get(one.strip())
+        found = (preset.candidates(draft_head_given, action_dim) if preset is not None
+                 else (DecodingMethod.parse(one, draft_head_given, action_dim),))  # fmt: skip
+        methods += [m for m in found if m not in methods]
+    if len(methods) > 1 and any(m.drafters == "greedy" for m in methods):
+        raise ValueError(f"methods {[m.name for m in methods]}: greedy is the baseline every method is measured "
+                         f"against; list speculative methods only (or greedy alone: a greedy-only server)")  # fmt: skip
+    if len({m.compiled for m in methods}) > 1:
+        raise ValueError(f"methods {[m.name for m in methods]} mix compiled and eager decoding: the greedy baseline "
+                         f"they are measured against is one or the other; add or drop :{COMPILE} on all")  # fmt: skip
+    return tuple(methods)
 
 
 GREEDY = DecodingMethod()

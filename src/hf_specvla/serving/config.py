@@ -27,7 +27,10 @@ class ServeConfig:
 
     Args:
         method: the speculative decoding method or preset (``exact``, ``prior+jacobi:compile``, ...; see
-            ``policies.decoding_methods``). ``greedy`` / ``greedy:compile`` serves greedy only.
+            ``policies.decoding_methods``), or several: each bucket decodes with whichever of them and the greedy
+            baseline is fastest (measured). A preset given a draft head stands for its methods with and without the
+            head (``exact``: ``prior+jacobi:compile`` and ``prior+jacobi+tree:compile``). ``greedy`` /
+            ``greedy:compile`` serves greedy only.
         buckets: the batch sizes decoding runs at (a batch is padded up to the next); the largest is the most
             requests decoded together.
         max_wait_ms: how long a batch waits for more requests after its first arrived (0: decode what is there).
@@ -46,7 +49,7 @@ class ServeConfig:
             any forward. An eager method has no such limit.
     """
 
-    method: str = "exact"
+    method: str | tuple[str, ...] = "exact"
     buckets: tuple[int, ...] = DEFAULT_BUCKETS
     max_wait_ms: float = 2.0
     max_queue: int = 64
@@ -57,6 +60,12 @@ class ServeConfig:
     max_prompt_tokens: int | None = None
 
     def __post_init__(self):
+        if isinstance(self.method, list | tuple):
+            self.method = self.method[0] if len(self.method) == 1 else tuple(self.method)
+        texts = (self.method,) if isinstance(self.method, str) else self.method
+        if not texts or not all(isinstance(text, str) and text.strip() for text in texts):
+            raise ValueError(f"ServeConfig.method must be a decoding method or preset (e.g. exact, "
+                             f"prior+jacobi:compile), or a list of them, got {self.method!r}")  # fmt: skip
         self.buckets = tuple(self.buckets)
         if not self.buckets or any(isinstance(b, bool) or not isinstance(b, int) or not 1 <= b <= MAX_BUCKET
                                    for b in self.buckets):  # fmt: skip

@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..policies.decoding_methods import COMPILED_GREEDY, GREEDY, DecodingMethod
+from ..policies.decoding_methods import COMPILED_GREEDY, GREEDY, serving_methods
 from .config import ServeConfig
 from .protocol import ActRequest
 
@@ -84,7 +84,9 @@ class DecodedBatch:
 
 
 class DecodeStep:
-    """Decodes batches of requests for one policy and method, in either mode (speculative or the greedy baseline).
+    """Decodes batches of requests for one policy in any of its modes: the greedy baseline (mode 0) or one of the
+    speculative methods (modes 1.., ``serving_methods``: e.g. ``exact`` and, given a draft head, ``exact``'s
+    composition with the head).
 
     Args:
         policy: the loaded policy.
@@ -98,33 +100,41 @@ class DecodeStep:
     def __init__(self, policy: VLAPolicy, config: ServeConfig, draft_head=None):
         self.policy, self.config = policy, config
         layout = policy.config
-        self.method = DecodingMethod.parse(config.method, draft_head is not None, layout.action_dim)
+        methods = serving_methods(config.method, draft_head is not None, layout.action_dim)
         device = policy.model.device.type
+        #: the first method (the only one without a draft head, unless several were given)
+        self.method = methods[0]
         self.baseline = COMPILED_GREEDY if self.method.compiled else GREEDY
-        self._kwargs = {
-            True: self.method.generate_kwargs(draft_head, device, action_dim=layout.action_dim),
-            False: self.baseline.generate_kwargs(None, device),
-        }
         #: whether the method speculates at all (``greedy`` / ``greedy:compile`` do not)
         self.speculates = self.method.drafters != "greedy"
+        #: the speculative methods, modes 1, 2, ... (empty for a greedy-only server)
+        self.methods = methods if self.speculates else ()
+        self._kwargs = {0: self.baseline.generate_kwargs(None, device)}
+        for mode, method in enumerate(self.methods, 1):
+            self._kwargs[mode] = method.generate_kwargs(draft_head, device, action_dim=layout.action_dim)
         self.shortest_prompt = len(policy.prompt_ids("", self._zero_state()))  # image, state and the prompt's words
         self.prompt_tiers = self._prompt_tiers(draft_head)
 
-    def name(self, speculative: bool) -> str:
-        """The decoding a mode runs: the method's name, or the baseline's."""
-        return self.method.name if speculative else self.baseline.name
+    @property
+    def modes(self) -> tuple[int, ...]:
+        """Every mode: 0 the greedy baseline, then one per speculative method."""
+        return tuple(range(1 + len(self.methods)))
+
+    def name(self, mode: int) -> str:
+        """The decoding a mode runs: the baseline's name (mode 0), or the method's."""
+        return self.methods[mode - 1].name if mode else self.baseline.name
 
     @property
     def max_prompt_tokens(self) -> int | None:
         """The longest prompt served, in tokens (None: no limit beyond the instruction's characters: eager)."""
         return self.prompt_tiers[-1][1] if self.prompt_tiers else None
 
-    def run(self, requests: list[ActRequest], histories: list[list[list[int]]], bucket: int, speculative: bool,
+    def run(self, requests: list[ActRequest], histories: list[list[list[int]]], bucket: int, mode: int,
             on_row: Callable[[int, DecodedRow], None] | None = None) -> DecodedBatch:  # fmt: skip
         """Decodes ``requests`` (each with its robot's ``histories``, left as they were) in one call of ``bucket``
-        rows (``speculative``: the method, else the greedy baseline). ``on_row(i, row)`` is called (in this thread)
-        for each request's row the engine hands on before the call returns, all but the last of the robots' rows to
-        finish; the batch returned holds the rest.
+        rows in ``mode`` (0: the greedy baseline, else that speculative method). ``on_row(i, row)`` is called (in
+        this thread) for each request's row the engine hands on before the call returns, all but the last of the
+        robots' rows to finish; the batch returned holds the rest.
 
         Raises:
             ValueError: more requests than ``bucket``, or none.
@@ -138,9 +148,9 @@ class DecodeStep:
         images = np.stack([r.image for r in padded])
         states = np.stack([r.state for r in padded]) if self.policy.config.use_state else None
         instructions = [r.instruction for r in padded]
-        kwargs = self._kwargs[True] if speculative else self._greedy_kwargs(bucket, instructions, states)
+        kwargs = self._kwargs[mode] if mode else self._greedy_kwargs(bucket, instructions, states)
         early: set[int] = set()
-        if speculative and on_row is not None:
+        if mode and on_row is not None:
             from ..speculative import remember_actions
 
             def finished(row: int, new_tokens, stats) -> None:  # the engine's on_row_finished, in finishing order
@@ -175,7 +185,7 @@ class DecodeStep:
     def _greedy_kwargs(self, bucket: int, instructions: list[str], states) -> dict:
         """The baseline's ``generate`` arguments; for compiled greedy, an emptied static cache of this bucket with
         room for the widest prompt (see the module docstring) in place of ``cache_implementation``."""
-        kwargs = self._kwargs[False]
+        kwargs = self._kwargs[0]
         if kwargs.get("cache_implementation") != "static":
             return kwargs
         from ..speculative import CACHE_KEY, SLOT_MULTIPLE, reusable_static_cache
@@ -229,21 +239,23 @@ class DecodeStep:
         return tokens + tree.depth + 1 + num_head_entries(tree.top_k, tree.depth), SLOT_MULTIPLE
 
     def _head_trees(self, draft_head) -> list:
-        """The tree settings of the draft-head drafters the method runs (a chain is a tree of top-k 1)."""
+        """The tree settings of the draft-head drafters the methods run (a chain is a tree of top-k 1)."""
         from ..speculative import ComposedDrafter, DraftHead, DraftHeadDrafter
 
         if draft_head is None:
             return []
-        kwargs, trees = self._kwargs[True], []
-        pending = [kwargs.get("assistant_model")]
-        while pending:
-            drafter = pending.pop()
-            if isinstance(drafter, ComposedDrafter):
-                pending += drafter.drafters
-            elif isinstance(drafter, DraftHead):
-                trees.append(DraftHeadDrafter(drafter, kwargs.get("num_draft_tokens")).tree_config)
-            elif isinstance(drafter, DraftHeadDrafter):
-                trees.append(drafter.tree_config)
+        trees = []
+        for mode in self.modes[1:]:
+            kwargs = self._kwargs[mode]
+            pending = [kwargs.get("assistant_model")]
+            while pending:
+                drafter = pending.pop()
+                if isinstance(drafter, ComposedDrafter):
+                    pending += drafter.drafters
+                elif isinstance(drafter, DraftHead):
+                    trees.append(DraftHeadDrafter(drafter, kwargs.get("num_draft_tokens")).tree_config)
+                elif isinstance(drafter, DraftHeadDrafter):
+                    trees.append(drafter.tree_config)
         return trees
 
     def _prompt_tiers(self, draft_head) -> list[tuple[int, int]]:

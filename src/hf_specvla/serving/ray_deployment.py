@@ -145,7 +145,8 @@ class PolicyAppArgs:
     @classmethod
     def from_args(cls, args: dict[str, Any]) -> PolicyAppArgs:
         """Reads the builder's arguments: text (``serve run``'s ``key=value``) or typed values (YAML); lists as
-        YAML lists or ``"1,2,4"``; ``speculate_buckets=""`` never speculates. Checks the policy's folder and the
+        YAML lists or ``"1,2,4"`` (``method``: one, or a YAML list of several); ``speculate_buckets=""`` never
+        speculates. Checks the policy's folder and the
         method against it (cheap: the weights are not loaded).
 
         Raises:
@@ -176,15 +177,15 @@ class PolicyAppArgs:
             ValueError: the policy's folder holds no policy config; an unknown method; a head missing.
         """
         from ..policies import POLICY_CONFIG_NAME, VLAPolicyConfig
-        from ..policies.decoding_methods import DecodingMethod
+        from ..policies.decoding_methods import serving_methods
 
         path = Path(self.policy) / POLICY_CONFIG_NAME
         if not path.is_file():
             raise ValueError(f"policy {self.policy!r} holds no {POLICY_CONFIG_NAME}: not a saved policy folder")
         layout = VLAPolicyConfig(**json.loads(path.read_text()))
-        method = DecodingMethod.parse(self.serve.method, self.draft_head is not None, layout.action_dim)
-        if method.uses_draft_head and self.draft_head is None:
-            raise ValueError(f"method {method.name} drafts with the draft head: give draft_head=<its folder>")
+        for method in serving_methods(self.serve.method, self.draft_head is not None, layout.action_dim):
+            if method.uses_draft_head and self.draft_head is None:
+                raise ValueError(f"method {method.name} drafts with the draft head: give draft_head=<its folder>")
 
     def to_args(self) -> dict[str, Any]:
         """The arguments that [`from_args`] reads back to this (a config file's ``args:``); the key is left out."""
@@ -194,15 +195,19 @@ class PolicyAppArgs:
 
 
 #: how each argument is read (the rest are text)
-_ARG_KINDS = {"buckets": "ints", "speculate_buckets": "ints", "max_wait_ms": "number", "max_queue": "int",
-              "calibration_calls": "int", "explore_every": "int", "max_sessions": "int", "max_prompt_tokens": "int",
-              "threads": "int", "num_replicas": "int", "max_request_bytes": "int"}  # fmt: skip
+_ARG_KINDS = {"method": "texts", "buckets": "ints", "speculate_buckets": "ints", "max_wait_ms": "number",
+              "max_queue": "int", "calibration_calls": "int", "explore_every": "int", "max_sessions": "int",
+              "max_prompt_tokens": "int", "threads": "int", "num_replicas": "int",
+              "max_request_bytes": "int"}  # fmt: skip
 
 
 def _read_arg(name: str, value: Any, kind: str) -> Any:
-    """One argument as ``kind`` (``text``, ``int``, ``number``, ``ints``); None stays None."""
+    """One argument as ``kind`` (``text``, ``texts``: one text or a list of them, ``int``, ``number``, ``ints``);
+    None stays None."""
     if value is None:
         return None
+    if kind == "texts" and isinstance(value, list | tuple):
+        return tuple(_read_arg(name, item, "text") for item in value)
     try:
         if kind == "ints":
             items = value if isinstance(value, list | tuple) else str(value).replace(",", " ").split()
@@ -294,7 +299,7 @@ class PolicyDeployment:
         self.service: PolicyService = PolicyService.from_pretrained(app_args.policy, config, app_args.draft_head,
                                                                     app_args.threads)  # fmt: skip
         self.service.warm_up()
-        logger.info("replica %s: %s (%s) ready in %.1f s", self.replica, app_args.policy, self.service.method.name,
+        logger.info("replica %s: %s (%s) ready in %.1f s", self.replica, app_args.policy, self.service.methods_name,
                     time.perf_counter() - started)  # fmt: skip
         api_key = app_args.api_key if app_args.api_key is not None else os.environ.get(API_KEY_VARIABLE) or None
         self.routes = PolicyRoutes(self, api_key, app_args.max_request_bytes)

@@ -102,7 +102,7 @@ class PolicyServer:
     async def _lifespan(self, app):
         self.backend.batcher.start()
         logger.info("serving %s (%s) on %s", self.backend.service.policy.name_or_path,
-                    self.backend.service.method.name, self.url)  # fmt: skip
+                    self.backend.service.methods_name, self.url)  # fmt: skip
         yield
         self.backend.batcher.stop()
         logger.info("stopped: %d batches served", self.backend.batcher.batches)

@@ -4,8 +4,9 @@ Three parts, each in its own module and tested alone, and the service that joins
 
 - **sessions** ([`Sessions`]): each robot's previous actions, its drafts (echoed ``draft_state`` wins; ``reset``
   forgets; least recently used first out past ``max_sessions``).
-- **the mode chooser** ([`ModeChooser`]): per bucket, speculative or the greedy baseline, from the start-up
-  calibration and the traffic's call times (exploring the other mode now and then); its decisions recorded.
+- **the mode chooser** ([`ModeChooser`]): per bucket, the greedy baseline or one of the speculative methods (with a
+  draft head, a preset's methods with and without it), from the start-up calibration and the traffic's call times
+  (exploring the other modes now and then); its decisions recorded.
 - **the decode step** ([`DecodeStep`]): one batched ``predict_action`` padded to its bucket, each row handed on as
   soon as it is decoded; the prompt tiers and the greedy baseline's caches its compiled graphs fix.
 
@@ -24,7 +25,7 @@ thread asks (the batcher's, a Ray replica's pool): torch's compiler settings are
 raised for the graphs of every bucket), so graphs compiled in one thread are then served in another under the
 default limit and fail (``FailOnRecompileLimitHit``, seen in the first load run).
 
-At ``r = 0`` both modes give greedy's actions, whatever batch a request lands in and whatever its drafts: the
+At ``r = 0`` every mode gives greedy's actions, whatever batch a request lands in and whatever its drafts: the
 service changes how fast an action comes, never which.
 """
 
@@ -70,8 +71,9 @@ class PolicyService:
         self.step = DecodeStep(policy, self.config, draft_head)
         self.method, self.baseline = self.step.method, self.step.baseline
         self.sessions = Sessions(self.config.max_sessions)
-        self.chooser = ModeChooser(self.config.buckets, self.step.speculates, self.config.speculate_buckets,
-                                   self.config.explore_every)  # fmt: skip
+        self.chooser = ModeChooser(self.config.buckets, tuple(m.name for m in self.step.methods),
+                                   self.config.speculate_buckets, self.config.explore_every,
+                                   self.baseline.name)  # fmt: skip
         self.failed_batches = 0  # batches whose call failed (then decoded one request at a time)
         self._decoder = ThreadPoolExecutor(1, "hf-specvla-decode")  # generate raises its recompile limit there
 
@@ -95,9 +97,16 @@ class PolicyService:
         return cls(policy, config, draft_head)
 
     # ----------------------------------------------------------------------------- what the server says it is
+    @property
+    def methods_name(self) -> str:
+        """The methods it picks from, for logs: ``exact``'s ``prior+jacobi:compile`` alone, or with a draft head
+        ``prior+jacobi:compile or prior+jacobi+tree:compile``."""
+        return " or ".join(method.name for method in self.step.methods) or self.method.name
+
     def info(self) -> dict:
-        """What ``GET /info`` returns: the policy, what a robot must send (the instruction's limits too), the method and
-        the buckets."""
+        """What ``GET /info`` returns: the policy, what a robot must send (the instruction's limits too), the method
+        (``methods``: every speculative method the server picks from per bucket; ``method``: the first), the buckets
+        and the calibration."""
         layout = self.policy.config
         return {
             "server": "hf_specvla",
@@ -110,6 +119,7 @@ class PolicyService:
             "action_dim": layout.action_dim,
             "chunk_length": layout.chunk_length,
             "method": self.method.name,
+            "methods": [method.name for method in self.step.methods],
             "baseline": self.baseline.name,
             "buckets": list(self.config.buckets),
             "speculate": {str(b): self.chooser.speculate(b) for b in self.config.buckets},
@@ -120,8 +130,9 @@ class PolicyService:
         }
 
     def stats(self) -> dict:
-        """What ``GET /stats`` returns: the chooser's figures per bucket (batches and rows in each mode, recent median
-        ms, the mode chosen now, the speculative share) and its decisions; the robots remembered; failed batches."""
+        """What ``GET /stats`` returns: the chooser's figures per bucket (batches and rows in each mode and method,
+        recent median ms, the mode chosen now, the speculative share) and its decisions; the robots remembered; failed
+        batches."""
         return {**self.chooser.stats(), "sessions": len(self.sessions), "failed_batches": self.failed_batches}
 
     def parse(self, payload) -> ActRequest:
@@ -225,7 +236,8 @@ class PolicyService:
         """One batched call; ``answer(i, reply)`` per request as its row is decoded. ``mode``: None for traffic
         (the chooser's mode, the call's time observed), else the mode of a warm-up call (nothing counted)."""
         rows, bucket = len(requests), self.bucket_for(len(requests))
-        speculative = self.chooser.mode_for(bucket) if mode is None else mode
+        traffic = mode is None
+        mode = self.chooser.mode_for(bucket) if traffic else mode
         histories = [self.sessions.history(r) for r in requests]
         started = time.perf_counter()
 
@@ -233,22 +245,22 @@ class PolicyService:
             request = requests[i]
             if request.session is not None:
                 self.sessions.remember(request.session, row.history)
-            figures = ServedFigures(self.step.name(speculative), speculative, row.target_forwards, rows, bucket,
+            figures = ServedFigures(self.step.name(mode), mode != 0, row.target_forwards, rows, bucket,
                                     queue_ms=1000 * (started - arrived[i]), decode_ms=1000 * (row.done - started),
                                     server_ms=1000 * (row.done - arrived[i]), session=request.session,
                                     draft_state=[list(a) for a in row.history],
                                     batch_forwards=row.batch_forwards, early=row.early)  # fmt: skip
             answer(i, ActReply(np.asarray(row.action), figures))
 
-        batch = self.step.run(requests, histories, bucket, speculative, reply)
-        if mode is None:  # booked before the batch's last replies, so that /stats after a reply counts it
-            self.chooser.observe(bucket, speculative, batch.decode_ms, rows)
+        batch = self.step.run(requests, histories, bucket, mode, reply)
+        if traffic:  # booked before the batch's last replies, so that /stats after a reply counts it
+            self.chooser.observe(bucket, mode, batch.decode_ms, rows)
         for i, row in batch.rows.items():
             reply(i, row)
 
     # ----------------------------------------------------------------------------- start-up
     def warm_up(self, calibrate: bool = True, seed: int = 0) -> list[dict]:
-        """Compiles every bucket's graphs for both modes and every prompt tier (so no request ever waits on a
+        """Compiles every bucket's graphs for every mode and every prompt tier (so no request ever waits on a
         compile), then, with ``calibrate`` and ``calibration_calls`` > 0 (and a measured choice), times
         ``calibration_calls`` interleaved calls per bucket and mode on synthetic observations that drift like a
         robot's (drafts: the previous call's actions) and hands them to the chooser. Returns the calibration table
@@ -261,7 +273,7 @@ class PolicyService:
         base = rng.integers(0, 256, (size, size, 3), dtype=np.uint8)
         table = []
         measure = calibrate and self.chooser.measured and self.config.calibration_calls > 0
-        modes = (False, True) if self.step.speculates else (False,)
+        modes = self.step.modes
         # every tier's graphs, compiled at its longest prompt, the longest tier first: the target's cache, sized by
         # generate, keeps the largest size it had (so one set of target graphs, not one per tier)
         step = self.step
@@ -272,39 +284,46 @@ class PolicyService:
             calibration = longest[-1]  # a prompt served, so that calibrating compiles nothing more
         for bucket in self.config.buckets:
             sessions = [f"calibration-{bucket}-{i}" for i in range(bucket)]
-            times: dict[bool, list[float]] = {True: [], False: []}
+            times: dict[int, list[float]] = {mode: [] for mode in modes}
             for instruction in longest:  # without drafts, then with
                 for first in (True, False):
-                    for speculative in modes:
+                    for mode in modes:
                         images = np.repeat(base[None], bucket, axis=0)
-                        self._warm_up_call(sessions, instruction, images, first, speculative)
+                        self._warm_up_call(sessions, instruction, images, first, mode)
             calls = 1 + (self.config.calibration_calls if measure else 0)
             for number in range(calls + 1):  # call 0 compiles (and leaves each session its first action)
                 drift = rng.integers(-2, 3, (bucket, size, size, 3))
                 images = np.clip(base.astype(np.int64) + drift, 0, 255).astype(np.uint8)
-                for speculative in modes if number % 2 else modes[::-1]:  # interleaved, alternating which goes first
-                    ms = self._warm_up_call(sessions, calibration, images, number == 0, speculative)
+                for mode in _rotated(modes, number):  # interleaved, each mode first in turn
+                    ms = self._warm_up_call(sessions, calibration, images, number == 0, mode)
                     if number >= 2:  # calls 0 and 1 compile (first without drafts, then with)
-                        times[speculative].append(ms)
+                        times[mode].append(ms)
             for session in sessions:
                 self.sessions.forget(session)
             if measure:
-                table.append(self.chooser.calibrate(bucket, times[True], times[False]))
+                table.append(self.chooser.calibrate(bucket, times))
         if table:
-            logger.info("calibration (%d calls per bucket and mode, %s vs %s):\n%s", self.config.calibration_calls,
-                        self.method.name, self.baseline.name, format_calibration(table))  # fmt: skip
+            logger.info("calibration (%d calls per bucket and mode):\n%s", self.config.calibration_calls,
+                        format_calibration(table))  # fmt: skip
         return table
 
     def _warm_up_call(self, sessions: list[str], instruction: str, images: np.ndarray, first: bool,
-                      speculative: bool) -> float:  # fmt: skip
+                      mode: int) -> float:  # fmt: skip
         """One warm-up call of ``len(sessions)`` robots in the given mode (nothing counted); its ms."""
         state = np.zeros(self.policy.config.state_dim)
         requests = [ActRequest(image, instruction, state, session, reset=first)
                     for image, session in zip(images, sessions)]  # fmt: skip
         started = time.perf_counter()
-        self._decode(requests, [started] * len(requests), lambda i, reply: None, mode=speculative)
+        self._decode(requests, [started] * len(requests), lambda i, reply: None, mode=mode)
         return 1000 * (time.perf_counter() - started)
 
     def close(self) -> None:
         """Stops the decoding thread (after the decodes it holds)."""
         self._decoder.shutdown(wait=True)
+
+
+def _rotated(modes: tuple[int, ...], number: int) -> tuple[int, ...]:
+    """``modes`` rotated by ``number``: the calibration's call ``number`` runs each mode in this order, so that every
+    mode goes first as often as the others."""
+    shift = number % len(modes)
+    return modes[shift:] + modes[:shift]
