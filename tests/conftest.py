@@ -90,6 +90,11 @@ def random_llava_draft(tiny_llava, action_tokenizer):
     return DraftHead.from_target(tiny_llava, action_tokenizer, action_dim=7).eval()
 
 
+#: the tests' toy draft head trains 800 steps, a sixth of the demo's (``toy.TOY_HEAD_STEPS``): enough for what the tests
+#: check (its tree drafts most held-out actions in one forward), four minutes less for the suite
+TOY_TEST_HEAD_STEPS = 800
+
+
 @pytest.fixture(scope="session")
 def toy_pipeline(tmp_path_factory, request):
     """The toy target + a self-distilled draft head, trained once per test session (minutes on 2 CPU cores). It says
@@ -100,7 +105,7 @@ def toy_pipeline(tmp_path_factory, request):
     with _on_the_terminal(request.config, "toy_pipeline") as say:
         say("training the toy target, then self-distilling its draft head (once per session)")
         start = time.perf_counter()
-        pipeline = build_toy_pipeline(str(tmp_path_factory.mktemp("toy")), progress=True)
+        pipeline = build_toy_pipeline(str(tmp_path_factory.mktemp("toy")), draft_steps=TOY_TEST_HEAD_STEPS)
         say(f"ready in {time.perf_counter() - start:.0f} s")
     return pipeline
 

@@ -5,6 +5,8 @@ import torch
 
 from hf_specvla.cli import main
 
+from ..conftest import TOY_TEST_HEAD_STEPS
+
 
 def test_help_shows_examples(capsys):
     with pytest.raises(SystemExit) as exit_info:
@@ -145,16 +147,22 @@ def test_demo_refuses_a_folder_holding_another_pipeline(toy_pipeline, capsys):
     to reuse the small one silently; the same settings still reuse it (nothing retrained)."""
     from hf_specvla.benchmarks.toy import build_toy_pipeline
 
+    steps = str(TOY_TEST_HEAD_STEPS)
     with pytest.raises(SystemExit) as exit_info:
-        main(["demo", "--size", "medium", "--output-dir", toy_pipeline.output_dir])
+        main(["demo", "--size", "medium", "--draft-steps", steps, "--output-dir", toy_pipeline.output_dir])
     assert exit_info.value.code == 2 and "holds another run: size.hidden_size: " in capsys.readouterr().err
-    again = build_toy_pipeline(toy_pipeline.output_dir, progress=False)  # same settings: loaded, not retrained
+    again = build_toy_pipeline(toy_pipeline.output_dir, draft_steps=TOY_TEST_HEAD_STEPS, progress=False)  # loaded
     assert torch.equal(again.draft_head.fuse.weight, toy_pipeline.draft_head.fuse.weight)
 
 
-def test_the_demos_default_target_steps_are_the_toys():
-    """One default: ``demo --target-steps`` (parsed without importing the toy) is ``toy.TOY_TARGET_STEPS``."""
-    from hf_specvla.benchmarks.toy import TOY_TARGET_STEPS
+def test_the_demos_default_steps_are_the_toys():
+    """One default each: ``demo --target-steps`` / ``--draft-steps`` (parsed without importing the toy) are
+    ``toy.TOY_TARGET_STEPS`` / ``toy.TOY_HEAD_STEPS``."""
+    import inspect
+
+    from hf_specvla.benchmarks.toy import TOY_HEAD_STEPS, TOY_TARGET_STEPS, build_toy_pipeline
     from hf_specvla.cli.main import build_parser
 
-    assert build_parser().parse_args(["demo"]).target_steps == TOY_TARGET_STEPS
+    args = build_parser().parse_args(["demo"])
+    assert (args.target_steps, args.draft_steps) == (TOY_TARGET_STEPS, TOY_HEAD_STEPS)
+    assert inspect.signature(build_toy_pipeline).parameters["draft_steps"].default == TOY_HEAD_STEPS

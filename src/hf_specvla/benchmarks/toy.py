@@ -36,6 +36,9 @@ TOY_TARGET_STEPS = 1500
 #: the toy draft head (head v3): one block per head forward, the whole action drafted before the prefill from the
 #: instruction and the encoded image (the target's vision output, which ``generate`` computes before the prefill)
 TOY_HEAD_SETTINGS = dict(draft_mode="block", prefill_drafts=True, prefill_image_features=True)
+#: the toy draft head's training steps: at 800 its tree drafted the whole action before the prefill on 29% of
+#: held-out scenes (no previous action), at 2400 on 90%, at 4800 on 98% (same target, data and learning rate)
+TOY_HEAD_STEPS = 4800
 
 GRID_SIZE = 8
 IMAGE_SIZE = 32
@@ -226,7 +229,7 @@ def build_toy_pipeline(
     output_dir: str,
     size: ToyTargetSize | None = None,
     target_steps: int = TOY_TARGET_STEPS,
-    draft_steps: int = 800,
+    draft_steps: int = TOY_HEAD_STEPS,
     draft_learning_rate: float = 3e-3,
     seed: int = 0,
     progress: bool = True,

@@ -43,7 +43,7 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument("--size", choices=sorted(SIZES), default="small", help="toy target size")
     parser.add_argument("--target-steps", type=int, default=1500, help="toy target training steps")
-    parser.add_argument("--draft-steps", type=int, default=800, help="draft head training steps")
+    parser.add_argument("--draft-steps", type=int, default=4800, help="draft head training steps")
     parser.add_argument(
         "--overwrite-output-dir", action="store_true", help="move a pipeline built with other settings aside"
     )
