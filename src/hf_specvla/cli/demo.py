@@ -16,8 +16,8 @@ HELP = "train a toy VLA target + draft head on the spot and benchmark them"
 EXAMPLES = """
     # The main job: build and train a toy OpenVLA-style target and a draft head on the spot, then benchmark
     # plain greedy (eager and compiled) vs speculative decoding (strict and relaxed), ending with a verdict; the full
-    # tables go to runs/toy/demo_report.md. ~11 minutes (11 min measured on one CPU thread, training included: the
-    # target 5 min, its draft head 1), 2 min of it compiling the compiled rows (--no-compile skips them).
+    # tables go to runs/toy/demo_report.md. ~17 minutes on one CPU thread, training included (the target ~5 min,
+    # its draft head ~6: 4800 steps), 2 min of it compiling the compiled rows (--no-compile skips them).
     hf-specvla demo
 
     # A quick look at a pipeline already trained in runs/toy: few prompts, two episodes, one relaxed r, no compiled rows
