@@ -67,7 +67,7 @@ def test_eagle2_tree_with_a_trained_head_is_lossless_and_never_worse_than_the_ch
 
 def test_the_toy_head_drafts_most_actions_from_the_image_before_the_prefill(toy_pipeline):
     """The demo's kind of head (head v3 reading the encoded image before the prefill, ``TOY_HEAD_SETTINGS``; the
-    tests' one trains 800 steps, the demo's 4800) drafts the whole action before the target's first forward: on
+    tests' one trains 2400 steps, the demo's 4800) drafts the whole action before the target's first forward: on
     held-out scenes (no previous action) most calls take one target forward, every one greedy's tokens."""
     assert toy_pipeline.draft_head.config.prefill_image_features
     tree = DraftHeadDrafter(toy_pipeline.draft_head, tree=DraftTreeConfig())
