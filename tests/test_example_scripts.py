@@ -1,5 +1,6 @@
 """The benchmark scripts run (in their tiny modes: seconds, nothing about speed is asserted)."""
 
+import importlib.util
 import json
 import math
 import os
@@ -217,9 +218,13 @@ def _check_load_rows(rows: list[dict], kinds: tuple[str, ...]) -> None:
         assert 0 <= choices["speculative_share"] <= 1
 
 
-def test_serving_load_script_drives_three_servers_and_reports_every_k(tmp_path):
+def test_serving_load_script_drives_three_servers_and_reports_every_k(tmp_path, request):
     """The load benchmark's tiny mode without Ray: greedy / always / adaptive servers, K = 1 and 2 replayed robots,
-    one repeat; every server's actions equal (the script checks it), a row per K and server."""
+    one repeat; every server's actions equal (the script checks it), a row per K and server. Where the Ray test runs
+    in the same session (the whole suite, Ray installed) it checks these rows too, and this run is skipped."""
+    ray_test = test_serving_load_script_drives_ray_serve_with_two_replicas_beside_the_embedded_servers.__name__
+    if importlib.util.find_spec("ray") and any(item.name == ray_test for item in request.session.items):
+        pytest.skip(f"{ray_test} drives the same three servers in this session (and Ray Serve beside them)")
     output = tmp_path / "load.json"
     result = run_example("benchmarks/serving_load.py", "--tiny", "--no-ray", "--output", output, timeout=600)
     assert "| K | server | actions/s | vs greedy |" in result.stdout and "ray x" not in result.stdout
@@ -264,8 +269,9 @@ def test_gpu_openvla_benchmark_runs_on_the_cpu(tmp_path):
     """Its CPU mode (a tiny random OpenVLA): every method and batch size reports its forwards and syncs; drafts that
     are all right take one target forward."""
     output = tmp_path / "gpu.json"
+    # a budget no CPU run reaches: on a loaded machine the default 420 s skipped the head chain's warm-up (CI, stop 72)
     result = run_example("benchmarks/gpu_openvla.py", "--tiny", "--batch-sizes", "1", "--right-probabilities", "0.5",
-                         "1.0", "--json", str(output), timeout=900)  # fmt: skip
+                         "1.0", "--budget-s", "3600", "--json", str(output), timeout=1800)  # fmt: skip
     assert "| method | B | ms / call | ms / action | target fwd / call |" in result.stdout
     rows = {row["method"]: row for row in json.loads(output.read_text())["rows"]}
     assert set(rows) == {"greedy", "greedy:compile", "drafts p=0.5", "drafts p=1", "head chain"}

@@ -77,8 +77,30 @@ def test_the_python_example_runs_as_written(page, tmp_path):
 def test_eval_and_compare_run_on_the_smallest_arguments(page, tmp_path):
     commands = [words for words in _commands(page) if words[0] in ("eval", "compare")]
     assert commands
+    # a compare whose policy and methods a page before this one runs is not run twice (at the smallest arguments
+    # only its seed would differ)
+    before = [words for other in PAGES[: PAGES.index(page)] for words in _commands(other) if words[0] == "compare"]
+    commands = [words for words in commands if not any(_runs_the_same(words, other) for other in before)]
     for n, words in enumerate(commands):
         small = _small(words, tmp_path / f"run{n}")
         result = subprocess.run([sys.executable, "-m", "hf_specvla.cli", *small], cwd=ROOT, capture_output=True,
                                 text=True, timeout=900)  # fmt: skip
         assert result.returncode == 0, (small, result.stderr[-3000:])
+
+
+def _runs_the_same(words: list[str], other: list[str]) -> bool:
+    """Whether ``compare`` command ``words`` runs nothing the ``compare`` command ``other`` does not: the same policy,
+    a subset of its methods."""
+    if words[0] != "compare":
+        return False
+    parser = build_parser()
+    mine, theirs = parser.parse_args(words), parser.parse_args(other)
+    return mine.policy == theirs.policy and set(mine.methods) <= set(theirs.methods)
+
+
+def test_a_compare_that_another_page_runs_is_run_once():
+    folder = ["--output-dir", "runs/x"]
+    same = ["compare", "--policy", "p", *folder, "--methods", "greedy", "exact"]
+    assert _runs_the_same(same, same + ["fast"]) and not _runs_the_same(same + ["fast"], same)
+    assert not _runs_the_same(["eval", "--policy", "p", *folder, "--method", "exact"], same)
+    assert not _runs_the_same(same, ["compare", "--policy", "q", *folder, "--methods", "greedy", "exact"])
