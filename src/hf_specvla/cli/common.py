@@ -88,10 +88,11 @@ def check_training_folder(output_dir: str, resume: bool, overwrite: bool, parser
 
 
 def check_draft_head_flag(draft_head: str | None, parser) -> None:
-    """``--draft-head`` must be a saved draft head (or a hub id): a usage error before anything is loaded."""
-    from ..speculative import check_draft_head_folder
-
+    """``--draft-head`` must be a saved draft head (or a hub id): a usage error before anything is loaded. Without
+    the flag nothing is imported (the engine pulls in torch and transformers: seconds before the next usage error)."""
     if draft_head is not None:
+        from ..speculative import check_draft_head_folder
+
         with usage_errors(parser, "--draft-head", (FileNotFoundError, ValueError)):
             check_draft_head_folder(draft_head)
 
@@ -116,11 +117,11 @@ def read_policy_config(path: str, parser, flag: str = "--policy"):
     folder holds no policy."""
     import json
 
-    from ..policies import POLICY_CONFIG_NAME, VLAPolicyConfig
+    from ..policies.configuration_vla import POLICY_CONFIG_NAME, VLAPolicyConfig, check_policy_folder
 
+    with usage_errors(parser, flag, (FileNotFoundError,)):
+        check_policy_folder(path)  # names the missing folder or file, as load_policy would
     config_path = Path(path) / POLICY_CONFIG_NAME
-    if not config_path.is_file():
-        load_policy(path, parser, flag)  # names the missing folder or file
     try:
         return VLAPolicyConfig(**json.loads(config_path.read_text()))
     except (ValueError, TypeError) as error:  # not JSON, unknown or bad fields

@@ -112,13 +112,13 @@ def _check_tolerances(policy, method, args, parser) -> None:
 def run(args, parser) -> int:
     import json
 
-    from ..metaworld.evaluation import check_video_path, evaluate, format_summary
-
     check_output_dir_flag(args.output_dir, parser)
     check_tasks(args.tasks, parser)
     decoding_method(args, parser)  # the flags' own mistakes first, whatever the policy
     check_draft_head_flag(args.draft_head, parser)
     if args.video is not None:
+        from ..metaworld.evaluation import check_video_path
+
         with usage_errors(parser, "--video", (ValueError,)):
             check_video_path(args.video)
     policy_config = read_policy_config(args.policy, parser)  # cheap: no weights loaded yet
@@ -127,6 +127,8 @@ def run(args, parser) -> int:
         logger.info("--method %s = %s", args.method.strip(), method.name)
     with usage_errors(parser, errors=(ValueError,)):
         env_config = EnvConfig(policy_config.image_size, policy_config.camera, args.max_episode_steps)
+    from ..metaworld.evaluation import evaluate, format_summary  # imports the policy's torch: after the cheap checks
+
     policy = load_policy(args.policy, parser)
     _check_tolerances(policy, method, args, parser)
     if args.draft_head and not method.uses_draft_head:

@@ -7,10 +7,24 @@ and imports nothing of the simulator.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from .._validation import check_ranges
 
 POLICY_CONFIG_NAME = "policy_config.json"
+
+
+def check_policy_folder(folder: str | Path) -> None:
+    """Raises ``FileNotFoundError`` naming what is missing when ``folder`` holds no saved policy (read without torch:
+    a command's usage error comes before the seconds its imports take)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"policy folder {str(folder)!r} does not exist")
+    if not (folder / POLICY_CONFIG_NAME).exists():
+        raise FileNotFoundError(
+            f"{str(folder)!r} has no {POLICY_CONFIG_NAME}: not a policy saved by VLAPolicy.save_pretrained "
+            f"(or hf-specvla train-vla)"
+        )
 
 
 @dataclass

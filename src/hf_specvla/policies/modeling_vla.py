@@ -42,7 +42,7 @@ from ..speculative import (
     remember_actions,
     with_generation_config,
 )
-from .configuration_vla import POLICY_CONFIG_NAME, VLAPolicyConfig
+from .configuration_vla import POLICY_CONFIG_NAME, VLAPolicyConfig, check_policy_folder
 from .processing_vla import VLAProcessor
 
 
@@ -314,13 +314,7 @@ class VLAPolicy:
             FileNotFoundError: naming the missing folder or file.
         """
         folder = Path(folder)
-        if not folder.is_dir():
-            raise FileNotFoundError(f"policy folder {str(folder)!r} does not exist")
-        if not (folder / POLICY_CONFIG_NAME).exists():
-            raise FileNotFoundError(
-                f"{str(folder)!r} has no {POLICY_CONFIG_NAME}: not a policy saved by VLAPolicy.save_pretrained "
-                f"(or hf-specvla train-vla)"
-            )
+        check_policy_folder(folder)
         config = VLAPolicyConfig(**json.loads((folder / POLICY_CONFIG_NAME).read_text()))
         with named_weight_errors(folder, "policy"):
             model = LlavaForConditionalGeneration.from_pretrained(folder, **model_kwargs)
