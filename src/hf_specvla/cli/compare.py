@@ -84,10 +84,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args, parser) -> int:
-    from ..metaworld.comparison import format_comparison, run_comparison
-    from ..metaworld.comparison.runner import WorkerDiedError, check_timing
-    from ..speculative import DraftHead
-
     check_output_dir_flag(args.output_dir, parser)
     action_dim = read_policy_config(args.policy, parser).action_dim  # the presets resolve to the policy's layout
     with usage_errors(parser, errors=(ValueError,)):
@@ -101,6 +97,11 @@ def run(args, parser) -> int:
                        "prior+head, prior+tree); it is ignored", args.draft_head, config.methods)  # fmt: skip
         args.draft_head = None
     check_draft_head_flag(args.draft_head, parser)
+    # the runner imports the policy's torch and transformers (seconds): after the flags' cheap checks
+    from ..metaworld.comparison import format_comparison, run_comparison
+    from ..metaworld.comparison.runner import WorkerDiedError, check_timing
+    from ..speculative import DraftHead
+
     if not args.overwrite_output_dir:  # a folder timed otherwise is refused before anything loads
         with usage_errors(parser, errors=(FileExistsError,)):
             check_timing(args.output_dir, config, args.restart_timing)

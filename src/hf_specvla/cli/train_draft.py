@@ -11,6 +11,7 @@ from .common import (
     check_output_dir_flag,
     check_training_folder,
     load_policy,
+    read_policy_config,
     usage_errors,
 )
 
@@ -90,9 +91,6 @@ def add_arguments(parser) -> None:
 def run(args, parser) -> int:
     import shlex
 
-    from ..metaworld.demonstrations import dataset_info
-    from ..training.policy_draft import train_policy_draft_head
-
     check_output_dir_flag(args.output_dir, parser)
     if args.prefill_image_features and args.head != "v3":
         parser.error(f"--prefill-image-features is read by a head v3's drafts before the prefill; got --head "
@@ -111,8 +109,12 @@ def run(args, parser) -> int:
             eval_every=args.eval_every, resume=args.resume, overwrite_output_dir=args.overwrite_output_dir,
             seed=args.seed,
         )  # fmt: skip
-        for root in args.data or []:
-            dataset_info(root)
+        if args.data:  # imports torch (seconds): only where there are demonstrations to check
+            from ..metaworld.demonstrations import dataset_info
+
+            for root in args.data:
+                dataset_info(root)
+    read_policy_config(args.policy, parser)  # a missing policy named before the seconds of loading one
     policy = load_policy(args.policy, parser)
     if args.unroll_steps is not None:
         training_config.unroll_steps = args.unroll_steps
@@ -123,6 +125,8 @@ def run(args, parser) -> int:
 
         with usage_errors(parser, "--rollouts", (ValueError, FileNotFoundError)):
             check_rollouts_for(args.rollouts, policy, data_config)
+    from ..training.policy_draft import train_policy_draft_head
+
     command = shlex.join(["hf-specvla", *args.argv])
     with usage_errors(parser, errors=(FileExistsError,)):
         head = train_policy_draft_head(policy, training_config, data_config, args.data or [], args.num_draft_tokens,
