@@ -120,7 +120,7 @@ def read_policy_config(path: str, parser, flag: str = "--policy"):
     from ..policies.configuration_vla import POLICY_CONFIG_NAME, VLAPolicyConfig, check_policy_folder
 
     with usage_errors(parser, flag, (FileNotFoundError,)):
-        check_policy_folder(path)  # names the missing folder or file, as load_policy would
+        check_policy_folder(path)  # names the missing folder or file, as load_policy does
     config_path = Path(path) / POLICY_CONFIG_NAME
     try:
         return VLAPolicyConfig(**json.loads(config_path.read_text()))
@@ -138,10 +138,14 @@ def check_bin_tolerances(tolerances: list[int], n_bins: int, given: str, parser)
 
 
 def load_policy(path: str, parser, flag: str = "--policy"):
-    """The saved policy ``flag`` names; a usage error when the folder holds none."""
-    from ..policies import VLAPolicy
+    """The saved policy ``flag`` names; a usage error when the folder holds none (checked before the policy's
+    imports: torch and transformers take seconds)."""
+    from ..policies.configuration_vla import check_policy_folder
 
     with usage_errors(parser, flag, (FileNotFoundError,)):
+        check_policy_folder(path)
+        from ..policies import VLAPolicy
+
         return VLAPolicy.from_pretrained(path)
 
 

@@ -11,7 +11,6 @@ from .common import (
     check_output_dir_flag,
     check_training_folder,
     load_policy,
-    read_policy_config,
     usage_errors,
 )
 
@@ -114,7 +113,6 @@ def run(args, parser) -> int:
 
             for root in args.data:
                 dataset_info(root)
-    read_policy_config(args.policy, parser)  # a missing policy named before the seconds of loading one
     policy = load_policy(args.policy, parser)
     if args.unroll_steps is not None:
         training_config.unroll_steps = args.unroll_steps
