@@ -108,7 +108,8 @@ def check_rollback_cache(cache: Cache, max_length: int) -> None:
                 )
 
 
-#: per model, the static caches [`reusable_static_cache`] built, by (slots, offloading, dtype, device, batch size)
+#: per model, the static caches [`reusable_static_cache`] built, by (slots, offloading, dtype written, device, batch
+#: size)
 _STATIC_CACHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
@@ -155,7 +156,7 @@ def reusable_static_cache(
     Args:
         like: a cache whose layer types the reused one must have (a sliding-window model's); None: any.
     """
-    key = (slots, offloading, model.dtype, model.device, batch_size)
+    key = (slots, offloading, written_dtype(model), model.device, batch_size)
     built = _STATIC_CACHES.setdefault(model, {})
     cache = built.get(key)
     if cache is not None and (like is None or [type(a) for a in cache.layers] == [type(b) for b in like.layers]):
@@ -164,6 +165,16 @@ def reusable_static_cache(
     text_config = model.config.get_text_config(decoder=True)
     cache = built[key] = StaticCache(config=text_config, max_cache_len=slots, offloading=offloading)
     return cache
+
+
+def written_dtype(model) -> torch.dtype:
+    """The dtype ``model``'s forward writes its keys and values in now: the autocast dtype of its device type inside
+    ``torch.autocast`` for that device (a CPU model's keys are bfloat16 under ``torch.autocast("cpu")``), else the
+    model's own (a static cache's layers take the dtype of their first write and keep it when reused)."""
+    device_type = model.device.type
+    if torch.is_autocast_enabled(device_type):
+        return torch.get_autocast_dtype(device_type)
+    return model.dtype
 
 
 def static_capacity(cache: Cache) -> int | None:

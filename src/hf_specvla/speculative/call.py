@@ -452,9 +452,7 @@ def _round_plan(model, generation_config, settings, drafter, rule, layout, verif
     if verifier is not None and accepts_in_graph(rule, sampling, keep_scores, keep_logits, position_offsets):
         eos = eos_hiding(logits_processor, input_ids.device)
         if eos is not None:
-            acceptance = GraphAcceptance(verifier.accepting_call(model, output_hidden), *eos, model,
-                                         output_hidden, verifier.guarded_rounds,
-                                         verifier.always_guarded_rounds)  # fmt: skip
+            acceptance = GraphAcceptance(verifier.accepting_call(model, output_hidden), *eos)
     plan = RoundPlan(
         max_length=generation_config.max_length,
         rule=rule,

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from functools import cache
 
@@ -35,7 +36,7 @@ from transformers.cache_utils import Cache
 
 from .cache import cache_batch_size, cache_length, is_static_cache, preserved_entries, truncate_cache
 from .compat import CACHE_KEY
-from .fused import GraphAcceptance, accepting_forward
+from .fused import GraphAcceptance, accepting_forward, full_guards_asked, round_guards
 from .tree import DraftTree, TreeBatch
 from .verify import InputBuffers, verify_trees
 
@@ -184,6 +185,9 @@ class CompiledVerifier:
 
     def __init__(self, model: PreTrainedModel, compile_config):
         self.compile_config = compile_config
+        #: the model it compiled for: a deep copy of the model copies the verifier too, whose rounds close over the
+        #: original (``for_model`` gives the copy its own)
+        self.model_ref = weakref.ref(model)
         self.model_forward = type(model).forward  # the code dynamo compiles for ``call`` (its graphs: graphs_held)
         self.call: Callable = model.get_compiled_call(compile_config)
         self.epoch = CompiledVerifier._epoch
@@ -197,18 +201,25 @@ class CompiledVerifier:
         self.drafting_compiled: set[tuple] = set()  # drafters' work compiled up front ([`compile_once`])
         #: hidden states returned -> the round's forward and acceptance as one function ([`accepting_call`])
         self.accepting: dict[tuple[int, ...] | None, Callable] = {}
-        #: the accepting rounds' input keys already run with every guard ([`GraphAcceptance`])
-        self.guarded_rounds: set[tuple] = set()
-        self.always_guarded_rounds: set[tuple] = set()  # ... and those that keep every guard (sliding windows)
 
     @classmethod
     def for_model(cls, model: PreTrainedModel, compile_config) -> CompiledVerifier:
         """``model``'s verifier for ``compile_config`` (made at its first use), its model call fetched again (a caller
         may have wrapped ``get_compiled_call``, as the benchmarks' clock does), dynamo's recompile limit raised to
-        hold one graph per bucket (past the limit dynamo would silently run eagerly)."""
+        hold one graph per bucket (past the limit dynamo would silently run eagerly).
+
+        A verifier copied with the model (``copy.deepcopy``: its compiled rounds close over the original) is
+        replaced by one of the copy's own, and transformers' compiled call copied with it is dropped, so that the
+        copy's graphs read the copy's weights. Changes to the model itself fail the guards its rounds keep
+        ([`round_guards`]) and recompile."""
         verifiers = model.__dict__.setdefault("_hf_specvla_verifiers", {})
         settings = compile_settings(compile_config)
         verifier = verifiers.get(settings)
+        if verifier is not None and verifier.model_ref() is not model:
+            logger.info("this %s is a copy of the model its compiled graphs were made for: compiling its own",
+                        type(model).__name__)  # fmt: skip
+            verifier = None
+            _forget_copied_compiled_call(model)
         if verifier is None or verifier.epoch != CompiledVerifier._epoch:
             verifier = verifiers[settings] = cls(model, compile_config)
         else:
@@ -245,16 +256,20 @@ class CompiledVerifier:
         return buffers
 
     # ----------------------------------------------------------------- drafters' graphs
-    def compiled_function(self, function: Callable, graphs: int, fullgraph: bool | None = None) -> Callable:
+    def compiled_function(self, function: Callable, graphs: int, fullgraph: bool | None = None,
+                          guard_filter: Callable | None = None) -> Callable:  # fmt: skip
         """``torch.compile(function)`` with this verifier's ``CompileConfig`` settings (as transformers'
         ``get_compiled_call`` compiles a model's call; ``fullgraph`` overrides the config's), made once; dynamo's
         recompile limit is raised so that ``graphs`` graphs (one per input shape the caller will meet) fit beside
-        others."""
+        others. ``guard_filter``: the guards its graphs keep (``torch.compile``'s ``guard_filter_fn``, for this
+        function alone); None: all of them."""
         self.reserve_graphs(graphs, function)
         if function not in self.functions:
             settings = self.compile_config.to_dict()
             if fullgraph is not None:
                 settings["fullgraph"] = fullgraph
+            if guard_filter is not None:
+                settings = with_guard_filter(settings, guard_filter)
             self.functions[function] = torch.compile(function, **settings)
         return self.functions[function]
 
@@ -276,7 +291,8 @@ class CompiledVerifier:
         function = self.accepting.get(output_hidden)
         if function is None:
             function = self.accepting[output_hidden] = accepting_forward(model, output_hidden)
-        compiled = self.compiled_function(function, len(NODE_BUCKETS))
+        guards = None if full_guards_asked() else round_guards
+        compiled = self.compiled_function(function, len(NODE_BUCKETS), guard_filter=guards)
         wrap = model.__dict__.get(CALL_WRAPPER_ATTRIBUTE)
         return compiled if wrap is None else wrap(compiled)
 
@@ -387,6 +403,33 @@ class CompiledVerifier:
         logger.info("compiled verification widths %s (%d slots, hidden states %s%s) in %.1f s", widths, slots,
                     output_hidden, ", acceptance in the graph" if acceptance is not None else "", seconds)  # fmt: skip
         return seconds
+
+
+def with_guard_filter(settings: dict, guard_filter: Callable) -> dict:
+    """``torch.compile`` settings (a ``CompileConfig``'s ``to_dict()``) with ``guard_filter`` as their
+    ``guard_filter_fn``: torch takes it among the backend's ``options``, which it refuses beside a ``mode``, so an
+    inductor mode is turned into its options (``torch._inductor.list_mode_options``); another backend's ``"default"``
+    mode is dropped. Another backend's other modes keep every guard (the settings unchanged)."""
+    settings = dict(settings)
+    mode, backend = settings.get("mode"), settings.get("backend", "inductor")
+    options = dict(settings.get("options") or {})
+    if mode not in (None, "default"):
+        if backend != "inductor":
+            return settings
+        from torch._inductor import list_mode_options
+
+        options = {**list_mode_options(mode), **options}
+    settings["mode"], settings["options"] = None, {**options, "guard_filter_fn": guard_filter}
+    return settings
+
+
+def _forget_copied_compiled_call(model: PreTrainedModel) -> None:
+    """Drops transformers' compiled model call from a deep copy of a model when it was compiled for the original
+    (``torch.compile(original.__call__)``, copied as it is): ``get_compiled_call`` then compiles the copy's own."""
+    compiled = model.__dict__.get("_compiled_call")
+    original = getattr(compiled, "__wrapped__", None)
+    if compiled is not None and getattr(original, "__self__", model) is not model:
+        del model.__dict__["_compiled_call"]
 
 
 def graphs_held(function: Callable) -> int:

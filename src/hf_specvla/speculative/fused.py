@@ -21,15 +21,15 @@ from __future__ import annotations
 
 import itertools
 import os
+import re
 import types
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from transformers import LogitsProcessorList
 
 from .acceptance import AcceptanceRule, ExactMatch, search_paths
-from .compat import CACHE_KEY
 from .drafter import read_hidden_states
 from .tree import TreeBatch
 from .verify import eos_hidden_below
@@ -71,97 +71,76 @@ def accepting_forward(model, output_hidden: tuple[int, ...] | None) -> Callable:
         hidden = read_hidden_states(outputs.hidden_states, output_hidden) if wants_hidden else None
         return packed, hidden
 
-    # a code object of its own per (model, hidden states): dynamo keeps graphs and guards per code object, so each
-    # function's graphs are told apart by their inputs alone (what the guards skipped after a first round check)
+    # a code object of its own per (model, hidden states): dynamo keeps graphs and guards per code object, so one
+    # function's guard filter ([`round_guards`]) and graphs are its own, never another model's or caller's
     code = verify_and_accept.__code__
     name = f"verify_and_accept_{next(_FUNCTION_NUMBERS)}"
     return types.FunctionType(code.replace(co_name=name, co_qualname=name), verify_and_accept.__globals__, name,
                               verify_and_accept.__defaults__, verify_and_accept.__closure__)  # fmt: skip
 
 
+#: the arguments of [`accepting_forward`]'s function: the only objects whose guards a compiled round keeps
+ROUND_ARGUMENTS = ("inputs", "token_ids", "parents", "depths", "is_real", "ancestor_or_self", "lengths", "eos_ids",
+                   "eos_below")  # fmt: skip
+#: the guards on the model a compiled round drops ([`round_guards`]): dict-membership checks, most of the model guards'
+#: cost (modules' ``__dict__`` key sets, attributes absent from a class), which no change a graph depends on passes
+#: unseen by the kept guards (a module's class, tensors, own forward, hooks)
+DROPPED_MODEL_GUARDS = frozenset({"DICT_KEYS_MATCH", "DICT_CONTAINS", "DICT_NOT_CONTAINS", "HASATTR", "DICT_VERSION"})
+#: the object a guard's source starts from: ``inputs['input_ids']``, ``dict(type(model).__dict__)`` -> inputs, model
+_GUARD_ROOT = re.compile(r"^(?:\w+\()*(\w*)")
+
+
+def round_guards(entries) -> list[bool]:
+    """The guards a compiled round keeps (``torch.compile``'s ``guard_filter_fn``, for this function's graphs alone):
+
+    * on its arguments ([`ROUND_ARGUMENTS`]): the inputs' shapes, dtypes and strides, the cache object and its
+      layers' host state (a sliding window's length), which tell its graphs apart;
+    * the ambient state (guards with no object source): grad mode, the autocast state of every device type, the
+      default device, torch-function modes, deterministic algorithms;
+    * on the model it closes over, every guard but the dict-membership ones ([`DROPPED_MODEL_GUARDS`]): its modules'
+      classes, each parameter's and buffer's dtype, shape, strides, device and aliasing, an instance's own
+      ``forward``, its hooks, its scalar attributes and config values.
+
+    Dropped: the dict-membership guards on the model (key sets of its modules' dicts, attributes absent from a class)
+    and every guard on globals (the modules of torch and transformers whose code the forward runs): on the tiny
+    Llama the kept guards take ~0.04 ms of the ~0.15 ms dynamo checks a round (docs/design.md, "Guards"). A module
+    swapped, wrapped or resized, a parameter of another dtype or shape, a hook, autocast: each fails a kept guard, so
+    the round recompiles (a new graph, counted in the recompile budget) instead of running a stale one. The model
+    object itself is the [`CompiledVerifier`]'s check (a deep copy gets its own verifier)."""
+    return [
+        not entry.name
+        or (root := _GUARD_ROOT.match(entry.name).group(1)) in ROUND_ARGUMENTS
+        or (root == "model" and entry.guard_type not in DROPPED_MODEL_GUARDS)
+        for entry in entries
+    ]
+
+
+def full_guards_asked() -> bool:
+    """Whether ``HF_SPECVLA_FULL_GUARDS=1`` asks every compiled round to keep all of dynamo's guards (a check of
+    [`round_guards`]; read when a round's function is compiled)."""
+    return os.environ.get("HF_SPECVLA_FULL_GUARDS") == "1"
+
+
 @dataclass(frozen=True)
 class GraphAcceptance:
     """One call's accepting verification: the compiled [`accepting_forward`] and the constants it reads.
 
-    Guards: dynamo checks before every call of a compiled function that its graph still fits (each parameter's and
-    input's dtype, shape, strides, device; global state): on policy v3 ~0.5 ms a call, a fifth of a round's host time.
-    A round's inputs of one *key* (their shapes and dtype, the cache object, the attention implementation, the
-    training mode, grad and autocast modes) are met with the full guards once; afterwards the call runs under dynamo's
-    ``skip_guard_eval_unsafe`` stance, which checks only the guards that tell this function's graphs apart (the
-    widths, the batch sizes). Safe because every graph a round uses is compiled before the first round
-    ([`CompiledVerifier.compile_widths`]) and whatever else a guard would catch changes the key (a model cast to
-    another dtype, another cache, another attention implementation: its first round is guarded again). Where no
-    graph fits (a model whose graphs also depend on the cache's state: a sliding window's length), dynamo refuses
-    to compile under that stance, before anything runs: the round then runs guarded (and compiles, as it would
-    have), and its key is always guarded afterwards; a cache with other layers than plain static ones (a sliding
-    window's, whose length is a constant of its graphs) is always guarded. Set ``HF_SPECVLA_FULL_GUARDS=1`` to keep
-    every guard (a check, or a model changed in place in ways no key sees).
-
     Attributes:
-        call: the compiled function (a clock may wrap it, see [`CompiledVerifier.accepting_call`]).
+        call: the compiled function (a clock may wrap it, see [`CompiledVerifier.accepting_call`]); its guards are
+            [`round_guards`]'.
         eos_ids: ``[EOS_SLOTS]`` long, the EOS ids the processors hide (padded by repeating the first).
         eos_below: 0-dim long, the prefix length below which they hide them (0: never).
-        model: the target (its attention implementation and training mode are part of the key).
-        output_hidden: the hidden states the function returns (which function: part of the key).
-        guarded: the keys already run with every guard (the verifier's set: forgotten with its graphs).
-        always_guarded: the keys whose rounds keep every guard (the verifier's set).
     """
 
     call: Callable
     eos_ids: torch.Tensor
     eos_below: torch.Tensor
-    model: object = None
-    output_hidden: tuple[int, ...] | None = None
-    guarded: set = field(default_factory=set)
-    always_guarded: set = field(default_factory=set)
 
     def __call__(self, inputs: dict, trees: TreeBatch, lengths: torch.Tensor):
         """(packed ``[B, 5 N + 2]``, hidden or None) for one verification: ``lengths`` ``[B, 1]`` the rows' sequence
         lengths (an idle row's: any)."""
-        arguments = (inputs, trees.token_ids, trees.parents, trees.depths, trees.is_real, trees.ancestor_or_self,
-                     lengths, self.eos_ids, self.eos_below)  # fmt: skip
-        mask = inputs["attention_mask"]
-        key = (self.output_hidden, tuple(mask.shape), mask.dtype, mask.device, tuple(trees.token_ids.shape),
-               id(inputs[CACHE_KEY]), getattr(self.model.config, "_attn_implementation", None), self.model.training,
-               torch.is_grad_enabled(), torch.is_autocast_enabled())  # fmt: skip
-        if key in self.guarded and _may_skip_guards():
-            try:
-                with torch.compiler.set_stance("default", skip_guard_eval_unsafe=True):
-                    return self.call(*arguments)
-            except RuntimeError as error:  # no graph fits: raised before the function runs (nothing was done)
-                if "skip_guard_eval_unsafe" not in str(error):
-                    raise
-                self.guarded.discard(key)  # a key whose graphs depend on more (a sliding window's length)
-                self.always_guarded.add(key)
-        result = self.call(*arguments)
-        if key not in self.always_guarded:
-            if _only_static_layers(inputs[CACHE_KEY]):
-                self.guarded.add(key)
-            else:  # a layer with state of its own on the host: its graphs differ by more than their inputs' shapes
-                self.always_guarded.add(key)
-        return result
-
-
-def _only_static_layers(cache) -> bool:
-    """Whether every layer of ``cache`` is a plain ``StaticLayer``, whose graphs differ by their inputs' shapes alone
-    (a static sliding-window layer keeps its length in a Python int, a constant of its graphs: one graph per length,
-    which the guards skipped after a first round would not tell apart)."""
-    from transformers.cache_utils import StaticLayer
-
-    return all(type(layer) is StaticLayer for layer in getattr(cache, "layers", [None]))
-
-
-def _may_skip_guards() -> bool:
-    """Whether dynamo's stance is its default one (a caller's own stance, e.g. ``force_eager``, is kept) and the
-    guards are not asked for (``HF_SPECVLA_FULL_GUARDS=1``)."""
-    from torch._dynamo import eval_frame
-
-    stance = getattr(eval_frame, "_stance", None)
-    return (
-        getattr(stance, "stance", None) == "default"
-        and not getattr(stance, "skip_guard_eval_unsafe", True)
-        and os.environ.get("HF_SPECVLA_FULL_GUARDS") != "1"
-    )
+        return self.call(inputs, trees.token_ids, trees.parents, trees.depths, trees.is_real, trees.ancestor_or_self,
+                         lengths, self.eos_ids, self.eos_below)  # fmt: skip
 
 
 def eos_hiding(logits_processor: LogitsProcessorList, device) -> tuple[torch.Tensor, torch.Tensor] | None:
