@@ -2,11 +2,7 @@
 
 from __future__ import annotations
 
-import logging
 import os
-import re
-import time
-from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 # every read of a cache's length inside a speculative call checks the host's count against the cache's own counter
@@ -90,52 +86,18 @@ def random_llava_draft(tiny_llava, action_tokenizer):
     return DraftHead.from_target(tiny_llava, action_tokenizer, action_dim=7).eval()
 
 
-#: the tests' toy draft head trains 2400 steps, half the demo's (``toy.TOY_HEAD_STEPS``): its tree drafted 90% of 128
-#: held-out actions whole before the prefill in a probe (800 steps: 29%, too few for the test that most are), and the
-#: suite saves the other half's minutes
-TOY_TEST_HEAD_STEPS = 2400
-
-
 @pytest.fixture(scope="session")
-def toy_pipeline(tmp_path_factory, request):
-    """The toy target + a self-distilled draft head, trained once per test session (minutes on 2 CPU cores). It says
-    so on the terminal, a line per stage, and draws the stages' progress bars on stderr past pytest's capture (every
-    30 s when stderr is a file or a pipe, as on CI): a long silence would look like a hang."""
-    from hf_specvla.benchmarks.toy import build_toy_pipeline
+def toy_pipeline(tmp_path_factory):
+    """The shipped toy target + its self-distilled draft head (``policies/toy_dot``, what ``hf-specvla demo`` times),
+    copied to a folder of the session's own (tests write beside it) and loaded: nothing is trained at test time.
+    ``tests/training/test_toy_reproduction.py`` (slow tier) checks that ``demo --train``'s command still makes it."""
+    import shutil
 
-    with _on_the_terminal(request.config, "toy_pipeline") as say:
-        say("training the toy target, then self-distilling its draft head (once per session)")
-        start = time.perf_counter()
-        pipeline = build_toy_pipeline(str(tmp_path_factory.mktemp("toy")), draft_steps=TOY_TEST_HEAD_STEPS)
-        say(f"ready in {time.perf_counter() - start:.0f} s")
-    return pipeline
+    from hf_specvla.benchmarks.toy import SHIPPED_TOY_DIR, build_toy_pipeline
 
-
-@contextmanager
-def _on_the_terminal(config: pytest.Config, name: str):
-    """Inside the block, ``say(text)`` and hf_specvla's INFO log lines (a training stage's summary) go to the terminal
-    as ``name: ...`` lines, and stderr is not captured (progress bars show)."""
-    reporter = config.pluginmanager.get_plugin("terminalreporter")
-    capture = config.pluginmanager.get_plugin("capturemanager")
-
-    def say(text: str) -> None:
-        if reporter is not None:
-            reporter.write_line(f"{name}: {text}")
-
-    class ToTerminal(logging.Handler):
-        def emit(self, record: logging.LogRecord) -> None:
-            say(self.format(record))
-
-    library = logging.getLogger("hf_specvla")
-    handler, level = ToTerminal(logging.INFO), library.level
-    library.addHandler(handler)
-    library.setLevel(logging.INFO)
-    try:
-        with capture.global_and_fixture_disabled() if capture is not None else nullcontext():
-            yield say
-    finally:
-        library.removeHandler(handler)
-        library.setLevel(level)
+    folder = tmp_path_factory.mktemp("toy") / "toy_dot"
+    shutil.copytree(Path(__file__).resolve().parents[1] / SHIPPED_TOY_DIR, folder)
+    return build_toy_pipeline(str(folder), progress=False)  # loaded: the settings its run.json records
 
 
 def llava_prompt(generator: torch.Generator, text_len: int = 4) -> dict[str, torch.Tensor]:
@@ -145,37 +107,87 @@ def llava_prompt(generator: torch.Generator, text_len: int = 4) -> dict[str, tor
     return {"input_ids": input_ids, "pixel_values": torch.randn(1, 3, 16, 16, generator=generator)}
 
 
-#: what makes a test slow: a fixture that trains a model, or a module that kills and reruns whole commands
-SLOW_FIXTURES = {"toy_pipeline"}
-SLOW_MODULES = {"test_kill_resume.py"}
+# ---------------------------------------------------------------------------------------------------- the two tiers
+# The default run is the fast tier: every test but the slow ones (transformers' way: its ``@slow`` tests run with
+# RUN_SLOW=1). ``RUN_SLOW=1 pytest`` or ``pytest --runslow`` runs both tiers; ``pytest -m slow --runslow`` the slow one
+# alone (tox -e slow). A test is slow when it is marked ``slow`` or for what it does, marked from its module or its
+# fixtures below (each kind a marker of its own, ``pytest -m ray --runslow`` runs one kind).
+
+#: the kinds of slow test: marker -> what it stands for
+SLOW_KINDS = {
+    "training": "trains a model at test time",
+    "ray": "starts a local Ray cluster",
+    "rollouts": "rolls policies out in the simulator",
+    "commands": "runs whole commands with worker processes (kill, resume, compare)",
+    "sampling": "draws thousands of samples to check a distribution",
+    "scripts": "runs an example script end to end",
+}
+#: module file -> the kind of slow test every test in it is
+SLOW_MODULES = {
+    "test_kill_resume.py": "commands",
+    "test_compare_worker_death.py": "commands",
+    "test_ray_serve.py": "ray",
+}
+#: fixture -> the kind of slow test every test using it is
+SLOW_FIXTURES = {"ray_cluster": "ray", "distilled_head": "training"}
+#: a fast-tier test's phase (setup or call) over this many seconds fails with its name: move it to the slow tier or
+#: make it faster (HF_SPECVLA_TEST_BUDGET_S overrides; 0 turns the check off)
+FAST_TEST_BUDGET_S = float(os.environ.get("HF_SPECVLA_TEST_BUDGET_S", "60"))
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--runslow",
+        action="store_true",
+        default=False,
+        help="run the slow tier too (as RUN_SLOW=1 does): training, Ray, rollouts, whole commands, ...",
+    )
+
+
+def pytest_configure(config):
+    for kind, text in SLOW_KINDS.items():
+        config.addinivalue_line("markers", f"{kind}: a slow test that {text}")
+
+
+def runs_slow(config) -> bool:
+    """Whether this session runs the slow tier: ``--runslow`` or ``RUN_SLOW`` set to a true value."""
+    return config.getoption("--runslow") or os.environ.get("RUN_SLOW", "").lower() in ("1", "true", "yes")
 
 
 def pytest_collection_modifyitems(config, items):
-    """Marks the slow tests ``slow`` (``pytest -m "not slow"`` for a quick pass; CI runs everything)."""
+    """Marks each test of a slow kind with its kind's marker and ``slow``; outside the slow tier they are skipped,
+    saying how to run them."""
+    skip = pytest.mark.skip(reason="slow tier: RUN_SLOW=1 or --runslow runs it")
+    slow = runs_slow(config)
     for item in items:
-        if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())) or item.path.name in SLOW_MODULES:
+        kinds = {SLOW_MODULES.get(item.path.name)} | {SLOW_FIXTURES.get(f) for f in getattr(item, "fixturenames", ())}
+        kinds |= {kind for kind in SLOW_KINDS if item.get_closest_marker(kind) is not None}
+        for kind in kinds - {None}:
+            item.add_marker(getattr(pytest.mark, kind))
             item.add_marker(pytest.mark.slow)
+        if not slow and item.get_closest_marker("slow") is not None:
+            item.add_marker(skip)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item, call):
+    """In the fast tier, a setup or a call over ``FAST_TEST_BUDGET_S`` fails the test, naming it and its time."""
+    report = yield
+    budget = FAST_TEST_BUDGET_S
+    if budget and report.when in ("setup", "call") and report.passed and report.duration > budget:
+        if not runs_slow(item.config) and item.get_closest_marker("slow") is None:
+            report.outcome = "failed"
+            report.longrepr = (f"{item.nodeid}: its {report.when} took {report.duration:.0f} s, over the fast tier's "
+                               f"{budget:.0f} s a test: mark it slow (or a slow kind: {', '.join(SLOW_KINDS)}) or "
+                               f"make it faster")  # fmt: skip
+    return report
 
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
     """With pytest-xdist (tox runs ``-n 2``): whole modules per worker (a module's fixtures are built once, its servers
-    and Ray cluster are its own), and every module that uses a fixture of ``SLOW_FIXTURES`` on one worker, so that the
-    model it trains is trained once, not once per worker. (``--dist loadgroup`` cannot do it: xdist 3.8 renames the
-    nodes it groups, which pytest 9.2 no longer lets it.)"""
+    and Ray cluster are its own). (``--dist loadgroup`` cannot do it: xdist 3.8 renames the nodes it groups, which
+    pytest 9.2 no longer lets it.)"""
     from xdist.scheduler import LoadScopeScheduling
 
-    uses = re.compile(r"\b(" + "|".join(SLOW_FIXTURES) + r")\b")
-    root = Path(__file__).resolve().parent
-    training = {
-        path.relative_to(root.parent).as_posix()
-        for path in root.rglob("test_*.py")
-        if uses.search(path.read_text(encoding="utf-8"))
-    }
-
-    class ModulesAndTrainedFixtures(LoadScopeScheduling):
-        def _split_scope(self, nodeid: str) -> str:
-            module = nodeid.split("::", 1)[0]
-            return "the modules that train a fixture's model" if module in training else module
-
-    return ModulesAndTrainedFixtures(config, log)
+    return LoadScopeScheduling(config, log)

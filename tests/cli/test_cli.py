@@ -1,11 +1,11 @@
 """The command line: help shows examples; benchmark runs on a saved pipeline and refuses a wrong folder."""
 
+from pathlib import Path
+
 import pytest
 import torch
 
 from hf_specvla.cli import main
-
-from ..conftest import TOY_TEST_HEAD_STEPS
 
 
 def test_help_shows_examples(capsys):
@@ -147,22 +147,27 @@ def test_demo_refuses_a_folder_holding_another_pipeline(toy_pipeline, capsys):
     to reuse the small one silently; the same settings still reuse it (nothing retrained)."""
     from hf_specvla.benchmarks.toy import build_toy_pipeline
 
-    steps = str(TOY_TEST_HEAD_STEPS)
     with pytest.raises(SystemExit) as exit_info:
-        main(["demo", "--size", "medium", "--draft-steps", steps, "--output-dir", toy_pipeline.output_dir])
+        main(["demo", "--train", "--size", "medium", "--output-dir", toy_pipeline.output_dir])
     assert exit_info.value.code == 2 and "holds another run: size.hidden_size: " in capsys.readouterr().err
-    again = build_toy_pipeline(toy_pipeline.output_dir, draft_steps=TOY_TEST_HEAD_STEPS, progress=False)  # loaded
+    again = build_toy_pipeline(toy_pipeline.output_dir, progress=False)  # loaded
     assert torch.equal(again.draft_head.fuse.weight, toy_pipeline.draft_head.fuse.weight)
 
 
 def test_the_demos_default_steps_are_the_toys():
-    """One default each: ``demo --target-steps`` / ``--draft-steps`` (parsed without importing the toy) are
-    ``toy.TOY_TARGET_STEPS`` / ``toy.TOY_HEAD_STEPS``."""
+    """One default each: ``demo --train``'s ``--target-steps`` / ``--draft-steps`` (parsed without importing the toy)
+    are ``toy.TOY_TARGET_STEPS`` / ``toy.TOY_HEAD_STEPS``, which the shipped pipeline was trained with."""
     import inspect
+    import json
 
-    from hf_specvla.benchmarks.toy import TOY_HEAD_STEPS, TOY_TARGET_STEPS, build_toy_pipeline
+    from hf_specvla.benchmarks.toy import SHIPPED_TOY_DIR, TOY_HEAD_STEPS, TOY_TARGET_STEPS, build_toy_pipeline
+    from hf_specvla.cli.demo import TRAINING_DEFAULTS
     from hf_specvla.cli.main import build_parser
 
-    args = build_parser().parse_args(["demo"])
-    assert (args.target_steps, args.draft_steps) == (TOY_TARGET_STEPS, TOY_HEAD_STEPS)
+    args = build_parser().parse_args(["demo", "--train"])
+    assert not hasattr(args, "target_steps")  # given only with --train: the defaults fill in
+    assert (TRAINING_DEFAULTS["target_steps"], TRAINING_DEFAULTS["draft_steps"]) == (TOY_TARGET_STEPS, TOY_HEAD_STEPS)
     assert inspect.signature(build_toy_pipeline).parameters["draft_steps"].default == TOY_HEAD_STEPS
+    shipped = json.loads((Path(__file__).resolve().parents[2] / SHIPPED_TOY_DIR / "run.json").read_text())
+    assert (shipped["settings"]["target_steps"], shipped["settings"]["draft_steps"]) == (TOY_TARGET_STEPS,
+                                                                                         TOY_HEAD_STEPS)  # fmt: skip

@@ -40,6 +40,11 @@ TOY_HEAD_SETTINGS = dict(draft_mode="block", prefill_drafts=True, prefill_image_
 #: held-out scenes (no previous action), at 2400 on 90%, at 4800 on 98% (same target, data and learning rate)
 TOY_HEAD_STEPS = 4800
 
+#: where the toy pipeline ``hf-specvla demo`` times is shipped, relative to the checkout's root: a target trained
+#: [`TOY_TARGET_STEPS`] and its head [`TOY_HEAD_STEPS`], built by ``hf-specvla demo --train --output-dir
+#: policies/toy_dot`` (its card says how); the same every run, so nothing is trained to see the verdict
+SHIPPED_TOY_DIR = "policies/toy_dot"
+
 GRID_SIZE = 8
 IMAGE_SIZE = 32
 PATCH_SIZE = 8
@@ -345,6 +350,17 @@ def _assistant_class(model_class: type) -> type:
 
 
 _ASSISTANT_CLASSES: dict[type, type] = {}
+
+
+def shipped_toy_dir() -> Path | None:
+    """The shipped toy pipeline's folder ([`SHIPPED_TOY_DIR`]) under the working directory or the checkout this
+    module runs from (an editable install), None where neither has it (an installed wheel: ``demo --train`` builds
+    one)."""
+    for root in (Path.cwd(), Path(__file__).resolve().parents[3]):
+        folder = root / SHIPPED_TOY_DIR
+        if (folder / "target" / "config.json").exists() and (folder / "draft_head" / "config.json").exists():
+            return folder
+    return None
 
 
 def load_toy_pipeline(output_dir: str) -> ToyPipeline:

@@ -1,30 +1,38 @@
-"""``hf-specvla demo``: the main job. Build and train a toy OpenVLA-style target and its draft head on the spot (no
-model or data downloaded), then time plain greedy against speculative decoding: strict and relaxed chains on held-out
-scenes, and drafts from previous actions / the head / both on moving-dot episodes. It ends with a verdict (the rows a
-newcomer needs, read from the measurements: [`format_verdict`]); the full tables go to ``<output-dir>/demo_report.md``.
+"""``hf-specvla demo``: the main job. Load the shipped toy OpenVLA-style target and its draft head
+(``policies/toy_dot``: nothing downloaded, nothing trained; ``--train`` builds and trains them on the spot instead),
+then time plain greedy against speculative decoding: strict and relaxed chains on held-out scenes, and drafts from
+previous actions / the head / both on moving-dot episodes. It ends with a verdict (the rows a newcomer needs, read
+from the measurements: [`format_verdict`]); the full tables go to ``<output-dir>/demo_report.md``.
 """
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 from .benchmark import add_benchmark_arguments, time_pipeline
-from .common import NON_NEGATIVE, check_output_dir_flag, usage_errors
+from .common import NON_NEGATIVE, POSITIVE, check_output_dir_flag, usage_errors
 
 NAME = "demo"
-HELP = "train a toy VLA target + draft head on the spot and benchmark them"
+HELP = "benchmark the shipped toy VLA target + draft head (or train them on the spot: --train)"
 EXAMPLES = """
-    # The main job: build and train a toy OpenVLA-style target and a draft head on the spot, then benchmark
-    # plain greedy (eager and compiled) vs speculative decoding (strict and relaxed), ending with a verdict; the full
-    # tables go to runs/toy/demo_report.md. ~17 minutes on one CPU thread, training included (the target ~5 min,
-    # its draft head ~6: 4800 steps), 2 min of it compiling the compiled rows (--no-compile skips them).
+    # The main job: time the shipped toy OpenVLA-style target and its draft head (policies/toy_dot) on moving-dot
+    # episodes: greedy (eager and compiled), `exact`, `exact` + the head and a relaxed r, ending with a verdict; the
+    # tables go to runs/demo/demo_report.md. Run from the checkout; most of its minutes compile the compiled rows.
     hf-specvla demo
 
-    # A quick look at a pipeline already trained in runs/toy: few prompts, two episodes, one relaxed r, no compiled rows
-    hf-specvla demo --prompts 4 --repeats 1 --episodes 2 --chain-lengths 4 --bin-tolerances 1 --no-compile
+    # Every table: also held-out scenes (chains, transformers' assisted generation) and every drafter on the episodes
+    hf-specvla demo --all-tables
 
-    # The same, with a bigger (slower, more VLA-like) target, more timing repeats, kept in ./runs/toy-medium
-    hf-specvla demo --size medium --repeats 5 --output-dir runs/toy-medium
+    # A quick look: two episodes, one relaxed r, no compiled rows
+    hf-specvla demo --episodes 2 --bin-tolerances 1 --no-compile
+
+    # The whole pipeline: train the toy target and distil its draft head on the spot (~15 min on one CPU thread),
+    # kept in runs/toy, then time them
+    hf-specvla demo --train
+
+    # The same with a bigger (slower, more VLA-like) target, more timing repeats, kept in ./runs/toy-medium
+    hf-specvla demo --train --size medium --repeats 5 --output-dir runs/toy-medium
 """
 
 SIZES = {
@@ -37,19 +45,49 @@ SIZES = {
 }
 
 
+#: ``--output-dir``'s default: the report of the shipped pipeline's timing; a trained pipeline and its report
+OUTPUT_DIRS = {"shipped": "runs/demo", "train": "runs/toy"}
+#: the training flags' defaults (``toy.TOY_TARGET_STEPS`` / ``TOY_HEAD_STEPS``, tested): they apply with --train only
+TRAINING_DEFAULTS = dict(size="small", target_steps=1500, draft_steps=4800)
+
+
 def add_arguments(parser) -> None:
     parser.add_argument(
-        "--output-dir", default="runs/toy", help="where target and draft head are kept (reused: same settings)"
-    )
-    parser.add_argument("--size", choices=sorted(SIZES), default="small", help="toy target size")
-    parser.add_argument("--target-steps", type=int, default=1500, help="toy target training steps")
-    parser.add_argument("--draft-steps", type=int, default=4800, help="draft head training steps")
+        "--train", action="store_true",
+        help="build and train the toy target and its draft head on the spot (~15 min on one CPU thread) instead of "
+        "timing the shipped ones (policies/toy_dot)",
+    )  # fmt: skip
     parser.add_argument(
-        "--overwrite-output-dir", action="store_true", help="move a pipeline built with other settings aside"
+        "--output-dir", default=None,
+        help=f"the report's folder (default {OUTPUT_DIRS['shipped']}); with --train also the trained target and "
+        f"head (default {OUTPUT_DIRS['train']}; reused when trained with the same settings)",
+    )  # fmt: skip
+    parser.add_argument("--size", choices=sorted(SIZES), default=argparse.SUPPRESS,
+                        help=f"toy target size, with --train (default {TRAINING_DEFAULTS['size']})")  # fmt: skip
+    parser.add_argument(
+        "--target-steps",
+        type=POSITIVE,
+        default=argparse.SUPPRESS,
+        help=f"toy target training steps, with --train (default {TRAINING_DEFAULTS['target_steps']})",
     )
     parser.add_argument(
-        "--episodes", type=NON_NEGATIVE, default=16, help="moving-dot episodes to replay (0: skip that table)"
+        "--draft-steps",
+        type=POSITIVE,
+        default=argparse.SUPPRESS,
+        help=f"draft head training steps, with --train (default {TRAINING_DEFAULTS['draft_steps']})",
     )
+    parser.add_argument(
+        "--overwrite-output-dir", action="store_true", help="move a folder holding another run's results aside"
+    )
+    parser.add_argument(
+        "--episodes", type=NON_NEGATIVE, default=16,
+        help="moving-dot episodes to replay (0: time the held-out scenes for the verdict instead)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--all-tables", action="store_true",
+        help="also the held-out scenes table (chains of --chain-lengths, transformers' assisted generation) and "
+        "every drafter on the episodes, not only the verdict's rows (many more graphs to compile)",
+    )  # fmt: skip
     add_benchmark_arguments(parser)
 
 
@@ -73,6 +111,8 @@ def time_episodes(pipeline, args) -> tuple[list, str]:
     tolerances = [0, *args.bin_tolerances[:1]]
     compiled_on = pipeline.target.device.type if args.compile else None
     methods = episode_methods(pipeline.draft_head, tolerances, DraftTreeConfig(), ACTION_DIM - 1, compiled_on)
+    if not args.all_tables:  # the verdict's rows alone: only their graphs are compiled
+        methods = [method for method in methods if method.name in verdict_methods(tolerances[1], args.compile)]
     episodes = toy_episodes(args.episodes)
     results = run_episode_benchmark(toy_actor(pipeline), episodes, methods, ACTION_DIM, seed=args.seed)
     heading = (
@@ -80,6 +120,20 @@ def time_episodes(pipeline, args) -> tuple[list, str]:
         f"(prior), the draft head (chain / EAGLE-2 tree) or both, interleaved at every step:"
     )
     return results, f"{heading}\n\n{format_episode_report(results)}"
+
+
+def verdict_methods(relaxed: int, compiled: bool) -> set[str]:
+    """The episode rows the verdict reads (``speed.VERDICT_ROLES``): greedy, eager and compiled, `exact`, `exact` with
+    the draft head, and `exact` at the relaxed ``r`` (compiled when ``compiled``; eager greedy always: the baseline
+    the others' actions are compared with)."""
+    suffix = ":compile" if compiled else ""
+    names = {
+        "greedy",
+        f"prior+jacobi r=0{suffix}",
+        f"prior+jacobi+tree r=0{suffix}",
+        f"prior+jacobi r={relaxed}{suffix}",
+    }
+    return names | ({"greedy:compile"} if compiled else set())
 
 
 def write_report(output_dir: str, sections: list[str], verdict: str, argv: list[str]) -> Path:
@@ -102,20 +156,54 @@ def _count(number: int, noun: str) -> str:
     return f"{number} {noun}{'' if number == 1 else 's'}"
 
 
+def training_settings(args, parser) -> dict:
+    """``--size`` / ``--target-steps`` / ``--draft-steps`` with their defaults filled in; a usage error when one is
+    given without ``--train`` (the shipped pipeline is timed as it is)."""
+    given = [f"--{name.replace('_', '-')}" for name in TRAINING_DEFAULTS if hasattr(args, name)]
+    if given and not args.train:
+        parser.error(f"{', '.join(given)}: only with --train (the shipped toy pipeline is timed as it was trained)")
+    return {name: getattr(args, name, default) for name, default in TRAINING_DEFAULTS.items()}
+
+
+def load_or_train(args, parser):
+    """The pipeline to time: the shipped one (its report in ``--output-dir``, a folder of its own), or with
+    ``--train`` the one built and trained in ``--output-dir``."""
+    from ..benchmarks.toy import ToyTargetSize, build_toy_pipeline, load_toy_pipeline, shipped_toy_dir
+    from ..run_folder import RunRecord, claim_run_folder
+
+    settings = training_settings(args, parser)
+    args.output_dir = args.output_dir or OUTPUT_DIRS["train" if args.train else "shipped"]
+    check_output_dir_flag(args.output_dir, parser)
+    if args.train:
+        with usage_errors(parser, errors=(FileExistsError,)):
+            size = ToyTargetSize(**SIZES[settings["size"]])
+            return build_toy_pipeline(args.output_dir, size, settings["target_steps"], settings["draft_steps"],
+                                      seed=args.seed, overwrite=args.overwrite_output_dir)  # fmt: skip
+    shipped = shipped_toy_dir()
+    if shipped is None:
+        parser.error(
+            "the shipped toy pipeline (policies/toy_dot) is not under this folder or this checkout: run "
+            "from the hf_specvla checkout, or add --train to build one here (~15 min on one CPU thread)"
+        )
+    with usage_errors(parser, errors=(FileExistsError,)):  # the report's folder follows the folder rule
+        with claim_run_folder(args.output_dir, RunRecord("demo", {"pipeline": str(shipped.resolve())}),
+                              args.overwrite_output_dir):  # fmt: skip
+            pass
+    return load_toy_pipeline(str(shipped))
+
+
 def run(args, parser) -> int:
     import torch
 
     from ..benchmarks.speed import format_verdict
-    from ..benchmarks.toy import ACTION_DIM, ToyTargetSize, build_toy_pipeline
+    from ..benchmarks.toy import ACTION_DIM
 
-    check_output_dir_flag(args.output_dir, parser)
-    with usage_errors(parser, errors=(FileExistsError,)):
-        size = ToyTargetSize(**SIZES[args.size])
-        pipeline = build_toy_pipeline(args.output_dir, size, args.target_steps, args.draft_steps, seed=args.seed,
-                                      overwrite=args.overwrite_output_dir)  # fmt: skip
-    results, scenes = time_pipeline(pipeline, args)
-    sections = [f"## Held-out scenes\n\n{scenes}"]
-    measured = f"{_count(len(results[0].latencies), 'action')} on held-out scenes"
+    pipeline = load_or_train(args, parser)
+    sections = []
+    if args.all_tables or not args.episodes:  # the held-out scenes: the verdict's rows when there are no episodes
+        results, scenes = time_pipeline(pipeline, args)
+        sections.append(f"## Held-out scenes\n\n{scenes}")
+        measured = f"{_count(len(results[0].latencies), 'action')} on held-out scenes"
     if args.episodes:
         results, episodes = time_episodes(pipeline, args)  # the verdict reads these: the previous action drafts
         sections.append(f"## Moving-dot episodes\n\n{episodes}")
