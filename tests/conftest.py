@@ -124,6 +124,7 @@ SLOW_KINDS = {
 }
 #: module file -> the kind of slow test every test in it is
 SLOW_MODULES = {
+    "test_example_scripts.py": "scripts",
     "test_kill_resume.py": "commands",
     "test_compare_worker_death.py": "commands",
     "test_ray_serve.py": "ray",

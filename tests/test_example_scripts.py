@@ -146,7 +146,7 @@ def test_batch_throughput_script_refuses_an_unknown_method_before_loading_anythi
 def test_localization_probe_script_prints_the_error_table(second_view):
     pytest.importorskip("metaworld")
     decoder = ["--decoder-steps", 2] if second_view == "none" else []  # the decoder reads the policy's own view
-    result = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2", "--tasks",
+    result = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla3", "--tasks",
                          "push", "--scenes", 3, "--validation-scenes", 2, "--steps", 2, "--second-view", second_view,
                          *decoder, timeout=600)  # fmt: skip
     header = "| the policy's scene tokens: object / goal | the training mean: object / goal"
@@ -154,7 +154,7 @@ def test_localization_probe_script_prints_the_error_table(second_view):
     assert ("| the decoder, scene tokens first (2 steps): object / goal |" in result.stdout) == bool(decoder)
     cells = next(line for line in result.stdout.splitlines() if line.startswith("| push-v3 |")).strip("|").split("|")
     assert all(math.isfinite(float(cell)) for cell in cells[1:5])
-    own = cells[5].strip()  # policy v2 learned scene targets on its own (overview) images only
+    own = cells[5].strip()  # the policy learned scene targets on its own (overview) images only
     assert own == "-" if second_view == "front" else all(math.isfinite(float(x)) for x in own.split(" / "))
     assert all(math.isfinite(float(x)) for x in cells[6].split(" / "))  # the training mean's errors
     assert len(cells) == (8 if decoder else 7)
@@ -166,27 +166,27 @@ def test_localization_probe_saves_the_policy_with_its_scene_trained_tower(tmp_pa
     from hf_specvla.policies import VLAPolicy
 
     folder = tmp_path / "pretrained"
-    run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2", "--tasks", "push",
+    run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla3", "--tasks", "push",
                 "--scenes", 3, "--validation-scenes", 1, "--steps", 2, "--save-policy", folder,
                 timeout=600)  # fmt: skip
     record = json.loads((folder / "scene_pretraining.json").read_text())
     assert record["tasks"] == ["push-v3"] and record["steps"] == 2
-    saved, original = VLAPolicy.from_pretrained(folder), VLAPolicy.from_pretrained(ROOT / "policies" / "mt10_vla2")
+    saved, original = VLAPolicy.from_pretrained(folder), VLAPolicy.from_pretrained(ROOT / "policies" / "mt10_vla3")
     towers = [dict(p.model.model.vision_tower.named_parameters()) for p in (saved, original)]
     assert any(not torch.equal(towers[0][name], towers[1][name]) for name in towers[1])  # the tower was trained
     decoders = [dict(p.model.model.language_model.named_parameters()) for p in (saved, original)]
     assert all(torch.equal(decoders[0][name], decoders[1][name]) for name in decoders[1])  # nothing else
-    again = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2",
+    again = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla3",
                         "--save-policy", folder, timeout=120, check=False)  # fmt: skip
     assert again.returncode == 2 and "is not empty" in again.stderr
     assert json.loads((folder / "scene_pretraining.json").read_text()) == record  # untouched
 
 
 def test_localization_probe_script_refuses_bad_counts_before_rendering():
-    result = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2", "--scenes", 1,
+    result = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla3", "--scenes", 1,
                          timeout=120, check=False)  # fmt: skip
     assert result.returncode == 2 and "--scenes >= 2" in result.stderr
-    result = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla2",
+    result = run_example("metaworld/localization_probe.py", "--policy", ROOT / "policies" / "mt10_vla3",
                          "--decoder-steps", 5, "--second-view", "front", timeout=120, check=False)  # fmt: skip
     assert result.returncode == 2 and "--decoder-steps trains the policy's decoder on its own view" in result.stderr
 

@@ -251,7 +251,7 @@ def test_the_package_imports_without_torch_and_registers_the_draft_head_with_the
     """``import hf_specvla`` loads neither torch nor transformers; importing a model class first (whose import loads
     the Auto classes midway) and then ``AutoConfig`` still finds the draft head (``AutoModel`` first:
     test_moved_paths)."""
-    head = str(PACKAGE.parents[1] / "policies" / "mt10_vla2_draft")
+    head = str(PACKAGE.parents[1] / "policies" / "mt10_vla3_draft")
     code = "\n".join([
         "import sys",
         "import hf_specvla",

@@ -41,8 +41,8 @@ def test_old_from_imports_give_the_same_classes():
     assert (OldVLAPolicy, OldCompareConfig, OldDraftTrainingConfig) == (VLAPolicy, CompareConfig, DraftTrainingConfig)
 
 
-@pytest.mark.parametrize(("policy", "draft_head"), [("mt10_vla", "mt10_vla_draft"), ("mt10_vla2", "mt10_vla2_draft")])
-def test_the_shipped_policies_and_heads_load(policy, draft_head):
+@pytest.mark.parametrize("draft_head", ["mt10_vla3_draft", "mt10_vla3_draft_v2"])
+def test_the_shipped_policies_and_heads_load(draft_head, policy="mt10_vla3"):
     from hf_specvla import DraftHead
     from hf_specvla.policies import VLAPolicy
 
@@ -104,7 +104,7 @@ def test_importing_the_package_registers_the_draft_head_with_the_auto_classes():
     import subprocess
     import sys
 
-    head = str(ROOT / "policies" / "mt10_vla2_draft")
+    head = str(ROOT / "policies" / "mt10_vla3_draft")
     code = "\n".join(["import hf_specvla", "from transformers import AutoModel",
                       f"print(type(AutoModel.from_pretrained({head!r})).__name__)"])  # fmt: skip
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,

@@ -82,20 +82,25 @@ def untrained_toy(tmp_path_factory):
     return ToyPipeline(str(tmp_path_factory.mktemp("toy")), target, tokenizer, action_tokenizer, head)
 
 
-def test_the_demos_calls_warn_nothing_and_it_ends_with_its_verdict(untrained_toy, monkeypatch, capsys):
-    """``hf-specvla demo`` with small arguments (every kind of row: eager and compiled greedy, transformers' assisted
-    generation eager and compiled, strict and relaxed chains, the prior, Jacobi, the head's tree; compiled with
-    dynamo's cheap eager backend) on an untrained toy: no deprecation or duplicate warning from transformers, and the
-    last screen is the verdict, naming the file that holds the full tables."""
+# the whole demo command, its verdict's rows or every table: ~65 s each (the fast tier keeps predict_action's and the
+# port's calls warning-free, and tests/cli/test_demo.py the verdict's reading)
+@pytest.mark.commands
+@pytest.mark.parametrize("all_tables", [False, True], ids=["verdict", "all"])
+def test_the_demos_calls_warn_nothing_and_it_ends_with_its_verdict(untrained_toy, monkeypatch, capsys, all_tables):
+    """``hf-specvla demo --train`` with small arguments (the verdict's rows: eager and compiled greedy, `exact`, the
+    head, a relaxed r; with ``--all-tables`` every kind of row: transformers' assisted generation eager and
+    compiled, strict and relaxed chains, the prior, Jacobi, the head's tree; compiled with dynamo's cheap eager
+    backend) on an untrained toy: no deprecation or duplicate warning from transformers, and the last screen is the
+    verdict, naming the file that holds the full tables."""
     from hf_specvla.benchmarks import toy
     from hf_specvla.cli.demo import REPORT_FILE
 
     monkeypatch.setattr(toy, "build_toy_pipeline", lambda *args, **kwargs: untrained_toy)
     monkeypatch.setattr("hf_specvla.speculative.compiled_decoding_kwargs", eager_backend_compiled_kwargs)
-    argv = ["demo", "--output-dir", untrained_toy.output_dir, "--prompts", "1", "--repeats", "1", "--episodes", "1",
-            "--chain-lengths", "2", "--bin-tolerances", "1"]  # fmt: skip
+    argv = ["demo", "--train", "--output-dir", untrained_toy.output_dir, "--prompts", "1", "--repeats", "1",
+            "--episodes", "1", "--chain-lengths", "2", "--bin-tolerances", "1"]  # fmt: skip
     with transformers_warnings_as_errors():
-        assert main(argv) == 0
+        assert main(argv + ["--all-tables"] * all_tables) == 0
     out = capsys.readouterr().out
     screen = out[out.index("\nVerdict (") :]
     for role in ("| greedy |", "| compiled greedy |", "| `exact` |", "| draft head |", "| relaxed r=1 |"):
@@ -103,8 +108,11 @@ def test_the_demos_calls_warn_nothing_and_it_ends_with_its_verdict(untrained_toy
     assert "In one sentence: " in screen and screen.rstrip().endswith(f"{untrained_toy.output_dir}/{REPORT_FILE}")
     assert "Accepted drafts by token position" not in out  # the breakdowns are in the file, not on the screen
     report = (Path(untrained_toy.output_dir) / REPORT_FILE).read_text()
-    parts = ["## Held-out scenes", "## Moving-dot episodes", "| assisted (transformers) |", "| jacobi r=0:compile |",
-             "Accepted drafts by token position", "## Verdict", "In one sentence: "]  # fmt: skip
+    parts = ["## Moving-dot episodes", "Accepted drafts by token position", "## Verdict", "In one sentence: "]
+    if all_tables:
+        parts += ["## Held-out scenes", "| assisted (transformers) |", "| jacobi r=0:compile |"]
+    else:  # the verdict's rows alone: nothing else compiled or timed
+        assert "## Held-out scenes" not in report and "| jacobi r=0:compile |" not in report
     for part in parts:
         assert part in report
 

@@ -2,7 +2,7 @@
 ``enable_speculation(model, exact_reduced_precision=True)``, which switches a bf16 / fp16 target to eager attention so
 that r=0 speculative decoding keeps greedy decoding's tokens at near-ties.
 
-    python examples/benchmarks/attention_cost.py --policy policies/mt10_vla2 --tasks MT10 --steps 6 --repeats 2
+    python examples/benchmarks/attention_cost.py --policy policies/mt10_vla3 --tasks MT10 --steps 6 --repeats 2
     python examples/benchmarks/attention_cost.py --tiny   # a random 2-layer policy, seconds (plumbing, no speed)
 
 Observations come from fp32 greedy rollouts of the policy; then every variant (dtype x attention) decodes each

@@ -2,7 +2,7 @@
 greedy step (T = 1), per batch size, on a cache of a prompt's length; plain causal forwards (no tree mask, no
 speculation loop), interleaved, medians.
 
-    python examples/benchmarks/batch_forward_cost.py --policy policies/mt10_vla2 --threads 1
+    python examples/benchmarks/batch_forward_cost.py --policy policies/mt10_vla3 --threads 1
     python examples/benchmarks/batch_forward_cost.py --tiny   # a random 2-layer Llama, seconds (plumbing, no speed)
 
 A speculative batch forward verifies 1 + N tokens per row (the root and N drafts); if a plain forward of that many

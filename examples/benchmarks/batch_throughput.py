@@ -6,15 +6,16 @@ shipped Meta-World policy the episodes are recorded greedy rollouts (MT10, 2 see
 they are the toy's moving-dot episodes. Every method keeps its own per-row action memory (the prior's drafts).
 Methods run in a freshly shuffled order at every step, so machine-load drift hits them alike.
 
-    python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla --draft-head policies/mt10_vla_draft
+    python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla3 --draft-head policies/mt10_vla3_draft_v2
     python examples/benchmarks/batch_throughput.py --toy runs/batch/toy_pipeline --steps 8
-    python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft \
-        --steps 12 --methods greedy:compile prior+jacobi
-    python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft \
-        --steps 12 --methods greedy:compile prior+jacobi prior+jacobi:compile prior+jacobi:cap=2:compile \
-        --max-drafts-per-row 2
-    python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft \
-        --steps 8 --methods prior head prior:cap=1 prior:cap=2 head:cap=1 head:cap=2 --max-drafts-per-row 1 2
+    python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla3 \
+        --draft-head policies/mt10_vla3_draft_v2 --steps 12 --methods greedy:compile prior+jacobi
+    python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla3 \
+        --draft-head policies/mt10_vla3_draft_v2 --steps 12 \
+        --methods greedy:compile prior+jacobi prior+jacobi:compile prior+jacobi:cap=2:compile --max-drafts-per-row 2
+    python examples/benchmarks/batch_throughput.py --policy policies/mt10_vla3 \
+        --draft-head policies/mt10_vla3_draft_v2 --steps 8 \
+        --methods prior head prior:cap=1 prior:cap=2 head:cap=1 head:cap=2 --max-drafts-per-row 1 2
 """
 
 from __future__ import annotations

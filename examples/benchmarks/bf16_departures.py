@@ -2,12 +2,12 @@
 what margins: the CPU test bed of the bf16 question (on a GPU in bf16, a multi-token verification forward rounds
 differently from a one-token decode step, so near-tied argmaxes can flip).
 
-    python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft \\
-        --tasks MT10 --episodes 1 --steps 20 --threads 1
-    python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft \
+    python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla3 \\
+        --draft-head policies/mt10_vla3_draft_v2 --tasks MT10 --episodes 1 --steps 20 --threads 1
+    python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla3 --draft-head policies/mt10_vla3_draft_v2 \
         --tasks MT10 --episodes 1 --steps 20 --threads 1 --exact-reduced-precision off   # sdpa attention
-    python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla2 --dtype float32   # the control: 0
-    python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla2 --reference greedy:compile \
+    python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla3 --dtype float32   # the control: 0
+    python examples/benchmarks/bf16_departures.py --policy policies/mt10_vla3 --reference greedy:compile \
         --methods prior+jacobi:compile   # against transformers' compiled greedy
 
 Observations come from fp32 greedy rollouts of the policy (so they are real); then, in the chosen dtype, at every

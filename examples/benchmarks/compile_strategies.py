@@ -2,7 +2,7 @@
 what ``speculative.compiled`` does) and regional compilation (each decoder layer compiled, one graph shared by
 every layer), at a few verification widths and a prefill; interleaved, medians.
 
-    python examples/benchmarks/compile_strategies.py --policy policies/mt10_vla2 --repeats 20 --threads 1
+    python examples/benchmarks/compile_strategies.py --policy policies/mt10_vla3 --repeats 20 --threads 1
     python examples/benchmarks/compile_strategies.py --tiny --backend eager   # a random 2-layer Llama, seconds
 
 The verifications run through the engine's own ``verify_trees`` on a static cache (the pending token, filler draft

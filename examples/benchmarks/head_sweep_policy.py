@@ -1,7 +1,7 @@
 """Draft-head chain lengths and EAGLE-2 tree sizes on a Meta-World policy's recorded rollouts (one thread,
 interleaved, r=0): which drafting pays best for that policy and head.
 
-    python examples/benchmarks/head_sweep_policy.py --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft
+    python examples/benchmarks/head_sweep_policy.py --policy policies/mt10_vla3 --draft-head policies/mt10_vla3_draft_v2
 
 Prints the episode-benchmark table (speed-up, target forwards per call, tokens per target forward) and where the
 time goes per setting.

@@ -25,6 +25,7 @@ def test_benchmark_on_saved_pipeline(toy_pipeline, capsys):
     assert assisted.endswith("| - | - | 0.00 / 0 |")  # it reports no statistics; its actions are greedy's
 
 
+@pytest.mark.commands  # ~55 s: the benchmark command's compiled rows
 def test_benchmark_times_transformers_assisted_generation_compiled_where_it_can(toy_pipeline, capsys, monkeypatch):
     from hf_specvla.benchmarks.speed import assisted_generation_compiles
 
@@ -51,6 +52,7 @@ def test_benchmark_refuses_a_folder_without_a_pipeline(tmp_path):
     assert exit_info.value.code == 2
 
 
+@pytest.mark.commands  # ~90 s: every episode method of bench-episodes, compiled rows included
 def test_bench_episodes_on_the_toy(toy_pipeline, capsys, monkeypatch):
     """Eager and compiled rows (transformers' greedy:compile, our :compile; dynamo's eager backend here), speed-ups
     against the fastest greedy, and where the time goes (compiled calls timed from outside the graph)."""

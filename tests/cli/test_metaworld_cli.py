@@ -10,6 +10,7 @@ from hf_specvla.cli import main  # noqa: E402
 from hf_specvla.metaworld.demonstrations import load_demonstrations  # noqa: E402
 
 
+@pytest.mark.commands  # ~30 s: collect, train-vla and eval end to end
 def test_collect_train_eval(tmp_path, capsys):
     data, noisy, policy, results = tmp_path / "demos", tmp_path / "noisy", tmp_path / "policy", tmp_path / "eval"
     assert (

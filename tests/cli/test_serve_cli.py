@@ -119,6 +119,7 @@ def test_serve_answers_act_and_exits_0_on_sigterm():
         process.kill()
 
 
+@pytest.mark.ray  # ~40 s each: a local Ray cluster
 @pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
 def test_serve_on_ray_serve_answers_and_stops_on_ctrl_c_or_sigterm(stop):
     """``serve --ray``: the flags become a Serve config file that Ray Serve's own ``serve run`` runs on a local Ray

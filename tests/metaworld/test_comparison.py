@@ -312,6 +312,7 @@ def test_compare_pairs_seeds_keeps_r0_identical_and_resumes(policy_dir, tmp_path
     assert exit_info.value.code == 2 and "holds another run: methods: [" in capsys.readouterr().err
 
 
+@pytest.mark.commands  # ~20 s: compare with worker processes
 def test_compare_splits_seeds_between_workers(policy_dir, tmp_path):
     out = tmp_path / "workers"
     assert main(["compare", "--policy", policy_dir, "--tasks", "reach", "--episodes", "2", "--max-episode-steps",

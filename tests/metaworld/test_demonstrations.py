@@ -316,6 +316,7 @@ def test_a_batch_larger_than_the_training_frames_is_a_clear_error(dataset, tmp_p
     assert not (tmp_path / "out").exists()  # nothing written
 
 
+@pytest.mark.rollouts  # ~35 s: ten simulator episodes twice
 def test_vectorised_evaluation_gives_the_one_at_a_time_episodes(tiny_policy, tmp_path):
     """Episodes run in lockstep (one batched policy call per step) are the episodes run one at a time (greedy)."""
     from hf_specvla.metaworld.evaluation import evaluate, rollout_batch

@@ -14,7 +14,12 @@ from hf_specvla.metaworld.env import MT10_TASKS, TASK_INSTRUCTIONS
 from hf_specvla.policies import VLAPolicy
 
 POLICIES = Path(__file__).resolve().parents[2] / "policies"
-SHIPPED = ["mt10_vla", "mt10_vla2", "mt10_vla3"]
+SHIPPED = ["mt10_vla", "mt10_vla3"]
+#: policy v2's decoder and image tokens (policies/mt10_vla2, out of the tree since 2026-12-01: `git show
+#: 9d833b3:policies/mt10_vla2/config.json`), which v3 keeps so that their speed figures compare
+POLICY_V2_DECODER = dict(hidden_size=192, intermediate_size=384, num_hidden_layers=16, num_attention_heads=6,
+                         num_key_value_heads=3)  # fmt: skip
+POLICY_V2_IMAGE_TOKENS = 16
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -28,7 +33,7 @@ def test_a_shipped_policy_loads_and_acts(name):
     assert np.all(np.abs(chunk) <= 1.0 + 1e-9)  # MT10's action range, the statistics' q01 / q99
 
 
-@pytest.mark.parametrize("name", ["mt10_vla2", "mt10_vla3"])
+@pytest.mark.parametrize("name", ["mt10_vla3"])
 def test_a_shipped_policy_card_names_its_lineage(name):
     card = (POLICIES / name / "README.md").read_text()
     assert card.startswith("---\nlibrary_name: hf_specvla") and "base_model: policies/" in card
@@ -37,21 +42,14 @@ def test_a_shipped_policy_card_names_its_lineage(name):
 
 
 def test_policy_v3_keeps_policy_v2s_cost_structure():
-    """Same decoder (layers, widths, heads), the same 16 image tokens, the same 8 tokens per call: v3 sees a larger
+    """Policy v2's decoder (layers, widths, heads), the same 16 image tokens, 8 tokens per call: v3 sees a larger
     image (128 px) in larger patches (32 px), so only the patch embedding grows."""
-    v2, v3 = (json.loads((POLICIES / name / "config.json").read_text()) for name in ("mt10_vla2", "mt10_vla3"))
-
-    def part(config, key, *ignored):
-        return {k: v for k, v in config[key].items() if k not in ignored}
-
-    decoder = part(v3, "text_config", "transformers_version")
-    assert decoder == part(v2, "text_config", "transformers_version") and decoder["num_hidden_layers"] == 16
-    assert v3["image_seq_length"] == v2["image_seq_length"] == 16
-    p2, p3 = (VLAPolicy.from_pretrained(POLICIES / name).config for name in ("mt10_vla2", "mt10_vla3"))
-    assert (p3.num_image_tokens, p3.action_tokens, p3.chunk_length) == (p2.num_image_tokens, p2.action_tokens, 2)
+    v3 = json.loads((POLICIES / "mt10_vla3" / "config.json").read_text())
+    assert {k: v3["text_config"][k] for k in POLICY_V2_DECODER} == POLICY_V2_DECODER
+    assert v3["image_seq_length"] == POLICY_V2_IMAGE_TOKENS
+    p3 = VLAPolicy.from_pretrained(POLICIES / "mt10_vla3").config
+    assert (p3.num_image_tokens, p3.action_tokens, p3.chunk_length) == (POLICY_V2_IMAGE_TOKENS, 8, 2)
     assert (p3.image_size, p3.patch_size) == (128, 32)
-    tower = ("vision_config", "image_size", "patch_size")  # the tower's width and depth, not its input
-    assert part(v3, *tower) == part(v2, *tower)
 
 
 @pytest.mark.parametrize("head_folder", ["mt10_vla3_draft", "mt10_vla3_draft_v2", "mt10_vla3_draft_v3"])

@@ -439,6 +439,7 @@ def test_every_decode_runs_on_the_services_thread_with_room_for_every_buckets_gr
     assert all(limit > held for _, limit, held in seen), seen
 
 
+@pytest.mark.slow  # ~55 s: compiles every bucket
 def test_compiled_greedy_keeps_one_graph_per_bucket_whatever_the_prompt_length(policy, monkeypatch):
     """The greedy baseline decodes on the service's own static cache per bucket: prompts of other lengths (other
     instructions) reuse it, and the actions are eager greedy's."""

@@ -356,6 +356,8 @@ def test_rules_that_read_units_need_them(layout):
     assert isinstance(make_acceptance_rule(4, layout, max_relaxed_per_action=0, confirm_strict_tail=True), ExactMatch)
 
 
+# ~75 s: random batches at every width; the fast tier's compiled rounds (test_compiled_round) accept in the graph
+@pytest.mark.slow
 def test_the_acceptance_compiles_into_one_graph_that_finds_the_eager_paths(units_layout, action_tokenizer):
     """The acceptance's device part (``search_paths``) compiled into one graph, dynamic sizes, against eager on random
     batches of random trees, for every kind of rule (exact, relaxed, motion-scaled with a budget and the strict tail,

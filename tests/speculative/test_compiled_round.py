@@ -36,7 +36,7 @@ def test_every_drafter_and_batch_accepts_inside_the_graph_with_greedys_tokens():
     tree = DraftHeadDrafter(head, tree=DraftTreeConfig(top_k=3, depth=4, total_tokens=12))
     prompts = [torch.randint(6, 64, (1, n), generator=torch.Generator().manual_seed(n)) for n in (6, 9, 4)]
     for kwargs in (dict(assistant_model=JacobiDrafter()), dict(assistant_model=head), dict(assistant_model=tree)):
-        for input_ids in prompts[:2]:
+        for input_ids in prompts[:1]:
             out = greedy(model, input_ids, return_dict_in_generate=True, **compiled(), **kwargs)
             assert torch.equal(out.sequences, greedy(model, input_ids)), kwargs
             assert len(out.speculation.compiled_widths) == out.speculation.num_batch_forwards - 1 > 0

@@ -114,7 +114,11 @@ class RecordingDrafter(Drafter):
         return Recording()
 
 
-@pytest.mark.parametrize("tree", [None, DraftTreeConfig(top_k=3, depth=4, total_tokens=12)], ids=["chain", "tree"])
+# the chain in the slow tier: the tree's rounds cover the compiled head round
+TREE = DraftTreeConfig(top_k=3, depth=4, total_tokens=12)
+
+
+@pytest.mark.parametrize("tree", [pytest.param(None, marks=pytest.mark.slow), TREE], ids=["chain", "tree"])
 def test_the_compiled_head_drafts_the_eager_heads_trees_round_after_round(tree):
     """The head's compiled rounds (static cache, catch-up + expansion in one graph, the prompt's pairs fed eagerly but
     for the last ones) propose exactly the eager head's trees at every round, so it accepts what it would eagerly."""
@@ -379,7 +383,8 @@ def _eos_that_stops_one_row_early(model, inputs) -> int:
     return token
 
 
-@pytest.mark.parametrize("name", ["llama", "gemma2"])
+# gemma2's batch in the slow tier (~50 s): its sliding window is compiled at B = 1 in the fast tier
+@pytest.mark.parametrize("name", ["llama", pytest.param("gemma2", marks=pytest.mark.slow)])
 def test_a_batch_on_a_static_cache_gives_batched_greedys_tokens_for_every_drafter(name):
     """Left-padded rows that accept different lengths and stop at different times, on generate's static cache, eager
     and compiled: every drafter gives batched greedy decoding's tokens (on the default cache)."""
@@ -396,7 +401,8 @@ def test_a_batch_on_a_static_cache_gives_batched_greedys_tokens_for_every_drafte
             assert bool(compiled) == bool(out.speculation.compiled_widths)
 
 
-@pytest.mark.parametrize("slots", [12, 14, 17])
+# 17 slots in the fast tier; 12 and 14 (the other compactions) in the slow one
+@pytest.mark.parametrize("slots", [pytest.param(n, marks=pytest.mark.slow) for n in (12, 14)] + [17])
 def test_a_batch_fills_a_tight_static_cache_by_compacting_its_rows(slots):
     """A user's static cache with barely the slots greedy needs (11: prompt 6 + 6 fed tokens - 1): rows that accept
     different lengths leave invalid slots behind, which are compacted away when the trees need room; the tokens stay
@@ -599,6 +605,7 @@ def test_a_compiled_speculative_call_encodes_its_images_with_the_compiled_encode
     assert graphs_held(tiny_llava.base_model.get_image_features) >= 1
 
 
+@pytest.mark.slow  # ~16 s: a timing utility, not a lossless guard
 def test_a_clock_times_the_compiled_image_encoder_as_vision():
     """``ForwardClock`` times the engine's compiled image encoder from outside (``ENCODER_WRAPPER_ATTRIBUTE``), once
     per call: its vision time is one encoder call's, not zero (the compiled graph runs no hooks) and not the hooks'

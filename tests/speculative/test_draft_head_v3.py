@@ -305,6 +305,7 @@ def distilled_v3(sampling_target, action_tokenizer, tmp_path_factory):  # noqa: 
     return train_draft_head(head, sampling_target, dataset, config, progress=False)
 
 
+@pytest.mark.sampling  # ~35 s each (the fast tier samples with candidates and the prior: test_speculative_sampling)
 @pytest.mark.parametrize("tree", [None, DraftTreeConfig(top_k=2, depth=3, total_tokens=6)])
 def test_speculative_sampling_with_a_v3_head_keeps_the_targets_distribution(
     sampling_target,  # noqa: F811 (the imported fixture)

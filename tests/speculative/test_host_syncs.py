@@ -70,6 +70,7 @@ def test_the_counter_counts_what_waits_for_the_device():
     assert counter.count == 4 and counter.sites["elsewhere"] == 4
 
 
+@pytest.mark.slow  # ~110 s: inductor compiles the call's graphs (a host-read bound, not a lossless guard)
 def test_a_compiled_call_counts_its_static_cache_on_the_host(tiny_llama, action_tokenizer, monkeypatch):
     """On a static cache (compiled verification), the cache's length is counted on the host: no read of its device
     counter per round (the check the tests turn on, which reads it, is off here)."""
@@ -84,6 +85,7 @@ def test_a_compiled_call_counts_its_static_cache_on_the_host(tiny_llama, action_
     assert syncs <= rounds + PER_CALL + 3, (rounds, counter.sites.most_common())  # + the counter twice, the inputs
 
 
+@pytest.mark.slow  # ~100 s: inductor compiles the head's and the target's graphs
 def test_a_compiled_draft_head_tree_reads_once_a_round(tiny_llama, random_draft, monkeypatch):
     from hf_specvla.speculative import cache, compiled_decoding_kwargs
 

@@ -74,6 +74,7 @@ def head_for(model, action_tokenizer):
     return head.eval().to(torch.bfloat16)
 
 
+@pytest.mark.sampling  # ~85 s: a rate over many bf16 calls
 def test_bf16_eager_attention_makes_r0_departures_rare(action_tokenizer):
     """sdpa departs from greedy at near-ties (25 of 200 generations of this model on the CPU it was written on); the
     switch to eager attention leaves the rare rounding flip of a matmul whose accumulation order depends on the

@@ -135,7 +135,7 @@ def test_draft_data_config_validates():
     assert DraftDataConfig(tasks="MT10").tasks[0].endswith("-v3")
 
 
-@pytest.mark.parametrize("policy_name", ["mt10_vla", "mt10_vla2", "mt10_vla3"])
+@pytest.mark.parametrize("policy_name", ["mt10_vla3"])  # v1's head left the tree (docs/results/index.md)
 def test_the_shipped_draft_heads_load_and_fit_their_shipped_policies(policy_name):
     from pathlib import Path
 

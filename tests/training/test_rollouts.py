@@ -115,6 +115,7 @@ def test_the_folder_gives_the_frames_of_the_in_process_collection(one_shot, poli
     assert read.fingerprint == json.loads((one_shot / MANIFEST).read_text())["fingerprint"]  # every episode read
 
 
+@pytest.mark.commands  # ~25 s: worker processes
 def test_in_parts_and_with_two_workers_the_arrays_are_those_of_one_go(policy, one_shot, tmp_path):
     folder = tmp_path / "parts"
     first = collect_rollouts(policy, config(max_episodes=2), folder, progress=False)
@@ -126,6 +127,7 @@ def test_in_parts_and_with_two_workers_the_arrays_are_those_of_one_go(policy, on
     assert_same_episodes(folder, one_shot)
 
 
+@pytest.mark.commands  # ~25 s: a killed worker, resumed
 def test_killed_mid_collection_then_resumed_is_bit_exact(policy_dirs, tmp_path):
     """kill -9 while episodes are being written, then the documented rerun (the same command with --resume)."""
     argv = ["rollouts", "--policy", policy_dirs[0], "--tasks", *TASKS, "--episodes-per-task", "8", "--max-steps",

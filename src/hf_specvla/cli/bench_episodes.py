@@ -23,16 +23,18 @@ HELP = "replay recorded episodes: greedy (eager and compiled) vs prior / head / 
 EXAMPLES = """
     # Replay recorded episodes (previous actions are real): greedy vs action prior vs draft head chain / tree
     hf-specvla bench-episodes --policy policies/mt10_vla --tasks MT10 --episodes 1 --steps 40 --threads 1
-    hf-specvla bench-episodes --pipeline-dir runs/toy --episodes 16 --threads 1
+    hf-specvla bench-episodes --pipeline-dir policies/toy_dot --episodes 16 --threads 1
     # Eager rows only (no compilation)
-    hf-specvla bench-episodes --pipeline-dir runs/toy --episodes 4 --threads 1 --no-compile
+    hf-specvla bench-episodes --pipeline-dir policies/toy_dot --episodes 4 --threads 1 --no-compile
 """
 
 
 def add_arguments(parser) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--policy", help="a policy folder: record its greedy Meta-World rollouts, then replay them")
-    source.add_argument("--pipeline-dir", help="a toy pipeline saved by `hf-specvla demo`: replay moving-dot episodes")
+    source.add_argument(
+        "--pipeline-dir", help="a toy pipeline (policies/toy_dot, or `demo --train`'s): replay moving-dot episodes"
+    )
     parser.add_argument("--tasks", nargs="+", default=["MT10"], help="with --policy: suites and/or task names")
     parser.add_argument("--episodes", type=POSITIVE, default=1, help="episodes per task (toy: episodes in all)")
     parser.add_argument(

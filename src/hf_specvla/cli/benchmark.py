@@ -8,9 +8,9 @@ NAME = "benchmark"
 HELP = "benchmark a pipeline saved by `demo`"
 EXAMPLES = """
     # Re-run only the benchmark on a pipeline a previous demo saved
-    hf-specvla benchmark --pipeline-dir runs/toy --chain-lengths 2 4 6 --bin-tolerances 1 2 4
+    hf-specvla benchmark --pipeline-dir policies/toy_dot --chain-lengths 2 4 6 --bin-tolerances 1 2 4
     # Eager rows only (no compilation)
-    hf-specvla benchmark --pipeline-dir runs/toy --no-compile
+    hf-specvla benchmark --pipeline-dir policies/toy_dot --no-compile
 """
 
 
@@ -30,7 +30,11 @@ def add_benchmark_arguments(parser) -> None:
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--pipeline-dir", required=True, help="a folder written by `hf-specvla demo`")
+    parser.add_argument(
+        "--pipeline-dir",
+        required=True,
+        help="a toy pipeline: policies/toy_dot (shipped) or one `hf-specvla demo --train` saved",
+    )
     add_benchmark_arguments(parser)
 
 

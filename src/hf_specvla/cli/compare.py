@@ -26,13 +26,13 @@ HELP = "paired side-by-side of decoding methods on the same seeds (resumable)"
 EXAMPLES = """
     # Paired side-by-side of decoding methods (same seeds; every method runs a seed before the next): success with
     # 95% intervals, speed-up, forwards per action, bin deviation; a table, JSON and plots (resumable)
-    hf-specvla compare --policy policies/mt10_vla --draft-head policies/mt10_vla_draft --tasks MT10 --episodes 20 \\
-        --methods greedy head tree tree:r=4 prior prior:r=2 prior:r=4 prior:r=8 prior+tree:r=4 --workers 2 \\
-        --output-dir runs/compare_mt10
+    hf-specvla compare --policy policies/mt10_vla3 --draft-head policies/mt10_vla3_draft_v2 --tasks MT10 \\
+        --episodes 20 --methods greedy head tree tree:r=4 prior prior:r=2 prior:r=4 prior:r=8 prior+tree:r=4 \\
+        --workers 2 --output-dir runs/compare_mt10
     hf-specvla compare --policy policies/mt10_vla --tasks reach --episodes 2 --methods greedy prior prior:r=4 \\
         --output-dir runs/compare_smoke
     # Jacobi drafts (the target's own guesses past a rejection) against transformers' compiled greedy
-    hf-specvla compare --policy policies/mt10_vla2 --tasks reach --episodes 1 \\
+    hf-specvla compare --policy policies/mt10_vla3 --tasks reach --episodes 1 \\
         --methods greedy greedy:compile prior+jacobi prior+jacobi:compile --output-dir runs/compare_jacobi_smoke
     # More seeds into a folder timed with 1 worker, now with 2: refused (timings would mix) unless the timing restarts
     # (the finished episodes kept; only episodes timed from now on enter the speed columns)
@@ -41,7 +41,7 @@ EXAMPLES = """
     # The presets (exact: the fastest setting identical to greedy; fast: the relaxed one, r=4 on x y z with gate=0.5
     # chosen on policy v2, confirm=1 added on policy v3) and a relaxed rule spelled out: r per dimension (strict
     # gripper), at most 1 relaxed token per action, a confidence gate
-    hf-specvla compare --policy policies/mt10_vla2 --tasks reach --episodes 1 \\
+    hf-specvla compare --policy policies/mt10_vla3 --tasks reach --episodes 1 \\
         --methods greedy exact fast prior+jacobi:r=4/4/4/0,m=1,gate=0.5 --output-dir runs/compare_rules_smoke
     # Rules that scale with the motion: within 10% of greedy's motion in bins (x y z), at most 0.04 units, the gripper
     # confirmed after a relaxed token; the deviation reported apart for motions >= 0.25 units and smaller ones

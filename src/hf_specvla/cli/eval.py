@@ -29,7 +29,7 @@ EXAMPLES = """
     hf-specvla eval --policy policies/mt10_vla --tasks MT10 --episodes 20 --output-dir runs/eval_greedy
     hf-specvla eval --policy policies/mt10_vla --tasks reach push --episodes 5 --video runs/reach.gif \\
         --output-dir runs/eval_reach_push
-    hf-specvla eval --policy policies/mt10_vla2 --draft-head policies/mt10_vla2_draft --method prior+tree:r=4 \\
+    hf-specvla eval --policy policies/mt10_vla3 --draft-head policies/mt10_vla3_draft_v2 --method prior+tree:r=4 \\
         --tasks reach --episodes 2 --output-dir runs/eval_prior_tree
     hf-specvla eval --policy policies/mt10_vla --draft-head runs/draft --bin-tolerance 2 --output-dir runs/eval_spec
     hf-specvla eval --policy policies/mt10_vla --action-prior --bin-tolerance 2 --output-dir runs/eval_prior
