@@ -108,6 +108,8 @@ def serve_config(args, parser):
     """The [`ServeConfig`] the flags name (usage errors for bad values)."""
     from ..serving.config import ServeConfig
 
+    with usage_errors(parser, "--buckets", (ValueError, TypeError)):  # the flag named, as every other one is
+        ServeConfig(buckets=tuple(args.buckets))
     with usage_errors(parser, errors=(ValueError, TypeError)):
         speculate = None if args.speculate_buckets is None else tuple(args.speculate_buckets)
         return ServeConfig(method=tuple(args.method), buckets=tuple(args.buckets), max_wait_ms=args.max_wait_ms,
@@ -165,8 +167,9 @@ def _run_local(args, parser, config, methods) -> int:
     with usage_errors(parser, errors=(ValueError,)):  # e.g. --max-prompt-tokens shorter than any prompt
         service = PolicyService(policy, config, draft_head)
     server = PolicyServer(service, args.host, args.port, args.api_key, args.max_request_bytes, sock=sock)
-    logger.info("compiling and calibrating buckets %s (a compiled method: ~30 s per bucket on 2 CPU cores)",
-                list(config.buckets))  # fmt: skip
+    compiled = any(method.compiled for method in methods)
+    logger.info("%s buckets %s%s", "compiling and calibrating" if compiled else "calibrating", list(config.buckets),
+                " (a compiled method: ~30 s per bucket on 2 CPU cores)" if compiled else "")  # fmt: skip
     service.warm_up()
     print(f"serving {args.policy} ({service.methods_name}) on {server.url}: POST /act, GET /info, GET /stats",
           flush=True)  # fmt: skip
