@@ -169,7 +169,7 @@ def load_or_train(args, parser):
     """The pipeline to time: the shipped one (its report in ``--output-dir``, a folder of its own), or with
     ``--train`` the one built and trained in ``--output-dir``."""
     from ..benchmarks.toy import ToyTargetSize, build_toy_pipeline, load_toy_pipeline, shipped_toy_dir
-    from ..run_folder import RunRecord, claim_run_folder
+    from ..run_folder import RunRecord, claim_run_folder, fingerprint
 
     settings = training_settings(args, parser)
     args.output_dir = args.output_dir or OUTPUT_DIRS["train" if args.train else "shipped"]
@@ -185,11 +185,12 @@ def load_or_train(args, parser):
             "the shipped toy pipeline (policies/toy_dot) is not under this folder or this checkout: run "
             "from the hf_specvla checkout, or add --train to build one here (~15 min on one CPU thread)"
         )
+    pipeline = load_toy_pipeline(str(shipped))  # a few MB: its weights identify the report's folder
+    record = RunRecord("demo", {"target": fingerprint(pipeline.target), "draft_head": fingerprint(pipeline.draft_head)})
     with usage_errors(parser, errors=(FileExistsError,)):  # the report's folder follows the folder rule
-        with claim_run_folder(args.output_dir, RunRecord("demo", {"pipeline": str(shipped.resolve())}),
-                              args.overwrite_output_dir):  # fmt: skip
+        with claim_run_folder(args.output_dir, record, args.overwrite_output_dir):
             pass
-    return load_toy_pipeline(str(shipped))
+    return pipeline
 
 
 def run(args, parser) -> int:
