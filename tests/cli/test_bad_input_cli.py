@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -203,8 +204,6 @@ def test_bench_episodes_checks_the_tolerances_before_recording_rollouts(capsys, 
 
 @pytest.mark.parametrize("command", ["benchmark", "bench-episodes"])
 def test_toy_timings_check_the_tolerances_first(tmp_path, capsys, monkeypatch, command):
-    from types import SimpleNamespace
-
     from hf_specvla.cli import bench_episodes, benchmark
 
     pipeline = SimpleNamespace(action_tokenizer=SimpleNamespace(n_bins=256))
@@ -228,3 +227,128 @@ def test_image_features_for_a_head_before_v3_is_a_usage_error_before_anything_lo
         capsys.readouterr().err
     )
     assert not (tmp_path / "head").exists()
+
+
+# ----------------------------------------------------------------------------- issue 76: saved work and numeric flags
+def test_collect_refuses_another_commands_folder_and_an_unrecorded_one(tmp_path, capsys):
+    """``collect --output-dir <a policy folder>`` once wrote ``data/`` and ``meta/`` beside train-vla's run.json,
+    and into any non-empty folder without a record: both are refused now, the folders untouched."""
+    policy_run = tmp_path / "policy"
+    policy_run.mkdir()
+    (policy_run / "run.json").write_text(json.dumps({"command": "train-vla", "settings": {}}))
+    (policy_run / "model.safetensors").write_bytes(b"weights")
+    unrecorded = tmp_path / "mine"
+    unrecorded.mkdir()
+    (unrecorded / "notes.txt").write_text("my notes")
+    for folder, message in ((policy_run, "holds a run of `hf-specvla train-vla` (run.json), not a dataset"),
+                            (unrecorded, "is not empty (notes.txt) and holds no dataset record")):  # fmt: skip
+        before = sorted(p.name for p in folder.rglob("*"))
+        err = _usage_error(["collect", "--tasks", "reach", "--output-dir", str(folder)], capsys)
+        assert f"--output-dir: {folder} {message}" in err
+        assert sorted(p.name for p in folder.rglob("*")) == before
+
+
+def test_collect_image_size_zero_is_refused_not_replaced_by_the_default(tmp_path, capsys):
+    """``--image-size 0`` once collected 64-pixel images (0 read as "not given")."""
+    err = _usage_error(["collect", "--tasks", "reach", "--image-size", "0", "--output-dir", str(tmp_path / "d")],
+                       capsys)  # fmt: skip
+    assert "image_size must be in [16, 512] pixels, got 0" in err
+    assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--feature-loss-weight", "0", "--token-loss-weight", "0"],
+         "feature_loss_weight and token_loss_weight are both 0"),
+        (["--num-draft-tokens", "100"],
+         "--head v1 --num-draft-tokens 100 for a policy of 4 tokens a call: num_draft_tokens=100: a call generates 4 "
+         "tokens, the first from the prefill, so a chain drafts 1..3 of them"),
+        (["--head", "v2", "--unroll-steps", "9"],
+         "unroll_steps=9 trains more draft steps than the head's chain of num_draft_tokens=3 drafts: use 1..3"),
+        (["--num-draft-tokens", "2", "--unroll-steps", "3"], "unroll_steps=3 trains more draft steps than"),
+        (["--head", "v3", "--unroll-steps", "2"], "a head v3 drafts blocks of num_draft_tokens=3 tokens"),
+        (["--demo-frames-per-task", "10"], "--demo-frames-per-task samples frames of the --data folders: give --data"),
+        (["--token-loss-weight", "inf"], "token_loss_weight must be a finite number >= 0, got inf"),
+        (["--learning-rate", "inf"], "learning_rate must be a finite number > 0, got inf"),
+    ],
+)  # fmt: skip
+def test_train_draft_numbers_are_checked_before_anything_loads(tmp_path, capsys, monkeypatch, extra, message):
+    """Each was accepted silently (an untrained head saved with exit 0, a chain longer than the action) or failed
+    with a traceback after the rollouts."""
+    import hf_specvla.cli.train_draft as train_draft
+
+    monkeypatch.setattr(train_draft, "load_policy", lambda *args: pytest.fail("loaded the policy"))
+    err = _usage_error(["train-draft", "--policy", str(POLICY), "--output-dir", str(tmp_path / "head"), *extra],
+                       capsys)  # fmt: skip
+    assert message in err
+    assert not (tmp_path / "head").exists()
+
+
+@pytest.mark.parametrize("head, unroll", [("v1", 1), ("v2", 3), ("v3", 3), ("v3", None)])
+def test_train_draft_defaults_are_valid_for_every_head(tmp_path, monkeypatch, head, unroll):
+    """``--head v3`` without ``--unroll-steps`` was a traceback (``got unroll_steps=1``): each head's default depth
+    is now the one its training takes (v1: 1; v2 and v3: the chain, tokens per call - 1), as the trainer receives it."""
+    import hf_specvla.training.policy_draft as policy_draft
+
+    received = {}
+
+    def train(policy, training_config, data_config, demonstrations, num_draft_tokens, **kwargs):
+        received.update(unroll=training_config.unroll_steps, chain=num_draft_tokens, head=kwargs["head_version"])
+        return SimpleNamespace(num_parameters=lambda: 0)
+
+    monkeypatch.setattr(policy_draft, "train_policy_draft_head", train)
+    argv = ["train-draft", "--policy", str(POLICY), "--head", head, "--output-dir", str(tmp_path / "head")]
+    assert main(argv + (["--unroll-steps", str(unroll)] if unroll and head != "v1" else [])) == 0
+    assert received == {"unroll": unroll or 3, "chain": None, "head": head}
+
+
+def _damaged_copy(source: Path, folder: Path) -> Path:
+    """A copy of a saved model folder whose model.safetensors is cut in half (an interrupted copy)."""
+    import shutil
+
+    shutil.copytree(source, folder)
+    weights = folder / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])
+    return folder
+
+
+def test_damaged_weights_are_one_line_naming_the_file(tmp_path, capsys):
+    """A truncated model.safetensors (policy or head) ended in two chained tracebacks in serve, eval and compare (the
+    server binds its port first: 0, any free one)."""
+    policy = _damaged_copy(POLICY, tmp_path / "policy")
+    head = _damaged_copy(POLICY.parent / "mt10_vla3_draft_v2", tmp_path / "head")
+    good_v3 = str(POLICY.parent / "mt10_vla3")
+    cases = [
+        (["eval", "--policy", str(policy), "--tasks", "reach", "--output-dir", str(tmp_path / "e")],
+         "--policy", policy),
+        (["compare", "--policy", str(policy), "--methods", "greedy", "prior", "--tasks", "reach",
+          "--output-dir", str(tmp_path / "c")], "--policy", policy),
+        (["compare", "--policy", good_v3, "--methods", "greedy", "head", "--draft-head", str(head), "--tasks", "reach",
+          "--output-dir", str(tmp_path / "ch")], "--draft-head", head),
+        (["serve", "--policy", str(policy), "--method", "prior+jacobi", "--port", "0"], "--policy", policy),
+        (["serve", "--policy", good_v3, "--method", "prior+tree", "--draft-head", str(head), "--port", "0"],
+         "--draft-head", head),
+        (["eval", "--policy", good_v3, "--method", "head", "--draft-head", str(head), "--tasks", "reach",
+          "--output-dir", str(tmp_path / "h")], "--draft-head", head),
+    ]  # fmt: skip
+    for argv, flag, folder in cases:
+        err = _usage_error(argv, capsys)
+        line = next(line for line in err.splitlines() if "error: " in line)
+        assert f"{flag}: could not read the " in line and f"'{folder / 'model.safetensors'}'" in line, err
+        assert "damaged or truncated" in line and "The above exception" not in err
+
+
+def test_eval_video_under_a_file_is_refused_before_the_first_episode(tmp_path, afile, capsys, monkeypatch):
+    """``eval --video <a file>/x.gif`` ran the episode, then failed with "[Errno 17] File exists"."""
+    from hf_specvla.cli import eval as eval_command
+
+    monkeypatch.setattr(eval_command, "load_policy", lambda *a, **k: pytest.fail("the policy was loaded"))
+    argv = ["eval", "--policy", str(POLICY), "--tasks", "reach", "--output-dir", str(tmp_path / "e")]
+    err = _usage_error(argv + ["--video", str(afile / "x.gif")], capsys)
+    assert f"--video: video '{afile / 'x.gif'}': {afile} is a file, so no folder can be made under it" in err
+    err = _usage_error(argv + ["--video", str(tmp_path)], capsys)
+    assert "the extension must be one of" in err
+    (tmp_path / "v.gif").mkdir()
+    assert "is a folder; give a file path" in _usage_error(argv + ["--video", str(tmp_path / "v.gif")], capsys)
+    assert not (tmp_path / "e").exists()

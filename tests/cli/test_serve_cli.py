@@ -49,8 +49,9 @@ def _run(*flags: str, env: dict | None = None) -> subprocess.CompletedProcess:
         (["--buckets", "0"], "argument --buckets: must be >= 1, got 0"),
         (["--speculate-buckets", "3"], "speculate_buckets [3] are not buckets"),
         (["--calibration-calls", "-1"], "calibration_calls"),
-        (["--max-wait-ms", "inf"], "max_wait_ms must be a finite number of milliseconds 0..60000, got inf"),
-        (["--max-wait-ms", "nan"], "max_wait_ms must be >= 0, got nan"),
+        (["--calibration-calls", "100000000"], "calibration_calls must be 0..100 (timed calls per bucket"),
+        (["--max-wait-ms", "inf"], "max_wait_ms must be a finite number >= 0, got inf"),
+        (["--max-wait-ms", "nan"], "max_wait_ms must be a finite number >= 0, got nan"),
         (["--buckets", "1", "5000"], "--buckets: buckets must be batch sizes 1..1024, got [1, 5000]"),
         (["--max-prompt-tokens", "0"], "argument --max-prompt-tokens: must be >= 1, got 0"),
         (["--port", "99999"], "must be a TCP port 0..65535"),
@@ -115,6 +116,9 @@ def test_serve_answers_act_and_exits_0_on_sigterm():
         process.send_signal(signal.SIGTERM)
         _, err = process.communicate(timeout=120)  # read while it stops: a full pipe would block its logging
         assert process.returncode == 0, err[-3000:]
+        # an eager server says what it does at start-up: no compile estimate (it once promised ~30 s a bucket)
+        start_up = next(line for line in err.splitlines() if "buckets [1, 2]" in line)
+        assert "calibrating buckets [1, 2]" in start_up and "compil" not in start_up, start_up
     finally:
         process.kill()
 

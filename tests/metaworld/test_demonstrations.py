@@ -352,3 +352,18 @@ def test_vectorised_evaluation_gives_the_one_at_a_time_episodes(tiny_policy, tmp
     finally:
         for env in envs:
             env.close()
+
+
+def test_train_vla_on_fewer_frames_than_a_batch_is_refused_before_the_policy_is_built(dataset, tmp_path, capsys,
+                                                                                      monkeypatch):  # fmt: skip
+    """It was a traceback from inside the training (issue 76)."""
+    from hf_specvla.cli import main
+    from hf_specvla.policies import VLAPolicy
+
+    monkeypatch.setattr(VLAPolicy, "build", classmethod(lambda *a, **k: pytest.fail("the policy was built")))
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train-vla", "--data", str(dataset), "--batch-size", "100000", "--output-dir", str(tmp_path / "p")])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "Traceback" not in err
+    assert "batch_size=100000 is larger than the" in err and "use --batch-size" in err
+    assert not (tmp_path / "p" / "run.json").exists()

@@ -18,10 +18,10 @@ import pytest
 from hf_specvla.policies import VLAPolicy
 from hf_specvla.serving import ServeConfig
 from hf_specvla.serving.batching import ACTIVE_WINDOW_S
-from hf_specvla.serving.protocol import dumps, encode_array
+from hf_specvla.serving.protocol import decode_array, dumps, encode_array
 from hf_specvla.serving.server import PolicyServer
 
-from .test_server import POLICY, _observation, _post, _service, _wait_until
+from .test_server import POLICY, _greedy, _observation, _post, _service, _wait_until
 
 
 @pytest.fixture(scope="module")
@@ -35,6 +35,22 @@ def _get(url: str) -> tuple[int, dict]:
             return response.status, json.loads(response.read())
     except urllib.error.HTTPError as error:
         return error.code, json.loads(error.read() or b"null")
+
+
+def _post_together(url: str, bodies: dict) -> dict:
+    """Each of ``bodies`` (key -> request) POSTed at once from its own thread, so that they can share a batch: key ->
+    ``_post``'s (status, body, headers)."""
+    results: dict = {}
+
+    def send(key, body):
+        results[key] = _post(url, dumps(body))
+
+    threads = [threading.Thread(target=send, args=item) for item in bodies.items()]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    return results
 
 
 def _spy_on_decoding(policy) -> list:
@@ -138,8 +154,8 @@ def test_the_default_limit_leaves_the_instruction_room(policy, monkeypatch):
 @pytest.mark.parametrize(
     ("settings", "message"),
     [
-        (dict(max_wait_ms=float("inf")), "max_wait_ms must be a finite number of milliseconds 0..60000, got inf"),
-        (dict(max_wait_ms=float("nan")), "max_wait_ms must be >= 0, got nan"),
+        (dict(max_wait_ms=float("inf")), "max_wait_ms must be a finite number >= 0, got inf"),
+        (dict(max_wait_ms=float("nan")), "max_wait_ms must be a finite number >= 0, got nan"),
         (dict(max_wait_ms=1e9), "max_wait_ms must be a finite number"),
         (dict(buckets=(1, 10**6)), "buckets must be batch sizes 1..1024"),
         (dict(max_prompt_tokens=0), "max_prompt_tokens must be >= 1, got 0"),
@@ -272,24 +288,63 @@ def test_a_lone_surrogate_never_fails_the_batch_it_would_have_joined(policy, cap
     """It once reached the tokenizer inside a batch: the batch failed and its other robots were decoded twice."""
     good = [_observation(policy, 40 + i) for i in range(2)]
     bad = {**_observation(policy, 42), "instruction": "open the drawer \ud800"}
-    results: dict = {}
     with caplog.at_level(logging.INFO, logger="hf_specvla"), PolicyServer(_service(policy, max_wait_ms=300.0),
                                                                           port=0) as server:  # fmt: skip
-
-        def send(key, body):
-            results[key] = _post(server.url + "/act", dumps(body))
-
-        threads = [threading.Thread(target=send, args=(key, body)) for key, body in (*enumerate(good), ("bad", bad))]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
+        results = _post_together(server.url + "/act", {**dict(enumerate(good)), "bad": bad})
     assert results["bad"][0] == 422 and results["bad"][1]["field"] == "instruction"
     assert results[0][0] == results[1][0] == 200
     assert not [r for r in caplog.records if "failed" in r.getMessage()], [r.getMessage() for r in caplog.records]
 
 
+@pytest.mark.parametrize("words", ["push <image> the button", "reach the goal <pad>", "open the drawer </s> <s>",
+                                   "press the <IMAGE> button"])  # fmt: skip
+def test_special_token_text_in_an_instruction_is_words_and_never_fails_the_batch(policy, words, caplog):
+    """``<image>`` in a robot's words once became an image placeholder (and ``<pad>`` a padding token) in the prompt:
+    its whole batch failed ("Image features and image tokens do not match", "attention_mask has padding after the
+    tokens") and the other robots were decoded again alone. The words are text now: the robot gets greedy's action
+    for them, the robots beside it theirs, nothing fails."""
+    tokenizer = policy.processor.tokenizer
+    ids = policy.prompt_ids(words, np.zeros(4))
+    image_id = tokenizer.convert_tokens_to_ids("<image>")
+    assert ids[0] == tokenizer.bos_token_id and ids.count(tokenizer.bos_token_id) == 1
+    assert ids.count(image_id) == policy.config.num_image_tokens == ids[1:].index(next(i for i in ids[1:]
+                                                                                        if i != image_id))  # fmt: skip
+    assert not {tokenizer.pad_token_id, tokenizer.eos_token_id} & set(ids)
+    good = [_observation(policy, 50 + i) for i in range(2)]
+    bad = {**_observation(policy, 52), "instruction": words}
+    expected = {key: _greedy(policy, body) for key, body in (*enumerate(good), ("bad", bad))}
+    with caplog.at_level(logging.INFO, logger="hf_specvla"), PolicyServer(_service(policy, max_wait_ms=300.0),
+                                                                          port=0) as server:  # fmt: skip
+        results = _post_together(server.url + "/act", {**dict(enumerate(good)), "bad": bad})
+        _, stats = _get(server.url + "/stats")
+    for key, (code, body, _) in results.items():
+        assert code == 200, (key, body)
+        np.testing.assert_array_equal(decode_array(body, "action"), expected[key])
+    assert stats["failed_batches"] == 0
+    assert not [r for r in caplog.records if "failed" in r.getMessage()], [r.getMessage() for r in caplog.records]
+
+
 # ----------------------------------------------------------------------------- the key first; robots that hang up
+def test_a_key_inside_openvlas_double_encoded_body_is_read(policy):
+    """OpenVLA's ``{"encoded": <json_numpy text>}`` with the key among its fields once got 401 (the key was looked for
+    beside ``encoded``); a wrong key there is still 401, and so is a double-encoded body that is not JSON."""
+    observation = {name: encode_array(value) if isinstance(value, np.ndarray) else value
+                   for name, value in _observation(policy, 6).items()}  # fmt: skip
+
+    def encoded(**fields) -> bytes:
+        return json.dumps({"encoded": json.dumps({**observation, **fields})}).encode()
+
+    with PolicyServer(_service(policy), port=0, api_key="s3cret") as server:
+        right = _post(server.url + "/act", encoded(api_key="s3cret"))
+        wrong = _post(server.url + "/act", encoded(api_key="wrong"))
+        keyless = _post(server.url + "/act", encoded())
+        not_json = _post(server.url + "/act", json.dumps({"encoded": "{not json"}).encode())
+    assert right[0] == 200 and isinstance(right[1], str)  # OpenVLA's double-encoded reply: json_numpy text
+    np.testing.assert_array_equal(decode_array(json.loads(right[1])), _greedy(policy, _observation(policy, 6)))
+    assert (wrong[0], wrong[1]["field"]) == (401, "api_key")
+    assert keyless[0] == not_json[0] == 401
+
+
 def test_the_api_key_is_checked_before_the_body(policy):
     with PolicyServer(_service(policy), port=0, api_key="s3cret") as server:
         keyless = _post(server.url + "/act", b"{not json")

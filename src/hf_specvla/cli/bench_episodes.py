@@ -13,6 +13,7 @@ from .common import (
     check_bin_tolerances,
     check_draft_head_flag,
     check_tasks,
+    load_draft_head,
     load_draft_head_for,
     load_policy,
     usage_errors,
@@ -87,11 +88,10 @@ def _toy_episodes(args, parser):
     """The same for ``--pipeline-dir``: moving-dot episodes of a saved toy pipeline."""
     from ..benchmarks.speed import toy_actor, toy_episodes
     from ..benchmarks.toy import ACTION_DIM
-    from ..speculative import DraftHead
 
     pipeline = load_pipeline(args.pipeline_dir, parser)
     _check_bin_tolerances(args, pipeline.action_tokenizer.n_bins, parser)
-    draft_head = DraftHead.from_pretrained(args.draft_head).eval() if args.draft_head else pipeline.draft_head
+    draft_head = load_draft_head(args.draft_head, parser) if args.draft_head else pipeline.draft_head
     head_name = args.draft_head or f"{pipeline.output_dir}/draft_head"
     return toy_actor(pipeline), ACTION_DIM, toy_episodes(args.episodes), pipeline.target, draft_head, head_name
 

@@ -70,7 +70,10 @@ def run(args, parser) -> int:
             check_expert_mix(args.expert_mix)
     policy_config = read_policy_config(args.policy, parser) if args.policy is not None else None
     # the image settings default to the driving policy's (it can only read what it was trained on)
-    image_size = args.image_size or (policy_config.image_size if policy_config else EnvConfig.image_size)
+    if args.image_size is not None:
+        image_size = args.image_size
+    else:
+        image_size = policy_config.image_size if policy_config else EnvConfig.image_size
     camera = args.camera or (policy_config.camera if policy_config else EnvConfig.camera)
     with usage_errors(parser, errors=(ValueError,)):
         env_config = EnvConfig(image_size, camera, args.max_episode_steps, args.hand_start_noise)

@@ -139,14 +139,25 @@ def check_bin_tolerances(tolerances: list[int], n_bins: int, given: str, parser)
 
 def load_policy(path: str, parser, flag: str = "--policy"):
     """The saved policy ``flag`` names; a usage error when the folder holds none (checked before the policy's
-    imports: torch and transformers take seconds)."""
+    imports: torch and transformers take seconds) or its weights file is damaged (one line naming the file)."""
     from ..policies.configuration_vla import check_policy_folder
 
     with usage_errors(parser, flag, (FileNotFoundError,)):
         check_policy_folder(path)
-        from ..policies import VLAPolicy
+    from ..policies import VLAPolicy
+    from ..speculative import DamagedWeightsError
 
+    with usage_errors(parser, flag, (DamagedWeightsError,)):
         return VLAPolicy.from_pretrained(path)
+
+
+def load_draft_head(path: str, parser, flag: str = "--draft-head"):
+    """The saved draft head ``flag`` names, in eval mode; a usage error (one line naming the file) when its weights
+    file is damaged."""
+    from ..speculative import DamagedWeightsError, DraftHead
+
+    with usage_errors(parser, flag, (DamagedWeightsError,)):
+        return DraftHead.from_pretrained(path).eval()
 
 
 def check_tasks(tasks: list[str], parser) -> None:
@@ -159,9 +170,7 @@ def check_tasks(tasks: list[str], parser) -> None:
 
 def load_draft_head_for(policy, draft_head: str, parser):
     """The ``--draft-head`` for ``policy``; a usage error when it was made for another model."""
-    from ..speculative import DraftHead
-
-    head = DraftHead.from_pretrained(draft_head).eval()
+    head = load_draft_head(draft_head, parser)
     with usage_errors(parser, f"--draft-head {draft_head}"):
         policy.check_draft_head(head)
     return head

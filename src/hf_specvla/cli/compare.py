@@ -13,6 +13,7 @@ from .common import (
     add_tree_arguments,
     check_draft_head_flag,
     check_output_dir_flag,
+    load_draft_head,
     load_policy,
     positive_number,
     read_policy_config,
@@ -100,13 +101,12 @@ def run(args, parser) -> int:
     # the runner imports the policy's torch and transformers (seconds): after the flags' cheap checks
     from ..metaworld.comparison import format_comparison, run_comparison
     from ..metaworld.comparison.runner import WorkerDiedError, check_timing
-    from ..speculative import DraftHead
 
     if not args.overwrite_output_dir:  # a folder timed otherwise is refused before anything loads
         with usage_errors(parser, errors=(FileExistsError,)):
             check_timing(args.output_dir, config, args.restart_timing)
     policy = load_policy(args.policy, parser)
-    draft_head = DraftHead.from_pretrained(args.draft_head).eval() if args.draft_head else None
+    draft_head = load_draft_head(args.draft_head, parser) if args.draft_head else None
     try:
         with usage_errors(parser, errors=(FileExistsError, ValueError)):
             summary = run_comparison(

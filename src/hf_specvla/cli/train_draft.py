@@ -3,7 +3,13 @@ optionally demonstration frames), validated by the engine, saved with a model ca
 
 from __future__ import annotations
 
-from ..training.configuration import HEAD_VERSIONS, DraftDataConfig, PolicyDraftTrainingConfig
+from ..training.configuration import (
+    HEAD_VERSIONS,
+    DraftDataConfig,
+    PolicyDraftTrainingConfig,
+    check_draft_chain,
+    default_unroll_steps,
+)
 from .common import (
     NON_NEGATIVE,
     POSITIVE,
@@ -11,6 +17,7 @@ from .common import (
     check_output_dir_flag,
     check_training_folder,
     load_policy,
+    read_policy_config,
     usage_errors,
 )
 
@@ -38,8 +45,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
     parser.add_argument("--data", nargs="+", default=None,
                         help="also distil on frames of these `collect` folders (default: rollouts only)")  # fmt: skip
-    parser.add_argument("--demo-frames-per-task", type=NON_NEGATIVE, default=DraftDataConfig.demo_frames_per_task,
-                        help="with --data: frames sampled per task")  # fmt: skip
+    parser.add_argument("--demo-frames-per-task", type=NON_NEGATIVE, default=None,
+                        help=f"with --data: frames sampled per task (default: "
+                             f"{DraftDataConfig.demo_frames_per_task})")  # fmt: skip
     parser.add_argument("--rollouts", default=None,
                         help="read the on-policy frames from this `hf-specvla rollouts` folder of the policy "
                              "instead of rolling it out here")  # fmt: skip
@@ -66,7 +74,7 @@ def add_arguments(parser) -> None:
                              "on the demo's toy target, not on policy v3)")  # fmt: skip
     parser.add_argument("--unroll-steps", type=POSITIVE, default=None,
                         help="draft steps trained per example on the head's own features (training-time test; "
-                             "default: 1 for v1, the chain length for v2)")  # fmt: skip
+                             "default: 1 for v1, the chain length for v2 and v3)")  # fmt: skip
     defaults = PolicyDraftTrainingConfig
     parser.add_argument("--max-steps", type=POSITIVE, default=defaults.max_steps, help="optimizer steps")
     parser.add_argument("--batch-size", type=POSITIVE, default=defaults.batch_size, help="sequences per step")
@@ -94,19 +102,31 @@ def run(args, parser) -> int:
     if args.prefill_image_features and args.head != "v3":
         parser.error(f"--prefill-image-features is read by a head v3's drafts before the prefill; got --head "
                      f"{args.head}: add --head v3")  # fmt: skip
+    if args.demo_frames_per_task is not None and not args.data:
+        parser.error("--demo-frames-per-task samples frames of the --data folders: give --data (or drop the flag)")
     check_training_folder(args.output_dir, args.resume, args.overwrite_output_dir, parser)
+    # the chain and its training depth from the policy's layout (its config: no weights loaded yet)
+    tokens_per_call = read_policy_config(args.policy, parser).action_tokens
+    num_draft_tokens = args.num_draft_tokens or tokens_per_call - 1
+    unroll_steps = args.unroll_steps or default_unroll_steps(args.head, num_draft_tokens)
+    flags = {"--head": args.head, "--num-draft-tokens": args.num_draft_tokens, "--unroll-steps": args.unroll_steps}
+    given = " ".join(f"{flag} {value}" for flag, value in flags.items() if value is not None)
+    with usage_errors(parser, f"{given} for a policy of {tokens_per_call} tokens a call", (ValueError,)):
+        check_draft_chain(num_draft_tokens, tokens_per_call, unroll_steps, args.head == "v3")
     with usage_errors(parser, errors=(ValueError, FileNotFoundError)):
         episodes, max_steps, seed_start = rollout_defaults(args)
+        demo_frames = args.demo_frames_per_task
+        demo_frames = DraftDataConfig.demo_frames_per_task if demo_frames is None else demo_frames
         data_config = DraftDataConfig(
             args.tasks, episodes, max_steps, seed_start,
-            args.validation_episodes, args.validation_frames, args.demo_frames_per_task, seed=args.seed,
+            args.validation_episodes, args.validation_frames, demo_frames, seed=args.seed,
         )  # fmt: skip
         training_config = PolicyDraftTrainingConfig(
             args.output_dir, max_steps=args.max_steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
             warmup_steps=args.warmup_steps, lr_schedule=args.lr_schedule, save_every=args.save_every,
             feature_loss_weight=args.feature_loss_weight, token_loss_weight=args.token_loss_weight,
             eval_every=args.eval_every, resume=args.resume, overwrite_output_dir=args.overwrite_output_dir,
-            seed=args.seed,
+            seed=args.seed, unroll_steps=unroll_steps,
         )  # fmt: skip
         if args.data:  # imports torch (seconds): only where there are demonstrations to check
             from ..metaworld.demonstrations import dataset_info
@@ -114,10 +134,6 @@ def run(args, parser) -> int:
             for root in args.data:
                 dataset_info(root)
     policy = load_policy(args.policy, parser)
-    if args.unroll_steps is not None:
-        training_config.unroll_steps = args.unroll_steps
-    elif args.head == "v2":  # as deep as it drafts
-        training_config.unroll_steps = args.num_draft_tokens or policy.config.action_tokens - 1
     if args.rollouts is not None:  # another policy's rollouts, too few: refused before the training starts
         from ..training.rollouts import check_rollouts_for
 

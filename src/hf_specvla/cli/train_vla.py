@@ -95,7 +95,7 @@ def run(args, parser) -> int:
     from ..metaworld.demonstrations import dataset_info, dataset_stats, load_demonstrations
     from ..metaworld.env import TASK_INSTRUCTIONS
     from ..policies import VLAPolicy
-    from ..training.behaviour_cloning import train_vla
+    from ..training.behaviour_cloning import check_demonstrations, train_vla
 
     check_output_dir_flag(args.output_dir, parser)
     if args.scene_loss_weight is not None and not args.scene_targets:
@@ -122,6 +122,8 @@ def run(args, parser) -> int:
         if args.scene_targets and source.scene_normalizer is not None:
             scene_stats = source.scene_normalizer
     demos = load_demonstrations(args.data, args.tasks)
+    with usage_errors(parser, errors=(ValueError,)):  # too few frames for a batch: before the policy is built
+        check_demonstrations(demos, config, policy_config)
     policy = VLAPolicy.build(
         list(TASK_INSTRUCTIONS.values()), action_stats, state_stats, policy_config, args.seed, scene_stats
     )

@@ -36,7 +36,7 @@ import numpy as np
 
 from ..actions.tokenizer import ActionNormalizer
 from ..progress import progress_bar
-from ..run_folder import fingerprint, lock_folder, write_json_atomic
+from ..run_folder import LOCK_FILE, RUN_FILE, fingerprint, is_empty_folder, lock_folder, write_json_atomic
 from .env import (
     ACTION_DIM,
     MAX_EPISODE_STEPS,
@@ -227,9 +227,29 @@ def _check_info(root: Path, env_config: EnvConfig, action_noise: float, driver: 
                     f"{info[key]!r}; collect into another folder or use the same settings"
                 )
         return
+    _check_unrecorded(root, shown_as or root)
     if write:
         info_path.parent.mkdir(parents=True, exist_ok=True)
         write_json_atomic(info_path, info)
+
+
+def _check_unrecorded(root: Path, shown_as: Path) -> None:
+    """Refuses a folder without a dataset record (``meta/info.json``) that holds anything but its lock: another
+    command's run (its ``run.json``) or files of unknown origin, which a collection would mix with its own."""
+    if is_empty_folder(root):
+        return
+    run_file = root / RUN_FILE
+    if run_file.is_file():
+        try:
+            command = json.loads(run_file.read_text()).get("command")
+        except (ValueError, AttributeError):
+            command = None
+        made_by = f"`hf-specvla {command}`" if isinstance(command, str) else "another command"
+        raise ValueError(f"{shown_as} holds a run of {made_by} ({RUN_FILE}), not a dataset; collect into another "
+                         "folder")  # fmt: skip
+    shown = ", ".join(sorted(entry.name for entry in root.iterdir() if entry.name != LOCK_FILE)[:5])
+    raise ValueError(f"{shown_as} is not empty ({shown}) and holds no dataset record (meta/info.json): it cannot be "
+                     "told what it holds; collect into an empty or new folder")  # fmt: skip
 
 
 def collected_seeds(root: Path, task: str) -> list[int]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import logging
+import os
 import statistics
 import time
 from dataclasses import asdict, dataclass, field
@@ -294,11 +295,21 @@ VIDEO_SUFFIXES = (".gif", ".mp4")
 
 
 def check_video_path(path: str | Path) -> None:
-    """Raises ValueError, before anything runs, when ``path`` cannot be written: an unknown extension, or ``.mp4``
-    without an mp4 writer (``imageio-ffmpeg``)."""
-    suffix = Path(path).suffix.lower()
+    """Raises ValueError, before anything runs, when ``path`` cannot be written: an unknown extension, ``.mp4``
+    without an mp4 writer (``imageio-ffmpeg``), a folder of that name, a file where a folder above it would be made,
+    or a nearest existing folder that is not writable."""
+    path = Path(path)
+    suffix = path.suffix.lower()
     if suffix not in VIDEO_SUFFIXES:
         raise ValueError(f"video {str(path)!r}: the extension must be one of {VIDEO_SUFFIXES}, got {suffix!r}")
+    if path.is_dir():
+        raise ValueError(f"video {str(path)!r}: is a folder; give a file path (e.g. {str(path / 'episode.gif')!r})")
+    existing = next((p for p in path.parents if p.exists()), Path("."))  # Path.exists: False under a file
+    if not existing.is_dir():
+        raise ValueError(f"video {str(path)!r}: {existing} is a file, so no folder can be made under it; give "
+                         "another path")  # fmt: skip
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"video {str(path)!r}: {existing} is not writable; give a path you can write to")
     if suffix == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
         raise ValueError(
             f"video {str(path)!r}: writing .mp4 needs imageio-ffmpeg (pip install imageio-ffmpeg); or use a .gif"

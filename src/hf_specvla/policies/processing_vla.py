@@ -82,7 +82,20 @@ class VLAProcessor:
         return self.action_tokenizer.encode(normalized).tolist()
 
     def _encode(self, text: str) -> list[int]:
-        return self.tokenizer(text.lower(), add_special_tokens=False)["input_ids"]
+        """``text`` (lower-cased) as words: special-token text in it (``<image>``, ``<pad>``, ``</s>``) is split into
+        ordinary tokens (``split_special_tokens``), so a robot's instruction can never add an image placeholder, a
+        padding token or an end of sequence to the prompt.
+
+        Raises:
+            ValueError: a tokenizer that made special tokens of it anyway (one that ignores ``split_special_tokens``).
+        """
+        ids = self.tokenizer(text.lower(), add_special_tokens=False, split_special_tokens=True)["input_ids"]
+        special = set(self.tokenizer.all_special_ids) - {self.tokenizer.unk_token_id}
+        found = [self.tokenizer.convert_ids_to_tokens(i) for i in ids if i in special]
+        if found:
+            raise ValueError(f"{text[:80]!r} tokenizes to special tokens {found[:5]} with this tokenizer "
+                             f"({type(self.tokenizer).__name__}): remove them from the instruction")  # fmt: skip
+        return ids
 
     def prompt_ids(self, instruction: str, state=None) -> list[int]:
         """Token ids of the prompt (see module docstring)."""

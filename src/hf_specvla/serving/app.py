@@ -36,7 +36,7 @@ from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 
 from .config import DEFAULT_MAX_REQUEST_BYTES
-from .protocol import ActReply, ActRequest, Overloaded, RequestError, dumps, encode_array, loads
+from .protocol import ActReply, ActRequest, Overloaded, RequestError, dumps, encode_array, loads, unwrap
 
 logger = logging.getLogger(__name__)
 
@@ -127,8 +127,12 @@ class PolicyRoutes:
             if key_in_body:  # a body that is not JSON carries no key: refused as such, not for its form
                 self._check_key(None)
             raise
-        if key_in_body:
-            self._check_key(payload.get("api_key") if isinstance(payload, dict) else None)
+        if key_in_body:  # the body's own field, or inside OpenVLA's double-encoded form
+            try:
+                fields = unwrap(payload)[0]
+            except RequestError:  # a malformed double-encoded body carries no key either
+                fields = None
+            self._check_key(fields.get("api_key") if isinstance(fields, dict) else None)
         act_request = self.backend.parse(payload)
         task = asyncio.ensure_future(self.backend.act(act_request, arrived))
         try:

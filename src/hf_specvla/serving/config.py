@@ -14,6 +14,9 @@ DEFAULT_BUCKETS = (1, 2, 4, 8, 16)
 #: the largest bucket (batch size) and batching window accepted: beyond them a setting is a typo, not a plan (a
 #: bucket's graphs and caches are built at start-up; a window past the timeout of any robot's client serves no one)
 MAX_BUCKET, MAX_WAIT_MS = 1024, 60_000.0
+#: the most timed calls per bucket and mode at start-up (more only delays the start: the chooser's figures stay current
+#: by exploring, ``explore_every``)
+MAX_CALIBRATION_CALLS = 100
 DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8000
 #: the largest request body read (an OpenVLA 224 x 224 image is ~200 KB as json_numpy)
 DEFAULT_MAX_REQUEST_BYTES = 4 * 2**20
@@ -79,6 +82,9 @@ class ServeConfig:
         if not math.isfinite(self.max_wait_ms) or self.max_wait_ms > MAX_WAIT_MS:
             raise ValueError(f"ServeConfig.max_wait_ms must be a finite number of milliseconds 0..{MAX_WAIT_MS:g}, "
                              f"got {self.max_wait_ms!r}")  # fmt: skip
+        if self.calibration_calls > MAX_CALIBRATION_CALLS:
+            raise ValueError(f"ServeConfig.calibration_calls must be 0..{MAX_CALIBRATION_CALLS} (timed calls per "
+                             f"bucket and mode at start-up), got {self.calibration_calls}")  # fmt: skip
         if self.max_prompt_tokens is not None:
             check_ranges(self, at_least_one=("max_prompt_tokens",), integers=("max_prompt_tokens",))
         if self.speculate_buckets is not None:

@@ -18,7 +18,8 @@ request's arrays are decoded field by field, so an error names the field (``imag
 | ``draft_state`` | lists of ints | this robot's last reply's ``draft_state``, echoed: drafts whatever replica answers |
 | ``api_key`` | string | when the server was started with an API key (or send ``Authorization: Bearer <key>``) |
 
-or OpenVLA's double-encoded form ``{"encoded": "<json_numpy text of the object above>"}``.
+or OpenVLA's double-encoded form ``{"encoded": "<json_numpy text of the object above>"}`` (its ``api_key`` inside). An
+``instruction`` is words: special-token text in it (``<image>``, ``<pad>``) is tokenized as text, never as the token.
 
 The reply is the action array itself (float64 ``[action_dim]``, ``[chunk, action_dim]`` for a chunked policy), so an
 OpenVLA client that calls ``json_numpy.patch()`` and ``requests.post(url, json=...).json()`` gets its action
@@ -165,6 +166,20 @@ def _check_text(value: str, name: str) -> None:
 
 
 # ----------------------------------------------------------------------------- requests
+def unwrap(payload: Any) -> tuple[Any, bool]:
+    """A decoded body -> (the request's fields, whether it came double-encoded): OpenVLA's ``{"encoded": <json_numpy
+    text>}`` is read inside (arrays left as dicts), any other body is its own fields.
+
+    Raises:
+        RequestError: a double-encoded body with other keys beside ``encoded``, or text that is not JSON.
+    """
+    if not (isinstance(payload, dict) and "encoded" in payload):
+        return payload, False
+    if len(payload) != 1 or not isinstance(payload["encoded"], str):
+        raise RequestError("a double-encoded request holds only 'encoded': json_numpy text", "encoded")
+    return loads(payload["encoded"], arrays=False), True
+
+
 @dataclass
 class ActRequest:
     """One robot's ``POST /act``, checked ([`parse`]).
@@ -197,11 +212,7 @@ class ActRequest:
         Raises:
             RequestError: naming the field at fault and what it must be.
         """
-        double_encoded = isinstance(payload, dict) and "encoded" in payload
-        if double_encoded:
-            if len(payload) != 1 or not isinstance(payload["encoded"], str):
-                raise RequestError("a double-encoded request holds only 'encoded': json_numpy text", "encoded")
-            payload = loads(payload["encoded"], arrays=False)
+        payload, double_encoded = unwrap(payload)
         if not isinstance(payload, dict):
             raise RequestError(f"the body must be a JSON object with {', '.join(REQUEST_FIELDS)}, "
                                f"got {type(payload).__name__}", None, 400)  # fmt: skip

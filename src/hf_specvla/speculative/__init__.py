@@ -76,7 +76,7 @@ from .outputs import SpeculativeDecoderOnlyOutput
 from .stats import SpeculationStats
 from .tree import DraftTree
 from .vision import encode_images, prompt_input_embeddings, reads_encoded_images
-from .weights import named_weight_errors
+from .weights import DamagedWeightsError, named_weight_errors
 
 __all__ = [
     "CACHE_KEY",
@@ -147,5 +147,6 @@ __all__ = [
     "enable_speculation",
     "make_acceptance_rule",
     "named_weight_errors",
+    "DamagedWeightsError",
     "speculative_generate",
 ]

@@ -9,10 +9,14 @@ from pathlib import Path
 from safetensors import SafetensorError
 
 
+class DamagedWeightsError(OSError):
+    """A weights file that cannot be read (truncated, damaged): the message names the file and what to do."""
+
+
 @contextlib.contextmanager
 def named_weight_errors(name_or_path: str | os.PathLike, what: str):
-    """Re-raises a ``safetensors`` error of a ``from_pretrained`` inside the block as an ``OSError`` that names the
-    weights file and what to do; other errors pass unchanged.
+    """Re-raises a ``safetensors`` error of a ``from_pretrained`` inside the block as a [`DamagedWeightsError`] (an
+    ``OSError``) that names the weights file and what to do; other errors pass unchanged.
 
     Args:
         name_or_path: the folder (or hub id) being loaded.
@@ -25,7 +29,7 @@ def named_weight_errors(name_or_path: str | os.PathLike, what: str):
         files = sorted(folder.glob("*.safetensors")) if folder.is_dir() else []
         named = ", ".join(f"{str(f)!r} ({f.stat().st_size:,} bytes)" for f in files)
         named = named or f"the weights of {name_or_path!r}"
-        raise OSError(
+        raise DamagedWeightsError(
             f"could not read the {what}'s weights {named}: {error}. The file is damaged or truncated (an interrupted "
             f"download, copy or save): download or save it again"
         ) from error

@@ -23,7 +23,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from ..metaworld.demonstrations import Demonstrations
 from ..metaworld.env import TASK_INSTRUCTIONS
-from ..policies import POLICY_CONFIG_NAME, VLAPolicy
+from ..policies import POLICY_CONFIG_NAME, VLAPolicy, VLAPolicyConfig
 from ..run_folder import fingerprint_arrays
 from .checkpoints import latest_checkpoint, prepare_output_dir, training_record
 from .configuration import VLATrainingConfig
@@ -286,6 +286,39 @@ def _check_resumed_policy_config(output_dir: Path, policy_config) -> None:
             )
 
 
+def check_demonstrations(demos: Demonstrations, config: VLATrainingConfig, policy_config: VLAPolicyConfig) -> None:
+    """Refuses, before a policy is built or trained, demonstrations that ``config`` cannot train a policy of
+    ``policy_config`` on: another action size, missing scene states, fewer training frames than a batch.
+
+    Raises:
+        ValueError: naming the mismatch and what to change.
+    """
+    if demos.actions.shape[1] != policy_config.action_dim:
+        raise ValueError(
+            f"the demonstrations have {demos.actions.shape[1]}-dim actions, the policy action_dim="
+            f"{policy_config.action_dim}; build the policy from this dataset's statistics"
+        )
+    scene_dim = 0 if demos.scene_states is None else demos.scene_states.shape[1]
+    if policy_config.scene_state_dim and scene_dim != policy_config.scene_state_dim:
+        raise ValueError(
+            f"the policy learns scene_state_dim={policy_config.scene_state_dim} scene targets but the "
+            f"demonstrations have {scene_dim or 'no'} scene-state values per frame (collected before the "
+            "scene_state column existed?); collect them again or train without scene targets"
+        )
+    if config.scene_readout_weight > 0 and not policy_config.scene_state_dim:
+        raise ValueError(
+            f"scene_readout_weight={config.scene_readout_weight} reads the scene state into the policy's scene-state "
+            "statistics: build the policy with scene_state_dim (train-vla --scene-targets)"
+        )
+    train_idx, _ = split_episodes(demos, config.val_episodes, config.seed)
+    if len(train_idx) < config.batch_size:  # drop_last would leave no batch at all
+        raise ValueError(
+            f"batch_size={config.batch_size} is larger than the {len(train_idx)} training frames (after holding out "
+            f"{config.val_episodes} validation episodes); use --batch-size {max(1, len(train_idx))} or less, or "
+            "collect more episodes"
+        )
+
+
 def train_vla(
     policy: VLAPolicy,
     demos: Demonstrations,
@@ -299,30 +332,8 @@ def train_vla(
     fingerprint is part of the run's record.
     """
     output_dir = Path(config.output_dir)
-    if demos.actions.shape[1] != policy.config.action_dim:
-        raise ValueError(
-            f"the demonstrations have {demos.actions.shape[1]}-dim actions, the policy action_dim="
-            f"{policy.config.action_dim}; build the policy from this dataset's statistics"
-        )
-    scene_dim = 0 if demos.scene_states is None else demos.scene_states.shape[1]
-    if policy.config.scene_state_dim and scene_dim != policy.config.scene_state_dim:
-        raise ValueError(
-            f"the policy learns scene_state_dim={policy.config.scene_state_dim} scene targets but the "
-            f"demonstrations have {scene_dim or 'no'} scene-state values per frame (collected before the "
-            "scene_state column existed?); collect them again or train without scene targets"
-        )
-    if config.scene_readout_weight > 0 and not policy.config.scene_state_dim:
-        raise ValueError(
-            f"scene_readout_weight={config.scene_readout_weight} reads the scene state into the policy's scene-state "
-            "statistics: build the policy with scene_state_dim (train-vla --scene-targets)"
-        )
+    check_demonstrations(demos, config, policy.config)
     train_idx, val_idx = split_episodes(demos, config.val_episodes, config.seed)
-    if len(train_idx) < config.batch_size:  # drop_last would leave no batch at all
-        raise ValueError(
-            f"batch_size={config.batch_size} is larger than the {len(train_idx)} training frames (after holding out "
-            f"{config.val_episodes} validation episodes); use --batch-size {max(1, len(train_idx))} or less, or "
-            "collect more episodes"
-        )
     if config.resume and not config.overwrite_output_dir:
         _check_resumed_policy_config(output_dir, policy.config)
     model_settings = {f.name: getattr(policy.config, f.name) for f in fields(policy.config)

@@ -18,6 +18,32 @@ from ..metaworld.seeds import DRAFT_SEED_START
 HEAD_VERSIONS = ("v1", "v2", "v3")
 
 
+def default_unroll_steps(head_version: str, num_draft_tokens: int) -> int:
+    """The draft steps a head is trained on per example when none are given: 1 (teacher forcing) for v1, the chain
+    it drafts (``num_draft_tokens``) for v2 (training-time test) and v3 (a block of that length)."""
+    return 1 if head_version == "v1" else num_draft_tokens
+
+
+def check_draft_chain(num_draft_tokens: int, tokens_per_call: int, unroll_steps: int, blocks: bool = False) -> None:
+    """A head's chain and training depth that fit the target's calls: ``1 <= num_draft_tokens < tokens_per_call``
+    (the prefill makes a call's first token), ``unroll_steps <= num_draft_tokens`` (a step past the chain is never
+    drafted) and, for a head that drafts blocks (``blocks``: v3), ``unroll_steps == num_draft_tokens``.
+
+    Raises:
+        ValueError: naming the value, the bound and the setting to change.
+    """
+    if not 1 <= num_draft_tokens <= tokens_per_call - 1:
+        raise ValueError(f"num_draft_tokens={num_draft_tokens}: a call generates {tokens_per_call} tokens, the "
+                         f"first from the prefill, so a chain drafts 1..{tokens_per_call - 1} of them")  # fmt: skip
+    if blocks and unroll_steps != num_draft_tokens:
+        raise ValueError(f"a head v3 drafts blocks of num_draft_tokens={num_draft_tokens} tokens and is trained on as "
+                         f"many: set unroll_steps={num_draft_tokens} (or leave it to its default), got "
+                         f"unroll_steps={unroll_steps}")  # fmt: skip
+    if unroll_steps > num_draft_tokens:
+        raise ValueError(f"unroll_steps={unroll_steps} trains more draft steps than the head's chain of "
+                         f"num_draft_tokens={num_draft_tokens} drafts: use 1..{num_draft_tokens}")  # fmt: skip
+
+
 @dataclass
 class TrainingConfig:
     """The training loop's settings ([`run_training`]), shared by every trainer; each trainer's config extends it
@@ -96,6 +122,9 @@ class DraftTrainingConfig(TrainingConfig):
         super().__post_init__()
         check_ranges(self, non_negative=("feature_noise", "feature_loss_weight", "token_loss_weight"),
                      at_least_one=("unroll_steps",), integers=("unroll_steps",))  # fmt: skip
+        if self.feature_loss_weight == 0 and self.token_loss_weight == 0:
+            raise ValueError("feature_loss_weight and token_loss_weight are both 0: the loss would be 0 and the head "
+                             "untrained; give one of them a weight > 0")  # fmt: skip
 
 
 @dataclass

@@ -55,7 +55,7 @@ from ..speculative import (
     to_additive_mask,
 )
 from .checkpoints import check_output_dir, latest_checkpoint, prepare_output_dir, training_record
-from .configuration import HEAD_VERSIONS, DraftTrainingConfig
+from .configuration import HEAD_VERSIONS, DraftTrainingConfig, check_draft_chain
 from .loop import TrainingJob, default_accelerator, run_training
 
 logger = logging.getLogger(__name__)
@@ -703,12 +703,7 @@ def distil_draft_head(
     """
     settings = head_settings or {}
     uses_blocks = settings.get("draft_mode") == "block" or settings.get("prefill_drafts", False)
-    if uses_blocks and training_config.unroll_steps != num_draft_tokens:
-        raise ValueError(
-            f"a head v3 drafts blocks of num_draft_tokens={num_draft_tokens} tokens and is trained on as many: set "
-            f"unroll_steps={num_draft_tokens} (train-draft --unroll-steps {num_draft_tokens}), got "
-            f"unroll_steps={training_config.unroll_steps}"
-        )
+    check_draft_chain(num_draft_tokens, tokens_per_call, training_config.unroll_steps, uses_blocks)
     target_fingerprint = target_fingerprint or fingerprint(target)
     torch.manual_seed(training_config.seed)  # the head's initialisation
     head = DraftHead.from_target(

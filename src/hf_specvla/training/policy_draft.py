@@ -32,7 +32,7 @@ from ..metaworld.evaluation import record_observations
 from ..policies import VLAPolicy
 from ..run_folder import read_jsonl
 from ..speculative import DraftHead
-from .configuration import HEAD_VERSIONS, DraftDataConfig, DraftTrainingConfig
+from .configuration import HEAD_VERSIONS, DraftDataConfig, DraftTrainingConfig, check_draft_chain
 from .draft_head import PREVIOUS_ACTION, distil_draft_head, head_settings
 from .loop import VALIDATION_LOG
 from .rollouts import EpisodeFrames, read_rollout_frames
@@ -170,8 +170,8 @@ def train_policy_draft_head(
     output_dir = Path(training_config.output_dir)
     if num_draft_tokens is None:
         num_draft_tokens = policy.config.action_tokens - 1
-    if num_draft_tokens < 1:
-        raise ValueError(f"num_draft_tokens must be >= 1, got {num_draft_tokens}")
+    check_draft_chain(num_draft_tokens, policy.config.action_tokens, training_config.unroll_steps,
+                      head_version == "v3")  # before any rollout  # fmt: skip
     env_config = EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)
     recipe = {"data": {**asdict(data_config),
                        "demonstration_fingerprints": [dataset_fingerprint(root) for root in demonstrations],
