@@ -66,6 +66,8 @@ def _small(words: list[str], output_dir: Path) -> list[str]:
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
 def test_the_python_example_runs_as_written(page, tmp_path):
     (example,) = _blocks(page, "python")
+    if any(_blocks(other, "python") == [example] for other in PAGES[: PAGES.index(page)]):
+        pytest.skip(f"{page.name}'s example is an earlier page's, run there as written")
     script = tmp_path / "example.py"
     script.write_text(example)
     result = subprocess.run([sys.executable, str(script)], cwd=ROOT, capture_output=True, text=True, timeout=600)
