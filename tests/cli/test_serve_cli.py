@@ -59,6 +59,7 @@ def _run(*flags: str, env: dict | None = None) -> subprocess.CompletedProcess:
         (["--ray", "--port", "0"], "--port 0 (any free port) is for the server on one machine"),
         (["--ray", "--replicas", "4096"], "--replicas 4096 x --threads 1 need 4096 CPUs; this machine has"),
         (["--policy", "no/such/policy"], "no/such/policy"),
+        (["--compile-cache", "/proc/version"], "--compile-cache /proc/version: is a file, not a folder"),
     ],
 )
 def test_bad_flags_are_usage_errors_before_the_policy_loads(flags, message):

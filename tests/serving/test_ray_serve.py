@@ -170,6 +170,8 @@ def test_the_example_serve_configs_are_valid_and_name_our_application(path):
     finally:
         os.chdir(cwd)
     assert deployment["max_ongoing_requests"] == ray_deployment.max_ongoing_requests(app_args.serve)
+    # a relative compile cache read from where the application was built: the replicas' working directory may differ
+    assert app_args.serve.compile_cache == str(ROOT / "runs" / "compile_cache")
 
 
 def test_the_deployment_takes_its_batching_and_overload_limits_from_the_arguments():

@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib.util
 import logging
 import os
+import time
 
 from .common import POSITIVE, check_draft_head_flag, load_draft_head_for, read_policy_config, usage_errors
 
@@ -30,6 +31,8 @@ EXAMPLES = """
     hf-specvla serve --policy policies/mt10_vla3 --method exact --max-prompt-tokens 240 --port 8003
     # Reachable from other machines: an API key is required (from the environment, not the command line)
     HF_SPECVLA_API_KEY=change-me hf-specvla serve --policy policies/mt10_vla3 --host 0.0.0.0
+    # A warm start: the second start with the same settings reuses the first one's compile (docs/serving.md)
+    hf-specvla serve --policy policies/mt10_vla3 --method exact --buckets 1 2 4 --compile-cache runs/compile_cache
     # Ray Serve: 2 replicas on a local Ray cluster (or --ray-address auto for a running one)
     hf-specvla serve --policy policies/mt10_vla3 --method exact --ray --replicas 2
 """
@@ -86,6 +89,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--explore-every", type=int, default=defaults.explore_every,
                         help="every n-th batch of a bucket runs the mode not chosen, keeping its timing current "
                              "(0: never)")  # fmt: skip
+    parser.add_argument("--compile-cache", default=None, metavar="DIR",
+                        help="keep torch's compile caches in this folder: a start with the same policy, methods, "
+                             "buckets and versions reuses the previous one's compile (a warm start; with --ray, a "
+                             "folder every replica's node can write)")  # fmt: skip
     parser.add_argument("--max-request-bytes", type=POSITIVE, default=DEFAULT_MAX_REQUEST_BYTES,
                         help="the largest request body")  # fmt: skip
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (per replica with --ray)")
@@ -115,7 +122,8 @@ def serve_config(args, parser):
         return ServeConfig(method=tuple(args.method), buckets=tuple(args.buckets), max_wait_ms=args.max_wait_ms,
                            max_queue=args.max_queue, calibration_calls=args.calibration_calls,
                            speculate_buckets=speculate, explore_every=args.explore_every,
-                           max_prompt_tokens=args.max_prompt_tokens)  # fmt: skip
+                           max_prompt_tokens=args.max_prompt_tokens,
+                           compile_cache=args.compile_cache and os.path.abspath(args.compile_cache))  # fmt: skip
 
 
 def run(args, parser) -> int:
@@ -130,6 +138,10 @@ def run(args, parser) -> int:
     with usage_errors(parser, "--host", (ValueError,)):
         check_exposure(args.host, args.api_key)
     config = serve_config(args, parser)
+    if args.compile_cache is not None:
+        from .common import check_output_dir_flag
+
+        check_output_dir_flag(args.compile_cache, parser, "--compile-cache")
     check_draft_head_flag(args.draft_head, parser)
     policy_config = read_policy_config(args.policy, parser)  # cheap: no weights loaded yet
     given = " ".join(text.strip() for text in args.method)
@@ -158,12 +170,15 @@ def _run_local(args, parser, config, methods) -> int:
 
     with usage_errors(parser, "--port", (OSError,)):
         sock = bind(args.host, args.port)  # a taken port is refused before the policy loads
+    started = time.perf_counter()
     policy = load_policy(args.policy, parser)
     with usage_errors(parser, "--method", (ValueError, TypeError)):
         for method in methods:
             check_method_rule(method, policy)
     uses_head = any(method.uses_draft_head for method in methods)
     draft_head = load_draft_head_for(policy, args.draft_head, parser) if uses_head else None
+    logger.info("loaded %s%s in %.1f s", args.policy, f" and {args.draft_head}" if draft_head is not None else "",
+                time.perf_counter() - started)  # fmt: skip
     with usage_errors(parser, errors=(ValueError,)):  # e.g. --max-prompt-tokens shorter than any prompt
         service = PolicyService(policy, config, draft_head)
     server = PolicyServer(service, args.host, args.port, args.api_key, args.max_request_bytes, sock=sock)

@@ -50,6 +50,9 @@ class ServeConfig:
             call then runs on the longest prompt's cache).
             ``GET /info`` states the limit in force; a longer request is refused (422, field ``instruction``) before
             any forward. An eager method has no such limit.
+        compile_cache: a folder for torch's compile caches (``serving.compile_cache``): a start with the same
+            policy, methods, buckets and versions as a previous one reuses its compile (None: torch's default
+            folder, which a new machine or container starts without).
     """
 
     method: str | tuple[str, ...] = "exact"
@@ -61,6 +64,7 @@ class ServeConfig:
     explore_every: int = 16
     max_sessions: int = 10_000
     max_prompt_tokens: int | None = None
+    compile_cache: str | None = None
 
     def __post_init__(self):
         if isinstance(self.method, list | tuple):
@@ -85,6 +89,8 @@ class ServeConfig:
         if self.calibration_calls > MAX_CALIBRATION_CALLS:
             raise ValueError(f"ServeConfig.calibration_calls must be 0..{MAX_CALIBRATION_CALLS} (timed calls per "
                              f"bucket and mode at start-up), got {self.calibration_calls}")  # fmt: skip
+        if self.compile_cache is not None and (not isinstance(self.compile_cache, str) or not self.compile_cache):
+            raise ValueError(f"ServeConfig.compile_cache must be a folder (a path), got {self.compile_cache!r}")
         if self.max_prompt_tokens is not None:
             check_ranges(self, at_least_one=("max_prompt_tokens",), integers=("max_prompt_tokens",))
         if self.speculate_buckets is not None:

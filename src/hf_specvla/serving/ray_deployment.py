@@ -115,7 +115,8 @@ class PolicyAppArgs:
             on a cluster of several machines, a path that exists on every node).
         serve: the service's [`ServeConfig`]; its fields are arguments of their own (``method``, ``buckets``,
             ``max_wait_ms``, ``max_queue``, ``calibration_calls``, ``speculate_buckets``, ``explore_every``,
-            ``max_sessions``, ``max_prompt_tokens``).
+            ``max_sessions``, ``max_prompt_tokens``, ``compile_cache``: a folder every replica's node can write,
+            where a replica started later, or again, finds the graphs of the first: a warm start).
         draft_head: a draft head's folder, for methods that draft with one.
         api_key: every request but ``/health`` must carry it (None: ``HF_SPECVLA_API_KEY`` in the replica's
             environment, else an open server).
@@ -162,6 +163,8 @@ class PolicyAppArgs:
             raise ValueError("the argument policy is required: policy=<a policy folder>")
         values = {name: _read_arg(name, value, _ARG_KINDS.get(name, "text")) for name, value in args.items()}
         serve = ServeConfig(**{k: v for k, v in values.items() if k in serve_fields})
+        if serve.compile_cache is not None:  # the replicas' working directory may not be this one
+            serve.compile_cache = str(Path(serve.compile_cache).expanduser().resolve())
         kept = {k: v for k, v in values.items() if k in known}
         kept["policy"] = _existing_folder(kept["policy"], "policy")
         if kept.get("draft_head") is not None:
@@ -299,8 +302,9 @@ class PolicyDeployment:
         self.service: PolicyService = PolicyService.from_pretrained(app_args.policy, config, app_args.draft_head,
                                                                     app_args.threads)  # fmt: skip
         self.service.warm_up()
-        logger.info("replica %s: %s (%s) ready in %.1f s", self.replica, app_args.policy, self.service.methods_name,
-                    time.perf_counter() - started)  # fmt: skip
+        logger.info("replica %s: %s (%s) ready in %.1f s (%s)", self.replica, app_args.policy,
+                    self.service.methods_name, time.perf_counter() - started,
+                    ", ".join(f"{k} {v}" for k, v in self.service.startup.items()))  # fmt: skip
         api_key = app_args.api_key if app_args.api_key is not None else os.environ.get(API_KEY_VARIABLE) or None
         self.routes = PolicyRoutes(self, api_key, app_args.max_request_bytes)
         # built here, not with a decorator, so that the batch size follows this deployment's config

@@ -68,13 +68,15 @@ class PolicyService:
 
     def __init__(self, policy: VLAPolicy, config: ServeConfig | None = None, draft_head=None):
         self.policy, self.config = policy, config or ServeConfig()
-        self.step = DecodeStep(policy, self.config, draft_head)
+        self.step, self.draft_head = DecodeStep(policy, self.config, draft_head), draft_head
         self.method, self.baseline = self.step.method, self.step.baseline
         self.sessions = Sessions(self.config.max_sessions)
         self.chooser = ModeChooser(self.config.buckets, tuple(m.name for m in self.step.methods),
                                    self.config.speculate_buckets, self.config.explore_every,
                                    self.baseline.name)  # fmt: skip
         self.failed_batches = 0  # batches whose call failed (then decoded one request at a time)
+        #: the warm-up's phases (seconds) and whether it started warm: filled by ``warm_up``, shown by ``GET /info``
+        self.startup: dict = {}
         self._decoder = ThreadPoolExecutor(1, "hf-specvla-decode")  # generate raises its recompile limit there
 
     @classmethod
@@ -127,6 +129,7 @@ class PolicyService:
             "max_instruction_chars": MAX_INSTRUCTION_LENGTH,
             "max_prompt_tokens": self.step.max_prompt_tokens,
             "prompt_tiers": [list(tier) for tier in self.step.prompt_tiers],
+            "startup": self.startup,
         }
 
     def stats(self) -> dict:
@@ -265,7 +268,43 @@ class PolicyService:
         ``calibration_calls`` interleaved calls per bucket and mode on synthetic observations that drift like a
         robot's (drafts: the previous call's actions) and hands them to the chooser. Returns the calibration table
         (empty without calibration)."""
-        return self._decoder.submit(self._warm_up, calibrate, seed).result()
+        return self._decoder.submit(self._warm_up_with_cache, calibrate, seed).result()
+
+    def compile_cache(self):
+        """The [`CompileCache`] of ``config.compile_cache`` for this service's graphs (None: no folder given, or
+        nothing compiled)."""
+        step = self.step
+        if self.config.compile_cache is None or not (step.method.compiled or step.baseline.compiled):
+            return None
+        from ..run_folder import fingerprint
+        from .compile_cache import CompileCache, environment_record
+
+        record = {**environment_record(), "policy": self.policy.weights_fingerprint(),
+                  "draft_head": fingerprint(self.draft_head) if self.draft_head is not None else None,
+                  "methods": [step.name(mode) for mode in step.modes], "buckets": list(self.config.buckets),
+                  "prompt_tiers": [list(tier) for tier in step.prompt_tiers],
+                  "device": self.policy.model.device.type}  # fmt: skip
+        return CompileCache(self.config.compile_cache, record)
+
+    def _warm_up_with_cache(self, calibrate: bool, seed: int) -> list[dict]:
+        """[`_warm_up`] in the compile cache's folder (when there is one); the phases' times logged and kept in
+        ``startup``."""
+        cache = self.compile_cache()
+        if cache is None:
+            if self.config.compile_cache is not None:
+                logger.warning("compile cache %s not used: %s compiles nothing", self.config.compile_cache,
+                               self.methods_name)  # fmt: skip
+            self.startup = {"compile_cache": None}
+            table = self._warm_up(calibrate, seed)
+        else:
+            with cache.compiling() as warm:
+                self.startup = {"compile_cache": "warm" if warm else "cold", "compile_cache_folder": str(cache.folder)}
+                table = self._warm_up(calibrate, seed)
+        phases = self.startup
+        start = {"warm": " (warm start: the compile cache's graphs)", "cold": " (cold start, into the compile cache)"}
+        logger.info("warmed up: compile %.1f s%s, calibrate %.1f s", phases["compile_s"],
+                    start.get(phases["compile_cache"], ""), phases["calibrate_s"])  # fmt: skip
+        return table
 
     def _warm_up(self, calibrate: bool, seed: int) -> list[dict]:
         rng = np.random.default_rng(seed)
@@ -282,6 +321,7 @@ class PolicyService:
         calibration, served = CALIBRATION_INSTRUCTION, self._zero_state()
         if step.prompt_tiers and len(self.policy.prompt_ids(calibration, served)) > step.max_prompt_tokens:
             calibration = longest[-1]  # a prompt served, so that calibrating compiles nothing more
+        spent_ms = {"compile": 0.0, "calibrate": 0.0}
         for bucket in self.config.buckets:
             sessions = [f"calibration-{bucket}-{i}" for i in range(bucket)]
             times: dict[int, list[float]] = {mode: [] for mode in modes}
@@ -289,7 +329,7 @@ class PolicyService:
                 for first in (True, False):
                     for mode in modes:
                         images = np.repeat(base[None], bucket, axis=0)
-                        self._warm_up_call(sessions, instruction, images, first, mode)
+                        spent_ms["compile"] += self._warm_up_call(sessions, instruction, images, first, mode)
             calls = 1 + (self.config.calibration_calls if measure else 0)
             for number in range(calls + 1):  # call 0 compiles (and leaves each session its first action)
                 drift = rng.integers(-2, 3, (bucket, size, size, 3))
@@ -298,6 +338,7 @@ class PolicyService:
                     ms = self._warm_up_call(sessions, calibration, images, number == 0, mode)
                     if number >= 2:  # calls 0 and 1 compile (first without drafts, then with)
                         times[mode].append(ms)
+                    spent_ms["calibrate" if number >= 2 else "compile"] += ms
             for session in sessions:
                 self.sessions.forget(session)
             if measure:
@@ -305,6 +346,7 @@ class PolicyService:
         if table:
             logger.info("calibration (%d calls per bucket and mode):\n%s", self.config.calibration_calls,
                         format_calibration(table))  # fmt: skip
+        self.startup.update({f"{phase}_s": round(ms / 1000, 2) for phase, ms in spent_ms.items()})
         return table
 
     def _warm_up_call(self, sessions: list[str], instruction: str, images: np.ndarray, first: bool,
