@@ -32,7 +32,8 @@ these observations, and the load is the real one without K simulators competing 
 Reported per K and server (medians over repeats, ``[min-max]`` for actions/s, the ratio to the same repeat's
 greedy run and p95): actions per second (actions returned to all robots / wall time;
 a chunked policy returns its chunk), request latency p50 / p95 (client side), and where a request's time goes:
-waiting for its batch (queue), the batch's decode (the server's own ``predict_action`` call: a local call on the
+waiting for its batch (queue; in brackets the part of it before the request could join one, its intake: the
+body read and checked), the batch's decode (the server's own ``predict_action`` call: a local call on the
 same observations) and the rest (HTTP, serialisation, the client); ``early``: the share of replies that left before
 their batch's call returned (their row done first: the reply's ``served.early``).
 Every server's actions are checked equal, Ray Serve's included.
@@ -289,8 +290,8 @@ def replay(url: str, robots: int, episodes: list[list[dict]], chunk_length: int)
                 index, episode = pending.get_nowait()
             except queue.Empty:
                 return
-            record = {"key": str(index), "latencies_ms": [], "server_ms": [], "queue_ms": [], "batch_sizes": [],
-                      "target_forwards": [], "batch_forwards": [], "speculative": [], "early": [],
+            record = {"key": str(index), "latencies_ms": [], "server_ms": [], "queue_ms": [], "intake_ms": [],
+                      "batch_sizes": [], "target_forwards": [], "batch_forwards": [], "speculative": [], "early": [],
                       "actions": []}  # fmt: skip
             for step, o in enumerate(episode):
                 sent = time.perf_counter()
@@ -300,6 +301,7 @@ def replay(url: str, robots: int, episodes: list[list[dict]], chunk_length: int)
                 for key in (
                     "server_ms",
                     "queue_ms",
+                    "intake_ms",
                     "batch_size",
                     "target_forwards",
                     "batch_forwards",
@@ -354,6 +356,9 @@ def _figures(summary: dict, records: list[dict]) -> dict:
         **{f"latency_{k}_ms": v for k, v in percentiles(latency, (50, 95)).items()},
         **{f"decode_{k}_ms": v for k, v in percentiles(decode, (50, 95)).items()},
         "queue_mean_ms": statistics.mean(queue),
+        # of the queue, the request's intake before it could join a batch (its body read, its checks); 0 where a
+        # record does not hold it (the simulate driver's fleet records)
+        "intake_mean_ms": statistics.mean(x for r in records for x in r.get("intake_ms", [0.0])),
         "decode_mean_ms": statistics.mean(decode),
         "rest_mean_ms": statistics.mean(lat - s for lat, s in zip(latency, server)),
         "mean_batch_size": statistics.mean(x for r in records for x in r["batch_sizes"]),
@@ -397,8 +402,8 @@ def _spread(runs: list[dict], key: str, digits: int = 1, unit: str = "") -> str:
 
 def table(rows: list[dict], robots: list[int], servers: dict[str, str]) -> str:
     """The report: a line per K and server (``servers``: kind -> its label, in order)."""
-    header = ("| K | server | actions/s | vs greedy | p50 ms | p95 ms | queue / decode / rest ms | batch | spec. "
-              "| early | fwd/req |")  # fmt: skip
+    header = ("| K | server | actions/s | vs greedy | p50 ms | p95 ms | queue (intake) / decode / rest ms | batch "
+              "| spec. | early | fwd/req |")  # fmt: skip
     lines = [header, "|---:|---|---:|---:|---:|---:|---|---:|---:|---:|---:|"]
     for k in robots:
         runs = {kind: sorted((r for r in rows if r["robots"] == k and r["kind"] == kind), key=lambda r: r["repeat"])
@@ -411,7 +416,8 @@ def table(rows: list[dict], robots: list[int], servers: dict[str, str]) -> str:
             forwards = m.get("forwards_per_request")
             lines.append(f"| {k} | {label} | {_spread(runs[kind], 'actions_per_second')} | "
                          f"{_spread(ratios, 'ratio', 2, 'x')} | {m['latency_p50_ms']:.1f} | "
-                         f"{_spread(runs[kind], 'latency_p95_ms')} | {m['queue_mean_ms']:.1f} / "
+                         f"{_spread(runs[kind], 'latency_p95_ms')} | {m['queue_mean_ms']:.1f} "
+                         f"({m.get('intake_mean_ms', 0):.1f}) / "
                          f"{m['decode_mean_ms']:.1f} / {m['rest_mean_ms']:.1f} | {m['mean_batch_size']:.2f} | "
                          f"{m['speculative_fraction']:.0%} | {m.get('answered_early_share', 0):.0%} | "
                          f"{'-' if forwards is None else f'{forwards:.2f}'} |")  # fmt: skip

@@ -116,6 +116,8 @@ def test_concurrent_robots_are_batched_and_each_gets_greedys_action(policy):
         np.testing.assert_array_equal(reply.action, expected[i][step], err_msg=f"robot {i} step {step}")
         assert reply.served.session == f"r{i}" and reply.served.bucket >= reply.served.batch_size >= 1
         assert len(reply.served.draft_state) == min(policy.HISTORY_LENGTH, policy.config.chunk_length * (step + 1))
+        # the intake (body read, checks) is the first part of the queue, the queue the first part of the server's time
+        assert 0 < reply.served.intake_ms <= reply.served.queue_ms <= reply.served.server_ms
     assert max(r.served.batch_size for r in replies.values()) > 1, "no batch formed: the test tests nothing"
     assert any(r.served.speculative and r.served.target_forwards < policy.config.action_tokens
                for r in replies.values()), "no request was decoded with fewer forwards than greedy's"  # fmt: skip

@@ -134,6 +134,7 @@ class PolicyRoutes:
                 fields = None
             self._check_key(fields.get("api_key") if isinstance(fields, dict) else None)
         act_request = self.backend.parse(payload)
+        act_request.received = time.perf_counter()  # the intake (body and checks) ends: ServedFigures.intake_ms
         task = asyncio.ensure_future(self.backend.act(act_request, arrived))
         try:
             while not task.done():

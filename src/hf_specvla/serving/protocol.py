@@ -193,6 +193,7 @@ class ActRequest:
         draft_state: the previous actions' token ids (one list per action) the robot echoed (None: the server's own
             memory of the session).
         double_encoded: sent in OpenVLA's ``{"encoded": ...}`` form (answered the same way).
+        received: ``time.perf_counter()`` once its body was read and checked (None: it did not come over HTTP).
     """
 
     image: np.ndarray
@@ -202,6 +203,7 @@ class ActRequest:
     reset: bool = False
     draft_state: list[list[int]] | None = None
     double_encoded: bool = False
+    received: float | None = None
 
     @classmethod
     def parse(cls, payload: Any, image_size: int, state_dim: int, needs_state: bool) -> ActRequest:
@@ -313,6 +315,8 @@ class ServedFigures:
             batch's call returned, those the batch had run when the row finished: its own).
         early: whether the reply left before its batch's call returned (its row finished while the rest of the
             batch still decoded).
+        intake_ms: the part of ``queue_ms`` before the request could join a batch: from its arrival to its body
+            read and checked (0 for a request that did not come over HTTP).
     """
 
     method: str
@@ -327,6 +331,7 @@ class ServedFigures:
     draft_state: list[list[int]] = field(default_factory=list)
     batch_forwards: int = 0
     early: bool = False
+    intake_ms: float = 0.0
 
 
 @dataclass

@@ -252,7 +252,9 @@ class PolicyService:
                                     queue_ms=1000 * (started - arrived[i]), decode_ms=1000 * (row.done - started),
                                     server_ms=1000 * (row.done - arrived[i]), session=request.session,
                                     draft_state=[list(a) for a in row.history],
-                                    batch_forwards=row.batch_forwards, early=row.early)  # fmt: skip
+                                    batch_forwards=row.batch_forwards, early=row.early,
+                                    intake_ms=0.0 if request.received is None else
+                                    1000 * (request.received - arrived[i]))  # fmt: skip
             answer(i, ActReply(np.asarray(row.action), figures))
 
         batch = self.step.run(requests, histories, bucket, mode, reply)
