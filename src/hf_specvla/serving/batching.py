@@ -10,7 +10,8 @@ the requests whose robots gave up meanwhile (their futures cancelled) and hands 
 ``max_queue`` waiting requests, [`submit`] raises [`Overloaded`] with the seconds after which a retry is likely to be
 served (HTTP 503 + Retry-After), rather than letting latency grow without bound. A
 batch whose call fails is retried one request at a time (by the service, as on Ray Serve), so one request's failure
-never fails the others. (On Ray Serve, ``serve.batch`` forms the batches instead.)
+never fails the others. Each Ray Serve replica batches the same way, with a [`Batcher`] of its own
+(``ray_deployment``).
 """
 
 from __future__ import annotations

@@ -13,9 +13,14 @@ with ``autoscaling_config``, and on Ctrl-C deletes the application (``serve run`
 ``deployments:`` entry for ``PolicyDeployment`` overrides the options this module sets from the arguments
 (``num_replicas``, ``max_ongoing_requests``, ``max_queued_requests``, ``ray_actor_options``...).
 
-**Batching.** Each replica forms its batches with Ray Serve's own ``serve.batch`` (up to the largest bucket, waiting
-at most ``max_wait_ms`` after the first request) and decodes them in a worker thread, so its event loop keeps
-reading requests, answering health checks and noticing robots that went away (their requests leave the batch).
+**Batching.** Each replica forms its batches by the one-machine server's rule, with its [`Batcher`]: a batch is
+formed when the decoding thread is free, from every request waiting then (up to the largest bucket), waiting at most
+``max_wait_ms`` for the robots seen recently. Its event loop only hands requests over, so it keeps reading them,
+answering health checks and noticing robots that went away (their requests leave the batch). Ray Serve's own
+``serve.batch`` is not used: it forms the next batch while the current one decodes (the batch waits for the
+decoding only after it is formed, ``max_concurrent_batches``), so robots whose replies leave at different times
+(each row answered when done) each start a batch of their own, and a loaded replica decoded one request at a time
+(1.15 robots a batch at K = 8, ~575 ms queued behind batches of one; docs/serving.md).
 
 **Overload.** A replica takes at most ``2 x`` the largest bucket at once (``max_ongoing_requests``: the batch being
 decoded and the next one filling); beyond that each Ray Serve proxy queues up to ``max_queue`` requests
@@ -291,6 +296,7 @@ class PolicyDeployment:
     def __init__(self, app_args: PolicyAppArgs):
         _, serve = require_ray()
         from .app import PolicyRoutes
+        from .batching import Batcher
         from .service import PolicyService
 
         context = serve.get_replica_context()
@@ -307,10 +313,7 @@ class PolicyDeployment:
                     ", ".join(f"{k} {v}" for k, v in self.service.startup.items()))  # fmt: skip
         api_key = app_args.api_key if app_args.api_key is not None else os.environ.get(API_KEY_VARIABLE) or None
         self.routes = PolicyRoutes(self, api_key, app_args.max_request_bytes)
-        # built here, not with a decorator, so that the batch size follows this deployment's config
-        batch = serve.batch(max_batch_size=config.max_batch_size, batch_wait_timeout_s=config.max_wait_ms / 1000)
-        self._batched = batch(self._decode_batch)
-        self.batches = 0  # batches decoded by this replica
+        self.batcher = Batcher(self.service).start()  # the one-machine server's batching (module docstring)
         self.started = time.time()
 
     async def __call__(self, request):
@@ -327,48 +330,36 @@ class PolicyDeployment:
 
     def stats(self) -> dict:
         """This replica's figures (each replica counts its own; ``replica`` says which answered)."""
-        return {**self.service.stats(), "deployment": "ray", "replica": self.replica, "batches": self.batches,
+        return {**self.service.stats(), "deployment": "ray", "replica": self.replica, "batches": self.batcher.batches,
                 "uptime_s": round(time.time() - self.started, 1)}  # fmt: skip
 
     def unhealthy(self) -> str | None:
-        """None: a replica that answers is serving (Ray replaces one that is not, see ``HEALTH_CHECK_PERIOD_S``)."""
-        return None
+        """Why this replica cannot serve (its batching thread died), else None."""
+        return self.batcher.unhealthy()
+
+    def check_health(self) -> None:
+        """Ray Serve's health check (every ``HEALTH_CHECK_PERIOD_S``): a replica whose batching thread died is
+        reported unhealthy, and Ray replaces it.
+
+        Raises:
+            RuntimeError: why it cannot serve.
+        """
+        problem = self.unhealthy()
+        if problem is not None:
+            raise RuntimeError(problem)
 
     def parse(self, payload) -> ActRequest:
         return self.service.parse(payload)
 
     async def act(self, request: ActRequest, arrived: float) -> ActReply:
-        """The request's reply, decoded in a batch with the requests that arrived with it; it comes as soon as its
-        row is done (the answer future), not when the batch's call returns."""
-        answer = asyncio.get_running_loop().create_future()
-        batch = asyncio.ensure_future(self._batched((request, arrived, answer)))
-        try:
-            await asyncio.wait({answer, batch}, return_when=asyncio.FIRST_COMPLETED)
-        except asyncio.CancelledError:  # the robot went away: its request leaves the batch if it has not started
-            batch.cancel()
-            raise
-        result = answer.result() if answer.done() else batch.result()
-        if isinstance(result, BaseException):
-            raise result
-        return result
+        """The request's reply, decoded in a batch with the requests waiting with it; it comes as soon as its row is
+        done, not when the batch's call returns. A cancelled wait (the robot went away) drops the request from its
+        batch if the batch has not started.
 
-    # ----------------------------------------------------------------------------- decoding
-    async def _decode_batch(self, items: list[tuple[ActRequest, float, asyncio.Future]]) -> list[Any]:
-        """``serve.batch``'s function: one batch, decoded in a worker thread (the event loop stays free); each
-        request's answer future is settled from that thread the moment its reply is ready."""
-        loop = asyncio.get_running_loop()
-
-        def on_reply(index: int, result) -> None:
-            loop.call_soon_threadsafe(_settle, items[index][2], result)
-
-        self.batches += 1
-        requests, arrived = [r for r, _, _ in items], [a for _, a, _ in items]
-        return await asyncio.to_thread(self.service.act_each, requests, arrived, on_reply)
-
-
-def _settle(answer: asyncio.Future, result) -> None:
-    if not answer.done():  # cancelled: its robot went away
-        answer.set_result(result)
+        Raises:
+            Overloaded: the replica's queue is full (HTTP 503 + Retry-After).
+        """
+        return await asyncio.wrap_future(self.batcher.submit(request, arrived))
 
 
 # ----------------------------------------------------------------------------- serve run, for hf-specvla serve --ray
