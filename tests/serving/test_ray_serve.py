@@ -200,6 +200,7 @@ def test_info_and_actions_are_the_local_policy_s(url, local):
     assert (info["method"], info["buckets"]) == ("prior+jacobi", [1, 2, 4])
     stats = requests.get(url + "/stats", timeout=30).json()
     assert stats["deployment"] == "ray" and set(stats["buckets"]) == {"1", "2", "4"}
+    assert {"batches", "waiting", "dropped", "failed_batches"} <= set(stats)  # the one-machine server's batcher's
 
     image, state = _observation(0, layout.image_size)
     greedy = _greedy(local, image, state)

@@ -330,7 +330,9 @@ class PolicyDeployment:
 
     def stats(self) -> dict:
         """This replica's figures (each replica counts its own; ``replica`` says which answered)."""
-        return {**self.service.stats(), "deployment": "ray", "replica": self.replica, "batches": self.batcher.batches,
+        batcher = self.batcher
+        return {**self.service.stats(), "deployment": "ray", "replica": self.replica, "batches": batcher.batches,
+                "waiting": batcher.waiting, "dropped": batcher.dropped,
                 "uptime_s": round(time.time() - self.started, 1)}  # fmt: skip
 
     def unhealthy(self) -> str | None:
