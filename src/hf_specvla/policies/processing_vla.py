@@ -46,6 +46,8 @@ class VLAProcessor:
         self.scene_normalizer = ActionNormalizer.from_dict(config.scene_stats) if config.scene_stats else None
         # instruction -> [<s>, <image> x N, prompt text], the last PROMPT_CACHE_SIZE distinct instructions
         self._prefix_cache: OrderedDict[str, list[int]] = OrderedDict()
+        # the special tokens no text may tokenize to (<unk> is how a tokenizer reads words it does not know)
+        self._special_ids = set(tokenizer.all_special_ids) - {tokenizer.unk_token_id}
         self._state_word, self._out_words = self._encode("\nState:"), self._encode("\nOut:")
 
     def preprocess_images(self, images) -> torch.Tensor:
@@ -90,8 +92,7 @@ class VLAProcessor:
             ValueError: a tokenizer that made special tokens of it anyway (one that ignores ``split_special_tokens``).
         """
         ids = self.tokenizer(text.lower(), add_special_tokens=False, split_special_tokens=True)["input_ids"]
-        special = set(self.tokenizer.all_special_ids) - {self.tokenizer.unk_token_id}
-        found = [self.tokenizer.convert_ids_to_tokens(i) for i in ids if i in special]
+        found = [self.tokenizer.convert_ids_to_tokens(i) for i in ids if i in self._special_ids]
         if found:
             raise ValueError(f"{text[:80]!r} tokenizes to special tokens {found[:5]} with this tokenizer "
                              f"({type(self.tokenizer).__name__}): remove them from the instruction")  # fmt: skip

@@ -31,6 +31,7 @@ service changes how fast an action comes, never which.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections.abc import Callable
@@ -292,16 +293,16 @@ class PolicyService:
         """[`_warm_up`] in the compile cache's folder (when there is one); the phases' times logged and kept in
         ``startup``."""
         cache = self.compile_cache()
-        if cache is None:
-            if self.config.compile_cache is not None:
-                logger.warning("compile cache %s not used: %s compiles nothing", self.config.compile_cache,
-                               self.methods_name)  # fmt: skip
-            self.startup = {"compile_cache": None}
+        if cache is None and self.config.compile_cache is not None:
+            logger.warning("compile cache %s not used: %s compiles nothing", self.config.compile_cache,
+                           self.methods_name)  # fmt: skip
+        with cache.compiling() if cache is not None else contextlib.nullcontext() as warm:
+            self.startup = (
+                {"compile_cache": None}
+                if cache is None
+                else {"compile_cache": "warm" if warm else "cold", "compile_cache_folder": str(cache.folder)}
+            )
             table = self._warm_up(calibrate, seed)
-        else:
-            with cache.compiling() as warm:
-                self.startup = {"compile_cache": "warm" if warm else "cold", "compile_cache_folder": str(cache.folder)}
-                table = self._warm_up(calibrate, seed)
         phases = self.startup
         start = {"warm": " (warm start: the compile cache's graphs)", "cold": " (cold start, into the compile cache)"}
         logger.info("warmed up: compile %.1f s%s, calibrate %.1f s", phases["compile_s"],
