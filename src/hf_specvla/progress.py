@@ -5,6 +5,7 @@ log line every ``HEARTBEAT_INTERVAL`` seconds through work that says nothing whi
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import threading
 import time
@@ -26,8 +27,17 @@ class _ProgressBar(tqdm):
         super().set_postfix(ordered_dict, refresh=False, **kwargs)
 
 
+def is_secondary_process() -> bool:
+    """A process other than the first of a launched group (``accelerate launch`` / ``torchrun`` set ``RANK``): it
+    draws no bar and logs only warnings, so that a run of n processes reads as a run of one."""
+    return int(os.environ.get("RANK", "0")) > 0
+
+
 def progress_bar(*args, **kwargs) -> tqdm:
-    """``tqdm(*args, **kwargs)``, slowed down when stderr is not a terminal (see module docstring)."""
+    """``tqdm(*args, **kwargs)``, slowed down when stderr is not a terminal (see module docstring); none in a
+    secondary process."""
+    if is_secondary_process():
+        kwargs["disable"] = True
     stream = kwargs.get("file") or sys.stderr
     if not getattr(stream, "isatty", lambda: False)():
         kwargs["mininterval"] = max(kwargs.get("mininterval", 0.1), REDIRECTED_INTERVAL)

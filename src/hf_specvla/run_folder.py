@@ -286,12 +286,13 @@ class RunFolder:
         continued: True when an existing run of the same settings is continued.
     """
 
-    def __init__(self, path: Path, dir_fd: int, lock: FolderLock, continued: bool):
+    def __init__(self, path: Path, dir_fd: int, lock: FolderLock | None, continued: bool):
         self.path, self.dir_fd, self.lock, self.continued = path, dir_fd, lock, continued
         self.bound = _bound_path(dir_fd, path)
 
     def release(self) -> None:
-        self.lock.release()
+        if self.lock is not None:
+            self.lock.release()
         if self.dir_fd >= 0:
             os.close(self.dir_fd)
             self.dir_fd = -1
@@ -323,6 +324,14 @@ def lock_folder(folder: str | Path) -> RunFolder:
     folder = Path(folder)
     dir_fd, lock = _lock_folder(folder)
     return RunFolder(folder, dir_fd, lock, continued=not is_empty_folder(folder))
+
+
+def follow_run_folder(folder: str | Path, continued: bool) -> RunFolder:
+    """The folder another process of the same launched run claimed (its main process): a [`RunFolder`] without the
+    lock, for a secondary process that writes only what the run's every process writes (accelerate's per-process
+    state in checkpoints)."""
+    folder = Path(folder)
+    return RunFolder(folder, os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0)), None, continued)
 
 
 def claim_run_folder(folder: str | Path, record: RunRecord, overwrite: bool = False) -> RunFolder:

@@ -178,10 +178,11 @@ def load_draft_head_for(policy, draft_head: str, parser):
 
 def configure_logging(verbose: bool = False) -> None:
     """hf_specvla's own messages at INFO (DEBUG with ``-v``), each on its own line even while a progress bar is
-    drawn; other libraries' INFO (OpenGL, accelerate, ...) and transformers' weight-loading bars are left out."""
+    drawn; other libraries' INFO (OpenGL, accelerate, ...) and transformers' weight-loading bars are left out; a
+    launched run's secondary processes log warnings only."""
     from transformers.utils import logging as transformers_logging
 
-    from ..progress import ProgressAwareHandler
+    from ..progress import ProgressAwareHandler, is_secondary_process
 
     handler = ProgressAwareHandler()
     handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
@@ -190,7 +191,8 @@ def configure_logging(verbose: bool = False) -> None:
         root.removeHandler(existing)
     root.addHandler(handler)
     root.setLevel(logging.WARNING)
-    logging.getLogger("hf_specvla").setLevel(logging.DEBUG if verbose else logging.INFO)
+    level = logging.WARNING if is_secondary_process() else logging.DEBUG if verbose else logging.INFO
+    logging.getLogger("hf_specvla").setLevel(level)
     transformers_logging.disable_progress_bar()
 
 

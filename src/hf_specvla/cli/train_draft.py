@@ -3,6 +3,7 @@ optionally demonstration frames), validated by the engine, saved with a model ca
 
 from __future__ import annotations
 
+from ..progress import is_secondary_process
 from ..training.configuration import (
     HEAD_VERSIONS,
     DraftDataConfig,
@@ -146,7 +147,8 @@ def run(args, parser) -> int:
         head = train_policy_draft_head(policy, training_config, data_config, args.data or [], args.num_draft_tokens,
                                        command=command, head_version=args.head, rollouts=args.rollouts,
                                        image_features=args.prefill_image_features)  # fmt: skip
-    print(f"draft head saved to {args.output_dir} ({head.num_parameters():,} parameters); see its README.md")
+    if not is_secondary_process():
+        print(f"draft head saved to {args.output_dir} ({head.num_parameters():,} parameters); see its README.md")
     return 0
 
 

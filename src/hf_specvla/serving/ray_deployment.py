@@ -303,6 +303,9 @@ class PolicyDeployment:
         #: this replica's id (unique within the deployment) and its Ray actor's name (namespace ``serve``)
         self.replica, self.replica_actor = context.replica_id.unique_id, context.replica_id.to_full_id_str()
         self.world_size = getattr(context, "world_size", None)  # Ray >= 2.5x
+        import ray
+
+        self.node = ray.get_runtime_context().get_node_id()  #: the Ray node this replica runs on
         started = time.perf_counter()
         config = app_args.serve
         self.service: PolicyService = PolicyService.from_pretrained(app_args.policy, config, app_args.draft_head,
@@ -324,14 +327,15 @@ class PolicyDeployment:
     def info(self) -> dict:
         """The service's info, plus ``deployment: "ray"``, this replica and the batching / overload limits."""
         config = self.service.config
-        return {**self.service.info(), "deployment": "ray", "replica": self.replica,
+        return {**self.service.info(), "deployment": "ray", "replica": self.replica, "node": self.node,
                 "replica_actor": self.replica_actor, "replicas": self.world_size, "max_wait_ms": config.max_wait_ms,
                 "max_queue": config.max_queue, "max_ongoing_requests": max_ongoing_requests(config)}  # fmt: skip
 
     def stats(self) -> dict:
         """This replica's figures (each replica counts its own; ``replica`` says which answered)."""
         batcher = self.batcher
-        return {**self.service.stats(), "deployment": "ray", "replica": self.replica, "batches": batcher.batches,
+        return {**self.service.stats(), "deployment": "ray", "replica": self.replica, "node": self.node,
+                "batches": batcher.batches,
                 "waiting": batcher.waiting, "dropped": batcher.dropped,
                 "uptime_s": round(time.time() - self.started, 1)}  # fmt: skip
 

@@ -17,8 +17,18 @@ from pathlib import Path
 
 import torch
 from accelerate import Accelerator
+from accelerate.utils import broadcast_object_list
 
-from ..run_folder import RUN_FILE, RunFolder, RunRecord, check_run_folder, claim_run_folder, is_empty_folder
+from ..run_folder import (
+    RUN_FILE,
+    RunFolder,
+    RunRecord,
+    check_run_folder,
+    claim_run_folder,
+    follow_run_folder,
+    is_empty_folder,
+)
+from .processes import global_batch_size, launched_processes, process_state
 
 CHECKPOINT_PATTERN = re.compile(r"^checkpoint-(\d+)$")
 TRAINER_STATE = "trainer_state.pt"
@@ -50,9 +60,13 @@ RUN_INDEPENDENT_SETTINGS = frozenset(
 
 def training_record(command: str, config, inputs: dict, paths: dict | None = None) -> RunRecord:
     """The [`RunRecord`] of a training run: ``config``'s run-shaping fields and ``inputs`` (fingerprints); ``paths``
-    where the inputs were read from (recorded, never compared)."""
+    where the inputs were read from and how many processes trained (recorded, never compared). ``batch_size`` is
+    recorded as the global batch (``training.processes``): n processes of b examples train as one process of n b."""
     settings = {k: v for k, v in asdict(config).items() if k not in RUN_INDEPENDENT_SETTINGS}
-    return RunRecord(command, {**settings, **inputs}, paths=paths or {})
+    if "batch_size" in settings:
+        settings["batch_size"] = global_batch_size(settings["batch_size"])
+    paths = {**(paths or {}), **({"processes": launched_processes()} if launched_processes() > 1 else {})}
+    return RunRecord(command, {**settings, **inputs}, paths=paths)
 
 
 def check_output_dir(output_dir: Path, record: RunRecord | None, resume: bool, overwrite: bool,
@@ -106,9 +120,26 @@ def check_output_dir(output_dir: Path, record: RunRecord | None, resume: bool, o
 def prepare_output_dir(output_dir: Path, record: RunRecord, resume: bool, overwrite: bool) -> RunFolder:
     """Claims the folder for a training run: its lock first, then the refusals of [`check_output_dir`], then a new
     folder gets ``record`` as its ``run.json`` (an overwritten one is moved aside first). Hold the returned
-    [`RunFolder`] for the whole run and write through ``run.bound``."""
+    [`RunFolder`] for the whole run and write through ``run.bound``.
+
+    In a launched run of several processes (``training.processes``) every process looks at the folder before any
+    writes (each refuses alike), the main process claims it, then the others follow it (no lock of their own)."""
     output_dir = Path(output_dir)
     check_output_dir(output_dir, record, resume, overwrite)  # the refusals, before the folder is touched
+    if launched_processes() > 1:
+        return _claim_with_every_process(output_dir, record, resume, overwrite)
+    return _claim(output_dir, record, resume, overwrite)
+
+
+def _claim_with_every_process(output_dir: Path, record: RunRecord, resume: bool, overwrite: bool) -> RunFolder:
+    state = process_state()
+    state.wait_for_everyone()  # every process has looked before the main one writes
+    run = _claim(output_dir, record, resume, overwrite) if state.is_main_process else None
+    continued = broadcast_object_list([run.continued if run is not None else None])[0]
+    return run if run is not None else follow_run_folder(output_dir, continued)
+
+
+def _claim(output_dir: Path, record: RunRecord, resume: bool, overwrite: bool) -> RunFolder:
     run = claim_run_folder(output_dir, record, overwrite=overwrite)
     try:
         if run.continued:  # again under the lock: the folder may have changed since the first look

@@ -56,7 +56,8 @@ from ..speculative import (
 )
 from .checkpoints import check_output_dir, latest_checkpoint, prepare_output_dir, training_record
 from .configuration import HEAD_VERSIONS, DraftTrainingConfig, check_draft_chain
-from .loop import TrainingJob, default_accelerator, run_training
+from .loop import TrainingJob, run_training
+from .processes import is_main_process, mean_over_processes
 
 logger = logging.getLogger(__name__)
 
@@ -74,6 +75,10 @@ __all__ = [
 
 
 # ----------------------------------------------------------------------------- data
+#: The batch key of each example's index in its dataset ``[B]`` (the training loss seeds its noise by it).
+EXAMPLE_INDEX = "example_index"
+
+
 class DistillationDataset(Dataset):
     """Sequences the target generated, with its hidden states.
 
@@ -93,7 +98,7 @@ class DistillationDataset(Dataset):
         return len(self.examples)
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        return self.examples[index]
+        return {**self.examples[index], EXAMPLE_INDEX: torch.tensor(index)}
 
     def save(self, path: str | Path) -> None:
         torch.save(self.examples, path)
@@ -261,6 +266,7 @@ def collate_distillation(batch: list[dict[str, torch.Tensor]]) -> dict[str, torc
         out["loss_mask"][i, :n] = item["loss_mask"]
         out["padding_mask"][i, :n] = True
     out["first_position"] = torch.tensor([[int(item.get("first_position", -1))] for item in batch])
+    out[EXAMPLE_INDEX] = torch.tensor([int(item.get(EXAMPLE_INDEX, -1)) for item in batch])
     dims = {item[PREVIOUS_ACTION].shape[0] for item in batch if PREVIOUS_ACTION in item} or {1}
     out[PREVIOUS_ACTION] = torch.full((len(batch), max(dims)), -1, dtype=torch.long)
     for i, item in enumerate(batch):
@@ -398,14 +404,32 @@ def block_entries(features: torch.Tensor, roots: torch.Tensor, num_queries: int)
     return features.gather(1, drafting[..., None].expand(-1, -1, features.shape[-1]))
 
 
-def _block_roots(batch: dict[str, torch.Tensor], generator: torch.Generator | None) -> torch.Tensor:
+def _uniform_rows(generators: list[torch.Generator] | None, lengths: list[int], width: int, batch: int,
+                  length: int) -> torch.Tensor:  # fmt: skip
+    """``[batch, length, width]`` uniform [0, 1) numbers: row i's first ``lengths[i]`` positions from
+    ``generators[i]`` (the rest 0: padding); without generators, the whole from torch's global generator."""
+    if generators is None:
+        return torch.rand(batch, length, width)
+    out = torch.zeros(batch, length, width)
+    for row, (generator, n) in enumerate(zip(generators, lengths, strict=True)):
+        out[row, :n] = torch.rand(n, width, generator=generator)
+    return out
+
+
+def _block_roots(batch: dict[str, torch.Tensor], generators: list[torch.Generator] | None) -> torch.Tensor:
     """``[B]`` one root per example for block training: drawn uniformly among the roots a block is drafted from after
     the prefill (the last pair at or after the prompt's end - 1, with a token left to draft)."""
     first = batch["first_position"][:, 0]
     last = batch["padding_mask"].sum(1) - 3  # the last root with a token x[r+2] to draft
     low = (first - 1).clamp(min=0).minimum(last)
-    draw = torch.rand(first.shape, generator=generator, device="cpu")
+    draw = _uniform_rows(generators, [1] * len(first), 1, len(first), 1).view(-1)
     return (low + (draw * (last - low + 1)).long()).minimum(last)
+
+
+def example_generators(batch: dict[str, torch.Tensor], seed: int, step: int) -> list[torch.Generator]:
+    """One generator per example of ``batch``, seeded by ``(seed, step, its index in the dataset)``: an example draws
+    the same noise whichever batch, process or resumed run it is in."""
+    return [torch.Generator().manual_seed(hash((seed, step, int(index))) % 2**63) for index in batch[EXAMPLE_INDEX]]
 
 
 def distillation_loss(
@@ -413,7 +437,7 @@ def distillation_loss(
     handles: TargetHandles,
     batch: dict[str, torch.Tensor],
     config: DraftTrainingConfig,
-    generator: torch.Generator | None = None,
+    generators: list[torch.Generator] | None = None,
 ) -> dict[str, torch.Tensor]:
     """EAGLE objective on one batch (see module docstring), unrolled ``config.unroll_steps`` draft steps
     ([`unrolled_features`]; a block head's steps are its mask queries). Returns ``loss``, ``feature_loss``,
@@ -437,9 +461,12 @@ def distillation_loss(
     top = stored.index(-1)
     target_top = hidden[..., top * width : (top + 1) * width]  # [B, L, H] the target's last hidden state
     inputs_hidden = hidden[:, :-1, : len(layers) * width]  # h[p], p = 0..L-2
-    if config.feature_noise > 0:
-        noise = torch.rand(inputs_hidden.shape, generator=generator, device="cpu").to(inputs_hidden.device)
-        inputs_hidden = inputs_hidden + (noise - 0.5) * config.feature_noise
+    if config.feature_noise > 0:  # each example's own noise (``generators``: one per example, see example_generators)
+        lengths = (batch["padding_mask"].sum(1) - 1).tolist()
+        noise = _uniform_rows(generators, lengths, inputs_hidden.shape[-1], *inputs_hidden.shape[:2])
+        inputs_hidden = (
+            inputs_hidden + (noise.to(inputs_hidden.device, inputs_hidden.dtype) - 0.5) * config.feature_noise
+        )
     positions = torch.arange(input_ids.shape[1] - 1, device=input_ids.device)[None]
     cap = head_config.final_logit_softcapping  # the target caps its logits (Gemma-2): so does the loss
     target_features_all = target_top[:, 1:]  # [B, T, H]: h[p+1], what input p's feature estimates
@@ -448,7 +475,7 @@ def distillation_loss(
     targets = (target_features_all, target_logits_all, batch["loss_mask"][:, :-1])
     queries = config.unroll_steps - 1
     if head_config.draft_mode == "block":  # one block from one root per example (no training-time test to do)
-        roots = _block_roots(batch, generator).to(input_ids.device)
+        roots = _block_roots(batch, generators).to(input_ids.device)
         features = block_features(draft_head, handles, batch, inputs_hidden, roots, queries)
         # the first draft from every pair up to the root, teacher-forced (as a chain's first step), then the queries
         pairs = min(features.shape[1], target_features_all.shape[1])
@@ -497,21 +524,22 @@ def _block_steps(features: torch.Tensor, roots: torch.Tensor, targets: tuple) ->
 def _step_losses(handles: TargetHandles, steps: list[tuple], config: DraftTrainingConfig, cap: float | None) -> dict:
     """The objective over draft steps, each ``(features [B, X, H], target features [B, X, H], target logits
     [B, X, V], loss mask [B, X])``: SmoothL1 on the features and soft cross-entropy on the logits where the mask is
-    True, each averaged over ``config.unroll_steps``; ``step_accuracy`` ``[n]`` each step's top-1."""
+    True, each averaged over ``config.unroll_steps``; ``step_accuracy`` ``[n]`` each step's top-1.
+
+    Each mean is over the step's positions in the *global* batch: under n launched processes, a process divides its
+    sum by the positions of every process over n (``processes.mean_over_processes``), so that the gradients, which
+    ``DistributedDataParallel`` averages, are one process's on the whole batch, whatever each process's share held."""
     totals = {"feature_loss": 0.0, "token_loss": 0.0, "token_accuracy": 0.0}
     step_accuracy = []
     for features, target_features, target_logits, loss_mask in steps:
-        n = loss_mask.sum().clamp(min=1)
+        n = mean_over_processes(loss_mask.sum().float()).clamp(min=1e-6)
         feature_loss = torch.nn.functional.smooth_l1_loss(features, target_features, reduction="none").mean(-1)
         feature_loss = (feature_loss * loss_mask).sum() / n
         target_logits = target_logits[loss_mask]
         target_probs = target_logits.softmax(-1)
         draft_logits = softcap_logits(handles.lm_head(features[loss_mask]).float(), cap)
-        if len(draft_logits):
-            token_loss = -(target_probs * draft_logits.log_softmax(-1)).sum(-1).mean()
-            accuracy = (draft_logits.argmax(-1) == target_logits.argmax(-1)).float().mean()
-        else:
-            token_loss = accuracy = n * 0.0
+        token_loss = -(target_probs * draft_logits.log_softmax(-1)).sum(-1).sum() / n
+        accuracy = (draft_logits.argmax(-1) == target_logits.argmax(-1)).float().sum() / n
         totals["feature_loss"] = totals["feature_loss"] + feature_loss / config.unroll_steps
         totals["token_loss"] = totals["token_loss"] + token_loss / config.unroll_steps
         totals["token_accuracy"] = totals["token_accuracy"] + accuracy.detach() / config.unroll_steps
@@ -642,24 +670,44 @@ def train_draft_head(
     with prepare_output_dir(output_dir, record, config.resume, config.overwrite_output_dir) as run:
         if data_record is not None:
             _check_data_record(run.bound, data_record, run.continued)
-        accelerator = accelerator or default_accelerator(config)  # the loop's: the loss seeds noise per process
         handles = draft_head.target_handles(target)
         for module in handles:
             module.requires_grad_(False)
-        generator = torch.Generator()
 
-        def loss(model: DraftHead, batch: dict, step: int):
-            # Noise seeded per step (and process), so a resumed run draws what an uninterrupted one would.
-            generator.manual_seed(hash((config.seed, step, accelerator.process_index)) % 2**63)
-            losses = distillation_loss(model, handles, batch, config, generator)
+        def loss(objective: DistillationObjective, batch: dict, step: int):
+            # noise seeded per step and example: a resumed run, or one on n processes, draws what one run would
+            losses = objective(batch, example_generators(batch, config.seed, step))
             return losses["loss"], {name: value.detach() for name, value in losses.items()}
 
         job = TrainingJob(
-            draft_head, dataset, loss, save=lambda model, folder: model.save_pretrained(folder), validate=validate,
+            DistillationObjective(draft_head, handles, config), dataset, loss,
+            save=lambda objective, folder: objective.head.save_pretrained(folder),
+            validate=None if validate is None else lambda objective: validate(objective.head),
             collate_fn=collate_distillation, checkpoint_name="draft_head", description="train draft head",
         )  # fmt: skip
-        model, _ = run_training(job, config, run.bound, accelerator, progress)  # run.bound: the claimed folder
-        return model
+        objective, _ = run_training(job, config, run.bound, accelerator, progress)  # run.bound: the claimed folder
+        return objective.head
+
+
+class DistillationObjective(torch.nn.Module):
+    """A draft head and its [`distillation_loss`] as one module, the one the training loop optimises: under several
+    processes accelerate wraps it in ``DistributedDataParallel``, which averages the gradients of what a *forward*
+    computed, and the loss reads the head through more than its forward (its fused features, mask queries, slot
+    bins). Its state is the head's own (checkpoints hold the head's parameter names, as before it existed); the
+    target's frozen embedding and lm_head are held, not registered (never broadcast, never saved)."""
+
+    def __init__(self, head: DraftHead, handles: TargetHandles, config: DraftTrainingConfig):
+        super().__init__()
+        self.head, self.handles, self.training_config = head, handles, config  # handles: a tuple, not a submodule
+
+    def forward(self, batch: dict[str, torch.Tensor], generators: list[torch.Generator] | None = None) -> dict:
+        return distillation_loss(self.head, self.handles, batch, self.training_config, generators)
+
+    def state_dict(self, *args, **kwargs):
+        return self.head.state_dict(*args, **kwargs)
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        return self.head.load_state_dict(state_dict, strict=strict, assign=assign)
 
 
 def distil_draft_head(
@@ -784,7 +832,8 @@ def _check_data_record(folder: Path, data_record: dict, continued: bool) -> None
                 f"from scratch, or choose another folder"
             )
         return
-    write_json_atomic(path, data_record)
+    if is_main_process():  # the other processes of a launched run write nothing of the run's own
+        write_json_atomic(path, data_record)
 
 
 def head_v2_settings(target: PreTrainedModel) -> dict:

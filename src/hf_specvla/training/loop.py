@@ -3,7 +3,8 @@ and the demo's toy target all train here; a caller gives a [`TrainingJob`] (the 
 returning ``(loss, metrics)``, a save function and a validation hook) and its config's optimisation settings.
 
 What every caller gets, alike: AdamW + a warm-up then constant or cosine schedule, gradient clipping at
-``max_grad_norm``, accelerate (one CPU or many GPUs, mixed precision, gradient accumulation), a progress bar,
+``max_grad_norm``, accelerate (one process, or several under ``accelerate launch`` / ``torchrun`` on GPUs or on the
+CPU: ``training.processes``; mixed precision, gradient accumulation), a progress bar,
 ``training_log.jsonl`` every ``log_every`` steps, validation every ``eval_every`` steps (0: only at the end) and
 after the last step (``validation.jsonl``, and merged into that step's log line as ``val_<name>``),
 ``checkpoint-<step>`` every ``save_every`` steps and at the last step (so a finished run continues with a larger
@@ -12,7 +13,8 @@ final metrics).
 
 Resume is exact: the data order comes from accelerate's seedable sampler (epoch = step // batches per epoch, the
 epoch's first batches skipped), and anything random in a step is seeded by ``(seed, step)`` inside the caller's loss
-(the loop passes ``step``), so a run killed and resumed computes what an uninterrupted one computes.
+(the loop passes ``step``), so a run killed and resumed computes what an uninterrupted one computes. A loss that seeds
+by ``(seed, step, example)`` (the draft head's) also computes the same on any number of processes.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from ..progress import progress_bar
 from .checkpoints import resume_step, save_checkpoint
+from .processes import global_batch_size, on_cpu_processes
 
 logger = logging.getLogger(__name__)
 
@@ -80,18 +83,25 @@ def learning_rate_factor(step: int, warmup_steps: int, max_steps: int, schedule:
 
 def default_accelerator(config) -> Accelerator:
     """The accelerator a run gets unless the caller brings one: ``config.mixed_precision``, a seedable sampler (the
-    data order resume relies on)."""
+    data order resume relies on), gloo processes on a machine without an accelerator (``training.processes``), and
+    the schedule stepped once an optimizer step (accelerate's default steps it once a process: n processes would
+    warm up and decay n times faster than one)."""
     return Accelerator(
-        mixed_precision=config.mixed_precision, dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True)
-    )
+        mixed_precision=config.mixed_precision, dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
+        cpu=on_cpu_processes(), step_scheduler_with_optimizer=False,
+    )  # fmt: skip
 
 
-def _numbers(metrics: dict) -> dict:
-    """One-number tensors as floats, longer ones as lists (per step, per position); other values as they are."""
+def _numbers(metrics: dict, accelerator: Accelerator | None = None) -> dict:
+    """One-number tensors as floats, longer ones as lists (per step, per position); other values as they are. With
+    ``accelerator``, tensors are first averaged over its processes (every process must call it alike): the log shows
+    the global batch's numbers, not the main process's share."""
 
     def number(value):
         if not isinstance(value, torch.Tensor):
             return value
+        if accelerator is not None and accelerator.num_processes > 1:
+            value = accelerator.reduce(value.detach().float().to(accelerator.device), reduction="mean")
         return value.item() if value.numel() == 1 else [round(x, 4) for x in value.tolist()]  # per step, per position
 
     return {name: number(value) for name, value in metrics.items()}
@@ -168,7 +178,7 @@ def run_training(job: TrainingJob, config, output_dir: Path, accelerator: Accele
                 scheduler.step()
                 optimizer.zero_grad()
             step += 1
-            metrics = _numbers(step_metrics)
+            metrics = _numbers(step_metrics, accelerator)
             bar.update(1)
             bar.set_postfix({name: f"{value:.4g}" for name, value in list(metrics.items())[:2]})
             last = step >= config.max_steps
@@ -186,7 +196,16 @@ def run_training(job: TrainingJob, config, output_dir: Path, accelerator: Accele
     if accelerator.is_main_process and not finished_before:
         job.save(unwrapped, output_dir)
         (output_dir / TRAINING_CONFIG).write_text(
-            json.dumps({**asdict(config), "steps": step, "final_metrics": metrics}, indent=2)
+            json.dumps(
+                {
+                    **asdict(config),
+                    "steps": step,
+                    "processes": accelerator.num_processes,
+                    "global_batch_size": global_batch_size(config.batch_size, accelerator.num_processes),
+                    "final_metrics": metrics,
+                },
+                indent=2,
+            )  # fmt: skip
         )
     accelerator.wait_for_everyone()
     logger.info("%s: %d steps, %s", job.description, step, metrics)

@@ -35,6 +35,7 @@ from ..speculative import DraftHead
 from .configuration import HEAD_VERSIONS, DraftDataConfig, DraftTrainingConfig, check_draft_chain
 from .draft_head import PREVIOUS_ACTION, distil_draft_head, head_settings
 from .loop import VALIDATION_LOG
+from .processes import is_main_process
 from .rollouts import EpisodeFrames, read_rollout_frames
 
 logger = logging.getLogger(__name__)
@@ -209,9 +210,10 @@ def train_policy_draft_head(
         target_fingerprint=policy.weights_fingerprint(), paths=paths, progress=progress,
         head_settings=head_settings(head_version, policy.model, image_features),
     )  # fmt: skip
-    write_model_card(output_dir, head, training_config, data_config, demonstrations, sequences, command,
-                     policy.config.action_tokens, paths.get("rollouts"),
-                     read.fingerprint if read else None)  # fmt: skip
+    if is_main_process():
+        write_model_card(output_dir, head, training_config, data_config, demonstrations, sequences, command,
+                         policy.config.action_tokens, paths.get("rollouts"),
+                         read.fingerprint if read else None)  # fmt: skip
     return head
 
 
