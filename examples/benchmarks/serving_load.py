@@ -84,6 +84,9 @@ def parse_args(argv=None):
     parser.add_argument("--no-ray", action="store_true", help="leave Ray Serve out: the three embedded servers only")
     parser.add_argument("--ray-replicas", type=int, default=2, help="Ray Serve's replicas")
     parser.add_argument("--ray-threads", type=int, default=1, help="torch threads (and Ray CPUs) per replica")
+    parser.add_argument("--ray-speculate", choices=("adaptive", "always"), default="adaptive",
+                        help="the replicas' choice: calibrated per bucket (the default), or speculative at every "
+                             "bucket (as the embedded 'always' server): tells the chooser's part apart")  # fmt: skip
     parser.add_argument("--tiny", action="store_true", help="eager prior+jacobi, K = 1 2, 1 repeat, short episodes")
     parser.add_argument("--serve", default=None, help=argparse.SUPPRESS)  # internal: the server process's settings
     args = parser.parse_args(argv)
@@ -162,7 +165,7 @@ class RayServeRuns:
     dashboard; stopped at the end), and the policy application deployed fresh for each run ([`deploy`]) and deleted
     after it ([`delete`]), as ``serve run hf_specvla.serving.ray_deployment:build_app`` would deploy it."""
 
-    def __init__(self, settings: dict, replicas: int, threads: int):
+    def __init__(self, settings: dict, replicas: int, threads: int, speculate: str = "adaptive"):
         from hf_specvla.serving.ray_deployment import require_ray
 
         self.ray, self.serve = require_ray()
@@ -173,6 +176,8 @@ class RayServeRuns:
                          "buckets": list(buckets), "max_wait_ms": settings["max_wait_ms"],
                          "calibration_calls": settings["calibration_calls"], "max_queue": 4 * buckets[-1],
                          "num_replicas": replicas, "threads": threads}  # fmt: skip
+        if speculate == "always":
+            self.app_args["speculate_buckets"] = list(buckets)
         self.url = ""
 
     def __enter__(self) -> RayServeRuns:
@@ -453,7 +458,9 @@ def main(argv=None) -> int:
         logger.info("servers up after %.0f s of warm-up: %s", started["warm_up_s"], started["urls"])
         with contextlib.ExitStack() as stack:
             if RAY in args.kinds:  # the cluster once; the application deployed per run
-                ray_runs = stack.enter_context(RayServeRuns(settings, args.ray_replicas, args.ray_threads))
+                ray_runs = stack.enter_context(
+                    RayServeRuns(settings, args.ray_replicas, args.ray_threads, args.ray_speculate)
+                )
             scratch = Path(stack.enter_context(tempfile.TemporaryDirectory()))
             fresh = True  # the embedded servers have served no run since they (re)started
             for repeat in range(args.repeats):
@@ -492,8 +499,9 @@ def main(argv=None) -> int:
     print(json.dumps(started["calibration"]))
     if ray_runs is not None:
         deploy = [{"deploy_s": r["server"]["deploy_s"]} for r in rows if r["kind"] == RAY]
+        each = _spread(deploy, "deploy_s", unit=" s")
         print(f"ray x{args.ray_replicas}: Ray Serve, {args.ray_replicas} replicas x {args.ray_threads} thread(s), "
-              f"adaptive; {len(deploy)} deployments, {_spread(deploy, 'deploy_s', unit=' s')} each")  # fmt: skip
+              f"{args.ray_speculate}; {len(deploy)} deployments, {each} each")  # fmt: skip
     print(text)
     for row in rows:
         row.pop("actions")

@@ -403,6 +403,7 @@ def test_every_decode_runs_on_the_services_thread_with_room_for_every_buckets_gr
 
     import hf_specvla.speculative as speculative
     from hf_specvla.speculative.compiled import graphs_held, reset_compilation
+    from hf_specvla.speculative.decoder import SpeculativeDecoder
 
     def eager_backend(device_type="cpu"):
         config = CompileConfig(backend="eager", fullgraph=True, dynamic=False, mode="default")
@@ -418,8 +419,7 @@ def test_every_decode_runs_on_the_services_thread_with_room_for_every_buckets_gr
     def spy(*args, **kwargs):
         action = predict(*args, **kwargs)
         # the most graphs one code object holds: the model's forward (prefills, greedy) or a round's accepting function
-        verifiers = policy.model.__dict__.get("_hf_specvla_verifiers", {}).values()
-        functions = [type(policy.model).forward, *(f for verifier in verifiers for f in verifier.functions)]
+        functions = [type(policy.model).forward, *SpeculativeDecoder.of(policy.model).compiled_functions()]
         held = max(graphs_held(function) for function in functions)
         seen.append((threading.current_thread().name, torch._dynamo.config.recompile_limit, held))
         return action

@@ -92,32 +92,28 @@ def test_a_prompt_longer_than_the_compiled_graphs_is_refused_before_any_forward(
     assert service.parse({**_observation(policy, 0), "instruction": within}).instruction == within
 
 
-def test_the_slot_counts_the_service_plans_for_are_the_engines(policy):
-    """The service restates how a compiled call's static cache is sized (generate's: ``max_length - 1`` = prompt +
-    action tokens - 1; the engine's: + the widest verification, rounded up): checked against the engine's own
-    ``with_draft_slots`` at every prompt length of a tier and its neighbours."""
+def test_every_prompt_of_a_tier_decodes_on_the_slot_count_the_engine_gives_its_longest(policy):
+    """The service plans its prompt tiers with the engine's own sizing (``verification_slots``, asked, not restated):
+    every prompt length of a tier gets, from the engine's ``with_draft_slots`` on ``generate``'s own cache (prompt +
+    action tokens - 1), one slot count (one set of graphs), and the lengths just outside it another."""
     from transformers import StaticCache
 
-    from hf_specvla.speculative import NODE_BUCKETS, SLOT_MULTIPLE, DraftTreeConfig, num_head_entries
+    from hf_specvla.speculative import verification_slots
     from hf_specvla.speculative.cache import with_draft_slots
 
     service = _service(policy, method="exact")
     service.close()
-    for tree in (DraftTreeConfig(), DraftTreeConfig(top_k=1, depth=7, total_tokens=7)):  # the head's key_length
-        extra = policy.config.action_tokens + tree.depth + 1 + num_head_entries(tree.top_k, tree.depth)
-        assert service.step._head_rule(tree) == (extra, SLOT_MULTIPLE)
-    (extra, multiple), *_ = service.step._slot_rules(None)
     first, last = service.step.prompt_tiers[0]
     text_config = policy.model.config.get_text_config(decoder=True)
-    slots = set()
-    for length in range(first - 2, last + 3):
+
+    def engines(length: int) -> int:
         generates = StaticCache(config=text_config, max_cache_len=length + policy.config.action_tokens - 1)
-        engines = with_draft_slots(policy.model, generates, NODE_BUCKETS[-1], SLOT_MULTIPLE, 1)
-        planned = multiple * -(-(length + extra) // multiple)
-        assert max(layer.max_cache_len for layer in engines.layers) == planned, length
-        if first <= length <= last:
-            slots.add(planned)
-    assert len(slots) == 1, "a tier must decode on one slot count (one set of graphs)"
+        cache = with_draft_slots(policy.model, generates, verification_slots)
+        return max(layer.max_cache_len for layer in cache.layers)
+
+    assert len({engines(length) for length in range(first, last + 1)}) == 1, "a tier decodes on one slot count"
+    assert engines(last + 1) > engines(last)  # the next length needs more slots: the tier ends where it must
+    assert [rule(last) for rule in service.step._slot_rules(None)] == [engines(last)]
 
 
 def test_warm_up_compiles_every_prompt_tier_and_the_limit_follows_max_prompt_tokens(policy):

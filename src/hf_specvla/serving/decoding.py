@@ -29,10 +29,10 @@ cache stretches) by the slot counts they need; the service's warm-up compiles ev
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -188,12 +188,12 @@ class DecodeStep:
         kwargs = self._kwargs[0]
         if kwargs.get("cache_implementation") != "static":
             return kwargs
-        from ..speculative import CACHE_KEY, SLOT_MULTIPLE, reusable_static_cache
+        from ..speculative import CACHE_KEY, reusable_static_cache, rounded_slots
 
         rows = states if states is not None else [None] * len(instructions)
         width = max(len(self.policy.prompt_ids(i, s)) for i, s in zip(instructions, rows))
         width = next((last for first, last in self.prompt_tiers if first <= width <= last), width)  # the tier's
-        slots = SLOT_MULTIPLE * math.ceil((width + self.policy.config.action_tokens) / SLOT_MULTIPLE)
+        slots = rounded_slots(width + self.policy.config.action_tokens)
         cache = reusable_static_cache(self.policy.model, slots, bucket)  # the engine's, emptied: one graph per shape
         return {**{k: v for k, v in kwargs.items() if k != "cache_implementation"}, CACHE_KEY: cache}
 
@@ -201,42 +201,33 @@ class DecodeStep:
     def _zero_state(self) -> np.ndarray | None:
         return np.zeros(self.policy.config.state_dim) if self.policy.config.use_state else None
 
-    def _slot_rules(self, draft_head) -> list[tuple[int, int]]:
-        """``(extra, multiple)`` per static cache a compiled call decodes on: a prompt of ``P`` tokens needs
-        ``multiple * ceil((P + extra) / multiple)`` slots in it (the graphs hold that count). Empty: eager, no graphs.
-        The engine's own sizing, restated (tests check it against the engine's): the target's cache
-        ([`_verification_rule`]); a draft head's holds the prompt, the action tokens, its padded catch-up pairs and
-        its tree's entries; the greedy baseline's is the service's own (``_greedy_kwargs``).
+    def _slot_rules(self, draft_head) -> list[Callable[[int], int]]:
+        """Per static cache a compiled call decodes on, ``prompt tokens -> its slots`` (the graphs hold that count),
+        asked of the engine: the target's cache (``speculative.verification_slots`` of ``generate``'s own: the prompt
+        and the action tokens but the last), each draft head's (``speculative.head_cache_slots``), or, greedy only,
+        the baseline's (``_greedy_kwargs``). Empty: eager, no graphs.
 
         transformers' ``generate`` never shrinks the target's cache (it keeps the largest size it made, so as not to
         recompile): once [`warm_up`] decoded the longest tier, every speculative call decodes on that tier's cache,
         whatever its prompt; the other caches follow each call's prompt."""
-        from ..speculative import SLOT_MULTIPLE
+        from ..speculative import head_cache_slots, rounded_slots
 
+        tokens = self.policy.config.action_tokens
         rules = []
         if self.method.compiled and self.speculates:
             rules.append(self._verification_rule())
-            rules += [self._head_rule(tree) for tree in self._head_trees(draft_head)]
+            rules += [partial(lambda tree, length: head_cache_slots(length + tokens, tree), tree)
+                      for tree in self._head_trees(draft_head)]  # fmt: skip
         if self.baseline.compiled and not rules:  # greedy only: its cache's own tiers (else it follows the method's)
-            rules.append((self.policy.config.action_tokens, SLOT_MULTIPLE))
+            rules.append(lambda length: rounded_slots(length + tokens))
         return rules
 
-    def _verification_rule(self) -> tuple[int, int]:
-        """The target's cache in a compiled speculative call (``_slot_rules``): ``generate`` sizes its static cache
-        ``max_length - 1`` (the prompt and the action tokens but the last, which is never fed), the engine adds room
-        for the widest verification and rounds up."""
-        from ..speculative import NODE_BUCKETS, SLOT_MULTIPLE
-
-        return self.policy.config.action_tokens - 1 + NODE_BUCKETS[-1], SLOT_MULTIPLE
-
-    def _head_rule(self, tree) -> tuple[int, int]:
-        """A draft head's cache in a compiled call (``_slot_rules``; the engine's ``DraftHeadSession.key_length``):
-        ``max_length`` (the prompt and the action tokens), the padded catch-up pairs (``depth + 1``) and the entries
-        one expansion writes (``num_head_entries``), rounded up."""
-        from ..speculative import SLOT_MULTIPLE, num_head_entries
+    def _verification_rule(self) -> Callable[[int], int]:
+        """``prompt tokens -> slots`` of the target's cache in a compiled speculative call (``_slot_rules``)."""
+        from ..speculative import verification_slots
 
         tokens = self.policy.config.action_tokens
-        return tokens + tree.depth + 1 + num_head_entries(tree.top_k, tree.depth), SLOT_MULTIPLE
+        return lambda length: verification_slots(length + tokens - 1)
 
     def _head_trees(self, draft_head) -> list:
         """The tree settings of the draft-head drafters the methods run (a chain is a tree of top-k 1)."""
@@ -276,12 +267,14 @@ class DecodeStep:
             return [] if longest is None else [(shortest, longest)]
 
         def slots(length: int) -> tuple[int, ...]:
-            return tuple(multiple * math.ceil((length + extra) / multiple) for extra, multiple in rules)
+            return tuple(rule(length) for rule in rules)
 
         if longest is None:  # as far as the shortest prompt's verification cache goes (whatever the method)
-            extra, multiple = self._verification_rule()
-            longest = max(multiple * math.ceil((shortest + extra) / multiple) - extra,
-                          shortest + MIN_INSTRUCTION_TOKENS)  # fmt: skip
+            verification = self._verification_rule()
+            longest = shortest
+            while verification(longest + 1) == verification(shortest):
+                longest += 1
+            longest = max(longest, shortest + MIN_INSTRUCTION_TOKENS)
         tiers = [(shortest, shortest)]
         for length in range(shortest + 1, longest + 1):
             first, _ = tiers[-1]

@@ -33,10 +33,13 @@ from .compiled import (
     SLOT_MULTIPLE,
     compiled_decoding_kwargs,
     compiles_verification,
+    rounded_slots,
+    verification_slots,
     verification_width,
 )
 from .config import SpeculationConfig
 from .configuration_draft_head import DraftHeadConfig
+from .decoder import SpeculativeDecoder
 from .drafter import (
     CandidateDrafter,
     Commit,
@@ -60,7 +63,7 @@ from .drafters import (
     with_action_priors,
     with_previous_actions,
 )
-from .drafters.draft_head import embed_tokens
+from .drafters.draft_head import embed_tokens, head_cache_slots
 from .drafters.eagle_tree import num_head_entries
 from .generation import (
     SPECULATION_KWARGS,
@@ -94,6 +97,7 @@ __all__ = [
     "verification_width",
     "cache_of",
     "reusable_static_cache",
+    "SpeculativeDecoder",
     "check_transformers_support",
     "TargetHandles",
     "as_drafter",
@@ -106,6 +110,9 @@ __all__ = [
     "check_draft_head_folder",
     "embed_tokens",
     "num_head_entries",
+    "head_cache_slots",
+    "rounded_slots",
+    "verification_slots",
     "is_local_path",
     "softcap_logits",
     "episode_drafter",

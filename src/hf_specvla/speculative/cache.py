@@ -27,7 +27,7 @@ here and is refused before the first forward.
 from __future__ import annotations
 
 import os
-import weakref
+from collections.abc import Callable
 from contextlib import contextmanager
 
 import torch
@@ -39,6 +39,8 @@ from transformers.cache_utils import (
     StaticLayer,
     StaticSlidingWindowLayer,
 )
+
+from .decoder import SpeculativeDecoder
 
 #: preallocated layers written at a counter (exact types)
 STATIC_LAYER_TYPES = (StaticLayer, StaticSlidingWindowLayer)
@@ -108,14 +110,11 @@ def check_rollback_cache(cache: Cache, max_length: int) -> None:
                 )
 
 
-#: per model, the static caches [`reusable_static_cache`] built, by (slots, offloading, dtype written, device, batch
-#: size)
-_STATIC_CACHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def with_draft_slots(model, cache: Cache | None, slots: int, multiple: int = 1, batch_size: int = 1) -> Cache | None:
-    """``generate``'s own static cache (``cache_implementation="static"``) replaced by one with ``slots`` more slots, so
-    that a draft tree fits beside the tokens greedy decoding would store (``generate`` sizes it for those alone). The
+def with_draft_slots(model, cache: Cache | None, slots_for: Callable[[int], int],
+                     batch_size: int = 1) -> Cache | None:  # fmt: skip
+    """``generate``'s own static cache (``cache_implementation="static"``) replaced by one of ``slots_for(its slots)``
+    slots, so that a draft tree fits beside the tokens greedy decoding would store (``generate`` sizes it for those
+    alone; ``compiled.verification_slots``: room for the widest verification, rounded up). The
     larger cache is kept per model and size and reused, emptied, by later calls (its buffers keep their addresses, as
     compiled graphs want); a new one is allocated lazily, at the prefill, like the one it replaces. A cache the user
     passed, a cache already holding entries, or any other cache is returned as it is (a user's static cache: trees
@@ -124,17 +123,19 @@ def with_draft_slots(model, cache: Cache | None, slots: int, multiple: int = 1, 
 
     Args:
         model: the target (its decoder's text config is read, as ``generate`` does; its dtype and device key reuse).
-        multiple: the slot count is rounded up to a multiple of this (compiled graphs hold the cache's shape: prompts
-            of different lengths then share one graph per width).
+        slots_for: ``generate``'s slot count -> the slot count wanted (rounded: compiled graphs hold the cache's
+            shape, so prompts of different lengths then share one graph per width).
         batch_size: the call's rows (a cache is reused only by calls of the same batch size: its layers take their
             batch dimension from the first forward).
     """
-    if type(cache) is not StaticCache or getattr(cache, "_is_user_defined", False) or slots <= 0:
+    if type(cache) is not StaticCache or getattr(cache, "_is_user_defined", False):
         return cache
     if any(getattr(layer, "is_initialized", False) for layer in cache.layers):
         return cache
     capacity = max(layer.max_cache_len for layer in cache.layers)
-    slots = -(-(capacity + slots) // multiple) * multiple - capacity
+    slots = slots_for(capacity) - capacity
+    if slots <= 0:
+        return cache
     windows = [layer.max_cache_len for layer in cache.layers if type(layer) is StaticSlidingWindowLayer]
     if windows:  # a sliding layer holds at most its window: grow only within it (every layer keeps one slot count)
         slots = min(slots, min(windows) - capacity)
@@ -148,7 +149,8 @@ def reusable_static_cache(
     model, slots: int, batch_size: int, offloading: bool = False, like: StaticCache | None = None
 ) -> StaticCache:
     """An empty ``StaticCache`` of ``slots`` slots for ``batch_size`` rows of ``model``, made once per (slots,
-    offloading, dtype, device, batch size) and model, then emptied and handed out again: its buffers keep their
+    offloading, dtype, device, batch size) and kept by the model's [`SpeculativeDecoder`], then emptied and handed out
+    again: its buffers keep their
     addresses, so compiled graphs (which hold the cache's shape) and CUDA graphs (its buffers) are reused. What
     [`with_draft_slots`] puts in place of ``generate``'s own cache, and what a caller passes as ``past_key_values``
     for transformers' compiled greedy decoding to keep one graph per shape (a server's greedy baseline).
@@ -157,14 +159,10 @@ def reusable_static_cache(
         like: a cache whose layer types the reused one must have (a sliding-window model's); None: any.
     """
     key = (slots, offloading, written_dtype(model), model.device, batch_size)
-    built = _STATIC_CACHES.setdefault(model, {})
-    cache = built.get(key)
-    if cache is not None and (like is None or [type(a) for a in cache.layers] == [type(b) for b in like.layers]):
-        cache.reset()
-        return cache
     text_config = model.config.get_text_config(decoder=True)
-    cache = built[key] = StaticCache(config=text_config, max_cache_len=slots, offloading=offloading)
-    return cache
+    return SpeculativeDecoder.of(model).static_cache(
+        key, lambda: StaticCache(config=text_config, max_cache_len=slots, offloading=offloading), like
+    )
 
 
 def written_dtype(model) -> torch.dtype:

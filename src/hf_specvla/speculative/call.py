@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import logging
 import time
-import weakref
 
 import torch
 from transformers import GenerationConfig
@@ -28,14 +27,9 @@ from .cache import (
     with_draft_slots,
 )
 from .compat import CACHE_KEY
-from .compiled import (
-    NODE_BUCKETS,
-    SLOT_MULTIPLE,
-    CompiledVerifier,
-    buckets_up_to,
-    compiles_verification,
-)
+from .compiled import CompiledVerifier, buckets_up_to, compiles_verification, verification_slots
 from .config import SpeculationConfig
+from .decoder import SpeculativeDecoder
 from .drafter import (
     CandidateDrafter,
     ComposedDrafter,
@@ -139,12 +133,7 @@ def _draft_contexts(
     ]
 
 
-#: caches a batched call has decoded on: their rows keep entries of drafts some rows rejected (masked only inside that
-#: call) and a dynamic one has lost its finished rows, so no later call can continue them exactly
-_BATCH_DECODED_CACHES: weakref.WeakSet = weakref.WeakSet()
-
-
-def check_continued_cache(cache: Cache, batch_size: int) -> None:
+def check_continued_cache(model, cache: Cache, batch_size: int) -> None:
     """Refuses, before any forward, a cache this call cannot continue exactly: one holding entries a batched
     speculative call left, or one whose layers already hold another number of rows than ``input_ids`` (a static
     cache keeps its rows when emptied).
@@ -155,7 +144,7 @@ def check_continued_cache(cache: Cache, batch_size: int) -> None:
     if not holds_buffers(cache) or any(type(layer) not in ROLLBACK_LAYER_TYPES for layer in cache.layers):
         return  # nothing allocated yet (any batch size), or a cache refused for its layers (check_rollback_cache)
     entries = cache_length(cache)
-    if cache in _BATCH_DECODED_CACHES and entries:
+    if entries and SpeculativeDecoder.of(model).batch_decoded(cache):
         raise ValueError(
             f"this cache holds {entries} entries left by a batched speculative generate call: a batch's "
             f"rows accept different numbers of drafts, so its cache keeps entries of rejected drafts (masked only "
@@ -172,15 +161,15 @@ def check_continued_cache(cache: Cache, batch_size: int) -> None:
         )
 
 
-def _leave_cache_as_greedy(cache: Cache, rows: list[RowState], offset: int) -> None:
+def _leave_cache_as_greedy(decoder: SpeculativeDecoder, cache: Cache, rows: list[RowState], offset: int) -> None:
     """Leaves a one-row cache as greedy decoding would: the entries of its sequence but the last token (a path the
     stopping criteria cut keeps no entries past the cut), so that a later call continues it exactly. ``offset``: the
-    entries before the row's sequence (a continued cache given only the new tokens). A batch's cache is marked
-    ([`check_continued_cache`] refuses it)."""
+    entries before the row's sequence (a continued cache given only the new tokens). A batch's cache is marked on the
+    model's decoder ([`check_continued_cache`] refuses it: its rows keep entries of drafts some rows rejected, masked
+    only inside that call, and a dynamic one has lost its finished rows)."""
+    decoder.mark_batch_decoded(cache, len(rows) > 1)
     if len(rows) > 1:
-        _BATCH_DECODED_CACHES.add(cache)
         return
-    _BATCH_DECODED_CACHES.discard(cache)
     keep = offset + rows[0].sequence.shape[1] - 1
     if cache_length(cache) > keep:
         truncate_cache(cache, keep)
@@ -383,7 +372,7 @@ def prepare(
     prompt_padding = model_kwargs.get("attention_mask")  # [B, past + new] or None (no padding)
     check_left_padded(prompt_padding)
     if model_kwargs.get(CACHE_KEY) is not None:
-        check_continued_cache(model_kwargs[CACHE_KEY], batch_size)
+        check_continued_cache(model, model_kwargs[CACHE_KEY], batch_size)
     past_length, num_new = _tokens_to_prefill(input_ids, model_kwargs.get(CACHE_KEY), prompt_padding, generation_config)
     if prompt_padding is not None and bool(prompt_padding.all()):
         prompt_padding = None
@@ -391,9 +380,7 @@ def prepare(
     stats = SpeculationStats()
     total_start = time.perf_counter()
     # generate's own static cache holds the tokens greedy decoding stores; a tree needs slots beside them
-    model_kwargs[CACHE_KEY] = with_draft_slots(
-        model, model_kwargs.get(CACHE_KEY), NODE_BUCKETS[-1], SLOT_MULTIPLE, batch_size
-    )
+    model_kwargs[CACHE_KEY] = with_draft_slots(model, model_kwargs.get(CACHE_KEY), verification_slots, batch_size)
     given_cache = model_kwargs.get(CACHE_KEY)
     if given_cache is not None:
         check_rollback_cache(given_cache, generation_config.max_length)
@@ -427,7 +414,7 @@ def prepare(
         model_inputs, (prompt_ids, prompt_positions), prefill_key, past_length, cached_tokens,
         generation_config.pad_token_id if generation_config.pad_token_id is not None else (
             eos_ids[0] if eos_ids else None
-        ), total_start,
+        ), total_start, decoder=SpeculativeDecoder.of(model),
     )  # fmt: skip
 
 
@@ -471,6 +458,7 @@ def _round_plan(model, generation_config, settings, drafter, rule, layout, verif
         sampling=sampling,
         acceptance=acceptance,
         dtype=model.dtype,
+        tree_structures=SpeculativeDecoder.of(model).tree_structures,
     )
     return plan, prefill_key
 
@@ -478,7 +466,7 @@ def _round_plan(model, generation_config, settings, drafter, rule, layout, verif
 def finish(call: SpeculativeCall, generation_config) -> SpeculativeDecoderOnlyOutput | torch.LongTensor:
     """4. The cache left as greedy decoding would leave it, the statistics gathered, the output."""
     state, stats, all_rows = call.state, call.stats, call.all_rows
-    _leave_cache_as_greedy(state.target_cache, all_rows, call.past_length - call.cached_tokens)
+    _leave_cache_as_greedy(call.decoder, state.target_cache, all_rows, call.past_length - call.cached_tokens)
     for row in all_rows:
         row.stats.num_draft_forwards = row.session.num_forwards
         row.session.report(row.stats, row.sequence)

@@ -26,9 +26,9 @@ from __future__ import annotations
 
 import logging
 import time
-import weakref
 from collections.abc import Callable, Sequence
 from functools import cache
+from types import MappingProxyType
 
 import torch
 from transformers import GenerationConfig, PreTrainedModel
@@ -36,6 +36,7 @@ from transformers.cache_utils import Cache
 
 from .cache import cache_batch_size, cache_length, is_static_cache, preserved_entries, truncate_cache
 from .compat import CACHE_KEY
+from .decoder import DECODER_ATTRIBUTE, SpeculativeDecoder
 from .fused import GraphAcceptance, accepting_forward, full_guards_asked, round_guards
 from .tree import DraftTree, TreeBatch
 from .verify import InputBuffers, verify_trees
@@ -48,6 +49,20 @@ NODE_BUCKETS: tuple[int, ...] = (0, 2, 4, 8, 16, 32)  # checked by check_buckets
 #: generate's own static cache is rebuilt with room for the largest bucket, its slot count rounded up to a multiple of
 #: this: the compiled graphs hold the slot count, so prompts of different lengths share them
 SLOT_MULTIPLE = 64
+
+
+def rounded_slots(entries: int) -> int:
+    """``entries`` rounded up to a multiple of [`SLOT_MULTIPLE`]: the slots of a static cache compiled graphs hold."""
+    return -(-entries // SLOT_MULTIPLE) * SLOT_MULTIPLE
+
+
+def verification_slots(generate_slots: int) -> int:
+    """The slots of the static cache a compiled speculative call decodes on, for ``generate``'s own static cache of
+    ``generate_slots`` (its ``max_length - 1``: the prompt and the new tokens but the last, which is never fed): room
+    for the widest verification (``NODE_BUCKETS[-1]``) beside them, rounded up ([`rounded_slots`]). What the call
+    sizes its cache with ([`with_draft_slots`]) and what a server plans its prompt tiers with."""
+    return rounded_slots(generate_slots + NODE_BUCKETS[-1])
+
 
 #: graphs transformers' own compiled decoding may hold on the same model call (greedy's decode step, assisted
 #: generation's verification lengths) beside ours: the recompile limit is raised to the buckets + this
@@ -120,14 +135,16 @@ def compile_settings(compile_config) -> str:
 
 
 def reset_compilation() -> None:
-    """``torch._dynamo.reset()`` and every [`CompiledVerifier`] forgets what it compiled up front (the next call
-    compiles every width, prefill and draft-head graph again, before its first compiled round): see
-    [`CompiledVerifier.reset_compilation`]."""
-    CompiledVerifier.reset_compilation()
+    """``torch._dynamo.reset()`` and every model's decoder forgets what it compiled up front (the next call compiles
+    every width, prefill and draft-head graph again, before its first compiled round):
+    [`SpeculativeDecoder.reset_compilation`]."""
+    SpeculativeDecoder.reset_compilation()
 
 
 #: the model inputs with a sequence dimension in a prefill, and that dimension, from the end ([`mark_length_dynamic`])
-_SEQUENCE_DIMS = {"input_ids": -1, "inputs_embeds": -2, "position_ids": -1, "attention_mask": -2, "logits_to_keep": -1}
+_SEQUENCE_DIMS = MappingProxyType(
+    {"input_ids": -1, "inputs_embeds": -2, "position_ids": -1, "attention_mask": -2, "logits_to_keep": -1}
+)
 
 
 def mark_length_dynamic(inputs: dict) -> None:
@@ -176,21 +193,14 @@ class CompiledVerifier:
 
     It also owns the graph budget: dynamo's recompile limit (a per-thread setting, counted per code object across
     every caller) is raised from the graphs dynamo itself holds for the model's forward and the drafters' functions
-    ([`graphs_held`]) plus the ones about to be compiled, never from a count of our own; and
-    [`reset_compilation`] (``torch._dynamo.reset()`` + every verifier forgets its graphs) is its method."""
-
-    #: bumped by [`reset_compilation`]: a verifier made before it forgets what it compiled (class state: the one
-    #: thing every model's verifier shares, as ``torch._dynamo.reset()`` drops every model's graphs at once)
-    _epoch = 0
+    ([`graphs_held`]) plus the ones about to be compiled, never from a count of our own. The model's
+    [`SpeculativeDecoder`] holds its verifiers (one per ``CompileConfig``) and forgets them at
+    [`reset_compilation`]."""
 
     def __init__(self, model: PreTrainedModel, compile_config):
         self.compile_config = compile_config
-        #: the model it compiled for: a deep copy of the model copies the verifier too, whose rounds close over the
-        #: original (``for_model`` gives the copy its own)
-        self.model_ref = weakref.ref(model)
         self.model_forward = type(model).forward  # the code dynamo compiles for ``call`` (its graphs: graphs_held)
         self.call: Callable = model.get_compiled_call(compile_config)
-        self.epoch = CompiledVerifier._epoch
         self.widths_compiled: set[tuple] = set()  # (slots, hidden states, buckets, batch size)
         self.prefills_compiled: set[tuple] = set()  # (slots, hidden states, batch size)
         self.prefills_eager: set[tuple] = set()  # the same keys, whose forward over the prompt did not compile
@@ -204,35 +214,26 @@ class CompiledVerifier:
 
     @classmethod
     def for_model(cls, model: PreTrainedModel, compile_config) -> CompiledVerifier:
-        """``model``'s verifier for ``compile_config`` (made at its first use), its model call fetched again (a caller
-        may have wrapped ``get_compiled_call``, as the benchmarks' clock does), dynamo's recompile limit raised to
-        hold one graph per bucket (past the limit dynamo would silently run eagerly).
-
-        A verifier copied with the model (``copy.deepcopy``: its compiled rounds close over the original) is
-        replaced by one of the copy's own, and transformers' compiled call copied with it is dropped, so that the
-        copy's graphs read the copy's weights. Changes to the model itself fail the guards its rounds keep
-        ([`round_guards`]) and recompile."""
-        verifiers = model.__dict__.setdefault("_hf_specvla_verifiers", {})
+        """``model``'s verifier for ``compile_config``, kept by its [`SpeculativeDecoder`] (made at its first use),
+        dynamo's recompile limit raised to hold one graph per bucket (past the limit dynamo would silently run
+        eagerly). A model
+        copied with ``copy.deepcopy`` (its compiled rounds close over the original) gets its own, and transformers'
+        compiled call copied with it is dropped, so that the copy's graphs read the copy's weights. Changes to the
+        model itself fail the guards its rounds keep ([`round_guards`]) and recompile."""
+        verifiers = SpeculativeDecoder.of(model).verifiers
         settings = compile_settings(compile_config)
         verifier = verifiers.get(settings)
-        if verifier is not None and verifier.model_ref() is not model:
-            logger.info("this %s is a copy of the model its compiled graphs were made for: compiling its own",
-                        type(model).__name__)  # fmt: skip
-            verifier = None
-            _forget_copied_compiled_call(model)
-        if verifier is None or verifier.epoch != CompiledVerifier._epoch:
+        if verifier is None:
             verifier = verifiers[settings] = cls(model, compile_config)
-        else:
+        else:  # its model call fetched again: a caller may have wrapped ``get_compiled_call`` (the benchmarks' clock)
             verifier.call = model.get_compiled_call(compile_config)
         verifier.reserve_graphs(2 * len(NODE_BUCKETS))  # every width, with / without hidden states
         return verifier
 
     @classmethod
     def reset_compilation(cls) -> None:
-        """``torch._dynamo.reset()``, and every model's verifier (made anew at its next use) forgets what it
-        compiled: the target's widths and prefills and its drafters' graphs."""
-        torch._dynamo.reset()
-        cls._epoch += 1
+        """[`SpeculativeDecoder.reset_compilation`]."""
+        SpeculativeDecoder.reset_compilation()
 
     # ----------------------------------------------------------------- the graph budget
     def reserve_graphs(self, count: int, function: Callable | None = None) -> None:
@@ -290,7 +291,8 @@ class CompiledVerifier:
         ([`CALL_WRAPPER_ATTRIBUTE`])."""
         function = self.accepting.get(output_hidden)
         if function is None:
-            function = self.accepting[output_hidden] = accepting_forward(model, output_hidden)
+            name = f"verify_and_accept_{type(model).__name__}_{len(self.accepting)}"
+            function = self.accepting[output_hidden] = accepting_forward(model, output_hidden, name)
         guards = None if full_guards_asked() else round_guards
         compiled = self.compiled_function(function, len(NODE_BUCKETS), guard_filter=guards)
         wrap = model.__dict__.get(CALL_WRAPPER_ATTRIBUTE)
@@ -423,15 +425,6 @@ def with_guard_filter(settings: dict, guard_filter: Callable) -> dict:
     return settings
 
 
-def _forget_copied_compiled_call(model: PreTrainedModel) -> None:
-    """Drops transformers' compiled model call from a deep copy of a model when it was compiled for the original
-    (``torch.compile(original.__call__)``, copied as it is): ``get_compiled_call`` then compiles the copy's own."""
-    compiled = model.__dict__.get("_compiled_call")
-    original = getattr(compiled, "__wrapped__", None)
-    if compiled is not None and getattr(original, "__self__", model) is not model:
-        del model.__dict__["_compiled_call"]
-
-
 def graphs_held(function: Callable) -> int:
     """The graphs dynamo holds for ``function``'s code, compiled by any caller (its recompile limit counts them per
     code object: a model class's forward is shared by its instances, and transformers' decorated forwards share
@@ -455,7 +448,8 @@ def allow_graphs_held(model: PreTrainedModel) -> None:
     thread (a ``ContextVar``), so a model compiled in one thread and decoding in another (a server's worker) would
     meet the default limit there, with more graphs than it allows, and fail at its next compile
     (``FailOnRecompileLimitHit`` under ``fullgraph=True``)."""
-    functions = [f for verifier in model.__dict__.get("_hf_specvla_verifiers", {}).values() for f in verifier.functions]
+    decoder = model.__dict__.get(DECODER_ATTRIBUTE)
+    functions = decoder.compiled_functions() if decoder is not None else []
     allow_graphs(max(graphs_held(f) for f in [type(model).forward, *functions]) + _GRAPHS_BESIDE_OURS)
 
 

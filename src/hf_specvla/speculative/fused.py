@@ -19,7 +19,6 @@ row the host reads anyway.
 
 from __future__ import annotations
 
-import itertools
 import os
 import re
 import types
@@ -38,12 +37,12 @@ from .verify import eos_hidden_below
 EOS_SLOTS = 8
 
 _EXACT = ExactMatch()
-_FUNCTION_NUMBERS = itertools.count()
 
 
-def accepting_forward(model, output_hidden: tuple[int, ...] | None) -> Callable:
+def accepting_forward(model, output_hidden: tuple[int, ...] | None, name: str = "verify_and_accept") -> Callable:
     """The function compiled into one graph per (batch size, width) (uncompiled here: the [`CompiledVerifier`]
-    compiles it with the model's ``CompileConfig`` and keeps it per ``output_hidden``).
+    compiles it with the model's ``CompileConfig`` and keeps it per ``output_hidden``), named ``name`` (for logs and
+    profiles: its code object is its own whatever its name).
 
     Its arguments: ``inputs`` the model's (ids ``[B, 1 + N]``, positions, the additive tree mask, the cache,
     ``logits_to_keep``); the [`TreeBatch`]'s tensors ``token_ids`` / ``parents`` / ``depths`` / ``is_real`` ``[B, N]``
@@ -74,7 +73,6 @@ def accepting_forward(model, output_hidden: tuple[int, ...] | None) -> Callable:
     # a code object of its own per (model, hidden states): dynamo keeps graphs and guards per code object, so one
     # function's guard filter ([`round_guards`]) and graphs are its own, never another model's or caller's
     code = verify_and_accept.__code__
-    name = f"verify_and_accept_{next(_FUNCTION_NUMBERS)}"
     return types.FunctionType(code.replace(co_name=name, co_qualname=name), verify_and_accept.__globals__, name,
                               verify_and_accept.__defaults__, verify_and_accept.__closure__)  # fmt: skip
 

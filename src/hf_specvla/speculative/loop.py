@@ -52,7 +52,7 @@ from .compat import check_transformers_support
 from .config import SpeculationConfig
 from .drafter import Drafter
 from .outputs import SpeculativeDecoderOnlyOutput
-from .rounds import decode_round, emit_tokens, prefill
+from .rounds import CallStopping, decode_round, emit_tokens, prefill
 from .state import RowState
 from .stats import SpeculationStats
 
@@ -136,9 +136,10 @@ def speculative_generate(
     call.on_row_finished = on_row_finished
     cache = call.state.target_cache
     with open_sliding_windows(cache), host_length(cache):  # exact: the generation fits the window (checked)
-        prefill(model, call, logits_processor, stopping_criteria)
+        stopping = CallStopping(stopping_criteria)  # answered on the host where it can be, read once
+        prefill(model, call, logits_processor, stopping)
         while call.state.rows:
-            decode_round(model, call, logits_processor, stopping_criteria)
+            decode_round(model, call, logits_processor, stopping)
     return finish(call, generation_config)
 
 

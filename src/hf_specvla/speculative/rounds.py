@@ -153,7 +153,21 @@ def drop_finished_rows(state: DecodeState, fixed_batch: bool = False) -> None:
         state.key_valid = None if bool(key_valid.all()) else key_valid
 
 
-def emit_tokens(rows: list[RowState], emitted: list[list[int]], stopping_criteria: StoppingCriteriaList) -> list[int]:
+class CallStopping:
+    """A call's stopping criteria, and (read once a call) their answer on the host when they are transformers' own
+    length, EOS and time criteria (what ``generate`` builds): the EOS ids read once from the device, not once a
+    round, and nothing written onto the criteria."""
+
+    def __init__(self, criteria: StoppingCriteriaList):
+        self.criteria, self.on_host = criteria, _host_stopping(criteria)
+
+    @classmethod
+    def of(cls, stopping: CallStopping | StoppingCriteriaList) -> CallStopping:
+        return stopping if isinstance(stopping, CallStopping) else cls(stopping)
+
+
+def emit_tokens(rows: list[RowState], emitted: list[list[int]],
+                stopping: CallStopping | StoppingCriteriaList) -> list[int]:  # fmt: skip
     """Appends each row's ``emitted`` tokens up to where the stopping criteria first fire, as greedy decoding (which
     asks them after every token) would stop, and marks those rows finished.
 
@@ -171,7 +185,8 @@ def emit_tokens(rows: list[RowState], emitted: list[list[int]], stopping_criteri
             by_length.setdefault(lengths[b] + count, []).append(b)
     stop_length: list[int | None] = [None] * len(rows)  # the shortest prefix the criteria stop at
     asked = [(length, by_length[length]) for length in sorted(by_length)]
-    on_host = _host_stopping(stopping_criteria)
+    stopping = CallStopping.of(stopping)
+    on_host, stopping_criteria = stopping.on_host, stopping.criteria
     if on_host is not None:  # generate's own criteria (length, EOS, time), answered from the host's tokens
         for length, group in asked:
             for b in group:
@@ -206,9 +221,7 @@ def _host_stopping(stopping_criteria: StoppingCriteriaList) -> Callable[[int, in
     eos_ids = set()
     for criteria in stopping_criteria:
         if type(criteria) is EosTokenCriteria:
-            if getattr(criteria, "_host_eos_ids", None) is None:  # read once per call, not once per round
-                criteria._host_eos_ids = criteria.eos_token_id.reshape(-1).tolist()
-            eos_ids.update(criteria._host_eos_ids)
+            eos_ids.update(criteria.eos_token_id.reshape(-1).tolist())
     timers = [c for c in stopping_criteria if type(c) is MaxTimeCriteria]
 
     def stop(length: int, last_token: int) -> bool:
@@ -247,7 +260,7 @@ def fit_prefill_trees(trees: list[DraftTree], state: DecodeState, plan: RoundPla
         trees = [tree.truncate_nodes(plan.max_drafts) for tree in trees]
     if plan.capacity is not None:
         trees = [tree.truncate_nodes(_free_slots(state, plan)) for tree in trees]
-    return TreeBatch(trees)
+    return TreeBatch(trees, structures=plan.tree_structures)
 
 
 def _free_slots(state: DecodeState, plan: RoundPlan) -> int:
@@ -273,7 +286,7 @@ def fit_trees(trees: list[DraftTree], state: DecodeState, plan: RoundPlan, stats
             free = width = verification_width(widest, free, plan.buckets)
             stats.compiled_widths.append(width)
         trees = [tree.truncate_nodes(free) for tree in trees]
-    return TreeBatch(trees, min_nodes=width)
+    return TreeBatch(trees, min_nodes=width, structures=plan.tree_structures)
 
 
 def _compact(state: DecodeState) -> None:
@@ -308,7 +321,7 @@ def verify(model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: T
         rows = [DraftTree.empty(pending_ids.device)] * pending_ids.shape[0]
         for tree, b in zip(trees.trees, state.cache_rows.tolist()):
             rows[b] = tree
-        trees = TreeBatch(rows, min_nodes=trees.num_nodes)
+        trees = TreeBatch(rows, min_nodes=trees.num_nodes, structures=plan.tree_structures)
     buffers = None
     if plan.verifier is not None and offsets is None:  # the compiled width's own input tensors
         queries = pending_ids.shape[1] + trees.num_nodes
@@ -376,7 +389,7 @@ def emit(
     paths: list[AcceptedPath],
     output: TargetOutput,
     target_scores: torch.Tensor,
-    stopping_criteria: StoppingCriteriaList,
+    stopping_criteria: CallStopping | StoppingCriteriaList,
 ) -> None:
     """4. Appends each row's accepted tokens and bonus token, stopping it exactly where greedy would (EOS,
     ``max_length``, custom criteria); books statistics, scores and logits."""

@@ -15,6 +15,7 @@ from ..actions.tokenizer import ActionLayout
 from .acceptance import AcceptanceRule
 from .cache import cache_batch_size
 from .compiled import CompiledVerifier, PrefillCall
+from .decoder import SpeculativeDecoder
 from .drafter import DraftSession
 from .fused import GraphAcceptance
 from .stats import SpeculationStats
@@ -39,7 +40,8 @@ class RowState:
 
 @dataclass
 class DecodeState:
-    """Everything one speculative decode carries between rounds (one explicit object, nothing on the models).
+    """Everything one speculative decode carries between rounds (one explicit object; what outlives the call is the
+    model's [`SpeculativeDecoder`]'s).
 
     The tensors hold the rows still generating, in ``rows`` order (finished rows are dropped from them and from a
     dynamic cache). The target cache is rectangular: a row that accepted fewer tokens than another in a round keeps
@@ -107,6 +109,8 @@ class RoundPlan:
     #: through the compiled model call (or eagerly) and accept after it
     acceptance: GraphAcceptance | None = None
     dtype: torch.dtype | None = None  # the target's (read once a call: ``model.dtype`` walks its parameters)
+    #: the decoder's tree structures by shape ([`TreeBatch`]'s ``structures``), or None: made per batch
+    tree_structures: dict | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass
@@ -128,3 +132,4 @@ class SpeculativeCall:
     total_start: float
     #: ``(row, new_tokens [n], row stats)`` -> None, called as each row stops (``speculative_generate``'s argument)
     on_row_finished: Callable[[int, torch.Tensor, SpeculationStats], None] | None = None
+    decoder: SpeculativeDecoder | None = None  # the model's: what the engine keeps between calls

@@ -302,6 +302,10 @@ class TreeBatch:
 
     trees: list[DraftTree]
     min_nodes: int = 0
+    #: structures made before, by (N, device, every row's parents), least recently used first (a decoder's
+    #: ``tree_structures``): a round's trees repeat a few shapes (a Jacobi tail of k tokens padded to its width), so
+    #: their structure tensors are made once, never written (every user reads them); None: made for this batch
+    structures: dict | None = field(default=None, repr=False, compare=False)
     token_ids: torch.Tensor = field(init=False)
     parents: torch.Tensor = field(init=False)
     depths: torch.Tensor = field(init=False)
@@ -322,13 +326,17 @@ class TreeBatch:
         if not all(t.knows_structure() for t in self.trees):  # a structure on the device: derived there
             self.parents, self.depths, self.ancestor_or_self, self.is_real = _padded_structure(self.trees, n, device)
             return
-        key = (n, device, tuple(tuple(t.host_parents) for t in self.trees))  # made once per structure
-        structure = _STRUCTURES.pop(key, None)
-        if structure is None:
+        if self.structures is None:
             structure = _padded_structure(self.trees, n, device)
-        _STRUCTURES[key] = structure  # most recently used last
-        if len(_STRUCTURES) > _STRUCTURES_KEPT:
-            del _STRUCTURES[next(iter(_STRUCTURES))]
+        else:
+            structures = self.structures
+            key = (n, device, tuple(tuple(t.host_parents) for t in self.trees))  # made once per structure
+            structure = structures.pop(key, None)
+            if structure is None:
+                structure = _padded_structure(self.trees, n, device)
+            structures[key] = structure  # most recently used last
+            if len(structures) > STRUCTURES_KEPT:
+                del structures[next(iter(structures))]
         self.parents, self.depths, self.ancestor_or_self, self.is_real = structure
 
     @property
@@ -356,11 +364,8 @@ class TreeBatch:
         return all(tree.is_chain for tree in self.trees)
 
 
-#: TreeBatch structures (parents, depths, ancestor_or_self, is_real), by (N, device, every row's parents), least
-#: recently used out: a round's trees repeat a few shapes (a Jacobi tail of k tokens padded to its width), so their
-#: structure tensors are made once, never written (every user reads them)
-_STRUCTURES: dict[tuple, tuple[torch.Tensor, ...]] = {}
-_STRUCTURES_KEPT = 256
+#: the structures a [`TreeBatch`]'s ``structures`` keeps (least recently used out)
+STRUCTURES_KEPT = 256
 
 
 def _padded_structure(trees: Sequence[DraftTree], n: int, device) -> tuple[torch.Tensor, ...]:

@@ -54,7 +54,7 @@ import torch
 from transformers.cache_utils import DynamicCache, StaticCache
 
 from ..cache import set_static_length, truncate_cache
-from ..compiled import SLOT_MULTIPLE, CompiledVerifier, compile_settings
+from ..compiled import CompiledVerifier, compile_settings, rounded_slots
 from ..drafter import Commit, DraftContext, Drafter, DraftRound, DraftSession
 from ..masks import causal_allowed, sequence_key_padding, to_additive_mask
 from ..modeling_draft_head import DraftHead, DraftScorer, TargetHandles
@@ -89,6 +89,18 @@ class DraftTreeConfig:
                 f"DraftTreeConfig.total_tokens={self.total_tokens} cannot hold a path of depth={self.depth}: "
                 f"use total_tokens >= depth"
             )
+
+
+def padded_pairs(tree: DraftTreeConfig) -> int:
+    """The pairs a compiled round's catch-up feeds (padded): the pending token and the longest accepted path."""
+    return tree.depth + 1
+
+
+def head_cache_slots(max_length: int, tree: DraftTreeConfig) -> int:
+    """The slots of a draft head's static cache in a compiled call of ``max_length`` (the prompt and the new tokens):
+    those, the padded catch-up pairs ([`padded_pairs`]) and the entries one expansion writes (``num_head_entries``),
+    rounded up (``compiled.rounded_slots``). What the head's session allocates and what a server plans for."""
+    return rounded_slots(max_length + padded_pairs(tree) + num_head_entries(tree.top_k, tree.depth))
 
 
 def embed_tokens(handles: TargetHandles, token_ids: torch.Tensor) -> torch.Tensor:
@@ -210,9 +222,7 @@ class _DraftHeadSession(DraftSession):
         if self.compile_config is None:
             self.cache = DynamicCache()
         else:
-            tree_entries = num_head_entries(self.config.top_k, self.config.depth)
-            entries = context.max_length + self.num_padded_pairs + tree_entries
-            self.key_length = -(-entries // SLOT_MULTIPLE) * SLOT_MULTIPLE
+            self.key_length = head_cache_slots(context.max_length, self.config)
             self.cache = drafter.static_cache(self.key_length)
             # the target's compiled state owns the head's graphs too (one owner per model and compile settings)
             self.compiled = CompiledVerifier.for_model(context.model, self.compile_config)
@@ -230,7 +240,7 @@ class _DraftHeadSession(DraftSession):
     @property
     def num_padded_pairs(self) -> int:
         """The pairs a compiled round's catch-up feeds (padded): the pending token and the longest accepted path."""
-        return self.config.depth + 1
+        return padded_pairs(self.config)
 
     def observe(self, commit: Commit) -> None:
         if commit.target_hidden is None:

@@ -1,0 +1,131 @@
+"""The engine's state for a model lives in one object, its ``SpeculativeDecoder`` (issue 75 item 1): two models in one
+process, their compiled calls alternating, each get their own greedy tokens from their own decoder; a model holds
+nothing of the engine but its decoder; ``reset_compilation`` makes every decoder forget what it compiled; a deep copy
+gets a decoder of its own; speculative/ keeps no module-level mutable registries.
+
+Compiled with dynamo's ``eager`` backend (it traces, guards and recompiles as inductor would)."""
+
+from __future__ import annotations
+
+import ast
+import copy
+from pathlib import Path
+
+import pytest
+import torch
+from transformers import LlamaForCausalLM
+
+from hf_specvla import DraftHead, JacobiDrafter, enable_speculation
+from hf_specvla.speculative import SpeculativeDecoder, reusable_static_cache
+from hf_specvla.speculative.compiled import CompiledVerifier, reset_compilation
+from hf_specvla.speculative.decoder import DECODER_ATTRIBUTE
+
+from ..conftest import tiny_llama_config
+from .test_compiled_verification import eager_compile_config, greedy
+
+SPECULATIVE = Path(__file__).resolve().parents[2] / "src" / "hf_specvla" / "speculative"
+
+
+@pytest.fixture(autouse=True)
+def fresh_dynamo():
+    reset_compilation()
+    yield
+    reset_compilation()
+
+
+def _llama(seed: int):
+    torch.manual_seed(seed)
+    return enable_speculation(LlamaForCausalLM(tiny_llama_config()).eval())
+
+
+def compiled() -> dict:
+    return dict(cache_implementation="static", compile_config=eager_compile_config())
+
+
+def test_two_models_alternating_compiled_calls_each_get_their_own_greedy():
+    models = [_llama(0), _llama(1)]
+    heads = [DraftHead.from_target(model, num_draft_tokens=3).eval() for model in models]
+    prompts = [torch.randint(6, 64, (1, n), generator=torch.Generator().manual_seed(n)) for n in (6, 9)]
+    expected = {(m, p): greedy(models[m], prompt) for m in range(2) for p, prompt in enumerate(prompts)}
+    assert not torch.equal(expected[0, 0], expected[1, 0])  # the two models decode differently
+    for round_ in range(2):  # model 0, model 1, model 0, ...: each call reuses what its own model compiled
+        for p, prompt in enumerate(prompts):
+            for m, model in enumerate(models):
+                for assistant in (JacobiDrafter(), heads[m]):
+                    out = greedy(model, prompt, assistant_model=assistant, **compiled())
+                    assert torch.equal(out, expected[m, p]), (round_, p, m, type(assistant).__name__)
+    decoders = [SpeculativeDecoder.of(model) for model in models]
+    assert decoders[0] is not decoders[1] and all(d.model_ref() is m for d, m in zip(decoders, models))
+    assert all(len(d.verifiers) == 1 and d.static_caches for d in decoders)
+    caches = [{id(c) for c in d.static_caches.values()} for d in decoders]
+    assert not caches[0] & caches[1]  # each model's static caches are its own
+    # a model holds nothing of the engine but its decoder (transformers keeps its own compiled call)
+    for model in models:
+        ours = [name for name in model.__dict__ if "specvla" in name]
+        assert ours == [DECODER_ATTRIBUTE], ours
+
+
+def test_reset_compilation_makes_every_decoder_forget_what_it_compiled():
+    models = [_llama(0), _llama(1)]
+    prompt = torch.randint(6, 64, (1, 6), generator=torch.Generator().manual_seed(6))
+    for model in models:
+        greedy(model, prompt, assistant_model=JacobiDrafter(), **compiled())
+    verifiers = [CompiledVerifier.for_model(model, eager_compile_config()) for model in models]
+    SpeculativeDecoder.reset_compilation()  # one decoder's method, every decoder's effect: dynamo's graphs are gone
+    for model, verifier in zip(models, verifiers):
+        assert SpeculativeDecoder.of(model).verifiers == {}
+        out = greedy(model, prompt, assistant_model=JacobiDrafter(), **compiled())
+        assert torch.equal(out, greedy(model, prompt))
+        assert CompiledVerifier.for_model(model, eager_compile_config()) is not verifier
+
+
+def test_a_deep_copy_gets_a_decoder_of_its_own():
+    model = _llama(0)
+    prompt = torch.randint(6, 64, (1, 6), generator=torch.Generator().manual_seed(6))
+    greedy(model, prompt, assistant_model=JacobiDrafter(), **compiled())
+    clone = copy.deepcopy(model)
+    with torch.no_grad():
+        clone.lm_head.weight.mul_(-1.0)  # the copy decodes differently: its graphs must read its own weights
+    out = greedy(clone, prompt, assistant_model=JacobiDrafter(), **compiled())
+    assert torch.equal(out, greedy(clone, prompt))
+    assert SpeculativeDecoder.of(clone) is not SpeculativeDecoder.of(model)
+    assert SpeculativeDecoder.of(clone).model_ref() is clone
+
+
+def test_reusable_static_caches_are_the_models_decoders():
+    model = _llama(0)
+    cache = reusable_static_cache(model, 64, 1)
+    assert reusable_static_cache(model, 64, 1) is cache  # handed out again, emptied
+    assert reusable_static_cache(_llama(1), 64, 1) is not cache
+    assert cache in SpeculativeDecoder.of(model).static_caches.values()
+
+
+#: module-level names in speculative/ that hold mutable state on purpose (none is engine state of a model)
+ALLOWED_MODULE_STATE = {
+    # transformers' model classes with the generation mixin, made once per class: types, as Python's own caches
+    ("generation.py", "_SPECULATIVE_CLASSES"),
+}
+
+
+def test_speculative_keeps_no_module_level_mutable_registries():
+    """No module of speculative/ binds a dict, set, list, weak map or counter at module level (constants are
+    tuples, frozensets, strings, numbers): what the engine keeps is its decoders'."""
+    mutable_calls = {"dict", "set", "list", "WeakKeyDictionary", "WeakValueDictionary", "WeakSet", "count",
+                     "defaultdict", "OrderedDict"}  # fmt: skip
+    found = []
+    for path in sorted(SPECULATIVE.rglob("*.py")):
+        for node in ast.parse(path.read_text()).body:
+            targets, value = [], None
+            if isinstance(node, ast.Assign):
+                targets, value = node.targets, node.value
+            elif isinstance(node, ast.AnnAssign) and node.value is not None:
+                targets, value = [node.target], node.value
+            names = [t.id for t in targets if isinstance(t, ast.Name)]
+            call = value.func if isinstance(value, ast.Call) else None
+            called = getattr(call, "attr", None) or getattr(call, "id", None)
+            if isinstance(value, ast.Dict | ast.Set | ast.List | ast.DictComp | ast.SetComp | ast.ListComp) or (
+                called in mutable_calls
+            ):
+                names = [name for name in names if not name.startswith("__")]  # __all__
+                found += [(path.name, name) for name in names if (path.name, name) not in ALLOWED_MODULE_STATE]
+    assert found == []
