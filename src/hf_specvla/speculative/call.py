@@ -409,13 +409,22 @@ def prepare(
                         None if prompt_padding is None else prompt_padding.bool(), cache)  # fmt: skip
     plan, prefill_key = _round_plan(model, generation_config, settings, drafter, rule, layout, verifier, model_inputs,
                                     position_offsets, past_length, num_new, input_ids, logits_processor)  # fmt: skip
+    pad_token_id = generation_config.pad_token_id
     return SpeculativeCall(
-        state, plan, list(rows), stats, Stopwatch(stats, input_ids.device, settings.profile_speculation),
-        model_inputs, (prompt_ids, prompt_positions), prefill_key, past_length, cached_tokens,
-        generation_config.pad_token_id if generation_config.pad_token_id is not None else (
-            eos_ids[0] if eos_ids else None
-        ), total_start, decoder=SpeculativeDecoder.of(model),
-    )  # fmt: skip
+        state=state,
+        plan=plan,
+        all_rows=list(rows),
+        stats=stats,
+        stopwatch=Stopwatch(stats, input_ids.device, settings.profile_speculation),
+        model_inputs=model_inputs,
+        prompt=(prompt_ids, prompt_positions),
+        prefill_key=prefill_key,
+        past_length=past_length,
+        cached_tokens=cached_tokens,
+        pad_token_id=pad_token_id if pad_token_id is not None else (eos_ids[0] if eos_ids else None),
+        total_start=total_start,
+        decoder=SpeculativeDecoder.of(model),
+    )
 
 
 def _round_plan(model, generation_config, settings, drafter, rule, layout, verifier, model_inputs, position_offsets,

@@ -128,9 +128,17 @@ def speculative_generate(
             stacklevel=_caller_stacklevel(),
         )
     settings = SpeculationConfig(
-        bin_tolerance, num_draft_tokens, action_layout, profile_speculation, confidence_gate, max_relaxed_per_action,
-        max_drafts_per_row, motion_scale, max_deviation, confirm_strict_tail,
-    )  # fmt: skip
+        bin_tolerance=bin_tolerance,
+        num_draft_tokens=num_draft_tokens,
+        action_layout=action_layout,
+        profile_speculation=profile_speculation,
+        confidence_gate=confidence_gate,
+        max_relaxed_per_action=max_relaxed_per_action,
+        max_drafts_per_row=max_drafts_per_row,
+        motion_scale=motion_scale,
+        max_deviation=max_deviation,
+        confirm_strict_tail=confirm_strict_tail,
+    )
     call = prepare(model, input_ids, logits_processor, generation_config, settings, drafter, draft_head, draft_ids,
                    model_kwargs)  # fmt: skip
     call.on_row_finished = on_row_finished
