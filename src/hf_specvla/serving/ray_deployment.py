@@ -294,7 +294,7 @@ class PolicyDeployment:
     """
 
     def __init__(self, app_args: PolicyAppArgs):
-        _, serve = require_ray()
+        ray, serve = require_ray()
         from .app import PolicyRoutes
         from .batching import Batcher
         from .service import PolicyService
@@ -303,8 +303,6 @@ class PolicyDeployment:
         #: this replica's id (unique within the deployment) and its Ray actor's name (namespace ``serve``)
         self.replica, self.replica_actor = context.replica_id.unique_id, context.replica_id.to_full_id_str()
         self.world_size = getattr(context, "world_size", None)  # Ray >= 2.5x
-        import ray
-
         self.node = ray.get_runtime_context().get_node_id()  #: the Ray node this replica runs on
         started = time.perf_counter()
         config = app_args.serve

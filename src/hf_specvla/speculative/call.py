@@ -133,7 +133,7 @@ def _draft_contexts(
     ]
 
 
-def check_continued_cache(model, cache: Cache, batch_size: int) -> None:
+def check_continued_cache(decoder: SpeculativeDecoder, cache: Cache, batch_size: int) -> None:
     """Refuses, before any forward, a cache this call cannot continue exactly: one holding entries a batched
     speculative call left, or one whose layers already hold another number of rows than ``input_ids`` (a static
     cache keeps its rows when emptied).
@@ -144,7 +144,7 @@ def check_continued_cache(model, cache: Cache, batch_size: int) -> None:
     if not holds_buffers(cache) or any(type(layer) not in ROLLBACK_LAYER_TYPES for layer in cache.layers):
         return  # nothing allocated yet (any batch size), or a cache refused for its layers (check_rollback_cache)
     entries = cache_length(cache)
-    if entries and SpeculativeDecoder.of(model).batch_decoded(cache):
+    if entries and decoder.batch_decoded(cache):
         raise ValueError(
             f"this cache holds {entries} entries left by a batched speculative generate call: a batch's "
             f"rows accept different numbers of drafts, so its cache keeps entries of rejected drafts (masked only "
@@ -366,13 +366,14 @@ def prepare(
     session, the round plan (compiled or eager, widths, rule)."""
     drafter, rule, layout = _checked_call(model, input_ids, logits_processor, generation_config, settings, drafter,
                                           draft_head, draft_ids)  # fmt: skip
+    decoder = SpeculativeDecoder.of(model)  # what the engine keeps for this model between calls (after the checks)
     batch_size = input_ids.shape[0]
     eos_ids = generation_config.eos_token_id
     eos_ids = [] if eos_ids is None else ([eos_ids] if isinstance(eos_ids, int) else list(eos_ids))
     prompt_padding = model_kwargs.get("attention_mask")  # [B, past + new] or None (no padding)
     check_left_padded(prompt_padding)
     if model_kwargs.get(CACHE_KEY) is not None:
-        check_continued_cache(model, model_kwargs[CACHE_KEY], batch_size)
+        check_continued_cache(decoder, model_kwargs[CACHE_KEY], batch_size)
     past_length, num_new = _tokens_to_prefill(input_ids, model_kwargs.get(CACHE_KEY), prompt_padding, generation_config)
     if prompt_padding is not None and bool(prompt_padding.all()):
         prompt_padding = None
@@ -423,7 +424,7 @@ def prepare(
         cached_tokens=cached_tokens,
         pad_token_id=pad_token_id if pad_token_id is not None else (eos_ids[0] if eos_ids else None),
         total_start=total_start,
-        decoder=SpeculativeDecoder.of(model),
+        decoder=decoder,
     )
 
 

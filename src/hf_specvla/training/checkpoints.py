@@ -63,9 +63,10 @@ def training_record(command: str, config, inputs: dict, paths: dict | None = Non
     where the inputs were read from and how many processes trained (recorded, never compared). ``batch_size`` is
     recorded as the global batch (``training.processes``): n processes of b examples train as one process of n b."""
     settings = {k: v for k, v in asdict(config).items() if k not in RUN_INDEPENDENT_SETTINGS}
+    processes = launched_processes()
     if "batch_size" in settings:
-        settings["batch_size"] = global_batch_size(settings["batch_size"])
-    paths = {**(paths or {}), **({"processes": launched_processes()} if launched_processes() > 1 else {})}
+        settings["batch_size"] = global_batch_size(settings["batch_size"], processes)
+    paths = {**(paths or {}), **({"processes": processes} if processes > 1 else {})}
     return RunRecord(command, {**settings, **inputs}, paths=paths)
 
 

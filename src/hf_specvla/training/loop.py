@@ -34,7 +34,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from ..progress import progress_bar
 from .checkpoints import resume_step, save_checkpoint
-from .processes import global_batch_size, on_cpu_processes
+from .processes import global_batch_size, mean_over_processes, on_cpu_processes
 
 logger = logging.getLogger(__name__)
 
@@ -92,16 +92,16 @@ def default_accelerator(config) -> Accelerator:
     )  # fmt: skip
 
 
-def _numbers(metrics: dict, accelerator: Accelerator | None = None) -> dict:
+def _numbers(metrics: dict, over_processes: bool = False) -> dict:
     """One-number tensors as floats, longer ones as lists (per step, per position); other values as they are. With
-    ``accelerator``, tensors are first averaged over its processes (every process must call it alike): the log shows
-    the global batch's numbers, not the main process's share."""
+    ``over_processes``, tensors are first averaged over a launched run's processes (``mean_over_processes``; every
+    process must call it alike): the log shows the global batch's numbers, not the main process's share."""
 
     def number(value):
         if not isinstance(value, torch.Tensor):
             return value
-        if accelerator is not None and accelerator.num_processes > 1:
-            value = accelerator.reduce(value.detach().float().to(accelerator.device), reduction="mean")
+        if over_processes:
+            value = mean_over_processes(value.detach().float())
         return value.item() if value.numel() == 1 else [round(x, 4) for x in value.tolist()]  # per step, per position
 
     return {name: number(value) for name, value in metrics.items()}
@@ -178,7 +178,7 @@ def run_training(job: TrainingJob, config, output_dir: Path, accelerator: Accele
                 scheduler.step()
                 optimizer.zero_grad()
             step += 1
-            metrics = _numbers(step_metrics, accelerator)
+            metrics = _numbers(step_metrics, over_processes=True)
             bar.update(1)
             bar.set_postfix({name: f"{value:.4g}" for name, value in list(metrics.items())[:2]})
             last = step >= config.max_steps
@@ -205,7 +205,7 @@ def run_training(job: TrainingJob, config, output_dir: Path, accelerator: Accele
                     "final_metrics": metrics,
                 },
                 indent=2,
-            )  # fmt: skip
+            )
         )
     accelerator.wait_for_everyone()
     logger.info("%s: %d steps, %s", job.description, step, metrics)

@@ -16,6 +16,8 @@ import os
 import torch
 from accelerate import PartialState
 
+from ..progress import is_secondary_process
+
 
 def launched_processes() -> int:
     """How many processes the launcher started (``WORLD_SIZE``; 1 without a launcher). Cheap: no process group."""
@@ -46,8 +48,9 @@ def global_batch_size(batch_size: int, processes: int | None = None) -> int:
 
 
 def is_main_process() -> bool:
-    """True in a run of one process, and in the main process of a launched group: the one that writes."""
-    return launched_processes() == 1 or process_state().is_main_process
+    """True in a run of one process, and in the main process of a launched group: the one that writes (the launcher's
+    ``RANK`` 0, as ``progress.is_secondary_process`` reads it)."""
+    return not is_secondary_process()
 
 
 def mean_over_processes(value: torch.Tensor) -> torch.Tensor:
