@@ -352,3 +352,22 @@ def test_replica_batching_script_compares_serve_batch_with_the_replicas_batcher(
         assert row["batches"] > 5 and row["requests"] >= row["batches"]
         if batching == "Batcher":
             assert row["robots_a_batch"] == 1.0 if robots == 1 else 1.3 <= row["robots_a_batch"] <= 2.0, row
+
+
+@pytest.mark.slow
+def test_session_path_benchmark_tiny_mode(tmp_path):
+    """Its tiny mode: every path decodes the same calls as greedy, greedy through the engine one forward a token,
+    ``exact`` fewer; an existing --json is refused before anything runs."""
+    output = tmp_path / "session.json"
+    result = run_example("benchmarks/session_path.py", "--tiny", "--json", str(output), timeout=600)
+    assert "| path | calls | ms a call (median) | vs greedy:compile (total) |" in result.stdout
+    rows = {row["path"]: row for row in json.loads(output.read_text())["rows"]}
+    assert set(rows) == {"greedy:compile", "none:compile session", "exact generate", "exact session"}
+    calls = rows["greedy:compile"]["calls"]
+    assert all(row["calls_unlike_greedy"] == 0 and row["calls"] == calls for row in rows.values())
+    tokens = rows["greedy:compile"]["target_forwards_per_call"]
+    assert rows["none:compile session"]["target_forwards_per_call"] == tokens
+    assert rows["exact session"]["target_forwards_per_call"] == rows["exact generate"]["target_forwards_per_call"]
+    assert rows["exact session"]["target_forwards_per_call"] < tokens
+    refused = run_example("benchmarks/session_path.py", "--tiny", "--json", str(output), timeout=120, check=False)
+    assert refused.returncode == 2 and "exists" in refused.stderr

@@ -4,7 +4,8 @@ here. Every command that decodes takes these names (eval, compare, serve); ``met
 comparison runs.
 
 Drafters, joined by ``+``: ``head`` (the draft head's chain), ``tree`` (its EAGLE-2 tree), ``prior`` (the episode's
-previous actions), ``jacobi`` (the target's own guesses past a rejection, [`JacobiDrafter`]).
+previous actions), ``jacobi`` (the target's own guesses past a rejection, [`JacobiDrafter`]); ``none`` alone drafts
+nothing and decodes greedily through the engine ([`NoDrafter`], the baseline of the engine's own path).
 
 Options (relaxed acceptance, see ``speculative.acceptance``): ``r=<r>`` the bin tolerance, one int or one per action
 dimension joined by ``/`` (``r=4/4/4/0``: a strict gripper); ``rl=<r>`` the tolerance of a chunk's later actions
@@ -46,8 +47,11 @@ from .configuration_vla import VLAPolicyConfig
 if TYPE_CHECKING:
     from ..speculative import DraftHead, DraftTreeConfig
 
-DRAFTER_CHOICES = ("greedy", "head", "tree", "prior", "prior+head", "prior+tree", "jacobi", "prior+jacobi",
+DRAFTER_CHOICES = ("greedy", "none", "head", "tree", "prior", "prior+head", "prior+tree", "jacobi", "prior+jacobi",
                    "jacobi+tree", "prior+jacobi+tree")  # fmt: skip
+#: drafting nothing: ``greedy`` is transformers' own greedy decoding, ``none`` greedy decoding run by hf_specvla's
+#: engine (one token a verification, through the policy's decoder session: what the engine's path alone saves)
+DRAFTLESS = ("greedy", "none")
 METHOD_KEYS = {"r": "bin tolerance: an int, or one per action dimension joined by / (0 = lossless)",
                "rl": "bin tolerance of a chunk's later actions (default: r)",
                "rho": "motion-scaled tolerance: bins per bin of the target's distance from zero motion, one number or "
@@ -206,9 +210,10 @@ class DecodingMethod:
                      bool(values.get("confirm", 0)))  # fmt: skip
         restricting = [key for key in ("m", "gate", "dev", "confirm") if key in values]
         relaxing = method.widest_tolerance or method.scales_with_motion or "rl" in values or "rho" in values
-        if method.drafters in ("greedy", ORACLE) and (relaxing or restricting or method.num_draft_tokens):
+        if method.drafters in (*DRAFTLESS, ORACLE) and (relaxing or restricting or method.num_draft_tokens):
+            why = "its drafts are greedy's own" if method.drafters == ORACLE else "it drafts nothing"
             raise ValueError(f"decoding method {text!r}: {method.drafters} takes no r, rl, rho, dev, m, gate, "
-                             f"confirm or k (greedy drafts nothing; the oracle's drafts are greedy's own)")  # fmt: skip
+                             f"confirm or k ({why})")  # fmt: skip
         if method.num_draft_tokens is not None and "head" not in method.drafters.split("+"):
             raise ValueError(f"decoding method {text!r}: k (a chain length) needs the head chain (head, prior+head)")
         if not method.widest_tolerance and not method.scales_with_motion and restricting:
@@ -305,6 +310,7 @@ class DecodingMethod:
             DraftHeadDrafter,
             DraftTreeConfig,
             JacobiDrafter,
+            NoDrafter,
             compiled_decoding_kwargs,
         )
 
@@ -315,6 +321,8 @@ class DecodingMethod:
         jacobi = [JacobiDrafter(fill="tree" not in parts)] if "jacobi" in parts else []
         if jacobi and not self.uses_draft_head:
             kwargs["assistant_model"] = jacobi[0]
+        if parts == ["none"]:
+            kwargs["assistant_model"] = NoDrafter()
         if self.uses_draft_head:
             if draft_head is None:
                 raise ValueError(f"decoding method {self.name!r} needs a draft head (--draft-head)")

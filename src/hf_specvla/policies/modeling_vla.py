@@ -35,6 +35,7 @@ from ..run_folder import fingerprint
 from ..speculative import (
     SPECULATION_KWARGS,
     ActionPriorDrafter,
+    DecoderSession,
     DraftHead,
     enable_speculation,
     episode_drafter,
@@ -55,6 +56,9 @@ class VLAPolicy:
         action_layout: the action tokens and ``action_dim`` (what relaxed acceptance needs).
         previous_action_ids: this episode's actions so far as token ids, oldest first (cleared by ``reset``); the
             source of ``predict_action(action_prior=True)``'s drafts.
+        decoder_sessions: speculative calls run through the model's [`DecoderSession`] for their settings (True, the
+            default: ``generate``'s set-up done once per shape, the same tokens); False sends every call through
+            ``model.generate`` (what benchmarks compare the session's path with).
     """
 
     #: previous actions kept for the action prior (as many as it reads).
@@ -74,6 +78,7 @@ class VLAPolicy:
         self.previous_action_ids: list[list[int]] = []
         self.name_or_path: str | None = None  # the folder it was loaded from (from_pretrained)
         self._weights_fingerprint: str | None = None
+        self.decoder_sessions = True
 
     # ----------------------------------------------------------------------------- building
     @classmethod
@@ -245,13 +250,18 @@ class VLAPolicy:
         assistant, num_draft_tokens = kwargs.pop("assistant_model", None), kwargs.pop("num_draft_tokens", None)
         drafter = episode_drafter(assistant, num_draft_tokens, action_prior, histories, self.action_layout,
                                   self.config.chunk_length)  # fmt: skip
-        if drafter is not None:
-            kwargs["assistant_model"] = drafter
+        if drafter is not None:  # a robot's calls repeat one shape and settings: generate's set-up done once
             kwargs.setdefault("action_layout", self.action_layout)
-        elif action_prior:  # the episodes' first step: nothing to draft from, plain greedy decoding
-            for name in (*SPECULATION_KWARGS, "on_row_finished"):  # rows then finish together, after the call
-                kwargs.pop(name, None)
-        output = self.model.generate(**inputs, **kwargs)
+            call = {name: kwargs.pop(name) for name in ("draft_ids", "on_row_finished") if name in kwargs}
+            if self.decoder_sessions:
+                output = DecoderSession.of(self.model, **kwargs).generate(**inputs, assistant_model=drafter, **call)
+            else:
+                output = self.model.generate(**inputs, assistant_model=drafter, **call, **kwargs)
+        else:
+            if action_prior:  # the episodes' first step: nothing to draft from, plain greedy decoding
+                for name in (*SPECULATION_KWARGS, "on_row_finished"):  # rows then finish together, after the call
+                    kwargs.pop(name, None)
+            output = self.model.generate(**inputs, **kwargs)
         actions, action_ids = self.actions_from_generated(output.sequences if hasattr(output, "sequences") else output)
         for history, ids in zip(histories, action_ids):
             remember_actions(history, ids, self.action_layout)

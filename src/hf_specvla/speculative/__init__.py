@@ -48,6 +48,7 @@ from .drafter import (
     Drafter,
     DraftRound,
     DraftSession,
+    NoDrafter,
     PerRowDrafter,
     read_hidden_states,
 )
@@ -76,6 +77,7 @@ from .loop import speculative_generate
 from .masks import causal_mask, to_additive_mask
 from .modeling_draft_head import DraftHead, TargetHandles, check_draft_head_folder, is_local_path, softcap_logits
 from .outputs import SpeculativeDecoderOnlyOutput
+from .session import DecoderSession
 from .stats import SpeculationStats
 from .tree import DraftTree
 from .vision import encode_images, prompt_input_embeddings, reads_encoded_images
@@ -98,6 +100,8 @@ __all__ = [
     "cache_of",
     "reusable_static_cache",
     "SpeculativeDecoder",
+    "DecoderSession",
+    "NoDrafter",
     "check_transformers_support",
     "TargetHandles",
     "as_drafter",

@@ -9,7 +9,9 @@ model. It owns:
 - the static caches the calls reuse ([`static_cache`]: emptied and handed out again, so that compiled graphs and CUDA
   graphs keep reading the same buffers);
 - the caches a batched call decoded on ([`batch_decoded`]: no later call may continue them);
-- the draft trees' structure tensors by shape (``tree_structures``: a round's trees repeat a few shapes).
+- the draft trees' structure tensors by shape (``tree_structures``: a round's trees repeat a few shapes);
+- its decoder sessions by settings (``sessions``: [`DecoderSession`]'s, what ``generate`` prepared for each shape of
+  a robot's calls), the most recently used [`MAX_SESSIONS`].
 
 [`reset_compilation`] is a method of every decoder: ``torch._dynamo.reset()`` drops every model's graphs at once,
 so it moves one epoch that all decoders compare to (the one thing they share), and each forgets what it compiled at
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import weakref
+from collections import OrderedDict
 from typing import TYPE_CHECKING
 
 import torch
@@ -32,6 +35,8 @@ logger = logging.getLogger(__name__)
 
 #: the one attribute a target model holds: its decoder
 DECODER_ATTRIBUTE = "_hf_specvla_decoder"
+#: the decoder sessions a decoder keeps (settings a robot or server calls with), the least recently used dropped
+MAX_SESSIONS = 8
 
 
 class SpeculativeDecoder:
@@ -54,6 +59,8 @@ class SpeculativeDecoder:
         self._batch_decoded: weakref.WeakSet = weakref.WeakSet()
         #: draft trees' structure tensors by shape ([`TreeBatch`]'s ``structures``)
         self.tree_structures: dict[tuple, tuple[torch.Tensor, ...]] = {}
+        #: settings key -> DecoderSession, least recently used first (``DecoderSession.of``)
+        self.sessions: OrderedDict = OrderedDict()
         self.epoch = SpeculativeDecoder._epoch
 
     @classmethod
@@ -83,6 +90,17 @@ class SpeculativeDecoder:
         at their next use: the target's widths and prefills and its drafters' graphs)."""
         torch._dynamo.reset()
         cls._epoch += 1
+
+    def session(self, key, make):
+        """The decoder session under ``key`` (settings), or ``make()``'s, kept under it (the least recently used of
+        more than [`MAX_SESSIONS`] dropped)."""
+        session = self.sessions.get(key)
+        if session is None:
+            session = self.sessions[key] = make()
+            while len(self.sessions) > MAX_SESSIONS:
+                self.sessions.popitem(last=False)
+        self.sessions.move_to_end(key)
+        return session
 
     # ----------------------------------------------------------------- caches
     def static_cache(self, key: tuple, make, like=None) -> StaticCache:

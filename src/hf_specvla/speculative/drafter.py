@@ -212,6 +212,25 @@ class Drafter:
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}: {NOT_ENABLED_HINT}")
 
 
+class _NoDraftSession(DraftSession):
+    def propose(self, draft_round: DraftRound) -> DraftTree:
+        return DraftTree.empty(draft_round.root_position.device)
+
+
+class NoDrafter(Drafter):
+    """Drafts nothing: every round verifies its root alone, one token a target forward, so a call is greedy decoding
+    run by the engine (its compiled calls, static caches and host path): the baseline that tells a speed-up from
+    speculation apart from one from the engine's own path (a [`DecoderSession`] call without drafts)."""
+
+    name = "none"
+
+    def start(self, context: DraftContext) -> DraftSession:
+        return _NoDraftSession()
+
+    def max_tree_nodes(self, max_depth: int) -> int | None:
+        return 0
+
+
 # ----------------------------------------------------------------------------- drafts known up front
 class PathSession(DraftSession):
     """Proposes fixed token paths, aligned with the first generated token: after m tokens were emitted, each

@@ -66,20 +66,8 @@ class SpeculativeGenerationMixin:
             allow_graphs_held(self)
         ours = isinstance(assistant_model, (DraftHead, Drafter))
         if ours or draft_ids is not None:
-            check_transformers_support()
-            if kwargs.get("custom_generate") is not None:
-                raise ValueError("pass either a hf_specvla assistant_model / draft_ids or custom_generate, not both")
-            if kwargs.get("streamer") is not None:
-                raise ValueError("streamer is not supported with speculative decoding; drop streamer=")
-            if assistant_model is not None and not ours:
-                raise TypeError(
-                    f"draft_ids= speculates with hf_specvla's loop, whose assistant must be a DraftHead or a Drafter, "
-                    f"got {type(assistant_model).__name__}"
-                )
-            kwargs = with_compiled_image_features(self, kwargs)  # a compiled call's images: a compiled encoder
-            return super().generate(
-                *args, custom_generate=speculative_generate, drafter=assistant_model, draft_ids=draft_ids, **kwargs
-            )
+            kwargs = speculative_call_kwargs(self, assistant_model, draft_ids, kwargs)
+            return super().generate(*args, custom_generate=speculative_generate, **kwargs)
         if assistant_model is not None and not isinstance(assistant_model, PreTrainedModel):
             raise TypeError(
                 f"assistant_model must be a hf_specvla DraftHead or Drafter (DraftHeadDrafter, ActionPriorDrafter, "
@@ -94,6 +82,29 @@ class SpeculativeGenerationMixin:
                 f"or drop them"
             )
         return super().generate(*args, assistant_model=assistant_model, **kwargs)
+
+
+def speculative_call_kwargs(model: PreTrainedModel, assistant_model, draft_ids, kwargs: dict) -> dict:
+    """The keyword arguments of transformers' ``generate`` for a speculative call (checked): the drafter and
+    ``draft_ids`` as [`speculative_generate`] takes them, a compiled call's images encoded by the compiled encoder;
+    ``custom_generate`` is the caller's to add.
+
+    Raises:
+        ValueError / TypeError: ``custom_generate`` or a ``streamer`` beside a speculative call, an assistant that is
+            not ours beside ``draft_ids``.
+    """
+    check_transformers_support()
+    if kwargs.get("custom_generate") is not None:
+        raise ValueError("pass either a hf_specvla assistant_model / draft_ids or custom_generate, not both")
+    if kwargs.get("streamer") is not None:
+        raise ValueError("streamer is not supported with speculative decoding; drop streamer=")
+    if assistant_model is not None and not isinstance(assistant_model, (DraftHead, Drafter)):
+        raise TypeError(
+            f"draft_ids= speculates with hf_specvla's loop, whose assistant must be a DraftHead or a Drafter, "
+            f"got {type(assistant_model).__name__}"
+        )
+    kwargs = with_compiled_image_features(model, kwargs)  # a compiled call's images: a compiled encoder
+    return {**kwargs, "drafter": assistant_model, "draft_ids": draft_ids}
 
 
 _SPECULATIVE_CLASSES: dict[type, type] = {}

@@ -67,20 +67,31 @@ def with_compiled_image_features(model: PreTrainedModel, kwargs: dict) -> dict:
     has ``mm_encoder_outputs``, its base model ``get_image_features``); else ``kwargs`` unchanged. The encoder's
     inputs (``pixel_values`` and whatever else ``get_image_features`` takes from the call) leave the keyword
     arguments, as transformers' own encoding removes them."""
-    if kwargs.get("pixel_values") is None or kwargs.get(ENCODED_INPUTS) is not None:
-        return kwargs
-    encoder = getattr(model.base_model, "get_image_features", None)
-    if encoder is None or not _forward_takes_encoded_images(type(model)):
-        return kwargs
-    if "image" not in getattr(model, "input_modalities", ()):
+    if not takes_encoded_images(model, kwargs):
         return kwargs
     compile_config = compiled_call_config(model, kwargs)
     if compile_config is None:
         return kwargs
-    inputs = _encoder_inputs(encoder, kwargs)
-    rest = {name: value for name, value in kwargs.items() if name not in inputs}
     verifier = CompiledVerifier.for_model(model, compile_config)
-    encoded = verifier.image_encoder(model, inputs["pixel_values"].shape[0])(**inputs, return_dict=True)
+    return with_encoded_images(model, kwargs, verifier.image_encoder(model, kwargs["pixel_values"].shape[0]))
+
+
+def takes_encoded_images(model: PreTrainedModel, kwargs: dict) -> bool:
+    """Whether ``generate(**kwargs)`` encodes ``kwargs``' images before the prefill (raw ``pixel_values``, no
+    ``mm_encoder_outputs`` yet, an image VLM whose forward takes them encoded and whose base model encodes them)."""
+    if kwargs.get("pixel_values") is None or kwargs.get(ENCODED_INPUTS) is not None:
+        return False
+    if getattr(model.base_model, "get_image_features", None) is None or not _forward_takes_encoded_images(type(model)):
+        return False
+    return "image" in getattr(model, "input_modalities", ())
+
+
+def with_encoded_images(model: PreTrainedModel, kwargs: dict, encoder=None) -> dict:
+    """``kwargs`` with their images encoded as ``generate`` encodes them (by ``encoder``, a compiled
+    ``get_image_features``, or the base model's own), under ``mm_encoder_outputs``; the encoder's inputs removed."""
+    inputs = _encoder_inputs(model.base_model.get_image_features, kwargs)
+    rest = {name: value for name, value in kwargs.items() if name not in inputs}
+    encoded = (encoder or model.base_model.get_image_features)(**inputs, return_dict=True)
     return {**rest, ENCODED_INPUTS: {"image": encoded}}
 
 

@@ -1,0 +1,129 @@
+"""A decoder session (issue 75 item 4): a robot's repeated calls without ``generate``'s set-up. Its calls return
+``generate``'s tokens — one shape, a shape change (a new prompt length, a batch, padding), eager and compiled, images
+encoded as ``generate`` encodes them, every drafter, drafts and no drafts (greedy through the engine) — and it refuses
+settings it was not built for, naming them.
+
+Compiled with dynamo's ``eager`` backend (it traces, guards and recompiles as inductor would)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from transformers import GenerationConfig
+
+from hf_specvla import DraftHead, DraftHeadDrafter, DraftTreeConfig, JacobiDrafter
+from hf_specvla.speculative import DecoderSession, NoDrafter
+
+from ..conftest import llava_prompt
+from .test_compiled_verification import eager_compile_config
+
+NEW_TOKENS = 6
+
+
+def settings(compiled: bool) -> dict:
+    base = dict(max_new_tokens=NEW_TOKENS, do_sample=False)
+    return dict(base, cache_implementation="static", compile_config=eager_compile_config()) if compiled else base
+
+
+def prompt(length: int, seed: int, batch: int = 1) -> torch.Tensor:
+    return torch.randint(6, 64, (batch, length), generator=torch.Generator().manual_seed(seed))
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["eager", "compiled"])
+def test_session_calls_equal_generate_across_calls_and_shapes(tiny_llama, compiled):
+    torch.manual_seed(1)
+    head = DraftHead.from_target(tiny_llama, num_draft_tokens=3).eval()
+    tree = DraftHeadDrafter(head, tree=DraftTreeConfig(top_k=2, depth=3, total_tokens=6))
+    session = DecoderSession(tiny_llama, **settings(compiled))
+    # one shape again and again, then another length (a new bucket), then back: each call generate's tokens
+    for call, (length, seed) in enumerate([(7, 0), (7, 1), (7, 2), (11, 3), (11, 4), (7, 5)]):
+        input_ids = prompt(length, seed)
+        expected = tiny_llama.generate(input_ids=input_ids, **settings(compiled))
+        for assistant in (JacobiDrafter(), head, tree, None):
+            out = session.generate(input_ids, assistant_model=assistant)
+            assert torch.equal(out, expected), (call, length, type(assistant).__name__)
+    # every shape's first call went through generate, the rest past it
+    assert session.calls_through_generate == 2 and session.direct_calls == 6 * 4 - 2
+    assert all(prepared is not None for prepared in session.prepared.values())
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["eager", "compiled"])
+def test_session_batches_padding_draft_ids_and_outputs_equal_generate(tiny_llama, compiled):
+    session = DecoderSession(tiny_llama, return_dict_in_generate=True, pad_token_id=0, **settings(compiled))
+    for seed in range(3):
+        input_ids = prompt(9, seed, batch=3)
+        mask = torch.ones_like(input_ids)
+        mask[1, :3] = mask[2, :5] = 0  # left padding: rows of 9, 6 and 4 tokens
+        input_ids = input_ids.masked_fill(mask == 0, 0)
+        kwargs = dict(attention_mask=mask, pad_token_id=0, **settings(compiled))
+        expected = tiny_llama.generate(input_ids=input_ids, **kwargs)
+        drafts = expected[:, 9:-1].clone()
+        drafts[0, 1] = (drafts[0, 1] + 1) % 64  # row 0's second draft wrong
+        out = session.generate(input_ids, attention_mask=mask, draft_ids=drafts, assistant_model=JacobiDrafter())
+        assert torch.equal(out.sequences, expected), seed
+        assert out.speculation.num_new_tokens == 3 * NEW_TOKENS
+        greedy = session.generate(input_ids, attention_mask=mask)  # no drafts: the engine's greedy
+        assert torch.equal(greedy.sequences, expected)
+        assert greedy.speculation.num_batch_forwards == NEW_TOKENS  # one token a forward
+    assert session.direct_calls == 5
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["eager", "compiled"])
+def test_session_encodes_images_as_generate_does(tiny_llava, random_llava_draft, compiled):
+    session = DecoderSession(tiny_llava, **settings(compiled))
+    for seed in range(3):
+        inputs = llava_prompt(torch.Generator().manual_seed(seed), text_len=5)
+        expected = tiny_llava.generate(**inputs, **settings(compiled))
+        for assistant in (random_llava_draft, JacobiDrafter()):
+            out = session.generate(**inputs, assistant_model=assistant)
+            assert torch.equal(out, expected), (seed, type(assistant).__name__)
+    assert session.direct_calls == 5
+
+
+def test_session_samples_as_generate_does(tiny_llama):
+    config = GenerationConfig(do_sample=True, temperature=0.7, top_k=20, max_new_tokens=NEW_TOKENS)
+    session = DecoderSession(tiny_llama, generation_config=config)
+    for seed in range(3):
+        input_ids = prompt(8, seed)
+        torch.manual_seed(seed)
+        expected = tiny_llama.generate(input_ids=input_ids, generation_config=config, assistant_model=JacobiDrafter())
+        torch.manual_seed(seed)
+        assert torch.equal(session.generate(input_ids, assistant_model=JacobiDrafter()), expected), seed
+    assert session.direct_calls == 2
+
+
+def test_session_keeps_nothing_that_depends_on_more_than_the_shape(tiny_llama):
+    session = DecoderSession(tiny_llama, max_new_tokens=NEW_TOKENS, max_time=30.0)  # a timer: its start is per call
+    input_ids = prompt(7, 0)
+    expected = tiny_llama.generate(input_ids=input_ids, max_new_tokens=NEW_TOKENS)
+    for _ in range(3):
+        assert torch.equal(session.generate(input_ids, assistant_model=JacobiDrafter()), expected)
+    assert session.direct_calls == 0 and session.calls_through_generate == 3
+    assert list(session.prepared.values()) == [None]
+
+
+def test_session_refuses_settings_it_was_not_built_for(tiny_llama):
+    session = DecoderSession(tiny_llama, max_new_tokens=NEW_TOKENS, bin_tolerance=0)
+    input_ids = prompt(7, 0)
+    with pytest.raises(ValueError, match=r"bin_tolerance.*this one's: max_new_tokens=6, bin_tolerance=0"):
+        session.generate(input_ids, assistant_model=JacobiDrafter(), bin_tolerance=2)
+    with pytest.raises(ValueError, match="max_new_tokens"):
+        session.generate(input_ids, assistant_model=JacobiDrafter(), max_new_tokens=3)
+    with pytest.raises(ValueError, match="do_sample"):
+        session.generate(input_ids, do_sample=True)
+    with pytest.raises(ValueError, match="past_key_values.*belong to a call"):
+        DecoderSession(tiny_llama, max_new_tokens=3, past_key_values=None)
+    with pytest.raises(TypeError, match="speculation-enabled"):
+        DecoderSession(torch.nn.Linear(2, 2))
+    with pytest.raises(TypeError, match="DraftHead or Drafter, got str"):
+        session.generate(input_ids, assistant_model="gpt2")
+    assert session.calls_through_generate == session.direct_calls == 0  # nothing ran
+
+
+def test_no_drafter_decodes_greedily_one_token_a_forward(tiny_llama):
+    input_ids = prompt(7, 3)
+    expected = tiny_llama.generate(input_ids=input_ids, max_new_tokens=NEW_TOKENS, do_sample=False)
+    out = tiny_llama.generate(input_ids=input_ids, max_new_tokens=NEW_TOKENS, assistant_model=NoDrafter(),
+                              return_dict_in_generate=True)  # fmt: skip
+    assert torch.equal(out.sequences, expected)
+    assert out.speculation.num_target_forwards == NEW_TOKENS and set(out.speculation.tree_sizes) == {0}
