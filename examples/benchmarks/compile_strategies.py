@@ -5,8 +5,9 @@ every layer), at a few verification widths and a prefill; interleaved, medians.
     python examples/benchmarks/compile_strategies.py --policy policies/mt10_vla3 --repeats 20 --threads 1
     python examples/benchmarks/compile_strategies.py --tiny --backend eager   # a random 2-layer Llama, seconds
 
-The verifications run through the engine's own ``verify_trees`` on a static cache (the pending token, filler draft
-nodes padded to the width, the explicit tree mask), rolled back after each call, exactly as a compiled round runs.
+The verifications run through the engine's own ``CompiledVerification`` on a static cache (the pending token, filler
+draft nodes padded to the width, the explicit tree mask), rolled back after each call, exactly as a compiled round
+runs.
 """
 
 from __future__ import annotations
@@ -70,7 +71,7 @@ def main(argv=None) -> dict:
     from hf_specvla.speculative.cache import cache_length, truncate_cache
     from hf_specvla.speculative.compiled import allow_graphs
     from hf_specvla.speculative.tree import DraftTree, TreeBatch
-    from hf_specvla.speculative.verify import verify_trees
+    from hf_specvla.speculative.verify import CompiledVerification, Pending
 
     model = load_model(args)
     slots = 128
@@ -85,8 +86,9 @@ def main(argv=None) -> dict:
         positions = torch.arange(length, length + pending)[None]
         trees = TreeBatch([DraftTree.empty(torch.device("cpu"))], min_nodes=nodes)
         with torch.no_grad():
-            verify_trees(model, {CACHE_KEY: cache}, pending_ids, positions, trees, None, False, key_length=slots,
-                         forward=forward)  # fmt: skip
+            CompiledVerification(forward, None, key_length=slots).verify(
+                model, Pending({CACHE_KEY: cache}, pending_ids, positions), trees
+            )
         truncate_cache(cache, length)
 
     compile_seconds = {}

@@ -108,8 +108,7 @@ def run(args: argparse.Namespace) -> list[dict]:
         tasks, episodes, steps = tasks[:1], 1, 6
     calls = greedy_calls(policy, tasks, episodes, args.seed_start, steps)
     device, dim = policy.model.device.type, policy.config.action_dim
-    kwargs = {path: DecodingMethod.parse(method).generate_kwargs(None, device, None, dim)
-              for path, (method, _) in PATHS.items()}  # fmt: skip
+    plans = {path: DecodingMethod.parse(method).plan(None, device, None, dim) for path, (method, _) in PATHS.items()}
     tokens = policy.config.action_tokens
 
     def decode(path: str, call: dict) -> tuple[float, list[int], int]:
@@ -118,7 +117,7 @@ def run(args: argparse.Namespace) -> list[dict]:
         obs = call["obs"]
         start = time.perf_counter()
         _, output = policy.predict_action(obs["image"], obs["instruction"], obs["state"], return_output=True,
-                                          **kwargs[path])  # fmt: skip
+                                          decoding=plans[path])  # fmt: skip
         seconds = time.perf_counter() - start
         stats = getattr(output, "speculation", None)
         return seconds, output.sequences[0, -tokens:].tolist(), tokens if stats is None else stats.num_target_forwards

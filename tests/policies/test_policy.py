@@ -357,3 +357,35 @@ def test_bad_batches(policy):
         policy.predict_action(images[:, :16, :16], instructions, states)
     with pytest.raises(ValueError, match="previous_action_ids is for a batch"):
         policy.predict_action(images[0], instructions[0], states[0], previous_action_ids=[[]])
+
+
+@pytest.mark.parametrize("method", ["exact", "prior+jacobi:r=2", "none:compile", "greedy"])
+def test_a_decoding_plan_decodes_as_its_loose_options_and_the_session_as_generate(policy, method):
+    """``predict_action(decoding=plan)`` (a method made concrete, typed) decodes what the same method as loose
+    options does, and the policy's decoder session (its default for speculative calls) what ``model.generate`` does,
+    call after call of one episode; a plan beside loose options that say the same is refused, naming them."""
+    from hf_specvla.policies.decoding_methods import DecodingMethod
+
+    decoding = DecodingMethod.parse(method, action_dim=4)
+    plan = decoding.plan(None, action_dim=4)
+    loose = decoding.generate_kwargs(None, action_dim=4)
+    runs = {}
+    for name, sessions, options in (("plan", True, {"decoding": plan}), ("loose", True, loose),
+                                    ("generate", False, {"decoding": plan})):  # fmt: skip
+        policy.reset()
+        policy.decoder_sessions = sessions
+        runs[name] = []
+        for seed in range(4):
+            image, state = observation(seed % 2)  # the same observations again: the prior's drafts are right
+            action, out = policy.predict_action(image, "reach the goal", state, return_output=True, **options)
+            forwards = getattr(out, "speculation", None)
+            runs[name].append((action.tolist(), None if forwards is None else forwards.num_target_forwards))
+    policy.decoder_sessions = True
+    assert runs["plan"] == runs["loose"] == runs["generate"]
+    if plan.speculates:
+        from hf_specvla.speculative import SpeculativeDecoder
+
+        assert any(session.direct_calls for session in SpeculativeDecoder.of(policy.model).sessions.values())
+        with pytest.raises(ValueError, match=r"decoding=DecodingPlan\(\.\.\.\) and bin_tolerance, action_prior"):
+            policy.predict_action(*observation(0)[:1], "reach the goal", observation(0)[1], decoding=plan,
+                                  action_prior=True, bin_tolerance=1)  # fmt: skip

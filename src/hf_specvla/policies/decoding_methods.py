@@ -39,7 +39,7 @@ verify drafts through the same compiled model call (``speculative.compiled``).""
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from .configuration_vla import VLAPolicyConfig
@@ -295,16 +295,21 @@ class DecodingMethod:
     def lossless(self) -> bool:
         return (self.widest_tolerance == 0 and not self.scales_with_motion) or self.max_relaxed_per_action == 0
 
-    def generate_kwargs(
+    def plan(
         self,
         draft_head: DraftHead | None,
         device_type: str = "cpu",
         tree: DraftTreeConfig | None = None,
         action_dim: int | None = None,
-    ) -> dict:
-        """``predict_action`` options for this method (``device_type``: the policy's, for ``:compile``; ``tree``: the
-        EAGLE-2 tree of ``tree`` methods, default ``DraftTreeConfig()``; ``action_dim``: the policy's, needed when a
-        chunk's later actions have their own tolerance)."""
+    ) -> DecodingPlan:
+        """This method made concrete for a policy ([`DecodingPlan`]: its drafters, acceptance and compilation;
+        ``device_type``: the policy's, for ``:compile``; ``tree``: the EAGLE-2 tree of ``tree`` methods, default
+        ``DraftTreeConfig()``; ``action_dim``: the policy's, needed when a chunk's later actions have their own
+        tolerance).
+
+        Raises:
+            ValueError: a method with a head and no ``draft_head``; ``rl`` without ``action_dim``.
+        """
         from ..speculative import (
             ComposedDrafter,
             DraftHeadDrafter,
@@ -316,29 +321,80 @@ class DecodingMethod:
 
         _check_action_dim(action_dim)
         parts = self.drafters.split("+")
-        kwargs: dict = compiled_decoding_kwargs(device_type) if self.compiled else {}
+        assistant, num_draft_tokens = None, None
         # Jacobi drafts fill a round that nothing else drafts (the first); beside a tree, the tree drafts every round
         jacobi = [JacobiDrafter(fill="tree" not in parts)] if "jacobi" in parts else []
         if jacobi and not self.uses_draft_head:
-            kwargs["assistant_model"] = jacobi[0]
+            assistant = jacobi[0]
         if parts == ["none"]:
-            kwargs["assistant_model"] = NoDrafter()
+            assistant = NoDrafter()
         if self.uses_draft_head:
             if draft_head is None:
                 raise ValueError(f"decoding method {self.name!r} needs a draft head (--draft-head)")
             if "tree" in parts:
                 head_tree = DraftHeadDrafter(draft_head, tree=tree or DraftTreeConfig())
-                kwargs["assistant_model"] = ComposedDrafter(jacobi + [head_tree]) if jacobi else head_tree
+                assistant = ComposedDrafter(jacobi + [head_tree]) if jacobi else head_tree
             else:
-                kwargs["assistant_model"] = draft_head
-                if self.num_draft_tokens is not None:
-                    kwargs["num_draft_tokens"] = self.num_draft_tokens
-        if "prior" in parts:
-            kwargs["action_prior"] = True
+                assistant, num_draft_tokens = draft_head, self.num_draft_tokens
         if self.later_tolerance is not None and action_dim is None and not self.lossless:
             raise ValueError(f"decoding method {self.name!r}: rl (a chunk's later actions) needs the action_dim")
-        kwargs.update(self.rule_kwargs(action_dim or 1))
-        return kwargs
+        return DecodingPlan(
+            assistant_model=assistant,
+            action_prior="prior" in parts,
+            num_draft_tokens=num_draft_tokens,
+            acceptance=self.rule_kwargs(action_dim or 1),
+            compile=compiled_decoding_kwargs(device_type) if self.compiled else {},
+        )
+
+    def generate_kwargs(
+        self,
+        draft_head: DraftHead | None,
+        device_type: str = "cpu",
+        tree: DraftTreeConfig | None = None,
+        action_dim: int | None = None,
+    ) -> dict:
+        """``predict_action``'s keyword arguments for this method: [`plan`]'s as one dict
+        ([`DecodingPlan.predict_kwargs`], what every entry point that takes ``generate`` options accepts)."""
+        return self.plan(draft_head, device_type, tree, action_dim).predict_kwargs()
+
+
+@dataclass(frozen=True)
+class DecodingPlan:
+    """A decoding method made concrete for one policy ([`DecodingMethod.plan`]), typed: what drafts, how drafts are
+    accepted, whether the call compiles. ``predict_action(..., decoding=plan)`` takes it whole.
+
+    Attributes:
+        assistant_model: what drafts after the prefill (a [`Drafter`] or a bare [`DraftHead`]), or None (nothing,
+            or the action prior alone).
+        action_prior: draft each action from the episode's previous actions, verified inside the prefill.
+        num_draft_tokens: a bare draft head's chain length, or None (its config's).
+        acceptance: the acceptance rule's ``generate`` arguments (``bin_tolerance``, ``motion_scale``, ...; empty:
+            lossless).
+        compile: ``generate``'s compilation arguments (a static cache and a ``CompileConfig``; empty: eager).
+    """
+
+    assistant_model: object = None
+    action_prior: bool = False
+    num_draft_tokens: int | None = None
+    acceptance: dict = field(default_factory=dict)
+    compile: dict = field(default_factory=dict)
+
+    @property
+    def speculates(self) -> bool:
+        """Whether anything drafts (greedy decoding otherwise)."""
+        return self.assistant_model is not None or self.action_prior
+
+    def predict_kwargs(self) -> dict:
+        """The plan as ``predict_action``'s loose keyword arguments (``assistant_model=``, ``action_prior=``, the
+        acceptance and compilation arguments)."""
+        kwargs: dict = dict(self.compile)
+        if self.assistant_model is not None:
+            kwargs["assistant_model"] = self.assistant_model
+        if self.num_draft_tokens is not None:
+            kwargs["num_draft_tokens"] = self.num_draft_tokens
+        if self.action_prior:
+            kwargs["action_prior"] = True
+        return {**kwargs, **self.acceptance}
 
 
 def _parse_option(text: str, key: str, value: str):

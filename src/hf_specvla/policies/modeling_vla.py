@@ -44,6 +44,7 @@ from ..speculative import (
     with_generation_config,
 )
 from .configuration_vla import POLICY_CONFIG_NAME, VLAPolicyConfig, check_policy_folder
+from .decoding_methods import DecodingPlan
 from .processing_vla import VLAProcessor
 
 
@@ -168,6 +169,7 @@ class VLAPolicy:
         return_output: bool = False,
         action_prior: bool = False,
         previous_action_ids: list[list[list[int]]] | None = None,
+        decoding: DecodingPlan | None = None,
         **generate_kwargs,
     ):
         """The action for one observation, or the actions for a batch of observations (one ``generate`` call).
@@ -185,6 +187,9 @@ class VLAPolicy:
             previous_action_ids: for a batch, each row's episode memory (its previous actions as token ids, oldest
                 first): read by ``action_prior`` and updated in place with the new actions. A single observation
                 uses the policy's own ``previous_action_ids`` (cleared by ``reset``).
+            decoding: a decoding method made concrete ([`DecodingMethod.plan`]: what drafts, the acceptance, the
+                compilation), instead of the same as loose options (``assistant_model=``, ``action_prior=``,
+                ``bin_tolerance=``, ...), which it may not be mixed with.
             generate_kwargs: anything ``generate`` accepts, e.g. ``assistant_model=draft_head, bin_tolerance=2``.
                 Decoding is greedy unless asked otherwise: ``generation_config=GenerationConfig(do_sample=True, ...)``
                 (or ``do_sample=True``) samples, verified by speculative sampling when drafts are given (lossless
@@ -195,8 +200,10 @@ class VLAPolicy:
             output if ``return_output``.
 
         Raises:
-            ValueError: a batch whose images, instructions, states or memories disagree in number.
+            ValueError: a batch whose images, instructions, states or memories disagree in number; a ``decoding``
+                plan beside loose options that say the same.
         """
+        plan = _decoding_plan(decoding, action_prior, generate_kwargs)
         batched = np.asarray(image).ndim == 4
         if not batched:
             if previous_action_ids is not None:
@@ -211,8 +218,7 @@ class VLAPolicy:
             states = [None] * count if state is None else self._rows("state", list(np.asarray(state)), count)
             histories = [[] for _ in images] if previous_action_ids is None else previous_action_ids
             self._rows("previous_action_ids", histories, count)
-        actions, output = self._act(images, instructions, states, histories, action_prior, return_output,
-                                    generate_kwargs)  # fmt: skip
+        actions, output = self._act(images, instructions, states, histories, plan, return_output, generate_kwargs)
         if not batched:
             self.previous_action_ids = histories[0]
             actions = actions[0]
@@ -230,8 +236,10 @@ class VLAPolicy:
             raise ValueError(f"a batch of {batch_size} images needs {batch_size} {name} rows, got {len(values)}")
         return values
 
-    def _act(self, images, instructions, states, histories, action_prior, return_output, generate_kwargs):
-        """One ``generate`` over the batch (prompts left-padded); updates ``histories`` in place."""
+    def _act(self, images, instructions, states, histories, plan: DecodingPlan, return_output: bool,
+             generate_kwargs: dict):  # fmt: skip
+        """One ``generate`` over the batch (prompts left-padded) as ``plan`` decodes; updates ``histories`` in
+        place."""
         prompts = [self.prompt_ids(i, s) for i, s in zip(instructions, states)]
         width = max(len(p) for p in prompts)
         pad_id = self.tokenizer.pad_token_id
@@ -245,22 +253,25 @@ class VLAPolicy:
         if length:
             raise ValueError(f"predict_action decodes the policy's {self.config.action_tokens} action tokens: drop "
                              f"{', '.join(length)}")  # fmt: skip
+        generate_kwargs = dict(generate_kwargs)
         generation_config = generate_kwargs.pop("generation_config", None)
-        kwargs = self._generation_settings(generation_config, pad_id, return_output, generate_kwargs)
-        assistant, num_draft_tokens = kwargs.pop("assistant_model", None), kwargs.pop("num_draft_tokens", None)
-        drafter = episode_drafter(assistant, num_draft_tokens, action_prior, histories, self.action_layout,
-                                  self.config.chunk_length)  # fmt: skip
+        kwargs = self._generation_settings(generation_config, pad_id, return_output,
+                                           {**plan.compile, **generate_kwargs})  # fmt: skip
+        drafter = episode_drafter(plan.assistant_model, plan.num_draft_tokens, plan.action_prior, histories,
+                                  self.action_layout, self.config.chunk_length)  # fmt: skip
         if drafter is not None:  # a robot's calls repeat one shape and settings: generate's set-up done once
-            kwargs.setdefault("action_layout", self.action_layout)
+            kwargs = {"action_layout": self.action_layout, **kwargs, **plan.acceptance}
             call = {name: kwargs.pop(name) for name in ("draft_ids", "on_row_finished") if name in kwargs}
             if self.decoder_sessions:
                 output = DecoderSession.of(self.model, **kwargs).generate(**inputs, assistant_model=drafter, **call)
             else:
                 output = self.model.generate(**inputs, assistant_model=drafter, **call, **kwargs)
         else:
-            if action_prior:  # the episodes' first step: nothing to draft from, plain greedy decoding
+            if plan.action_prior:  # the episodes' first step: nothing to draft from, plain greedy decoding
                 for name in (*SPECULATION_KWARGS, "on_row_finished"):  # rows then finish together, after the call
                     kwargs.pop(name, None)
+            else:
+                kwargs.update(plan.acceptance)  # (generate refuses an acceptance rule with nothing to draft)
             output = self.model.generate(**inputs, **kwargs)
         actions, action_ids = self.actions_from_generated(output.sequences if hasattr(output, "sequences") else output)
         for history, ids in zip(histories, action_ids):
@@ -332,3 +343,33 @@ class VLAPolicy:
         policy = cls(model.eval(), tokenizer, config)
         policy.name_or_path = str(folder)
         return policy
+
+
+#: ``predict_action``'s loose options that a [`DecodingPlan`] holds (beside one they are refused)
+_PLAN_OPTIONS = ("assistant_model", "num_draft_tokens", "cache_implementation", "compile_config")
+
+
+def _decoding_plan(decoding: DecodingPlan | None, action_prior: bool, generate_kwargs: dict) -> DecodingPlan:
+    """The call's [`DecodingPlan`]: ``decoding``, or the loose options' (taken out of ``generate_kwargs``: the
+    assistant, a chain length, the acceptance rule's arguments and the compilation's).
+
+    Raises:
+        ValueError: ``decoding`` beside loose options that say the same, naming them.
+    """
+    from ..speculative.config import RULE_ARGUMENTS
+
+    loose = [name for name in (*_PLAN_OPTIONS, *RULE_ARGUMENTS) if name in generate_kwargs]
+    if decoding is not None:
+        if action_prior or loose:
+            given = ", ".join(loose + (["action_prior"] if action_prior else []))
+            raise ValueError(f"predict_action got decoding={type(decoding).__name__}(...) and {given}: the plan says "
+                             f"what drafts, how drafts are accepted and whether the call compiles; pass one or the "
+                             f"other")  # fmt: skip
+        return decoding
+    return DecodingPlan(
+        assistant_model=generate_kwargs.pop("assistant_model", None),
+        action_prior=action_prior,
+        num_draft_tokens=generate_kwargs.pop("num_draft_tokens", None),
+        acceptance={name: generate_kwargs.pop(name) for name in RULE_ARGUMENTS if name in generate_kwargs},
+        compile={name: generate_kwargs.pop(name) for name in _PLAN_OPTIONS[2:] if name in generate_kwargs},
+    )

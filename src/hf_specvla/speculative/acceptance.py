@@ -34,6 +34,17 @@ sampling for trees, every draft a point mass), so the output is distributed exac
 relaxed rules are greedy-only.
 
 Every rule is exact where its tolerance is 0: ``bin_tolerance=0`` is greedy decoding whatever the gate or budget.
+
+The rules say which token passes; the **path search** says which path of each tree is kept, under one contract,
+[`accept_trees`]: ``(trees, the target's ids [B, 1 + N], rule, ...) -> one AcceptedPath a row`` (the deepest passing
+path, then the closest, then the first; its bonus token). Three routes compute it, each chosen by what the call
+already has, and they agree on random trees (tests/speculative/test_acceptance.py):
+
+* [`exact_paths_on_host`]: exact matching on trees the host drafted (the previous action, Jacobi guesses), a walk in
+  Python after one read of the target's ids;
+* [`search_paths`]: any rule, on the device, tensors in and one packed tensor out ([`read_paths`] reads it);
+* the same [`search_paths`] inside a compiled round's graph (``speculative.fused``, ``FusedVerification``): the
+  verification returns its packed rows and the host reads them once.
 """
 
 from __future__ import annotations

@@ -6,9 +6,10 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 
 import torch
-from transformers import GenerationConfig
+from transformers import GenerationConfig, LogitsProcessorList
 from transformers.cache_utils import Cache
 from transformers.generation.logits_process import PrefixConstrainedLogitsProcessor
 
@@ -41,7 +42,7 @@ from .fused import GraphAcceptance, accepts_in_graph, eos_hiding
 from .outputs import SpeculativeDecoderOnlyOutput
 from .state import DecodeState, RoundPlan, RowState, SpeculativeCall, Stopwatch
 from .stats import SpeculationStats
-from .verify import prefill_inputs
+from .verify import CompiledVerification, EagerVerification, FusedVerification, prefill_inputs
 from .vision import prompt_input_embeddings
 
 logger = logging.getLogger(__name__)
@@ -337,7 +338,21 @@ def check_left_padded(attention_mask: torch.Tensor | None) -> None:
         )
 
 
-def _checked_call(model, input_ids, logits_processor, generation_config, settings, drafter, draft_head, draft_ids):
+@dataclass(frozen=True)
+class CheckedCall:
+    """A call's arguments once checked ([`_checked_call`], before any forward): what ``generate`` prepared, the
+    engine's settings, what drafts and how drafts are accepted."""
+
+    generation_config: GenerationConfig
+    logits_processor: LogitsProcessorList
+    settings: SpeculationConfig
+    drafter: Drafter
+    rule: AcceptanceRule
+    layout: ActionLayout | None
+
+
+def _checked_call(model, input_ids, logits_processor, generation_config, settings, drafter, draft_head,
+                  draft_ids) -> CheckedCall:  # fmt: skip
     """Every argument of the call checked (before any forward): the drafter, the acceptance rule and its layout, and
     the candidates of ``draft_ids``."""
     batch_size = input_ids.shape[0]
@@ -356,7 +371,7 @@ def _checked_call(model, input_ids, logits_processor, generation_config, setting
         )
     if candidates is not None:
         _check_draft_ids_are_actions(candidates, rule, layout)
-    return drafter, rule, layout
+    return CheckedCall(generation_config, logits_processor, settings, drafter, rule, layout)
 
 
 def prepare(
@@ -364,8 +379,9 @@ def prepare(
 ) -> SpeculativeCall:
     """1. The call checked and set up: the prefill's inputs on a cache with room for the trees, each row's drafter
     session, the round plan (compiled or eager, widths, rule)."""
-    drafter, rule, layout = _checked_call(model, input_ids, logits_processor, generation_config, settings, drafter,
-                                          draft_head, draft_ids)  # fmt: skip
+    checked = _checked_call(model, input_ids, logits_processor, generation_config, settings, drafter, draft_head,
+                            draft_ids)  # fmt: skip
+    drafter, layout = checked.drafter, checked.layout
     decoder = SpeculativeDecoder.of(model)  # what the engine keeps for this model between calls (after the checks)
     batch_size = input_ids.shape[0]
     eos_ids = generation_config.eos_token_id
@@ -408,8 +424,8 @@ def prepare(
     ]
     state = DecodeState(rows, prompt_ids, prompt_positions, position_offsets,
                         None if prompt_padding is None else prompt_padding.bool(), cache)  # fmt: skip
-    plan, prefill_key = _round_plan(model, generation_config, settings, drafter, rule, layout, verifier, model_inputs,
-                                    position_offsets, past_length, num_new, input_ids, logits_processor)  # fmt: skip
+    plan, prefill_key = _round_plan(model, checked, verifier, model_inputs, prompt_ids, position_offsets, past_length,
+                                    input_ids.shape[1])  # fmt: skip
     pad_token_id = generation_config.pad_token_id
     return SpeculativeCall(
         state=state,
@@ -428,10 +444,17 @@ def prepare(
     )
 
 
-def _round_plan(model, generation_config, settings, drafter, rule, layout, verifier, model_inputs, position_offsets,
-                past_length: int, num_new: int, input_ids,
-                logits_processor) -> tuple[RoundPlan, tuple | None]:  # fmt: skip
-    """What every round reads ([`RoundPlan`]), and the compiled prefill graph this call can use (None: eager)."""
+def _round_plan(model, checked: CheckedCall, verifier: CompiledVerifier | None, model_inputs: dict,
+                prompt_ids: torch.Tensor, position_offsets, past_length: int,
+                input_length: int) -> tuple[RoundPlan, tuple | None]:  # fmt: skip
+    """What every round reads ([`RoundPlan`]), and the compiled prefill graph this call can use (None: eager).
+
+    Args:
+        prompt_ids: ``[B, P]`` the tokens the prefill feeds; ``input_length``: the rows' length before the call
+            (the cached tokens and those).
+    """
+    generation_config, settings, drafter = checked.generation_config, checked.settings, checked.drafter
+    num_new, batch_size = prompt_ids.shape[1], prompt_ids.shape[0]
     cache = model_inputs[CACHE_KEY]
     capacity = static_capacity(cache)
     output_hidden = tuple(drafter.hidden_state_layers) if drafter.needs_hidden_states else None
@@ -440,34 +463,42 @@ def _round_plan(model, generation_config, settings, drafter, rule, layout, verif
     prefix_attention = model_inputs.get("token_type_ids") is not None
     prefill_key = None
     if verifier is not None and not prefix_attention and position_offsets is None and not past_length:
-        prefill_key = verifier.prefill_key(capacity, output_hidden, num_new, input_ids.shape[0])
+        prefill_key = verifier.prefill_key(capacity, output_hidden, num_new, batch_size)
     return_dict = generation_config.return_dict_in_generate
     keep_scores = bool(return_dict and generation_config.output_scores)
     keep_logits = bool(return_dict and generation_config.output_logits)
     sampling = bool(generation_config.do_sample)
-    acceptance = None  # a compiled round's acceptance inside its forward's graph, where it can go
-    if verifier is not None and accepts_in_graph(rule, sampling, keep_scores, keep_logits, position_offsets):
-        eos = eos_hiding(logits_processor, input_ids.device)
+    window = sliding_window(cache)
+    verification = prefill_verification = EagerVerification(output_hidden, window, capacity)
+    if verifier is not None:  # rounds at fixed widths through the compiled call, the acceptance in its graph if it can
+        eos = None
+        if accepts_in_graph(checked.rule, sampling, keep_scores, keep_logits, position_offsets):
+            eos = eos_hiding(checked.logits_processor, prompt_ids.device)
         if eos is not None:
             acceptance = GraphAcceptance(verifier.accepting_call(model, output_hidden), *eos)
+            verification = FusedVerification(acceptance, output_hidden, window, capacity, verifier, model.dtype)
+        else:
+            verification = CompiledVerification(verifier.call, output_hidden, window, capacity, verifier, model.dtype)
+        prefill_call = None if prefill_key is None else verifier.prefill_call(prefill_key)
+        if prefill_call is not None:  # its graph compiled by an earlier call
+            prefill_verification = CompiledVerification(prefill_call, output_hidden, window, capacity)
     plan = RoundPlan(
         max_length=generation_config.max_length,
-        rule=rule,
-        layout=layout,
+        rule=checked.rule,
+        layout=checked.layout,
         output_hidden=output_hidden,
-        window=sliding_window(cache),
+        window=window,
         capacity=capacity,
+        verification=verification,
+        prefill_verification=prefill_verification,
         verifier=verifier,
-        compiled_prefill=None if prefill_key is None else verifier.prefill_call(prefill_key),
         # the deepest a round after the prefill can draft: max_new_tokens - 1 (the bonus token takes the last slot)
-        buckets=buckets_up_to(_widest_tree(drafter, generation_config.max_length - input_ids.shape[1] - 1, settings)),
+        buckets=buckets_up_to(_widest_tree(drafter, generation_config.max_length - input_length - 1, settings)),
         prefix_attention=prefix_attention,
         max_drafts=settings.max_drafts_per_row,
         keep_scores=keep_scores,
         keep_logits=keep_logits,
         sampling=sampling,
-        acceptance=acceptance,
-        dtype=model.dtype,
         tree_structures=SpeculativeDecoder.of(model).tree_structures,
     )
     return plan, prefill_key

@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from functools import cache
 from types import MappingProxyType
 
@@ -35,11 +36,10 @@ from transformers import GenerationConfig, PreTrainedModel
 from transformers.cache_utils import Cache
 
 from .cache import cache_batch_size, cache_length, is_static_cache, preserved_entries, truncate_cache
-from .compat import CACHE_KEY
 from .decoder import DECODER_ATTRIBUTE, SpeculativeDecoder
-from .fused import GraphAcceptance, accepting_forward, full_guards_asked, round_guards
+from .fused import accepting_forward, full_guards_asked, round_guards
 from .tree import DraftTree, TreeBatch
-from .verify import InputBuffers, verify_trees
+from .verify import CompiledVerification, InputBuffers, Pending, Verification
 
 logger = logging.getLogger(__name__)
 
@@ -189,7 +189,7 @@ class CompiledVerifier:
 
     On a CUDA device transformers' ``CompileConfig`` compiles with ``mode="reduce-overhead"``: each (batch size,
     width) graph is captured as a CUDA graph, its inputs copied into static buffers at each replay (the outputs, which
-    the next replay overwrites, are copied by [`verify_trees`]); elsewhere inductor's default mode.
+    the next replay overwrites, are copied by [`CompiledVerification`]); elsewhere inductor's default mode.
 
     It also owns the graph budget: dynamo's recompile limit (a per-thread setting, counted per code object across
     every caller) is raised from the graphs dynamo itself holds for the model's forward and the drafters' functions
@@ -321,14 +321,13 @@ class CompiledVerifier:
         """The compiled prefill for ``key`` when an earlier call compiled its graph, else None (an eager prefill)."""
         return PrefillCall(self.call) if key in self.prefills_compiled else None
 
-    def compile_prefill(
-        self, model: PreTrainedModel, key: tuple, model_inputs: dict, prompt_ids, prompt_positions, trees: TreeBatch,
-        output_hidden, sliding_window: int | None, slots: int,
-    ) -> float:  # fmt: skip
-        """Compiles the prefill graph for ``key``: the call's own prefill (``prompt_ids`` / ``prompt_positions``
-        ``[B, P]``, the prepared ``model_inputs`` with its images, its ``trees``) once more through the compiled call,
-        from slot 0, the cache's entries saved and put back ([`preserved_entries`]). A forward that does not compile
-        into one graph keeps an eager prefill (a warning, once per key).
+    def compile_prefill(self, model: PreTrainedModel, key: tuple, verification: Verification, prompt: Pending,
+                        trees: TreeBatch) -> float:  # fmt: skip
+        """Compiles the prefill graph for ``key``: the call's own prefill (``prompt``: its ids and positions ``[B, P]``,
+        the prepared inputs with its images; its ``trees``) once more through the compiled call, with the rounds'
+        ``verification``'s hidden states, window and slots, from slot 0, the cache's entries saved and put back
+        ([`preserved_entries`]). A forward that does not compile into one graph keeps an eager prefill (a warning,
+        once per key).
 
         Returns:
             the seconds it took.
@@ -339,12 +338,11 @@ class CompiledVerifier:
 
         start = time.perf_counter()
         self.reserve_graphs(1)
+        prefill = CompiledVerification(PrefillCall(self.call), verification.output_hidden,
+                                       verification.sliding_window, verification.key_length)  # fmt: skip
         try:
-            with preserved_entries(model_inputs[CACHE_KEY]):
-                verify_trees(
-                    model, model_inputs, prompt_ids, prompt_positions, trees, None, output_hidden,
-                    sliding_window=sliding_window, key_length=slots, forward=PrefillCall(self.call),
-                )  # fmt: skip
+            with preserved_entries(prompt.cache):
+                prefill.verify(model, prompt, trees)
         # dynamo / inductor refusing the model's forward, or the model's code fixing the prompt's length (a Python
         # branch on it specialises the dimension marked dynamic)
         except (TorchDynamoException, InductorError, ConstraintViolationError) as error:
@@ -361,49 +359,35 @@ class CompiledVerifier:
         return seconds
 
     # ----------------------------------------------------------------- the rounds
-    def compile_widths(
-        self, model: PreTrainedModel, cache: Cache, pending_ids, pending_positions, key_valid, position_offsets,
-        output_hidden, sliding_window: int | None, slots: int, buckets: Sequence[int],
-        acceptance: GraphAcceptance | None = None,
-    ) -> float:  # fmt: skip
+    def compile_widths(self, model: PreTrainedModel, verification: CompiledVerification, pending: Pending,
+                       buckets: Sequence[int]) -> float:  # fmt: skip
         """Compiles every bucket width that fits the free slots the first time this model meets ``(slots, hidden
-        states, buckets, batch size, acceptance in the graph or not)``: one throw-away filler-only verification each,
-        after the committed entries (``pending_ids`` / ``pending_positions`` ``[B, P]``, ``key_valid`` ``[B, C + P]``
-        or None, as the next round feeds them), each rolled back, so that every graph is compiled before the first
-        action, never mid-episode. With ``acceptance`` the graphs compiled are the rounds' forward and acceptance
-        ([`accepting_call`]), else the model call's.
+        states, buckets, batch size, acceptance in the graph or not)``: one throw-away filler-only verification each
+        through the rounds' ``verification``, after the committed entries (``pending``: as the next round feeds
+        them), each rolled back, so that every graph is compiled before the first action, never mid-episode.
 
         Returns:
             the seconds it took (0 when the key was met before).
         """
-        key = (slots, output_hidden, tuple(buckets), cache_batch_size(cache), acceptance is not None)
+        fused = verification.reads_lengths
+        cache, slots, output_hidden = pending.cache, verification.key_length, verification.output_hidden
+        key = (slots, output_hidden, tuple(buckets), cache_batch_size(cache), fused)
         if key in self.widths_compiled:
             return 0.0
         start, length = time.perf_counter(), cache_length(cache)
-        widths = [b for b in buckets if b <= slots - length - pending_ids.shape[1]]
-        self.reserve_graphs(len(widths), None if acceptance is None else self.accepting[output_hidden])
-        empty = [DraftTree.empty(pending_ids.device)] * pending_ids.shape[0]
-        accept = None
-        if acceptance is not None:
-            lengths = torch.zeros(pending_ids.shape[0], 1, dtype=torch.long, device=pending_ids.device)
-
-            def accept(inputs: dict, trees: TreeBatch):
-                return acceptance(inputs, trees, lengths)
-
+        ids = pending.ids
+        widths = [b for b in buckets if b <= slots - length - ids.shape[1]]
+        self.reserve_graphs(len(widths), self.accepting[output_hidden] if fused else None)
+        empty = [DraftTree.empty(ids.device)] * ids.shape[0]
+        if fused:  # any lengths: the filler trees accept nothing
+            pending = replace(pending, lengths=torch.zeros(ids.shape[0], 1, dtype=torch.long, device=ids.device))
         for width in widths:
-            buffers = None
-            if position_offsets is None:
-                queries = pending_ids.shape[1] + width
-                buffers = self.input_buffers(pending_ids.shape[0], queries, slots, model.dtype, pending_ids.device)
-            verify_trees(model, {CACHE_KEY: cache}, pending_ids, pending_positions,
-                         TreeBatch(empty, min_nodes=width), key_valid, output_hidden, sliding_window=sliding_window,
-                         position_offsets=position_offsets, key_length=slots, forward=self.call,
-                         buffers=buffers, accept=accept)  # fmt: skip
+            verification.verify(model, pending, TreeBatch(empty, min_nodes=width))
             truncate_cache(cache, length)
         self.widths_compiled.add(key)
         seconds = time.perf_counter() - start
         logger.info("compiled verification widths %s (%d slots, hidden states %s%s) in %.1f s", widths, slots,
-                    output_hidden, ", acceptance in the graph" if acceptance is not None else "", seconds)  # fmt: skip
+                    output_hidden, ", acceptance in the graph" if fused else "", seconds)  # fmt: skip
         return seconds
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -11,6 +12,7 @@ from .acceptance import (
     MOTION_SCALE_MEANING,
     check_confidence_gate,
     check_relaxed_budget,
+    make_acceptance_rule,
     validate_per_dimension,
 )
 
@@ -85,3 +87,7 @@ class SpeculationConfig:
             )
         if self.action_layout is not None and not isinstance(self.action_layout, ActionLayout):
             raise TypeError(f"action_layout must be a hf_specvla.ActionLayout, got {type(self.action_layout).__name__}")
+
+
+#: the acceptance rule's settings among [`SpeculationConfig`]'s (``make_acceptance_rule``'s arguments)
+RULE_ARGUMENTS = tuple(name for name in inspect.signature(make_acceptance_rule).parameters if name != "action_layout")

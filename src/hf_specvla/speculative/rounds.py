@@ -26,7 +26,7 @@ from .drafter import Commit, DraftRound
 from .state import DecodeState, RoundPlan, RowState, SpeculativeCall, in_cache_batch
 from .stats import SpeculationStats
 from .tree import DraftTree, TreeBatch
-from .verify import TargetOutput, target_greedy_ids, verify_trees
+from .verify import CompiledVerification, Pending, TargetOutput, target_greedy_ids
 
 
 def commit_paths(
@@ -303,9 +303,9 @@ def _compact(state: DecodeState) -> None:
 
 
 def verify(model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: TreeBatch) -> TargetOutput:
-    """2. Every row's tree in one target forward on the cache (compiled when the plan has a compiled call). A static
-    cache's idle rows (finished, kept in its batch) are fed a filler token and an empty tree, their outputs
-    dropped."""
+    """2. Every row's tree in one target forward on the cache (the plan's [`Verification`]: eager, compiled, or with
+    the acceptance in the graph). A static cache's idle rows (finished, kept in its batch) are fed a filler token and
+    an empty tree, their outputs dropped."""
     pending_ids, positions, key_valid, offsets = (
         state.pending_ids, state.pending_positions, state.key_valid, state.position_offsets
     )  # fmt: skip
@@ -322,34 +322,12 @@ def verify(model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: T
         for tree, b in zip(trees.trees, state.cache_rows.tolist()):
             rows[b] = tree
         trees = TreeBatch(rows, min_nodes=trees.num_nodes, structures=plan.tree_structures)
-    buffers = None
-    if plan.verifier is not None and offsets is None:  # the compiled width's own input tensors
-        queries = pending_ids.shape[1] + trees.num_nodes
-        buffers = plan.verifier.input_buffers(pending_ids.shape[0], queries, plan.capacity, plan.dtype,
-                                              pending_ids.device)  # fmt: skip
-    accept = None
-    if plan.acceptance is not None:  # the forward and the acceptance as one compiled call
+    lengths = None  # the rows' sequence lengths, for an acceptance in the graph (it hides EOS by them)
+    if plan.verification.reads_lengths:
         lengths = in_cache_batch(state, torch.tensor([[row.sequence.shape[1]] for row in state.rows],
                                                      device=pending_ids.device), 0)  # fmt: skip
-
-        def accept(inputs: dict, batch: TreeBatch):
-            return plan.acceptance(inputs, batch, lengths)
-
-    output = verify_trees(
-        model,
-        {CACHE_KEY: state.target_cache},
-        pending_ids,
-        positions,
-        trees,
-        key_valid,
-        output_hidden=plan.output_hidden,
-        sliding_window=plan.window,
-        position_offsets=offsets,
-        key_length=plan.capacity,
-        forward=None if plan.verifier is None else plan.verifier.call,
-        buffers=buffers,
-        accept=accept,
-    )
+    pending = Pending({CACHE_KEY: state.target_cache}, pending_ids, positions, key_valid, offsets, lengths)
+    output = plan.verification.verify(model, pending, trees)
     if state.cache_rows is None:
         return output
     return TargetOutput(*(None if value is None else value[state.cache_rows] for value in output))
@@ -448,22 +426,19 @@ def prefill(model, call: SpeculativeCall, logits_processor, stopping_criteria) -
         proposed = propose(state, plan)
     trees = fit_prefill_trees(proposed, state, plan)
     with call.stopwatch.section("target_seconds"):
-        output = verify_trees(model, call.model_inputs, state.pending_ids, state.pending_positions, trees,
-                              state.key_valid, plan.output_hidden, sliding_window=plan.window,
-                              position_offsets=state.position_offsets, key_length=plan.capacity,
-                              forward=plan.compiled_prefill)  # fmt: skip
-    stats.compiled_prefills += plan.compiled_prefill is not None
+        prompt = Pending(call.model_inputs, state.pending_ids, state.pending_positions, state.key_valid,
+                         state.position_offsets)  # fmt: skip
+        output = plan.prefill_verification.verify(model, prompt, trees)
+    stats.compiled_prefills += isinstance(plan.prefill_verification, CompiledVerification)
     settle(call, trees, output, logits_processor, stopping_criteria)
     if plan.verifier is not None:  # every width compiled now, and the next call's prefill graph
-        stats.compile_seconds = plan.verifier.compile_widths(
-            model, state.target_cache, state.pending_ids, state.pending_positions, state.key_valid,
-            state.position_offsets, plan.output_hidden, plan.window, plan.capacity, plan.buckets, plan.acceptance,
-        )  # fmt: skip
-        if call.prefill_key is not None and plan.compiled_prefill is None:
+        following = Pending({CACHE_KEY: state.target_cache}, state.pending_ids, state.pending_positions,
+                            state.key_valid, state.position_offsets)  # fmt: skip
+        stats.compile_seconds = plan.verifier.compile_widths(model, plan.verification, following, plan.buckets)
+        if call.prefill_key is not None and not isinstance(plan.prefill_verification, CompiledVerification):
             stats.compile_seconds += plan.verifier.compile_prefill(
-                model, call.prefill_key, call.model_inputs, *call.prompt, trees, plan.output_hidden, plan.window,
-                plan.capacity,
-            )  # fmt: skip
+                model, call.prefill_key, plan.verification, Pending(call.model_inputs, *call.prompt), trees
+            )
     drop_finished_rows(call.state, fixed_batch=plan.capacity is not None)
 
 

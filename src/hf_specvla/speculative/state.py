@@ -14,11 +14,11 @@ from transformers.cache_utils import Cache
 from ..actions.tokenizer import ActionLayout
 from .acceptance import AcceptanceRule
 from .cache import cache_batch_size
-from .compiled import CompiledVerifier, PrefillCall
+from .compiled import CompiledVerifier
 from .decoder import SpeculativeDecoder
 from .drafter import DraftSession
-from .fused import GraphAcceptance
 from .stats import SpeculationStats
+from .verify import Verification
 
 
 @dataclass
@@ -97,18 +97,18 @@ class RoundPlan:
     output_hidden: tuple[int, ...] | None  # the target's hidden states the drafters read (their layers), or None
     window: int | None  # the target cache's smallest sliding window
     capacity: int | None  # a static cache's slots: trees fit in the free ones
-    verifier: CompiledVerifier | None  # the compiled verification of rounds after the prefill, or None (eager)
-    compiled_prefill: PrefillCall | None  # the compiled prefill (its graph compiled by an earlier call), or None
+    #: how the rounds after the prefill verify: eagerly, through the compiled model call at fixed widths, or with
+    #: the acceptance inside the compiled graph (``verify``'s strategies)
+    verification: Verification
+    #: how the prefill verifies: eagerly, or through the compiled prefill graph an earlier call compiled
+    prefill_verification: Verification
+    verifier: CompiledVerifier | None  # what the model compiled under the call's CompileConfig, or None (eager)
     buckets: tuple[int, ...]  # the widths a compiled verification is padded to (up to the drafter's largest tree)
     prefix_attention: bool  # a prefix-LM prompt: the prefill verifies one chain
     max_drafts: int | None  # each row's tree is cut to its first this many nodes (``max_drafts_per_row``), or None
     keep_scores: bool
     keep_logits: bool
     sampling: bool = False  # do_sample: the drafts are verified by speculative sampling ([`sample_trees`])
-    #: a compiled round's forward and acceptance as one graph (``speculative.fused``), or None: the rounds verify
-    #: through the compiled model call (or eagerly) and accept after it
-    acceptance: GraphAcceptance | None = None
-    dtype: torch.dtype | None = None  # the target's (read once a call: ``model.dtype`` walks its parameters)
     #: the decoder's tree structures by shape ([`TreeBatch`]'s ``structures``), or None: made per batch
     tree_structures: dict | None = field(default=None, repr=False, compare=False)
 

@@ -1,16 +1,24 @@
-"""Target forwards: the prefill and every verification, each over pending tokens followed by a draft tree.
+"""Target forwards: the prefill and every verification, each over pending tokens followed by a draft tree, run by
+one of three strategies a call chooses once ([`Verification`]).
 
-One function serves both: the prefill's pending tokens are the whole prompt (images included: the model's own
-input preparation runs once and the image features are computed once), a later round's pending token is the
-last emitted one. Tree nodes get depth-based position ids and a 4D tree mask; for chains (or no drafts) the model
-builds its own causal mask (the cheapest path, identical to a plain decoding step). Each batch row has its own tree.
+The prefill's pending tokens are the whole prompt (images included: the model's own input preparation runs once
+and the image features are computed once), a later round's pending token is the last emitted one ([`Pending`]).
+Tree nodes get depth-based position ids and a 4D tree mask ([`forward_inputs`]); for chains (or no drafts) an eager
+forward lets the model build its own causal mask (the cheapest path, identical to a plain decoding step). Each batch
+row has its own tree. The strategies, each ``verify(model, pending, trees) -> TargetOutput``:
+
+- [`EagerVerification`]: the model itself;
+- [`CompiledVerification`]: a compiled model call (a width's graph, or the prefill's [`PrefillCall`]), the explicit
+  mask always, its inputs written into the verifier's buffers, its outputs copied;
+- [`FusedVerification`]: the forward and the acceptance as one compiled graph (``speculative.fused``): the target's
+  ids and the accepted paths, packed, no logits.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch.nn.utils.rnn import pad_sequence
@@ -26,6 +34,9 @@ from .compat import CACHE_KEY
 from .drafter import read_hidden_states
 from .masks import to_additive_mask, tree_verification_allowed
 from .tree import TreeBatch
+
+if TYPE_CHECKING:
+    from .fused import GraphAcceptance
 
 
 class TargetOutput(NamedTuple):
@@ -76,80 +87,70 @@ def prefill_inputs(model: PreTrainedModel, input_ids: torch.Tensor, model_kwargs
     return model.prepare_inputs_for_generation(input_ids, is_first_iteration=True, **model_kwargs)
 
 
-def verify_trees(
-    model: PreTrainedModel,
-    model_inputs: dict,
-    pending_ids: torch.Tensor,
-    pending_positions: torch.Tensor,
-    trees: TreeBatch,
-    key_valid: torch.Tensor | None,
-    output_hidden: tuple[int, ...] | None,
-    sliding_window: int | None = None,
-    position_offsets: torch.Tensor | None = None,
-    key_length: int | None = None,
-    forward: Callable | None = None,
-    buffers: InputBuffers | None = None,
-    accept: Callable[[dict, TreeBatch], tuple[torch.Tensor, torch.Tensor | None]] | None = None,
-) -> TargetOutput:
-    """One target forward over ``[pending tokens ; each row's tree nodes]`` on top of the target cache.
+@dataclass(frozen=True)
+class Pending:
+    """What a verification feeds before the trees: the tokens not yet in the target cache, where they go, which keys
+    each row may attend to.
 
-    Args:
+    Attributes:
         model_inputs: the other forward inputs (the cache, and at the prefill the model's prepared inputs).
-        pending_ids / pending_positions: ``[B, P]`` tokens not yet in the cache and their position ids.
-        trees: each row's draft tree below its last pending token (a node at depth d gets position
-            ``last + 1 + d``), padded to N nodes.
+        ids / positions: ``[B, P]`` the tokens not yet in the cache and their position ids.
         key_valid: ``[B, C + P]`` bool, False at every cached or pending key a row must not attend to (its prompt
             padding, entries of paths another row accepted); None when every key is valid.
-        sliding_window: the target's smallest sliding window (None: full attention only). A mask the model builds
-            hides keys more than a window away *in cache columns*, which in a batch's rectangle (or with drafts
-            appended) are not the row's positions; past it the mask is built here (full attention: the cache's
-            sliding layers are held open, see ``cache.open_sliding_windows``).
-        position_offsets: ``[K, B, 1]`` for models with K-component position ids (Qwen2-VL: text, temporal,
-            height, width): each component of a generated token is its text position + the offset; the prefill's
-            pending tokens keep the model's prepared ``[K, B, P]`` positions (images have their own).
-        output_hidden: which of the model's ``hidden_states`` to return (indices; -1 the last), concatenated; None
-            or ``()``: none.
-        key_length: the number of keys attention sees when it is not the cached and new entries (a static cache: its
-            slots); an explicit mask hides the slots past the new entries.
-        forward: the model call to run (a compiled one, see ``speculative.compiled``, or the compiled prefill's
-            [`PrefillCall`]); None: ``model`` itself. A compiled call always gets the explicit tree mask (one mask
-            kind, one shape per width) and its outputs are copied (a CUDA graph's outputs are overwritten by its next
-            replay).
-        buffers: the tensors to write the forward's inputs into (a compiled verification's, of this forward's
-            shapes, with ``key_length`` slots and 2D positions); None: new tensors.
-        accept: the forward and the acceptance as one compiled call, ``accept(inputs, trees) -> (packed, hidden)``
-            (``speculative.fused``: a compiled round's), run instead of ``forward``; the output then holds the
-            packed acceptance, no logits.
-    Returns:
-        [`TargetOutput`] with logits ``[B, 1 + N, V]`` and hidden states ``[B, P + N, n H]`` (n layers).
+        position_offsets: ``[K, B, 1]`` for models with K-component position ids (Qwen2-VL: text, temporal, height,
+            width): each component of a generated token is its text position + the offset; the prefill's pending
+            tokens keep the model's prepared ``[K, B, P]`` positions (images have their own). None: 2D positions.
+        lengths: ``[B, 1]`` the rows' sequence lengths (what an acceptance inside the graph hides EOS by), or None.
     """
-    num_pending, num_nodes = pending_ids.shape[1], trees.num_nodes
-    inputs = dict(model_inputs)
-    if buffers is not None and (position_offsets is not None or key_length is None):
-        raise ValueError("verify_trees: input buffers take 2D positions and a static cache's key_length")
+
+    model_inputs: dict
+    ids: torch.Tensor
+    positions: torch.Tensor
+    key_valid: torch.Tensor | None = None
+    position_offsets: torch.Tensor | None = None
+    lengths: torch.Tensor | None = None
+
+    @property
+    def cache(self):
+        return self.model_inputs[CACHE_KEY]
+
+
+def forward_inputs(model: PreTrainedModel, pending: Pending, trees: TreeBatch, own_mask: bool,
+                   key_length: int | None = None, buffers: InputBuffers | None = None) -> dict:  # fmt: skip
+    """The model's inputs for one forward over ``[pending tokens ; each row's tree nodes]`` on top of the cache (a
+    node at depth d gets position ``last + 1 + d``).
+
+    Args:
+        own_mask: the model builds its own causal mask (a chain within the sliding window, eagerly): the invalid keys
+            go in a 2D mask, as ``generate`` passes them; else the tree mask is built here.
+        key_length: the number of keys attention sees when it is not the cached and new entries (a static cache: its
+            slots); the explicit mask hides the slots past the new entries.
+        buffers: the tensors to write the inputs into (a compiled width's, of this forward's shapes, with
+            ``key_length`` slots and 2D positions); None: new tensors.
+    """
+    num_pending, num_nodes = pending.ids.shape[1], trees.num_nodes
+    inputs = dict(pending.model_inputs)
+    if buffers is not None and (pending.position_offsets is not None or key_length is None):
+        raise ValueError("forward_inputs: input buffers take 2D positions and a static cache's key_length")
     out = {} if buffers is None else {"input_ids": buffers.input_ids, "position_ids": buffers.position_ids}
-    inputs["input_ids"] = torch.cat([pending_ids, trees.token_ids], dim=1, out=out.get("input_ids"))
-    node_positions = pending_positions[:, -1:] + 1 + trees.depths  # [B, N]
-    if position_offsets is None:
-        inputs["position_ids"] = torch.cat([pending_positions, node_positions], dim=1, out=out.get("position_ids"))
+    inputs["input_ids"] = torch.cat([pending.ids, trees.token_ids], dim=1, out=out.get("input_ids"))
+    node_positions = pending.positions[:, -1:] + 1 + trees.depths  # [B, N]
+    offsets = pending.position_offsets
+    if offsets is None:
+        inputs["position_ids"] = torch.cat([pending.positions, node_positions], dim=1, out=out.get("position_ids"))
     else:
-        prepared = model_inputs.get("position_ids")
-        pending = (
-            prepared if prepared is not None and prepared.ndim == 3 else pending_positions[None] + position_offsets
-        )
-        inputs["position_ids"] = torch.cat([pending, node_positions[None] + position_offsets], dim=-1)  # [K, B, P + N]
-    past_length = cache_length(model_inputs[CACHE_KEY])
-    within_window = sliding_window is None or past_length + num_pending + num_nodes <= sliding_window
-    if trees.is_causal and within_window and forward is None and accept is None:
-        # Chains (or no drafts): the causal mask is every tree mask, so the model builds its own mask (the kernels a
-        # plain decoding step uses; in bf16 an explicit 4D mask selects other kernels, whose rounding can flip a
-        # near-tied argmax away from plain greedy decoding's). Invalid keys go in a 2D mask, as generate passes.
+        prepared = pending.model_inputs.get("position_ids")
+        prefill = prepared if prepared is not None and prepared.ndim == 3 else pending.positions[None] + offsets
+        inputs["position_ids"] = torch.cat([prefill, node_positions[None] + offsets], dim=-1)  # [K, B, P + N]
+    key_valid = pending.key_valid
+    if own_mask:  # (in bf16 an explicit 4D mask selects other kernels than a plain decoding step's)
         if key_valid is None:
             inputs["attention_mask"] = None
         else:
             new_keys = key_valid.new_ones(key_valid.shape[0], num_nodes)
             inputs["attention_mask"] = torch.cat([key_valid, new_keys], dim=1).long()
     else:
+        past_length = cache_length(pending.cache)
         allowed = tree_verification_allowed(past_length, num_pending, trees.ancestor_or_self, key_valid)
         if key_length is not None:  # [B, q, key_length]: the free slots after the new entries are hidden
             allowed = torch.nn.functional.pad(allowed, (0, key_length - allowed.shape[-1]), value=False)
@@ -157,18 +158,113 @@ def verify_trees(
         inputs["attention_mask"] = to_additive_mask(allowed, model.dtype if mask is None else mask.dtype, out=mask)
     inputs["logits_to_keep"] = num_nodes + 1
     inputs["use_cache"] = True
-    if accept is not None:  # copies: a CUDA graph's outputs are overwritten by its next replay
-        accepted, hidden = accept(inputs, trees)
-        note_appended(model_inputs[CACHE_KEY], num_pending + num_nodes)
+    return inputs
+
+
+class Verification:
+    """How a call's target forwards run (chosen once per call, the same interface for the prefill and every round):
+    ``verify(model, pending, trees)`` -> [`TargetOutput`], logits ``[B, 1 + N, V]`` after the root and after each
+    node and hidden states ``[B, P + N, n H]`` (the ``output_hidden`` layers), or the accepted paths packed.
+
+    Args:
+        output_hidden: which of the model's ``hidden_states`` to return (indices; -1 the last), concatenated; None or
+            ``()``: none.
+        sliding_window: the target's smallest sliding window (None: full attention only). A mask the model builds
+            hides keys more than a window away *in cache columns*, which in a batch's rectangle (or with drafts
+            appended) are not the row's positions; past it the mask is built here (full attention: the cache's
+            sliding layers are held open, see ``cache.open_sliding_windows``).
+        key_length: a static cache's slots (the keys attention sees), or None.
+    """
+
+    #: whether ``verify`` reads ``pending.lengths`` (the rows' sequence lengths)
+    reads_lengths = False
+
+    def __init__(self, output_hidden: tuple[int, ...] | None, sliding_window: int | None = None,
+                 key_length: int | None = None):  # fmt: skip
+        self.output_hidden, self.sliding_window, self.key_length = output_hidden, sliding_window, key_length
+
+    def verify(self, model: PreTrainedModel, pending: Pending, trees: TreeBatch) -> TargetOutput:
+        raise NotImplementedError
+
+    def _read(self, outputs, copy: bool) -> TargetOutput:
+        """The forward's logits (float32) and asked hidden states, copied when a compiled call's next replay would
+        overwrite them (a CUDA graph's outputs)."""
+        logits, hidden = outputs.logits.float(), None
+        if self.output_hidden:  # [B, q, n H]: the asked layers' hidden states, concatenated
+            hidden = read_hidden_states(outputs.hidden_states, self.output_hidden)
+        if copy:
+            logits, hidden = logits.clone(), None if hidden is None else hidden.clone()
+        return TargetOutput(logits, hidden)
+
+
+class EagerVerification(Verification):
+    """The model itself. A chain (or no drafts) within the sliding window gets the model's own causal mask: the
+    kernels a plain decoding step uses (in bf16 an explicit 4D mask selects other kernels, whose rounding can flip a
+    near-tied argmax away from plain greedy decoding's)."""
+
+    def verify(self, model: PreTrainedModel, pending: Pending, trees: TreeBatch) -> TargetOutput:
+        queries = pending.ids.shape[1] + trees.num_nodes
+        window = self.sliding_window
+        own_mask = trees.is_causal and (window is None or cache_length(pending.cache) + queries <= window)
+        inputs = forward_inputs(model, pending, trees, own_mask, self.key_length)
+        outputs = model(**inputs, output_hidden_states=bool(self.output_hidden), return_dict=True)
+        note_appended(pending.cache, queries)
+        return self._read(outputs, copy=False)
+
+
+class CompiledVerification(Verification):
+    """A compiled model call: every forward gets the explicit tree mask (one mask kind, one graph per width), its
+    outputs are copied (a CUDA graph's are overwritten by its next replay).
+
+    Args:
+        call: the compiled model call (transformers' ``get_compiled_call``), or the compiled prefill's
+            [`PrefillCall`].
+        verifier: the [`CompiledVerifier`] whose input buffers the forwards write into (2D positions only), or None:
+            new tensors each forward (the prefill's dynamic graph).
+        dtype: the target's (the buffers' mask dtype).
+    """
+
+    def __init__(self, call: Callable, output_hidden, sliding_window=None, key_length=None, verifier=None,
+                 dtype: torch.dtype | None = None):  # fmt: skip
+        super().__init__(output_hidden, sliding_window, key_length)
+        self.call, self.verifier, self.dtype = call, verifier, dtype
+
+    def buffers(self, pending: Pending, trees: TreeBatch) -> InputBuffers | None:
+        """The compiled width's own input tensors for this forward's shape, or None (no verifier, or K-component
+        positions)."""
+        if self.verifier is None or pending.position_offsets is not None:
+            return None
+        batch_size, queries = pending.ids.shape[0], pending.ids.shape[1] + trees.num_nodes
+        return self.verifier.input_buffers(batch_size, queries, self.key_length, self.dtype, pending.ids.device)
+
+    def verify(self, model: PreTrainedModel, pending: Pending, trees: TreeBatch) -> TargetOutput:
+        inputs = forward_inputs(model, pending, trees, False, self.key_length, self.buffers(pending, trees))
+        outputs = self.call(**inputs, output_hidden_states=bool(self.output_hidden), return_dict=True)
+        note_appended(pending.cache, pending.ids.shape[1] + trees.num_nodes)
+        return self._read(outputs, copy=True)
+
+
+class FusedVerification(CompiledVerification):
+    """The forward and the acceptance as one compiled call (``speculative.fused``, a compiled round's): the output
+    holds the target's ids and the accepted paths, packed (``TargetOutput.accepted``), no logits; ``pending.lengths``
+    the rows' sequence lengths.
+
+    Args:
+        acceptance: the call's [`GraphAcceptance`] (the compiled function and the EOS constants it reads).
+    """
+
+    reads_lengths = True
+
+    def __init__(self, acceptance: GraphAcceptance, output_hidden, sliding_window=None, key_length=None,
+                 verifier=None, dtype: torch.dtype | None = None):  # fmt: skip
+        super().__init__(acceptance.call, output_hidden, sliding_window, key_length, verifier, dtype)
+        self.acceptance = acceptance
+
+    def verify(self, model: PreTrainedModel, pending: Pending, trees: TreeBatch) -> TargetOutput:
+        inputs = forward_inputs(model, pending, trees, False, self.key_length, self.buffers(pending, trees))
+        accepted, hidden = self.acceptance(inputs, trees, pending.lengths)
+        note_appended(pending.cache, pending.ids.shape[1] + trees.num_nodes)
         return TargetOutput(None, None if hidden is None else hidden.clone(), accepted.clone())
-    outputs = (forward or model)(**inputs, output_hidden_states=bool(output_hidden), return_dict=True)
-    note_appended(model_inputs[CACHE_KEY], num_pending + num_nodes)
-    logits, hidden = outputs.logits.float(), None
-    if output_hidden:  # [B, q, n H]: the asked layers' hidden states, concatenated
-        hidden = read_hidden_states(outputs.hidden_states, output_hidden)
-    if forward is not None:
-        logits, hidden = logits.clone(), None if hidden is None else hidden.clone()
-    return TargetOutput(logits, hidden)
 
 
 def apply_processors(logits_processor: LogitsProcessorList, input_ids: torch.Tensor, scores: torch.Tensor):

@@ -93,7 +93,7 @@ def run_method_episode(
 ) -> dict:
     """One episode of ``method`` from ``env.reset(seed)``: the record a comparison log holds (``tree``: the EAGLE-2
     tree of ``tree`` methods, default ``DraftTreeConfig()``)."""
-    kwargs = method.generate_kwargs(draft_head, policy.model.device.type, tree, policy.config.action_dim)
+    plan = method.plan(draft_head, policy.model.device.type, tree, policy.config.action_dim)
     action_dim = policy.config.action_tokens  # tokens per call (a chunk's, for a chunked policy)
     dims = policy.config.action_dim
     policy.reset()
@@ -111,7 +111,7 @@ def run_method_episode(
             drafts["draft_ids"] = torch.tensor([_greedy_action_ids(policy, obs)], device=policy.model.device)
         start = time.perf_counter()
         action, output = policy.predict_action(
-            obs["image"], obs["instruction"], obs["state"], return_output=True, **kwargs, **drafts
+            obs["image"], obs["instruction"], obs["state"], return_output=True, decoding=plan, **drafts
         )
         latencies.append(round(1000 * (time.perf_counter() - start), 3))
         action_ids = output.sequences[0, -action_dim:].tolist()
@@ -167,12 +167,13 @@ def warm_up_compiled(
         return
     obs = env.reset(BENCH_SEED_START)  # a seed of the timing range, never one a comparison evaluates
     for method in compiled:
-        kwargs = method.generate_kwargs(draft_head, policy.model.device.type, tree, policy.config.action_dim)
+        plan = method.plan(draft_head, policy.model.device.type, tree, policy.config.action_dim)
+        drafts = {}
         if method.drafters == ORACLE:  # its graphs are those of a prefill with drafts: compile them with right ones
-            kwargs["draft_ids"] = torch.tensor([_greedy_action_ids(policy, obs)], device=policy.model.device)
+            drafts["draft_ids"] = torch.tensor([_greedy_action_ids(policy, obs)], device=policy.model.device)
         policy.reset()
         for _ in range(calls):
-            policy.predict_action(obs["image"], obs["instruction"], obs["state"], **kwargs)
+            policy.predict_action(obs["image"], obs["instruction"], obs["state"], decoding=plan, **drafts)
     policy.reset()
 
 
