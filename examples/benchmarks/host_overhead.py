@@ -10,7 +10,9 @@ rounds), every method compiled (static cache + ``CompileConfig``, inductor's def
 * ``jacobi``: the target's own guesses (``JacobiDrafter``) on a random model: about one token a round, so the
   call is a prefill and a round per further token;
 * ``head chain`` / ``head tree``: an untrained draft head's chain and EAGLE-2 tree (rarely accepted: rounds);
-* ``drafts right B=4`` / ``jacobi B=4``: the same for a batch of 4 prompts.
+* ``drafts right B=4`` / ``jacobi B=4``: the same for a batch of 4 prompts;
+* ``drafts right session`` / ``jacobi session`` / ``none session``: the same calls through a ``DecoderSession``
+  (``generate``'s set-up done once, what a policy's calls run), ``none``: greedy through the engine, no drafts.
 
 Per method: ms per call, target forwards per call (a round is one target forward), ms per round (the call over its
 forwards), where a speculative call's time goes (the loop's own clock: transformers' generate around the loop, the
@@ -37,7 +39,7 @@ import transformers
 from transformers import LlamaConfig, LlamaForCausalLM
 
 from hf_specvla import ActionTokenizer, DraftHead, DraftHeadDrafter, DraftTreeConfig, JacobiDrafter
-from hf_specvla.speculative import compiled_decoding_kwargs, enable_speculation
+from hf_specvla.speculative import DecoderSession, compiled_decoding_kwargs, enable_speculation
 
 VOCAB = 512
 NEW_TOKENS = 8
@@ -83,6 +85,12 @@ def methods(model: LlamaForCausalLM, small: bool) -> dict[str, Callable[[], obje
              "jacobi": call(assistant_model=JacobiDrafter())}  # fmt: skip
     if small:
         return table
+    # the same calls through a decoder session (generate's set-up done once: what a policy's calls run)
+    session = DecoderSession.of(model, max_new_tokens=NEW_TOKENS, min_new_tokens=NEW_TOKENS, **common)
+    drafts = right_drafts(1)
+    table["drafts right session"] = lambda: session.generate(prompts[1], draft_ids=drafts)
+    table["jacobi session"] = lambda: session.generate(prompts[1], assistant_model=JacobiDrafter())
+    table["none session"] = lambda: session.generate(prompts[1])  # greedy through the engine
     torch.manual_seed(2)
     head = DraftHead.from_target(model, ActionTokenizer(VOCAB), action_dim=7, draft_action_tokens_only=False).eval()
     table["head chain"] = call(assistant_model=DraftHeadDrafter(head))
@@ -110,7 +118,10 @@ def summarize(rows: dict[str, dict]) -> dict[str, float | None]:
     round_ms = (ms("jacobi") - ms("drafts right")) / (jacobi_rounds - 1) if jacobi_rounds > 1 else None
     return {"greedy_step_ms": greedy_step, "speculative_round_ms": round_ms,
             "round_over_greedy_step": round_ms / greedy_step if round_ms is not None else None,
-            "right_drafts_call_over_greedy_2": ms("drafts right") / ms("greedy:compile 2")}  # fmt: skip
+            "right_drafts_call_over_greedy_2": ms("drafts right") / ms("greedy:compile 2"),
+            **({"right_drafts_session_call_over_greedy_2": ms("drafts right session") / ms("greedy:compile 2"),
+                "none_session_call_over_greedy_8": ms("none session") / ms("greedy:compile 8")}
+               if "drafts right session" in rows else {})}  # fmt: skip
 
 
 def main() -> None:
@@ -174,6 +185,12 @@ def main() -> None:
     print(f"\na compiled greedy step: {summary['greedy_step_ms']:.2f} ms; a speculative round beyond the first "
           f"forward: {round_text}; a right-drafts call over a 2-token greedy call: "
           f"{summary['right_drafts_call_over_greedy_2']:.2f}x")  # fmt: skip
+    if "right_drafts_session_call_over_greedy_2" in summary:
+        print(
+            f"through a decoder session: a right-drafts call over a 2-token greedy call "
+            f"{summary['right_drafts_session_call_over_greedy_2']:.2f}x; greedy through the engine over "
+            f"transformers' compiled greedy, 8 tokens: {summary['none_session_call_over_greedy_8']:.2f}x"
+        )
     if args.json:
         Path(args.json).write_text(json.dumps({"settings": vars(args), "torch": torch.__version__,
                                                "transformers": transformers.__version__, "summary": summary,

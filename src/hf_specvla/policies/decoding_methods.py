@@ -212,8 +212,9 @@ class DecodingMethod:
         relaxing = method.widest_tolerance or method.scales_with_motion or "rl" in values or "rho" in values
         if method.drafters in (*DRAFTLESS, ORACLE) and (relaxing or restricting or method.num_draft_tokens):
             why = "its drafts are greedy's own" if method.drafters == ORACLE else "it drafts nothing"
-            raise ValueError(f"decoding method {text!r}: {method.drafters} takes no r, rl, rho, dev, m, gate, "
-                             f"confirm or k ({why})")  # fmt: skip
+            raise ValueError(
+                f"decoding method {text!r}: {method.drafters} takes no r, rl, rho, dev, m, gate, confirm or k ({why})"
+            )
         if method.num_draft_tokens is not None and "head" not in method.drafters.split("+"):
             raise ValueError(f"decoding method {text!r}: k (a chain length) needs the head chain (head, prior+head)")
         if not method.widest_tolerance and not method.scales_with_motion and restricting:
@@ -539,12 +540,9 @@ class Preset:
 
 
 #: the presets, chosen by the paired comparisons in the results record (docs/results/record/metaworld-policies.md):
-#: ``exact`` was identical to greedy on every episode of policies v2 and v3 and every seed range; ``fast`` relaxes x y z
-#: by 4 bins where the target is unsure, with the gripper confirmed after a relaxed token (issue 52: on policy v3 it
-#: flipped 12 of 200 episodes on seeds 100000+ where the same rule without the confirmation flipped 17, and kept the
-#: gripper's deviation from greedy's at policy v2's level; no rule tried met the fidelity criterion on v3, see there;
-#: its third range, 300000+: -0.5 [-3.5, +3.0] points, 0.99x ``exact``'s total decode time (1.03x per call; its
-#: episodes make other calls), docs/results/compare_v3_fast_300k_summary.json)
+#: ``exact`` is greedy's tokens on every episode; ``fast`` relaxes x y z by 4 bins where the target is unsure, with the
+#: gripper confirmed after a relaxed token (the evidence for each choice, and what ``fast`` costs in fidelity on policy
+#: v3, is in the record)
 PRESETS = {
     preset.name: preset
     for preset in (

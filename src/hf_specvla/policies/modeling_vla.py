@@ -236,8 +236,9 @@ class VLAPolicy:
             raise ValueError(f"a batch of {batch_size} images needs {batch_size} {name} rows, got {len(values)}")
         return values
 
-    def _act(self, images, instructions, states, histories, plan: DecodingPlan, return_output: bool,
-             generate_kwargs: dict):  # fmt: skip
+    def _act(
+        self, images, instructions, states, histories, plan: DecodingPlan, return_output: bool, generate_kwargs: dict
+    ):
         """One ``generate`` over the batch (prompts left-padded) as ``plan`` decodes; updates ``histories`` in
         place."""
         prompts = [self.prompt_ids(i, s) for i, s in zip(instructions, states)]
@@ -255,14 +256,21 @@ class VLAPolicy:
                              f"{', '.join(length)}")  # fmt: skip
         generate_kwargs = dict(generate_kwargs)
         generation_config = generate_kwargs.pop("generation_config", None)
-        kwargs = self._generation_settings(generation_config, pad_id, return_output,
-                                           {**plan.compile, **generate_kwargs})  # fmt: skip
-        drafter = episode_drafter(plan.assistant_model, plan.num_draft_tokens, plan.action_prior, histories,
-                                  self.action_layout, self.config.chunk_length)  # fmt: skip
+        kwargs = self._generation_settings(
+            generation_config, pad_id, return_output, {**plan.compile, **generate_kwargs}
+        )
+        drafter = episode_drafter(
+            plan.assistant_model,
+            plan.num_draft_tokens,
+            plan.action_prior,
+            histories,
+            self.action_layout,
+            self.config.chunk_length,
+        )
         if drafter is not None:  # a robot's calls repeat one shape and settings: generate's set-up done once
             kwargs = {"action_layout": self.action_layout, **kwargs, **plan.acceptance}
             call = {name: kwargs.pop(name) for name in ("draft_ids", "on_row_finished") if name in kwargs}
-            if self.decoder_sessions:
+            if self.decoder_sessions and DecoderSession.can_hold(kwargs):
                 output = DecoderSession.of(self.model, **kwargs).generate(**inputs, assistant_model=drafter, **call)
             else:
                 output = self.model.generate(**inputs, assistant_model=drafter, **call, **kwargs)
@@ -362,9 +370,11 @@ def _decoding_plan(decoding: DecodingPlan | None, action_prior: bool, generate_k
     if decoding is not None:
         if action_prior or loose:
             given = ", ".join(loose + (["action_prior"] if action_prior else []))
-            raise ValueError(f"predict_action got decoding={type(decoding).__name__}(...) and {given}: the plan says "
-                             f"what drafts, how drafts are accepted and whether the call compiles; pass one or the "
-                             f"other")  # fmt: skip
+            raise ValueError(
+                f"predict_action got decoding={type(decoding).__name__}(...) and {given}: the plan says "
+                f"what drafts, how drafts are accepted and whether the call compiles; pass one or the "
+                f"other"
+            )
         return decoding
     return DecodingPlan(
         assistant_model=generate_kwargs.pop("assistant_model", None),

@@ -351,8 +351,9 @@ class CheckedCall:
     layout: ActionLayout | None
 
 
-def _checked_call(model, input_ids, logits_processor, generation_config, settings, drafter, draft_head,
-                  draft_ids) -> CheckedCall:  # fmt: skip
+def _checked_call(
+    model, input_ids, logits_processor, generation_config, settings, drafter, draft_head, draft_ids
+) -> CheckedCall:
     """Every argument of the call checked (before any forward): the drafter, the acceptance rule and its layout, and
     the candidates of ``draft_ids``."""
     batch_size = input_ids.shape[0]
@@ -379,8 +380,9 @@ def prepare(
 ) -> SpeculativeCall:
     """1. The call checked and set up: the prefill's inputs on a cache with room for the trees, each row's drafter
     session, the round plan (compiled or eager, widths, rule)."""
-    checked = _checked_call(model, input_ids, logits_processor, generation_config, settings, drafter, draft_head,
-                            draft_ids)  # fmt: skip
+    checked = _checked_call(
+        model, input_ids, logits_processor, generation_config, settings, drafter, draft_head, draft_ids
+    )
     drafter, layout = checked.drafter, checked.layout
     decoder = SpeculativeDecoder.of(model)  # what the engine keeps for this model between calls (after the checks)
     batch_size = input_ids.shape[0]
@@ -424,8 +426,9 @@ def prepare(
     ]
     state = DecodeState(rows, prompt_ids, prompt_positions, position_offsets,
                         None if prompt_padding is None else prompt_padding.bool(), cache)  # fmt: skip
-    plan, prefill_key = _round_plan(model, checked, verifier, model_inputs, prompt_ids, position_offsets, past_length,
-                                    input_ids.shape[1])  # fmt: skip
+    plan, prefill_key = _round_plan(
+        model, checked, verifier, model_inputs, prompt_ids, position_offsets, past_length, input_ids.shape[1]
+    )
     pad_token_id = generation_config.pad_token_id
     return SpeculativeCall(
         state=state,
@@ -444,9 +447,16 @@ def prepare(
     )
 
 
-def _round_plan(model, checked: CheckedCall, verifier: CompiledVerifier | None, model_inputs: dict,
-                prompt_ids: torch.Tensor, position_offsets, past_length: int,
-                input_length: int) -> tuple[RoundPlan, tuple | None]:  # fmt: skip
+def _round_plan(
+    model,
+    checked: CheckedCall,
+    verifier: CompiledVerifier | None,
+    model_inputs: dict,
+    prompt_ids: torch.Tensor,
+    position_offsets,
+    past_length: int,
+    input_length: int,
+) -> tuple[RoundPlan, tuple | None]:
     """What every round reads ([`RoundPlan`]), and the compiled prefill graph this call can use (None: eager).
 
     Args:

@@ -321,8 +321,9 @@ class CompiledVerifier:
         """The compiled prefill for ``key`` when an earlier call compiled its graph, else None (an eager prefill)."""
         return PrefillCall(self.call) if key in self.prefills_compiled else None
 
-    def compile_prefill(self, model: PreTrainedModel, key: tuple, verification: Verification, prompt: Pending,
-                        trees: TreeBatch) -> float:  # fmt: skip
+    def compile_prefill(
+        self, model: PreTrainedModel, key: tuple, verification: Verification, prompt: Pending, trees: TreeBatch
+    ) -> float:
         """Compiles the prefill graph for ``key``: the call's own prefill (``prompt``: its ids and positions ``[B, P]``,
         the prepared inputs with its images; its ``trees``) once more through the compiled call, with the rounds'
         ``verification``'s hidden states, window and slots, from slot 0, the cache's entries saved and put back
@@ -338,8 +339,9 @@ class CompiledVerifier:
 
         start = time.perf_counter()
         self.reserve_graphs(1)
-        prefill = CompiledVerification(PrefillCall(self.call), verification.output_hidden,
-                                       verification.sliding_window, verification.key_length)  # fmt: skip
+        prefill = CompiledVerification(
+            PrefillCall(self.call), verification.output_hidden, verification.sliding_window, verification.key_length
+        )
         try:
             with preserved_entries(prompt.cache):
                 prefill.verify(model, prompt, trees)
@@ -359,8 +361,9 @@ class CompiledVerifier:
         return seconds
 
     # ----------------------------------------------------------------- the rounds
-    def compile_widths(self, model: PreTrainedModel, verification: CompiledVerification, pending: Pending,
-                       buckets: Sequence[int]) -> float:  # fmt: skip
+    def compile_widths(
+        self, model: PreTrainedModel, verification: CompiledVerification, pending: Pending, buckets: Sequence[int]
+    ) -> float:
         """Compiles every bucket width that fits the free slots the first time this model meets ``(slots, hidden
         states, buckets, batch size, acceptance in the graph or not)``: one throw-away filler-only verification each
         through the rounds' ``verification``, after the committed entries (``pending``: as the next round feeds
@@ -386,8 +389,14 @@ class CompiledVerifier:
             truncate_cache(cache, length)
         self.widths_compiled.add(key)
         seconds = time.perf_counter() - start
-        logger.info("compiled verification widths %s (%d slots, hidden states %s%s) in %.1f s", widths, slots,
-                    output_hidden, ", acceptance in the graph" if fused else "", seconds)  # fmt: skip
+        logger.info(
+            "compiled verification widths %s (%d slots, hidden states %s%s) in %.1f s",
+            widths,
+            slots,
+            output_hidden,
+            ", acceptance in the graph" if fused else "",
+            seconds,
+        )
         return seconds
 
 

@@ -2,9 +2,9 @@
 EOS, the greedy tokens and the search for each row's longest passing path ([`search_paths`]) run in one compiled
 call, which returns one packed ``[B, 5 N + 2]`` tensor; the host reads it once and never sees the logits.
 
-Eager, acceptance after the forward is a dozen small kernels per round plus the logits processors (on a tiny model
-~0.17 ms of host time a round, a third of the loop's own time between forwards); inside the forward's graph they fuse
-into a few kernels and a CUDA graph's replay. It serves the lossless greedy rounds, the ones every preset at
+Eager, acceptance after the forward is a dozen small kernels per round plus the logits processors (on a tiny model a
+third of the loop's own time between forwards, docs/design.md); inside the forward's graph they fuse into a few
+kernels and a CUDA graph's replay. It serves the lossless greedy rounds, the ones every preset at
 ``r = 0`` runs (``exact``): acceptance by token equality ([`ExactMatch`]), greedy decoding (no sampling), logits
 processors that only hide EOS below a length (what ``min_length`` / ``min_new_tokens`` add; one set of EOS ids), no
 scores or logits returned, 2D positions. Everything else verifies through the compiled model call and accepts
@@ -100,8 +100,8 @@ def round_guards(entries) -> list[bool]:
       ``forward``, its hooks, its scalar attributes and config values.
 
     Dropped: the dict-membership guards on the model (key sets of its modules' dicts, attributes absent from a class)
-    and every guard on globals (the modules of torch and transformers whose code the forward runs): on the tiny
-    Llama the kept guards take ~0.04 ms of the ~0.15 ms dynamo checks a round (docs/design.md, "Guards"). A module
+    and every guard on globals (the modules of torch and transformers whose code the forward runs): the kept guards
+    are a fraction of what dynamo checks a round (docs/design.md, "Guards"). A module
     swapped, wrapped or resized, a parameter of another dtype or shape, a hook, autocast: each fails a kept guard, so
     the round recompiles (a new graph, counted in the recompile budget) instead of running a stale one. The model
     object itself is the [`CompiledVerifier`]'s check (a deep copy gets its own verifier)."""

@@ -426,14 +426,20 @@ def prefill(model, call: SpeculativeCall, logits_processor, stopping_criteria) -
         proposed = propose(state, plan)
     trees = fit_prefill_trees(proposed, state, plan)
     with call.stopwatch.section("target_seconds"):
-        prompt = Pending(call.model_inputs, state.pending_ids, state.pending_positions, state.key_valid,
-                         state.position_offsets)  # fmt: skip
+        prompt = Pending(
+            call.model_inputs, state.pending_ids, state.pending_positions, state.key_valid, state.position_offsets
+        )
         output = plan.prefill_verification.verify(model, prompt, trees)
     stats.compiled_prefills += isinstance(plan.prefill_verification, CompiledVerification)
     settle(call, trees, output, logits_processor, stopping_criteria)
     if plan.verifier is not None:  # every width compiled now, and the next call's prefill graph
-        following = Pending({CACHE_KEY: state.target_cache}, state.pending_ids, state.pending_positions,
-                            state.key_valid, state.position_offsets)  # fmt: skip
+        following = Pending(
+            {CACHE_KEY: state.target_cache},
+            state.pending_ids,
+            state.pending_positions,
+            state.key_valid,
+            state.position_offsets,
+        )
         stats.compile_seconds = plan.verifier.compile_widths(model, plan.verification, following, plan.buckets)
         if call.prefill_key is not None and not isinstance(plan.prefill_verification, CompiledVerification):
             stats.compile_seconds += plan.verifier.compile_prefill(

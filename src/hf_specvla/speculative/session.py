@@ -115,6 +115,12 @@ class DecoderSession:
         ValueError: a call's argument among the settings, naming it.
     """
 
+    @staticmethod
+    def can_hold(settings: dict) -> bool:
+        """Whether ``settings`` are a session's (no cache to continue, nothing that decodes another way): else the
+        call goes through ``generate`` as it is."""
+        return not any(name in settings for name in NOT_SETTINGS if name not in CALL_ARGUMENTS)
+
     @classmethod
     def of(cls, model: PreTrainedModel, **settings) -> DecoderSession:
         """The model's session for ``settings``, kept by its [`SpeculativeDecoder`] (equal settings find the same
@@ -144,9 +150,15 @@ class DecoderSession:
         self.calls_through_generate = self.direct_calls = 0
 
     @torch.no_grad()
-    def generate(self, input_ids: torch.Tensor, attention_mask: torch.Tensor | None = None,
-                 assistant_model: DraftHead | Drafter | None = None, draft_ids: torch.Tensor | None = None,
-                 on_row_finished: Callable | None = None, **inputs):  # fmt: skip
+    def generate(
+        self,
+        input_ids: torch.Tensor,
+        attention_mask: torch.Tensor | None = None,
+        assistant_model: DraftHead | Drafter | None = None,
+        draft_ids: torch.Tensor | None = None,
+        on_row_finished: Callable | None = None,
+        **inputs,
+    ):
         """One call: ``input_ids`` ``[B, S]`` (left-padded, ``attention_mask`` ``[B, S]``), the model's other inputs
         (tensors: ``pixel_values``...), the call's drafter and ``draft_ids``. Returns what ``model.generate`` returns.
 
@@ -163,9 +175,14 @@ class DecoderSession:
                 f"{type(assistant_model).__name__}"
             )
         padded = attention_mask is not None and not bool(attention_mask.all())
-        key = (tuple(input_ids.shape), input_ids.device, padded,
-               tuple((name, tuple(value.shape), value.dtype) for name, value in sorted(inputs.items())
-                     if value is not None))  # fmt: skip
+        key = (
+            tuple(input_ids.shape),
+            input_ids.device,
+            padded,
+            tuple(
+                (name, tuple(value.shape), value.dtype) for name, value in sorted(inputs.items()) if value is not None
+            ),
+        )
         call = dict(assistant_model=assistant_model, draft_ids=draft_ids, on_row_finished=on_row_finished)
         prepared = self.prepared.get(key, ...)
         if prepared is ...:  # this shape's first call: through generate, keeping what it prepared
@@ -173,14 +190,18 @@ class DecoderSession:
             return output
         if prepared is None:
             self.calls_through_generate += 1
-            return self.model.generate(input_ids=input_ids, attention_mask=attention_mask, **inputs, **call,
-                                       **self.settings)  # fmt: skip
+            return self.model.generate(
+                input_ids=input_ids, attention_mask=attention_mask, **inputs, **call, **self.settings
+            )
         self.direct_calls += 1
         return self._direct(prepared, input_ids, attention_mask if padded else None, inputs, call)
 
     def _check_inputs(self, inputs: dict) -> None:
-        settings = sorted(name for name, value in inputs.items() if value is not None and
-                          (name in self.settings or not isinstance(value, torch.Tensor)))  # fmt: skip
+        settings = sorted(
+            name
+            for name, value in inputs.items()
+            if value is not None and (name in self.settings or not isinstance(value, torch.Tensor))
+        )
         if settings:
             held = ", ".join(f"{name}={value!r}" for name, value in self.settings.items()) or "none"
             raise ValueError(
@@ -197,18 +218,26 @@ class DecoderSession:
 
         @functools.wraps(speculative_generate)  # generate reads the engine's keywords from its signature
         def recording_generate(model, input_ids, logits_processor, stopping_criteria, generation_config, **kwargs):
-            kept.update(logits_processor=logits_processor, stopping_criteria=stopping_criteria,
-                        generation_config=generation_config, model_kwargs=dict(kwargs))  # fmt: skip
-            return speculative_generate(model, input_ids, logits_processor, stopping_criteria, generation_config,
-                                        **kwargs)  # fmt: skip
+            kept.update(
+                logits_processor=logits_processor,
+                stopping_criteria=stopping_criteria,
+                generation_config=generation_config,
+                model_kwargs=dict(kwargs),
+            )
+            return speculative_generate(
+                model, input_ids, logits_processor, stopping_criteria, generation_config, **kwargs
+            )
 
         model = self.model
         kwargs = self._mixin_steps(dict(input_ids=input_ids, attention_mask=attention_mask, **inputs), call)
         output = super(SpeculativeGenerationMixin, model).generate(custom_generate=recording_generate, **kwargs)
         prepared = self._keepable(kept, attention_mask, inputs)
         if prepared is None:
-            logger.info("DecoderSession: calls of shape %s go through generate every time (it prepared what a later "
-                        "call cannot reuse)", tuple(input_ids.shape))  # fmt: skip
+            logger.info(
+                "DecoderSession: calls of shape %s go through generate every time (it prepared what a later "
+                "call cannot reuse)",
+                tuple(input_ids.shape),
+            )
         return output, prepared
 
     def _mixin_steps(self, kwargs: dict, call: dict) -> dict:
@@ -218,8 +247,9 @@ class DecoderSession:
         if self.settings.get("compile_config") is not None:
             allow_graphs_held(self.model)
         call_kwargs = {name: value for name, value in call.items() if name not in ("assistant_model", "draft_ids")}
-        return speculative_call_kwargs(self.model, call["assistant_model"], call["draft_ids"],
-                                       {**kwargs, **call_kwargs, **self.settings})  # fmt: skip
+        return speculative_call_kwargs(
+            self.model, call["assistant_model"], call["draft_ids"], {**kwargs, **call_kwargs, **self.settings}
+        )
 
     def _keepable(self, kept: dict, attention_mask, inputs: dict) -> PreparedShape | None:
         """What ``generate`` prepared, as a later call of the shape can reuse it; None when some of it depends on
@@ -251,8 +281,15 @@ class DecoderSession:
         encodes_images = model_kwargs.pop(ENCODED_INPUTS, None) is not None
         for name in ("attention_mask", *inputs):
             model_kwargs.pop(name, None)  # a call's own
-        return PreparedShape(kept["generation_config"], processors, criteria, model_kwargs, kept_cache,
-                             positions is not None and padded, encodes_images)  # fmt: skip
+        return PreparedShape(
+            kept["generation_config"],
+            processors,
+            criteria,
+            model_kwargs,
+            kept_cache,
+            positions is not None and padded,
+            encodes_images,
+        )
 
     def _direct(self, prepared: PreparedShape, input_ids, attention_mask, inputs: dict, call: dict):
         """A call of a kept shape: the engine on what ``generate`` prepared, the call's inputs made as it makes
@@ -272,10 +309,17 @@ class DecoderSession:
         model_kwargs[CACHE_KEY] = self._fresh_cache(prepared)
         engine = {name: value for name, value in self.settings.items() if name in _ENGINE_PARAMETERS}
         return speculative_generate(
-            model, input_ids, prepared.logits_processor, prepared.stopping_criteria, prepared.generation_config,
-            drafter=call["assistant_model"], draft_ids=call["draft_ids"], on_row_finished=call["on_row_finished"],
-            **engine, **model_kwargs,
-        )  # fmt: skip
+            model,
+            input_ids,
+            prepared.logits_processor,
+            prepared.stopping_criteria,
+            prepared.generation_config,
+            drafter=call["assistant_model"],
+            draft_ids=call["draft_ids"],
+            on_row_finished=call["on_row_finished"],
+            **engine,
+            **model_kwargs,
+        )
 
     def _fresh_cache(self, prepared: PreparedShape) -> Cache:
         """``generate``'s static cache emptied (as its next call would), or a new dynamic cache (as it makes one)."""

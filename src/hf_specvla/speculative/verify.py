@@ -115,8 +115,14 @@ class Pending:
         return self.model_inputs[CACHE_KEY]
 
 
-def forward_inputs(model: PreTrainedModel, pending: Pending, trees: TreeBatch, own_mask: bool,
-                   key_length: int | None = None, buffers: InputBuffers | None = None) -> dict:  # fmt: skip
+def forward_inputs(
+    model: PreTrainedModel,
+    pending: Pending,
+    trees: TreeBatch,
+    own_mask: bool,
+    key_length: int | None = None,
+    buffers: InputBuffers | None = None,
+) -> dict:
     """The model's inputs for one forward over ``[pending tokens ; each row's tree nodes]`` on top of the cache (a
     node at depth d gets position ``last + 1 + d``).
 
@@ -179,8 +185,9 @@ class Verification:
     #: whether ``verify`` reads ``pending.lengths`` (the rows' sequence lengths)
     reads_lengths = False
 
-    def __init__(self, output_hidden: tuple[int, ...] | None, sliding_window: int | None = None,
-                 key_length: int | None = None):  # fmt: skip
+    def __init__(
+        self, output_hidden: tuple[int, ...] | None, sliding_window: int | None = None, key_length: int | None = None
+    ):
         self.output_hidden, self.sliding_window, self.key_length = output_hidden, sliding_window, key_length
 
     def verify(self, model: PreTrainedModel, pending: Pending, trees: TreeBatch) -> TargetOutput:
@@ -224,8 +231,15 @@ class CompiledVerification(Verification):
         dtype: the target's (the buffers' mask dtype).
     """
 
-    def __init__(self, call: Callable, output_hidden, sliding_window=None, key_length=None, verifier=None,
-                 dtype: torch.dtype | None = None):  # fmt: skip
+    def __init__(
+        self,
+        call: Callable,
+        output_hidden,
+        sliding_window=None,
+        key_length=None,
+        verifier=None,
+        dtype: torch.dtype | None = None,
+    ):
         super().__init__(output_hidden, sliding_window, key_length)
         self.call, self.verifier, self.dtype = call, verifier, dtype
 
@@ -255,8 +269,15 @@ class FusedVerification(CompiledVerification):
 
     reads_lengths = True
 
-    def __init__(self, acceptance: GraphAcceptance, output_hidden, sliding_window=None, key_length=None,
-                 verifier=None, dtype: torch.dtype | None = None):  # fmt: skip
+    def __init__(
+        self,
+        acceptance: GraphAcceptance,
+        output_hidden,
+        sliding_window=None,
+        key_length=None,
+        verifier=None,
+        dtype: torch.dtype | None = None,
+    ):
         super().__init__(acceptance.call, output_hidden, sliding_window, key_length, verifier, dtype)
         self.acceptance = acceptance
 

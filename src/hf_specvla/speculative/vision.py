@@ -3,7 +3,7 @@
 transformers' ``generate`` encodes a VLM's images before decoding starts (the base model's ``get_image_features``)
 and hands the result to the model's forward as ``mm_encoder_outputs``; it runs that encoder eagerly even under a
 ``CompileConfig``, which compiles the language model's forward only. On a small policy the eager encoder is mostly
-host time (policy v3's three-layer tower: ~2.6 ms a call eager, ~1.8 ms compiled, on one CPU thread). A compiled
+host time, which compiling it cuts (docs/benchmarks.md, "The call's own work"). A compiled
 speculative call (``assistant_model=`` / ``draft_ids=`` with a static cache and a ``compile_config``: the calls whose
 verifications the engine compiles) encodes its images with the base model's ``get_image_features`` compiled by the
 model's [`CompiledVerifier`] (one graph per batch size; transformers' output-capturing wrappers do not trace into one

@@ -151,9 +151,8 @@ def with_action_prior(
 
     Before another drafter the prior proposes its first candidate only (the held action, a chain verified inside the
     prefill through the model's own causal path) and nothing after the prefill: ``drafter`` continues where it stops
-    being accepted. Its other candidates and later re-proposals cost more than they gave (policy v2, compiled, r=0,
-    against transformers' compiled greedy: prior+jacobi 1.29x with 16 nodes re-proposed every round, 1.44x with 16
-    nodes in the prefill only, 1.50x with the held action alone; 2.71 / 2.77 / 2.81 target forwards per call)."""
+    being accepted. Its other candidates and later re-proposals cost more than they gave (the prior's candidates on
+    policy v2, docs/results/record/benchmarks-history.md)."""
     from ..drafter import ComposedDrafter
 
     if not previous_actions:
