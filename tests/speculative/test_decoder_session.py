@@ -127,3 +127,27 @@ def test_no_drafter_decodes_greedily_one_token_a_forward(tiny_llama):
                               return_dict_in_generate=True)  # fmt: skip
     assert torch.equal(out.sequences, expected)
     assert out.speculation.num_target_forwards == NEW_TOKENS and set(out.speculation.tree_sizes) == {0}
+
+
+def test_a_model_that_wraps_generate_keeps_its_wrapper(tiny_llama):
+    """A class whose own ``generate`` wraps the mixin's (the OpenVLA port inserts its image rows there): what the
+    wrapper does is its own, so every session call goes through ``model.generate``."""
+    from transformers import LlamaForCausalLM
+
+    from hf_specvla.speculative import SpeculativeGenerationMixin
+
+    class Wrapping(SpeculativeGenerationMixin, LlamaForCausalLM):
+        calls = 0
+
+        def generate(self, *args, **kwargs):
+            Wrapping.calls += 1
+            return super().generate(*args, **kwargs)
+
+    model = Wrapping(tiny_llama.config).eval()
+    model.load_state_dict(tiny_llama.state_dict())
+    session = DecoderSession(model, max_new_tokens=NEW_TOKENS)
+    input_ids = prompt(7, 0)
+    expected = tiny_llama.generate(input_ids=input_ids, max_new_tokens=NEW_TOKENS, do_sample=False)
+    for _ in range(3):
+        assert torch.equal(session.generate(input_ids, assistant_model=JacobiDrafter()), expected)
+    assert Wrapping.calls == 3 and session.direct_calls == 0

@@ -38,7 +38,6 @@ from ..speculative import (
     CACHE_KEY,
     SPECULATION_KWARGS,
     ActionPriorDrafter,
-    DecoderSession,
     Drafter,
     DraftHead,
     SpeculativeGenerationMixin,
@@ -49,7 +48,6 @@ from ..speculative import (
     remember_actions,
     with_generation_config,
 )
-from ..speculative.session import CALL_ARGUMENTS
 from .configuration_openvla import OpenVLAConfig
 from .vision import AttentionPoolLatent, LayerScale, OpenVLAProjector, OpenVLAVisionBackbone, VisionTransformer
 
@@ -503,12 +501,7 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
             kwargs["action_layout"] = layout if layout is not None else self.action_layout(unnorm_key)
         kwargs = self._action_length(action_dim, kwargs.pop("min_new_tokens", action_dim),
                                      kwargs.pop("generation_config", None), kwargs)  # fmt: skip
-        if drafts and DecoderSession.can_hold(kwargs):  # a robot's calls: generate's set-up done once (same tokens)
-            inputs = {name: kwargs.pop(name) for name in list(kwargs)
-                      if name in CALL_ARGUMENTS or isinstance(kwargs[name], torch.Tensor)}  # fmt: skip
-            generated = DecoderSession.of(self, **kwargs).generate(input_ids, **inputs)
-        else:
-            generated = self.generate(input_ids, **kwargs)
+        generated = self.generate(input_ids, **kwargs)
         sequences = generated if isinstance(generated, torch.Tensor) else generated.sequences
         action_token_ids = sequences[0, -action_dim:]
         if previous_action_ids is not None:

@@ -47,8 +47,8 @@ from .configuration_vla import VLAPolicyConfig
 if TYPE_CHECKING:
     from ..speculative import DraftHead, DraftTreeConfig
 
-DRAFTER_CHOICES = ("greedy", "none", "head", "tree", "prior", "prior+head", "prior+tree", "jacobi", "prior+jacobi",
-                   "jacobi+tree", "prior+jacobi+tree")  # fmt: skip
+DRAFTER_CHOICES = ("greedy", "head", "tree", "prior", "prior+head", "prior+tree", "jacobi", "prior+jacobi",
+                   "jacobi+tree", "prior+jacobi+tree", "none")  # fmt: skip
 #: drafting nothing: ``greedy`` is transformers' own greedy decoding, ``none`` greedy decoding run by hf_specvla's
 #: engine (one token a verification, through the policy's decoder session: what the engine's path alone saves)
 DRAFTLESS = ("greedy", "none")

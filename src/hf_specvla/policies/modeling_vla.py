@@ -33,6 +33,7 @@ from ..actions.tokenizer import ActionLayout, ActionNormalizer, ActionUnits
 from ..actions.vla_tokenizer import build_vla_tokenizer
 from ..run_folder import fingerprint
 from ..speculative import (
+    RULE_ARGUMENTS,
     SPECULATION_KWARGS,
     ActionPriorDrafter,
     DecoderSession,
@@ -364,8 +365,6 @@ def _decoding_plan(decoding: DecodingPlan | None, action_prior: bool, generate_k
     Raises:
         ValueError: ``decoding`` beside loose options that say the same, naming them.
     """
-    from ..speculative.config import RULE_ARGUMENTS
-
     loose = [name for name in (*_PLAN_OPTIONS, *RULE_ARGUMENTS) if name in generate_kwargs]
     if decoding is not None:
         if action_prior or loose:

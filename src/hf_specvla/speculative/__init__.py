@@ -37,7 +37,7 @@ from .compiled import (
     verification_slots,
     verification_width,
 )
-from .config import SpeculationConfig
+from .config import RULE_ARGUMENTS, SpeculationConfig
 from .configuration_draft_head import DraftHeadConfig
 from .decoder import SpeculativeDecoder
 from .drafter import (
@@ -91,6 +91,7 @@ __all__ = [
     "OLDEST_TESTED_TRANSFORMERS",
     "SUPPORTED_TRANSFORMERS",
     "SPECULATION_KWARGS",
+    "RULE_ARGUMENTS",
     "with_generation_config",
     "NODE_BUCKETS",
     "SLOT_MULTIPLE",

@@ -144,6 +144,9 @@ class DecoderSession:
                 f"max_new_tokens, bin_tolerance)"
             )
         self.model, self.settings = model, dict(settings)
+        #: the model's class wraps ``generate`` above the mixin (OpenVLA's port: its image rows): what its wrapper
+        #: does is its own, so every call goes through ``model.generate``
+        self.wraps_generate = type(model).generate is not SpeculativeGenerationMixin.generate
         #: shape -> what generate prepared for it; None: that shape's calls all go through generate
         self.prepared: dict[tuple, PreparedShape | None] = {}
         #: calls run through ``generate`` (each shape's first, and those of shapes it cannot keep), and past it
@@ -184,7 +187,7 @@ class DecoderSession:
             ),
         )
         call = dict(assistant_model=assistant_model, draft_ids=draft_ids, on_row_finished=on_row_finished)
-        prepared = self.prepared.get(key, ...)
+        prepared = None if self.wraps_generate else self.prepared.get(key, ...)
         if prepared is ...:  # this shape's first call: through generate, keeping what it prepared
             output, self.prepared[key] = self._through_generate(input_ids, attention_mask, inputs, call)
             return output

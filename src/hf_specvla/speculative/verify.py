@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch.nn.utils.rnn import pad_sequence
@@ -34,9 +34,6 @@ from .compat import CACHE_KEY
 from .drafter import read_hidden_states
 from .masks import to_additive_mask, tree_verification_allowed
 from .tree import TreeBatch
-
-if TYPE_CHECKING:
-    from .fused import GraphAcceptance
 
 
 class TargetOutput(NamedTuple):
@@ -264,14 +261,15 @@ class FusedVerification(CompiledVerification):
     the rows' sequence lengths.
 
     Args:
-        acceptance: the call's [`GraphAcceptance`] (the compiled function and the EOS constants it reads).
+        acceptance: the call's [`GraphAcceptance`] (``speculative.fused``: the compiled function, as ``.call``, and
+            the EOS constants it reads; called as ``acceptance(inputs, trees, lengths) -> (packed, hidden)``).
     """
 
     reads_lengths = True
 
     def __init__(
         self,
-        acceptance: GraphAcceptance,
+        acceptance: Callable,
         output_hidden,
         sliding_window=None,
         key_length=None,
