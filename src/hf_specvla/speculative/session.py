@@ -246,13 +246,18 @@ class DecoderSession:
     def _mixin_steps(self, kwargs: dict, call: dict) -> dict:
         """What the speculative ``generate`` of the model's mixin does before transformers' (its precision, the
         thread's graph limit, the checks, a compiled call's images encoded)."""
-        keep_greedy_exact(self.model)
-        if self.settings.get("compile_config") is not None:
-            allow_graphs_held(self.model)
+        self._ready_model()
         call_kwargs = {name: value for name, value in call.items() if name not in ("assistant_model", "draft_ids")}
         return speculative_call_kwargs(
             self.model, call["assistant_model"], call["draft_ids"], {**kwargs, **call_kwargs, **self.settings}
         )
+
+    def _ready_model(self) -> None:
+        """What the mixin's ``generate`` does to the model before every call: its precision, and this thread's
+        graph limit for a compiled call."""
+        keep_greedy_exact(self.model)
+        if self.settings.get("compile_config") is not None:
+            allow_graphs_held(self.model)
 
     def _keepable(self, kept: dict, attention_mask, inputs: dict) -> PreparedShape | None:
         """What ``generate`` prepared, as a later call of the shape can reuse it; None when some of it depends on
@@ -298,9 +303,7 @@ class DecoderSession:
         """A call of a kept shape: the engine on what ``generate`` prepared, the call's inputs made as it makes
         them."""
         model = self.model
-        keep_greedy_exact(model)
-        if self.settings.get("compile_config") is not None:
-            allow_graphs_held(model)
+        self._ready_model()
         model_kwargs = dict(prepared.shared)
         encoded = with_compiled_image_features(model, {**inputs, **self.settings})
         if prepared.encodes_images and takes_encoded_images(model, encoded):
