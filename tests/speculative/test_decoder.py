@@ -15,7 +15,7 @@ import pytest
 import torch
 from transformers import LlamaForCausalLM
 
-from hf_specvla import DraftHead, JacobiDrafter, disable_speculation, enable_speculation
+from hf_specvla import DraftHead, DraftHeadDrafter, JacobiDrafter, disable_speculation, enable_speculation
 from hf_specvla.speculative import SpeculativeDecoder, reusable_static_cache
 from hf_specvla.speculative.compiled import CompiledVerifier, reset_compilation
 from hf_specvla.speculative.decoder import DECODER_ATTRIBUTE
@@ -58,6 +58,7 @@ def test_two_models_alternating_compiled_calls_each_get_their_own_greedy():
     decoders = [SpeculativeDecoder.of(model) for model in models]
     assert decoders[0] is not decoders[1] and all(d.model_ref() is m for d, m in zip(decoders, models))
     assert all(len(d.verifiers) == 1 and d.static_caches for d in decoders)
+    assert all(any(key[0] == "draft head" for key in d.static_caches) for d in decoders)  # the heads' too
     caches = [{id(c) for c in d.static_caches.values()} for d in decoders]
     assert not caches[0] & caches[1]  # each model's static caches are its own
     # a model holds nothing of the engine but its decoder (transformers keeps its own compiled call)
@@ -98,6 +99,19 @@ def test_reusable_static_caches_are_the_models_decoders():
     cache = reusable_static_cache(model, 64, 1)
     assert reusable_static_cache(model, 64, 1) is cache  # handed out again, emptied
     assert reusable_static_cache(_llama(1), 64, 1) is not cache
+
+
+def test_a_draft_heads_static_cache_is_the_target_models_decoders():
+    """Drafters of one head on one target share its static cache (one compiled call at a time on a model); another
+    target keeps its own; a drafter holds none."""
+    model, other = _llama(0), _llama(1)
+    head = DraftHead.from_target(model, num_draft_tokens=3).eval()
+    first, second = DraftHeadDrafter(head), DraftHeadDrafter(head, num_draft_tokens=2)
+    cache = first.static_cache(model, 64)
+    assert second.static_cache(model, 64) is cache  # handed out again, emptied
+    assert first.static_cache(model, 128) is not cache and first.static_cache(other, 64) is not cache
+    assert cache in SpeculativeDecoder.of(model).static_caches.values()
+    assert not any(isinstance(value, dict) for value in vars(first).values())
     assert cache in SpeculativeDecoder.of(model).static_caches.values()
 
 

@@ -6,8 +6,8 @@ model. It owns:
 
 - the compiled verifications ([`CompiledVerifier`], one per ``CompileConfig``: the target's compiled call, every
   width and prefill compiled up front, the drafters' graphs, the rounds' input buffers);
-- the static caches the calls reuse ([`static_cache`]: emptied and handed out again, so that compiled graphs and CUDA
-  graphs keep reading the same buffers);
+- the static caches the calls reuse, the target's and its draft heads' ([`static_cache`]: emptied and handed out
+  again, so that compiled graphs and CUDA graphs keep reading the same buffers);
 - the caches a batched call decoded on ([`batch_decoded`]: no later call may continue them);
 - the draft trees' structure tensors by shape (``tree_structures``: a round's trees repeat a few shapes);
 - its decoder sessions by settings (``sessions``: [`DecoderSession`]'s, what ``generate`` prepared for each shape of
@@ -45,7 +45,8 @@ class SpeculativeDecoder:
     Attributes:
         verifiers: ``compile_settings(compile_config)`` -> its [`CompiledVerifier`] (``CompiledVerifier.for_model``
             makes them; this module imports nothing of the engine).
-        static_caches: (slots, offloading, dtype written, device, batch size) -> a reusable ``StaticCache``.
+        static_caches: (slots, offloading, dtype written, device, batch size) -> a reusable ``StaticCache`` of the
+            target's; ("draft head", its architecture, slots, dtype, device) -> a draft head's.
         epoch: the compilation epoch this decoder's verifiers were made in ([`reset_compilation`]).
     """
 

@@ -55,6 +55,7 @@ from transformers.cache_utils import DynamicCache, StaticCache
 
 from ..cache import set_static_length, truncate_cache
 from ..compiled import CompiledVerifier, compile_settings, rounded_slots
+from ..decoder import SpeculativeDecoder
 from ..drafter import Commit, DraftContext, Drafter, DraftRound, DraftSession
 from ..masks import causal_allowed, sequence_key_padding, to_additive_mask
 from ..modeling_draft_head import DraftHead, DraftScorer, TargetHandles
@@ -151,8 +152,6 @@ class DraftHeadDrafter(Drafter):
             self.name = "head-tree"
         self.tree_config = tree
         self.action_layout = draft_head.config.action_layout()
-        # reused across calls, like generate's own static cache (one compiled call at a time per drafter)
-        self._static_caches: dict[tuple, StaticCache] = {}
         self._llama_config = None  # the head's config as transformers' caches read it (built at first use)
         self._architecture: str | None = None  # the head's config as JSON: what its compiled round depends on
 
@@ -170,28 +169,30 @@ class DraftHeadDrafter(Drafter):
         conditioned.previous_bins = self.draft_head.previous_action_bins(previous_action, self.draft_head.device)
         return conditioned
 
-    def static_cache(self, key_length: int) -> StaticCache:
-        """The head's static cache of ``key_length`` slots, emptied: allocated once per size and reused by every later
-        compiled call (as ``generate`` reuses its own; its buffers keep their addresses for compiled graphs)."""
+    def static_cache(self, model, key_length: int) -> StaticCache:
+        """The head's static cache of ``key_length`` slots, emptied: kept by the target ``model``'s
+        [`SpeculativeDecoder`] (one per head architecture, size, dtype and device), reused by every later compiled
+        call (as ``generate`` reuses its own; its buffers keep their addresses for compiled graphs)."""
         weights = self.draft_head.fuse.weight
-        key = (key_length, weights.dtype, weights.device)
-        cache = self._static_caches.get(key)
-        if cache is None:
-            if self._llama_config is None:
-                self._llama_config = self.draft_head.config.to_llama_config()
-            cache = self._static_caches[key] = StaticCache(config=self._llama_config, max_cache_len=key_length)
-        else:
-            cache.reset()
-        return cache
+        if self._llama_config is None:
+            self._llama_config = self.draft_head.config.to_llama_config()
+        key = ("draft head", self._architecture_json(), key_length, weights.dtype, weights.device)
+        return SpeculativeDecoder.of(model).static_cache(
+            key, lambda: StaticCache(config=self._llama_config, max_cache_len=key_length)
+        )
+
+    def _architecture_json(self) -> str:
+        """The head's config as JSON: what its caches and compiled round depend on (made once)."""
+        if self._architecture is None:
+            self._architecture = self.draft_head.config.to_json_string()
+        return self._architecture
 
     def round_graph_key(self, compile_config, key_length: int, graph_depth: int) -> tuple:
         """What a compiled round's graph depends on: heads of one architecture share it (parameters are graph
         inputs), whatever their weights."""
-        if self._architecture is None:
-            self._architecture = self.draft_head.config.to_json_string()
         tree = (self.tree_config.top_k, self.tree_config.depth, self.tree_config.total_tokens)
         weights = self.draft_head.fuse.weight
-        return ("draft-head round", self._architecture, weights.dtype, weights.device,
+        return ("draft-head round", self._architecture_json(), weights.dtype, weights.device,
                 compile_settings(compile_config), key_length, tree, graph_depth)  # fmt: skip
 
     def max_tree_nodes(self, max_depth: int) -> int | None:
@@ -223,7 +224,7 @@ class _DraftHeadSession(DraftSession):
             self.cache = DynamicCache()
         else:
             self.key_length = head_cache_slots(context.max_length, self.config)
-            self.cache = drafter.static_cache(self.key_length)
+            self.cache = drafter.static_cache(context.model, self.key_length)
             # the target's compiled state owns the head's graphs too (one owner per model and compile settings)
             self.compiled = CompiledVerifier.for_model(context.model, self.compile_config)
             self.compiled_round = self.compiled.compiled_function(catch_up_and_expand, graphs=1)
