@@ -3,7 +3,18 @@ still makes: the command's own code (``build_toy_pipeline`` with its defaults), 
 ``PREFIX_STEPS`` of the target's training and then, on the shipped target, of its head's, loss for loss as the logs
 shipped beside the weights recorded them (the whole ~15 minutes would say no more: same data order, initialisation,
 optimiser and schedule from the first step on). Compared within a tolerance, not bit for bit: another CPU rounds
-the training's floats differently."""
+the training's floats differently, and the difference grows with the steps. The settings themselves (sizes, steps,
+learning rate, seed) are the shipped ``run.json``'s, or the build refuses the folder.
+
+Measured on an Intel Xeon of these machines (2026-12-02), one log line (one batch's loss) against the shipped log:
+
+| | step 100 | step 200 |
+|---|---:|---:|
+| the target's loss | -0.9% | -7.3% |
+| the head's loss / feature loss / token loss | +0.4% / +2.0% / +0.2% | +3.5% / +7.2% / +9.7% |
+| the head's, seed 1 instead of 0 | +10.7% / +12.3% / +14.3% | +5.0% / +8.6% / +7.8% |
+
+so the first log line is compared: by step 200 the CPU's rounding moves the losses as far as another seed does."""
 
 import json
 import shutil
@@ -17,8 +28,8 @@ from hf_specvla.training import loop
 pytestmark = pytest.mark.training
 
 SHIPPED = Path(__file__).resolve().parents[2] / toy.SHIPPED_TOY_DIR
-#: the training steps retraced (two log lines of each training)
-PREFIX_STEPS = 200
+#: the training steps retraced (the first log line of each training; the module docstring says why not more)
+PREFIX_STEPS = 100
 
 
 class _Retraced(Exception):
@@ -49,7 +60,7 @@ TOLERANCES = {"loss": 0.03, "feature_loss": 0.10, "token_loss": 0.10}
 
 
 def _assert_same_trajectory(ours: list[dict], shipped: list[dict], keys: tuple[str, ...]) -> None:
-    assert [row["step"] for row in ours] == [row["step"] for row in shipped[: len(ours)]] == [100, PREFIX_STEPS]
+    assert [row["step"] for row in ours] == [row["step"] for row in shipped[: len(ours)]] == [PREFIX_STEPS]
     for row, reference in zip(ours, shipped):
         assert row["lr"] == pytest.approx(reference["lr"], rel=1e-9), row["step"]  # the schedule of max_steps
         for key in keys:
