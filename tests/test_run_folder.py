@@ -195,6 +195,24 @@ def test_eval_refuses_another_run_and_redoes_a_torn_episode(tmp_path, tiny_polic
     assert len(list(tmp_path.glob("eval.replaced-*/episodes.jsonl"))) == 1
 
 
+def test_an_eval_folder_records_a_typed_plan_as_its_loose_options(tmp_path, tiny_policy):
+    """``evaluate(decoding=plan)`` (what ``hf-specvla eval`` passes) records the same decoding as the plan's loose
+    options: a folder made either way continues the other way, and another plan is refused naming what differs."""
+    from hf_specvla.metaworld.env import EnvConfig
+    from hf_specvla.metaworld.evaluation import evaluate
+    from hf_specvla.policies import DecodingMethod
+
+    env = EnvConfig(32, tiny_policy.config.camera, max_episode_steps=2)
+    plan = DecodingMethod.parse("prior+jacobi:r=1").plan(None, action_dim=tiny_policy.config.action_dim)
+    out = tmp_path / "eval"
+    evaluate(tiny_policy, "reach", 1, out, env, decoding=plan, progress=False)
+    loose = evaluate(tiny_policy, "reach", 2, out, env, generate_kwargs=plan.predict_kwargs(), progress=False)
+    assert loose["overall"]["episodes"] == 2 and len((out / "episodes.jsonl").read_text().splitlines()) == 2
+    exact = DecodingMethod.parse("prior+jacobi").plan(None, action_dim=tiny_policy.config.action_dim)
+    with pytest.raises(FileExistsError, match=r"holds another run: decoding.bin_tolerance: '\(not set\)' here vs 1"):
+        evaluate(tiny_policy, "reach", 2, out, env, decoding=exact, progress=False)
+
+
 def test_video_is_checked_up_front_and_never_costs_an_episode(tmp_path, tiny_policy, monkeypatch, caplog):
     """Regression (reliability issue, case 7): `--video x.mp4` failed after the first rollout (no mp4 writer), that
     episode was never logged, and every rerun failed the same way; `--video` on a resumed folder was dropped."""

@@ -4,6 +4,7 @@ decoding method (``--method`` takes `compare`'s names; the older flags build the
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 from ..metaworld.env import EnvConfig
 from ..metaworld.seeds import EVAL_SEED_START
@@ -134,14 +135,14 @@ def run(args, parser) -> int:
     if args.draft_head and not method.uses_draft_head:
         logger.warning("--method %s drafts without a head: --draft-head %s is not used", method.name, args.draft_head)
     draft_head = load_draft_head_for(policy, args.draft_head, parser) if method.uses_draft_head else None
-    generate_kwargs = method.generate_kwargs(draft_head, policy.model.device.type, action_dim=policy.config.action_dim)
+    plan = method.plan(draft_head, policy.model.device.type, action_dim=policy.config.action_dim)
     if args.bin_tolerance is not None:  # as given (one r, or one per action dimension), as eval folders record it
-        tolerance = args.bin_tolerance
-        generate_kwargs["bin_tolerance"] = tolerance[0] if len(tolerance) == 1 else tolerance
+        tolerance = args.bin_tolerance[0] if len(args.bin_tolerance) == 1 else args.bin_tolerance
+        plan = replace(plan, acceptance={**plan.acceptance, "bin_tolerance": tolerance})
     with usage_errors(parser, errors=(FileExistsError,)):
         summary = evaluate(policy, args.tasks, args.episodes, args.output_dir, env_config, args.seed_start,
-                           generate_kwargs, args.video, overwrite=args.overwrite_output_dir,
-                           num_envs=args.num_envs)  # fmt: skip
+                           video_path=args.video, overwrite=args.overwrite_output_dir, num_envs=args.num_envs,
+                           decoding=plan)  # fmt: skip
     print(format_summary(summary))
     calls = "one batched call decides the actions" if args.num_envs > 1 else "one call decides the action"
     chunk = f" of the next {policy.config.chunk_length} steps" if policy.config.chunk_length > 1 else ""

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..policies import VLAPolicy
+from ..policies.decoding_methods import DecodingPlan
 from ..progress import progress_bar
 from ..run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
 from ..speculative import DraftHead, DraftHeadDrafter, SpeculationStats
@@ -51,10 +52,11 @@ def rollout(
     seed: int,
     generate_kwargs: dict | None = None,
     frames: list | None = None,
+    decoding: DecodingPlan | None = None,
 ) -> EpisodeResult:
     """Runs one episode from ``env.reset(seed)`` until success or the step limit ([`rollout_batch`] of one
     environment). Appends images to ``frames`` when given (for a video)."""
-    return rollout_batch(policy, [env], [seed], generate_kwargs, frames)[0]
+    return rollout_batch(policy, [env], [seed], generate_kwargs, frames, decoding)[0]
 
 
 def rollout_batch(
@@ -63,13 +65,15 @@ def rollout_batch(
     seeds: list[int],
     generate_kwargs: dict | None = None,
     frames: list | None = None,
+    decoding: DecodingPlan | None = None,
 ) -> list[EpisodeResult]:
     """Runs one episode per environment in lockstep (``envs[b].reset(seeds[b])``): each step, one batched
     ``predict_action`` for every environment still running; an environment leaves the batch when its episode ends.
     Per episode the same as [`rollout`] (each row keeps its own action memory for ``action_prior``); a row's
     ``latencies_ms`` are the batched calls' wall times (what each environment waited). A chunked policy's chunk is
     executed whole (``VLAPolicy.action_steps``) before the next call; the rows stay in lockstep, since every row
-    executes the same number of steps per call. ``frames`` gets the first environment's images."""
+    executes the same number of steps per call. ``frames`` gets the first environment's images. ``decoding`` (a
+    method's typed plan: ``DecodingMethod.plan``) and ``generate_kwargs`` go to every ``predict_action``."""
     generate_kwargs = dict(generate_kwargs or {})
     results = [EpisodeResult(env.task, seed, False, 0) for env, seed in zip(envs, seeds)]
     memories: list[list[list[int]]] = [[] for _ in envs]  # each row's previous actions (the action prior's drafts)
@@ -82,6 +86,7 @@ def rollout_batch(
             np.stack([obs["state"] for obs in observations]),
             return_output=True,
             previous_action_ids=[memories[b] for b in rows],
+            decoding=decoding,
             **generate_kwargs,
         )
         latency_ms = 1000 * (time.perf_counter() - start)
@@ -198,6 +203,7 @@ def evaluate(
     progress: bool = True,
     overwrite: bool = False,
     num_envs: int = 1,
+    decoding: DecodingPlan | None = None,
 ) -> dict:
     """Evaluates ``policy`` on ``episodes_per_task`` seeded episodes of each task; resumable.
 
@@ -209,6 +215,8 @@ def evaluate(
     episode) and ``output_dir/summary.json``; returns the summary. ``video_path`` (``.gif`` or ``.mp4``) saves the
     first episode's frames. A folder holding another evaluation (other policy weights, env settings, seeds or
     decoding settings) is refused unless ``overwrite`` (which moves it aside); more tasks or episodes continue it.
+    The decoding is ``decoding`` (a method's typed plan: ``DecodingMethod.plan``) with ``generate_kwargs`` beside
+    it, or ``generate_kwargs`` alone; the folder records them as one set of ``generate`` options either way.
     """
     if episodes_per_task < 1:
         raise ValueError(f"episodes_per_task must be >= 1, got {episodes_per_task}")
@@ -222,7 +230,8 @@ def evaluate(
     output_dir = Path(output_dir)
     generate_kwargs = dict(generate_kwargs or {})
     settings = {"policy": fingerprint(policy.model), "env": asdict(env_config), "seed_start": seed_start,
-                "decoding": describe_decoding(generate_kwargs)}  # fmt: skip
+                "decoding": describe_decoding({**(decoding.predict_kwargs() if decoding else {}),
+                                               **generate_kwargs})}  # fmt: skip
     with claim_run_folder(output_dir, RunRecord("eval", settings), overwrite) as run:
         folder = run.bound  # writes stay in the claimed folder, renamed or not
         log_path = folder / "episodes.jsonl"
@@ -239,7 +248,7 @@ def evaluate(
                 chunk = pending[chunk_start : chunk_start + num_envs]
                 envs = pool.acquire([task for task, _ in chunk])
                 seeds = [seed for _, seed in chunk]
-                chunk_results = rollout_batch(policy, envs, seeds, generate_kwargs, frames)
+                chunk_results = rollout_batch(policy, envs, seeds, generate_kwargs, frames, decoding)
                 with log_path.open("a") as log:
                     for result in chunk_results:
                         log.write(json.dumps(asdict(result)) + "\n")

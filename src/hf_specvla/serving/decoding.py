@@ -31,13 +31,13 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..policies.decoding_methods import COMPILED_GREEDY, GREEDY, serving_methods
+from ..policies.decoding_methods import COMPILED_GREEDY, GREEDY, DecodingPlan, serving_methods
 from .config import ServeConfig
 from .protocol import ActRequest
 
@@ -109,9 +109,10 @@ class DecodeStep:
         self.speculates = self.method.drafters != "greedy"
         #: the speculative methods, modes 1, 2, ... (empty for a greedy-only server)
         self.methods = methods if self.speculates else ()
-        self._kwargs = {0: self.baseline.generate_kwargs(None, device)}
+        #: mode -> its typed plan (what drafts, the acceptance, the compilation), made once, passed whole
+        self._plans: dict[int, DecodingPlan] = {0: self.baseline.plan(None, device)}
         for mode, method in enumerate(self.methods, 1):
-            self._kwargs[mode] = method.generate_kwargs(draft_head, device, action_dim=layout.action_dim)
+            self._plans[mode] = method.plan(draft_head, device, action_dim=layout.action_dim)
         self.shortest_prompt = len(policy.prompt_ids("", self._zero_state()))  # image, state and the prompt's words
         self.prompt_tiers = self._prompt_tiers(draft_head)
 
@@ -148,7 +149,7 @@ class DecodeStep:
         images = np.stack([r.image for r in padded])
         states = np.stack([r.state for r in padded]) if self.policy.config.use_state else None
         instructions = [r.instruction for r in padded]
-        kwargs = self._kwargs[mode] if mode else self._greedy_kwargs(bucket, instructions, states)
+        plan, kwargs = (self._plans[mode], {}) if mode else self._greedy_plan(bucket, instructions, states)
         early: set[int] = set()
         if mode and on_row is not None:
             from ..speculative import remember_actions
@@ -165,7 +166,8 @@ class DecodeStep:
             kwargs = {**kwargs, "on_row_finished": finished}
         started = time.perf_counter()
         actions, output = self.policy.predict_action(images, instructions, states, return_output=True,
-                                                     previous_action_ids=memories, **kwargs)  # fmt: skip
+                                                     previous_action_ids=memories, decoding=plan,
+                                                     **kwargs)  # fmt: skip
         done = time.perf_counter()
         forwards = self._target_forwards(output, bucket)
         stats = getattr(output, "speculation", None)
@@ -182,12 +184,13 @@ class DecodeStep:
         return [row.num_target_forwards for row in rows]
 
     # ----------------------------------------------------------------------------- the greedy baseline's graphs
-    def _greedy_kwargs(self, bucket: int, instructions: list[str], states) -> dict:
-        """The baseline's ``generate`` arguments; for compiled greedy, an emptied static cache of this bucket with
-        room for the widest prompt (see the module docstring) in place of ``cache_implementation``."""
-        kwargs = self._kwargs[0]
-        if kwargs.get("cache_implementation") != "static":
-            return kwargs
+    def _greedy_plan(self, bucket: int, instructions: list[str], states) -> tuple[DecodingPlan, dict]:
+        """The baseline's plan and ``generate`` arguments beside it; for compiled greedy, an emptied static cache of
+        this bucket with room for the widest prompt (see the module docstring) in place of the plan's
+        ``cache_implementation``."""
+        plan = self._plans[0]
+        if plan.compile.get("cache_implementation") != "static":
+            return plan, {}
         from ..speculative import CACHE_KEY, reusable_static_cache, rounded_slots
 
         rows = states if states is not None else [None] * len(instructions)
@@ -195,7 +198,8 @@ class DecodeStep:
         width = next((last for first, last in self.prompt_tiers if first <= width <= last), width)  # the tier's
         slots = rounded_slots(width + self.policy.config.action_tokens)
         cache = reusable_static_cache(self.policy.model, slots, bucket)  # the engine's, emptied: one graph per shape
-        return {**{k: v for k, v in kwargs.items() if k != "cache_implementation"}, CACHE_KEY: cache}
+        compile = {name: value for name, value in plan.compile.items() if name != "cache_implementation"}
+        return replace(plan, compile=compile), {CACHE_KEY: cache}
 
     # ----------------------------------------------------------------------------- prompt tiers
     def _zero_state(self) -> np.ndarray | None:
@@ -205,7 +209,7 @@ class DecodeStep:
         """Per static cache a compiled call decodes on, ``prompt tokens -> its slots`` (the graphs hold that count),
         asked of the engine: the target's cache (``speculative.verification_slots`` of ``generate``'s own: the prompt
         and the action tokens but the last), each draft head's (``speculative.head_cache_slots``), or, greedy only,
-        the baseline's (``_greedy_kwargs``). Empty: eager, no graphs.
+        the baseline's (``_greedy_plan``). Empty: eager, no graphs.
 
         transformers' ``generate`` never shrinks the target's cache (it keeps the largest size it made, so as not to
         recompile): once [`warm_up`] decoded the longest tier, every speculative call decodes on that tier's cache,
@@ -237,14 +241,14 @@ class DecodeStep:
             return []
         trees = []
         for mode in self.modes[1:]:
-            kwargs = self._kwargs[mode]
-            pending = [kwargs.get("assistant_model")]
+            plan = self._plans[mode]
+            pending = [plan.assistant_model]
             while pending:
                 drafter = pending.pop()
                 if isinstance(drafter, ComposedDrafter):
                     pending += drafter.drafters
                 elif isinstance(drafter, DraftHead):
-                    trees.append(DraftHeadDrafter(drafter, kwargs.get("num_draft_tokens")).tree_config)
+                    trees.append(DraftHeadDrafter(drafter, plan.num_draft_tokens).tree_config)
                 elif isinstance(drafter, DraftHeadDrafter):
                     trees.append(drafter.tree_config)
         return trees

@@ -50,6 +50,7 @@ from ..metaworld.seeds import DRAFT_SEED_START
 if TYPE_CHECKING:
     from ..metaworld.env import EnvConfig, MetaWorldEnv
     from ..policies import VLAPolicy
+    from ..policies.decoding_methods import DecodingPlan
 
 logger = logging.getLogger(__name__)
 
@@ -140,9 +141,11 @@ def episode_path(folder: str | Path, task: str, seed: int) -> Path:
 
 
 def collect_episode(policy: VLAPolicy, env: MetaWorldEnv, seed: int, max_steps: int,
-                    generate_kwargs: dict | None = None) -> dict[str, np.ndarray]:  # fmt: skip
+                    generate_kwargs: dict | None = None, decoding: DecodingPlan | None = None,
+                    ) -> dict[str, np.ndarray]:  # fmt: skip
     """One greedy episode from ``env.reset(seed)``, at most ``max_steps`` policy calls: the arrays of the module
-    docstring (the frames ``record_observations`` records, plus the labels and the executed actions)."""
+    docstring (the frames ``record_observations`` records, plus the labels and the executed actions). ``decoding``
+    (a lossless method's typed plan) and ``generate_kwargs`` go to every ``predict_action``."""
     from ..metaworld.rollout import rollout
 
     action_dim, tokens = policy.config.action_dim, policy.config.action_tokens
@@ -153,7 +156,7 @@ def collect_episode(policy: VLAPolicy, env: MetaWorldEnv, seed: int, max_steps: 
         obs = current[0]
         previous = policy.previous_action_ids[-1] if policy.previous_action_ids else [-1] * action_dim
         action, output = policy.predict_action(obs["image"], obs["instruction"], obs["state"], return_output=True,
-                                               **(generate_kwargs or {}))  # fmt: skip
+                                               decoding=decoding, **(generate_kwargs or {}))  # fmt: skip
         sequences = output.sequences if hasattr(output, "sequences") else output
         frames.append({"image": obs["image"], "state": obs["state"], "previous_action": previous,
                        "action_ids": sequences[0, -tokens:].tolist(), "action": action})  # fmt: skip
@@ -268,11 +271,11 @@ def _collect_pairs(policy: VLAPolicy, config: RolloutConfig, pairs: list[tuple[s
                    on_episode: Callable[[dict], None] | None = None) -> None:  # fmt: skip
     """Collects and saves each (task, seed) of ``pairs`` in order into ``folder``; ``on_episode(arrays)`` after each."""
     method = config.decoding_method(policy.config.action_dim)
-    generate_kwargs = method.generate_kwargs(None, policy.model.device.type, action_dim=policy.config.action_dim)
+    plan = method.plan(None, policy.model.device.type, action_dim=policy.config.action_dim)
     envs = _EnvCache(env_config_for(policy.config))
     try:
         for task, seed in pairs:
-            arrays = collect_episode(policy, envs.get(task), seed, config.max_steps, generate_kwargs)
+            arrays = collect_episode(policy, envs.get(task), seed, config.max_steps, decoding=plan)
             save_episode(episode_path(folder, task, seed), arrays)
             logger.debug("%s seed %d: %d frames, success %s", task, seed, len(arrays["image"]), bool(arrays["success"]))
             if on_episode is not None:
