@@ -152,7 +152,6 @@ class DraftHeadDrafter(Drafter):
             self.name = "head-tree"
         self.tree_config = tree
         self.action_layout = draft_head.config.action_layout()
-        self._llama_config = None  # the head's config as transformers' caches read it (built at first use)
         self._architecture: str | None = None  # the head's config as JSON: what its compiled round depends on
 
     def with_previous_action(self, previous_action: Sequence[int] | None) -> DraftHeadDrafter:
@@ -174,11 +173,10 @@ class DraftHeadDrafter(Drafter):
         [`SpeculativeDecoder`] (one per head architecture, size, dtype and device), reused by every later compiled
         call (as ``generate`` reuses its own; its buffers keep their addresses for compiled graphs)."""
         weights = self.draft_head.fuse.weight
-        if self._llama_config is None:
-            self._llama_config = self.draft_head.config.to_llama_config()
         key = ("draft head", self._architecture_json(), key_length, weights.dtype, weights.device)
+        config = self.draft_head.config  # as transformers' caches read it, once per cache made
         return SpeculativeDecoder.of(model).static_cache(
-            key, lambda: StaticCache(config=self._llama_config, max_cache_len=key_length)
+            key, lambda: StaticCache(config=config.to_llama_config(), max_cache_len=key_length)
         )
 
     def _architecture_json(self) -> str:
