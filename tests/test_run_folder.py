@@ -211,6 +211,9 @@ def test_an_eval_folder_records_a_typed_plan_as_its_loose_options(tmp_path, tiny
     exact = DecodingMethod.parse("prior+jacobi").plan(None, action_dim=tiny_policy.config.action_dim)
     with pytest.raises(FileExistsError, match=r"holds another run: decoding.bin_tolerance: '\(not set\)' here vs 1"):
         evaluate(tiny_policy, "reach", 2, out, env, decoding=exact, progress=False)
+    with pytest.raises(TypeError, match=r"evaluate got decoding=dict: decoding= takes a DecodingPlan"):
+        evaluate(tiny_policy, "reach", 2, tmp_path / "never", env, decoding=plan.predict_kwargs(), progress=False)
+    assert not (tmp_path / "never").exists()  # refused before the folder was claimed
 
 
 def test_video_is_checked_up_front_and_never_costs_an_episode(tmp_path, tiny_policy, monkeypatch, caplog):

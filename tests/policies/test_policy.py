@@ -389,3 +389,5 @@ def test_a_decoding_plan_decodes_as_its_loose_options_and_the_session_as_generat
         with pytest.raises(ValueError, match=r"decoding=DecodingPlan\(\.\.\.\) and bin_tolerance, action_prior"):
             policy.predict_action(*observation(0)[:1], "reach the goal", observation(0)[1], decoding=plan,
                                   action_prior=True, bin_tolerance=1)  # fmt: skip
+    with pytest.raises(TypeError, match=r"predict_action got decoding=dict: decoding= takes a DecodingPlan"):
+        policy.predict_action(*observation(0)[:1], "reach the goal", observation(0)[1], decoding=loose)

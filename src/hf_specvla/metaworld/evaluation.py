@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..policies import VLAPolicy
-from ..policies.decoding_methods import DecodingPlan
+from ..policies.decoding_methods import DecodingPlan, check_decoding_plan
 from ..progress import progress_bar
 from ..run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
 from ..speculative import DraftHead, DraftHeadDrafter, SpeculationStats
@@ -222,6 +222,7 @@ def evaluate(
         raise ValueError(f"episodes_per_task must be >= 1, got {episodes_per_task}")
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
         raise ValueError(f"num_envs must be an int >= 1 (episodes run in lockstep), got {num_envs!r}")
+    check_decoding_plan(decoding, "evaluate")
     tasks = resolve_tasks(tasks)
     if video_path is not None:
         check_video_path(video_path)

@@ -398,6 +398,15 @@ class DecodingPlan:
         return {**kwargs, **self.acceptance}
 
 
+def check_decoding_plan(decoding, given_to: str) -> None:
+    """Raises a TypeError naming ``decoding``'s type unless it is None or a [`DecodingPlan`]."""
+    if decoding is not None and not isinstance(decoding, DecodingPlan):
+        raise TypeError(
+            f"{given_to} got decoding={type(decoding).__name__}: decoding= takes a DecodingPlan "
+            f"(DecodingMethod.parse('exact').plan(draft_head=None)) or None; loose generate options go as keywords"
+        )
+
+
 def _parse_option(text: str, key: str, value: str):
     """One option's value: a tolerance (r, rl), numbers (rho, dev), an int (m, k), a probability (gate) or a flag
     (confirm)."""

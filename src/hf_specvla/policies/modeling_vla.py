@@ -45,7 +45,7 @@ from ..speculative import (
     with_generation_config,
 )
 from .configuration_vla import POLICY_CONFIG_NAME, VLAPolicyConfig, check_policy_folder
-from .decoding_methods import DecodingPlan
+from .decoding_methods import DecodingPlan, check_decoding_plan
 from .processing_vla import VLAProcessor
 
 
@@ -203,6 +203,7 @@ class VLAPolicy:
         Raises:
             ValueError: a batch whose images, instructions, states or memories disagree in number; a ``decoding``
                 plan beside loose options that say the same.
+            TypeError: ``decoding`` that is not a DecodingPlan.
         """
         plan = _decoding_plan(decoding, action_prior, generate_kwargs)
         batched = np.asarray(image).ndim == 4
@@ -365,6 +366,7 @@ def _decoding_plan(decoding: DecodingPlan | None, action_prior: bool, generate_k
     Raises:
         ValueError: ``decoding`` beside loose options that say the same, naming them.
     """
+    check_decoding_plan(decoding, "predict_action")
     loose = [name for name in (*_PLAN_OPTIONS, *RULE_ARGUMENTS) if name in generate_kwargs]
     if decoding is not None:
         if action_prior or loose:
