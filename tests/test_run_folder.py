@@ -312,3 +312,72 @@ def test_a_draft_run_from_before_float16_hidden_states_is_told_what_changed():
     full = RunRecord("train-draft", {"policy": "abc", "distillation": {"hidden_dtype": "float32"}})
     assert old.differences(half) == ["distillation.hidden_dtype: 'float16' here vs 'float32' there"]
     assert old.differences(full) == []
+
+
+#: every method ``DecodingMethod`` accepts, the presets among them
+RECORDED_METHODS = ("none", "prior", "jacobi", "prior+jacobi", "exact", "fast", "greedy:compile", "none:compile",
+                    "prior+jacobi:r=4/4/4/0,m=1:compile")  # fmt: skip
+HEAD_METHODS = ("head", "tree", "prior+head", "prior+tree", "jacobi+tree", "prior+jacobi+tree",
+                "prior+jacobi+tree:compile", "exact", "fast")  # fmt: skip
+_DESCRIBE = """
+import json, sys
+from hf_specvla import DraftHead
+from hf_specvla.metaworld.evaluation import describe_decoding
+from hf_specvla.policies import DecodingMethod
+head = DraftHead.from_pretrained(sys.argv[1])
+methods = json.loads(sys.argv[2])
+print(json.dumps({f"{name}|{with_head}": describe_decoding(DecodingMethod.parse(name, with_head, 4).plan(
+    head if with_head else None, action_dim=4).predict_kwargs()) for name, with_head in methods}))
+"""
+
+
+def test_a_folders_decoding_record_is_the_same_in_every_process_for_every_method(tmp_path, tiny_policy):
+    """Reliability-6 row 6: the record of a plan's decoding holds no ``repr`` with a memory address and names a
+    tree's head by its fingerprint, so that the same settings give the same record in another process (an eval
+    folder continues), for every method ``DecodingMethod`` accepts, with and without a head."""
+    from hf_specvla import DraftHead
+    from hf_specvla.metaworld.evaluation import describe_decoding
+    from hf_specvla.policies import DecodingMethod
+
+    head = DraftHead.from_target(tiny_policy.model, tiny_policy.action_tokenizer, action_dim=4).eval()
+    head.save_pretrained(tmp_path / "head")
+    methods = [(name, False) for name in RECORDED_METHODS] + [(name, True) for name in HEAD_METHODS]
+    here = {}
+    for name, with_head in methods:
+        records = [describe_decoding(DecodingMethod.parse(name, with_head, 4).plan(
+            head if with_head else None, action_dim=4).predict_kwargs()) for _ in range(2)]  # fmt: skip
+        assert records[0] == records[1], name
+        text = json.dumps(records[0])
+        assert " at 0x" not in text, (name, text)
+        if with_head and "tree" in DecodingMethod.parse(name, True, 4).drafters:
+            assert fingerprint(head) in text, (name, text)  # the tree's head named by its weights
+        here[f"{name}|{with_head}"] = records[0]
+    other = subprocess.run([sys.executable, "-c", _DESCRIBE, str(tmp_path / "head"), json.dumps(methods)],
+                           capture_output=True, text=True, timeout=600, check=True)  # fmt: skip
+    assert json.loads(other.stdout.strip().splitlines()[-1]) == json.loads(json.dumps(here))
+
+
+@pytest.mark.parametrize("method", ["none", "jacobi+tree", "prior+jacobi+tree"])
+def test_an_eval_folder_of_every_plan_continues(tmp_path, tiny_policy, method):
+    """Reliability-6 row 6: ``evaluate(decoding=plan)`` run again with more episodes continues its folder (it used to
+    say "holds another run" for ``none`` and the tree plans), and a plan of another head is refused naming it."""
+    from hf_specvla import DraftHead
+    from hf_specvla.metaworld.env import EnvConfig
+    from hf_specvla.metaworld.evaluation import evaluate
+    from hf_specvla.policies import DecodingMethod
+
+    torch.manual_seed(0)
+    heads = [DraftHead.from_target(tiny_policy.model, tiny_policy.action_tokenizer, action_dim=4).eval()
+             for _ in range(2)]  # fmt: skip
+    env = EnvConfig(32, tiny_policy.config.camera, max_episode_steps=2)
+    out = tmp_path / "eval"
+
+    def plan(head):  # made anew each run, as each run of the command makes its own
+        return DecodingMethod.parse(method, True, 4).plan(head, action_dim=4)
+
+    evaluate(tiny_policy, "reach", 1, out, env, decoding=plan(heads[0]), progress=False)
+    summary = evaluate(tiny_policy, "reach", 2, out, env, decoding=plan(heads[0]), progress=False)
+    assert summary["overall"]["episodes"] == 2
+    if "tree" in method:
+        with pytest.raises(FileExistsError, match="holds another run: decoding.assistant_model"):
+            evaluate(tiny_policy, "reach", 3, out, env, decoding=plan(heads[1]), progress=False)

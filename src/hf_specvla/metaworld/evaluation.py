@@ -13,8 +13,10 @@ import importlib.util
 import json
 import logging
 import os
+import re
 import statistics
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -24,7 +26,7 @@ from ..policies import VLAPolicy
 from ..policies.decoding_methods import DecodingPlan, check_decoding_plan
 from ..progress import progress_bar
 from ..run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
-from ..speculative import DraftHead, DraftHeadDrafter, SpeculationStats
+from ..speculative import ComposedDrafter, DraftHead, DraftHeadDrafter, PerRowDrafter, SpeculationStats
 from .env import EnvConfig, MetaWorldEnv, resolve_tasks
 from .rollout import rollout as run_rollout
 from .seeds import EVAL_SEED_START
@@ -177,18 +179,39 @@ def format_summary(summary: dict) -> str:
 
 
 def describe_decoding(generate_kwargs: dict) -> dict:
-    """JSON form of ``generate_kwargs`` for a folder's record: draft heads by weight fingerprint, drafters by
-    their settings, plain values as they are."""
-    described = {}
-    for key, value in sorted(generate_kwargs.items()):
-        if isinstance(value, DraftHead):
-            value = {"draft_head": fingerprint(value)}
-        elif isinstance(value, DraftHeadDrafter):
-            value = {"draft_head": fingerprint(value.draft_head), "tree": asdict(value.tree_config)}
-        elif not isinstance(value, (bool, int, float, str, list, tuple, dict, type(None))):
-            value = repr(value)
-        described[key] = value
-    return described
+    """JSON form of ``generate_kwargs`` for a folder's record, the same in every process for the same settings
+    ([`describe_setting`])."""
+    return {key: describe_setting(value) for key, value in sorted(generate_kwargs.items())}
+
+
+#: a ``repr`` that holds a memory address (``<... object at 0x7f...>``): another in every process
+_ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
+
+
+def describe_setting(value):
+    """One decoding setting as JSON that is the same in every process for the same setting: plain values as they
+    are (sequences as lists), draft heads by weight fingerprint, a head's drafter by its head and tree, a composition
+    or per-row drafter by its parts in order, any other object by its ``repr`` when that holds no memory address (the
+    drafters' own: Jacobi, the action prior, a ``CompileConfig``), else by its class and public attributes."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, (list, tuple)):
+        return [describe_setting(item) for item in value]
+    if isinstance(value, Mapping):
+        return {str(key): describe_setting(item) for key, item in sorted(value.items())}
+    if isinstance(value, DraftHead):
+        return {"draft_head": fingerprint(value)}
+    if isinstance(value, DraftHeadDrafter):
+        return {"draft_head": fingerprint(value.draft_head), "tree": asdict(value.tree_config)}
+    if isinstance(value, (ComposedDrafter, PerRowDrafter)):
+        return {type(value).__name__: [describe_setting(drafter) for drafter in value.drafters]}
+    text = repr(value)
+    if not _ADDRESS.search(text):
+        return text
+    attributes = {
+        name: describe_setting(item) for name, item in sorted(vars(value).items()) if not name.startswith("_")
+    }
+    return {"type": f"{type(value).__module__}.{type(value).__qualname__}", **attributes}
 
 
 def evaluate(

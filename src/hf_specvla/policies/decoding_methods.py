@@ -38,7 +38,9 @@ verify drafts through the same compiled model call (``speculative.compiled``).""
 
 from __future__ import annotations
 
+import copy
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -377,8 +379,41 @@ class DecodingPlan:
     assistant_model: object = None
     action_prior: bool = False
     num_draft_tokens: int | None = None
-    acceptance: dict = field(default_factory=dict)
-    compile: dict = field(default_factory=dict)
+    acceptance: Mapping = field(default_factory=dict)
+    compile: Mapping = field(default_factory=dict)
+
+    def __post_init__(self):
+        """Checks every field once, when the plan is made (as ``predict_action`` checks the same loose options), and
+        holds ``acceptance`` / ``compile`` as read-only [`PlanOptions`] (a plan is hashable, equal for equal settings).
+
+        Raises:
+            TypeError: a field of the wrong type (a mapping that is not one, an assistant that drafts nothing),
+                naming the field and its type.
+            ValueError: a setting that is not the field's own (an action length, sampling, a compile setting among
+                the acceptance's...) or a bad value, naming it and what is valid.
+        """
+        from ..speculative import Drafter, DraftHead, SpeculationConfig
+
+        if self.assistant_model is not None and not isinstance(self.assistant_model, (Drafter, DraftHead)):
+            raise TypeError(f"DecodingPlan.assistant_model must be a hf_specvla Drafter or DraftHead, or None, got "
+                            f"{type(self.assistant_model).__name__}")  # fmt: skip
+        if not isinstance(self.action_prior, bool):
+            raise TypeError(f"DecodingPlan.action_prior must be True or False, got {self.action_prior!r}")
+        for name, valid in (("acceptance", _ACCEPTANCE_SETTINGS), ("compile", COMPILE_SETTINGS)):
+            _check_plan_options(name, getattr(self, name), valid)
+            object.__setattr__(self, name, PlanOptions(getattr(self, name)))
+        SpeculationConfig(num_draft_tokens=self.num_draft_tokens, **self.acceptance)  # the values' own checks
+        cache = self.compile.get("cache_implementation")
+        if cache is not None and not isinstance(cache, str):
+            raise TypeError(f"DecodingPlan.compile's cache_implementation must be a transformers cache name "
+                            f"('static'), got {type(cache).__name__}")  # fmt: skip
+        compile_config = self.compile.get("compile_config")
+        if compile_config is not None:
+            from transformers import CompileConfig
+
+            if not isinstance(compile_config, CompileConfig):
+                raise TypeError(f"DecodingPlan.compile's compile_config must be a transformers CompileConfig, got "
+                                f"{type(compile_config).__name__}")  # fmt: skip
 
     @property
     def speculates(self) -> bool:
@@ -396,6 +431,79 @@ class DecodingPlan:
         if self.action_prior:
             kwargs["action_prior"] = True
         return {**kwargs, **self.acceptance}
+
+
+#: the compilation settings a plan's ``compile`` holds (``speculative.compiled_decoding_kwargs``'s)
+COMPILE_SETTINGS = ("cache_implementation", "compile_config")
+#: the acceptance rule's settings (``speculative.RULE_ARGUMENTS``, restated here: no torch at import; a test keeps
+#: the two equal)
+_ACCEPTANCE_SETTINGS = ("bin_tolerance", "confidence_gate", "max_relaxed_per_action", "motion_scale", "max_deviation",
+                        "confirm_strict_tail")  # fmt: skip
+#: why a setting that is no plan field's own is not: what a user who put it there meant
+_NOT_A_PLAN_SETTING = {
+    **dict.fromkeys(("max_new_tokens", "min_new_tokens", "max_length", "min_length"),
+                    "the action's length is the policy's own (its config's action tokens)"),
+    **dict.fromkeys(("do_sample", "temperature", "top_k", "top_p", "min_p", "num_beams"),
+                    "how tokens are chosen is generate's: pass predict_action(generation_config=GenerationConfig("
+                    "do_sample=True, ...)); a plan's acceptance only says which drafts count"),
+}  # fmt: skip
+
+
+class PlanOptions(Mapping):
+    """A [`DecodingPlan`]'s ``acceptance`` or ``compile`` settings: a read-only mapping (``**plan.acceptance`` works),
+    hashable, equal for equal settings; lists held as given (a folder's record reads them)."""
+
+    def __init__(self, options: Mapping):
+        self._options = {name: copy.deepcopy(value) if isinstance(value, (list, dict)) else value
+                         for name, value in options.items()}  # fmt: skip
+
+    def __getitem__(self, name: str):
+        return self._options[name]
+
+    def __iter__(self):
+        return iter(self._options)
+
+    def __len__(self) -> int:
+        return len(self._options)
+
+    def __hash__(self) -> int:
+        return hash(tuple(sorted((name, _hashable(value)) for name, value in self._options.items())))
+
+    def __repr__(self) -> str:
+        return repr(self._options)
+
+
+def _hashable(value):
+    """A hash stand-in consistent with ``==``: sequences by their items, objects that cannot hash (a
+    ``CompileConfig``) by their type."""
+    if isinstance(value, (list, tuple)):
+        return tuple(_hashable(item) for item in value)
+    if isinstance(value, dict):
+        return tuple(sorted((str(name), _hashable(item)) for name, item in value.items()))
+    try:
+        hash(value)
+    except TypeError:
+        return type(value).__qualname__
+    return value
+
+
+def _check_plan_options(field_name: str, options, valid: tuple[str, ...]) -> None:
+    """Refuses a plan field (``acceptance`` / ``compile``) that is not a mapping of its own settings.
+
+    Raises:
+        TypeError: not a mapping (None, a list, a string), naming the field and its type.
+        ValueError: a setting that is not among ``valid``, naming it, the field and what is valid.
+    """
+    if not isinstance(options, Mapping):
+        raise TypeError(f"DecodingPlan.{field_name} must be a mapping of its settings ({', '.join(valid)}), got "
+                        f"{type(options).__name__} {options!r}")  # fmt: skip
+    for name in options:
+        if name in valid:
+            continue
+        other = "acceptance" if name in _ACCEPTANCE_SETTINGS else "compile" if name in COMPILE_SETTINGS else None
+        why = f"it belongs in DecodingPlan.{other}" if other else _NOT_A_PLAN_SETTING.get(name, "")
+        raise ValueError(f"DecodingPlan.{field_name} holds {name!r}, which is not one of its settings (valid: "
+                         f"{', '.join(valid)}){'; ' + why if why else ''}")  # fmt: skip
 
 
 def check_decoding_plan(decoding, given_to: str) -> None:

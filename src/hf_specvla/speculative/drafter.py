@@ -204,6 +204,21 @@ class Drafter:
         speed, not of correctness."""
         return None
 
+    def settings_key(self) -> tuple | None:
+        """What the drafter drafts from, as a hashable value: drafters of equal keys (and class) are equal and hash
+        alike (a [`DecodingPlan`] of equal settings is equal); None (the default): compared by identity."""
+        return None
+
+    def __eq__(self, other) -> bool:
+        if self is other:
+            return True
+        key = self.settings_key()
+        return key is not None and type(other) is type(self) and key == other.settings_key()
+
+    def __hash__(self) -> int:
+        key = self.settings_key()
+        return id(self) if key is None else hash((type(self).__qualname__, key))
+
     def __getattr__(self, name: str):
         # Only reached for missing attributes: e.g. transformers' assisted generation probing ``.config`` because
         # the target's generate was never speculation-enabled. Say how to fix it.
@@ -229,6 +244,12 @@ class NoDrafter(Drafter):
 
     def max_tree_nodes(self, max_depth: int) -> int | None:
         return 0
+
+    def settings_key(self) -> tuple:
+        return ()
+
+    def __repr__(self) -> str:
+        return "NoDrafter()"
 
 
 # ----------------------------------------------------------------------------- drafts known up front
@@ -345,6 +366,13 @@ class ComposedDrafter(Drafter):
     def max_tree_nodes(self, max_depth: int) -> int | None:
         bounds = [d.max_tree_nodes(max_depth) for d in self.drafters]
         return None if None in bounds else sum(bounds)
+
+    def settings_key(self) -> tuple | None:
+        keys = [d.settings_key() for d in self.drafters]
+        return None if None in keys else tuple(zip((type(d).__qualname__ for d in self.drafters), keys))
+
+    def __repr__(self) -> str:
+        return f"ComposedDrafter({self.drafters!r})"
 
 
 class PerRowDrafter(Drafter):

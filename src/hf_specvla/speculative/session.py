@@ -34,7 +34,7 @@ from .compat import CACHE_KEY
 from .compiled import allow_graphs_held, compile_settings
 from .decoder import SpeculativeDecoder
 from .drafter import Drafter, NoDrafter
-from .generation import SpeculativeGenerationMixin, speculative_call_kwargs
+from .generation import SPECULATION_KWARGS, SpeculativeGenerationMixin, speculative_call_kwargs
 from .loop import speculative_generate
 from .modeling_draft_head import DraftHead
 from .precision import keep_greedy_exact
@@ -143,7 +143,10 @@ class DecoderSession:
                 f"call from a fresh cache (settings are the generate keywords every call shares, e.g. "
                 f"max_new_tokens, bin_tolerance)"
             )
-        self.model, self.settings = model, dict(settings)
+        # a tensor setting (a stop token) copied: the caller may change theirs in place, which is another setting
+        self.model = model
+        self.settings = {name: value.clone() if isinstance(value, torch.Tensor) else value
+                         for name, value in settings.items()}  # fmt: skip
         #: the model's class wraps ``generate`` above the mixin (OpenVLA's port: its image rows): what its wrapper
         #: does is its own, so every call goes through ``model.generate``
         self.wraps_generate = type(model).generate is not SpeculativeGenerationMixin.generate
@@ -185,6 +188,7 @@ class DecoderSession:
             tuple(
                 (name, tuple(value.shape), value.dtype) for name, value in sorted(inputs.items()) if value is not None
             ),
+            self._decisions(),
         )
         call = dict(assistant_model=assistant_model, draft_ids=draft_ids, on_row_finished=on_row_finished)
         prepared = None if self.wraps_generate else self.prepared.get(key, ...)
@@ -199,7 +203,28 @@ class DecoderSession:
         self.direct_calls += 1
         return self._direct(prepared, input_ids, attention_mask if padded else None, inputs, call)
 
+    def _decisions(self) -> tuple:
+        """Everything besides the shape that decides what ``generate`` prepares, read at every call: the model's
+        ``generation_config`` (its stop and pad tokens, suppressed tokens, lengths...: mutated or replaced), the
+        contents of a ``GenerationConfig`` among the session's settings (the caller may change it), the model's
+        dtype and device. A change makes a new prepared shape (a call through ``generate``), never a stale one."""
+        model = self.model
+        own = self.settings.get("generation_config")
+        return (
+            generation_config_key(model.generation_config),
+            None if own is None else generation_config_key(own),
+            model.dtype,
+            model.device,
+        )
+
     def _check_inputs(self, inputs: dict) -> None:
+        decisions = sorted(name for name in inputs if name in GENERATE_SETTINGS and name not in self.settings)
+        if decisions:
+            raise ValueError(
+                f"{', '.join(decisions)} is a generate setting, not a model input: a DecoderSession's calls take "
+                f"inputs (tensors), a drafter and draft_ids. Make a DecoderSession with {decisions[0]}=... (a "
+                f"tensor value too) for calls that want it"
+            )
         settings = sorted(
             name
             for name, value in inputs.items()
@@ -343,11 +368,28 @@ def _frozen(value):
         return value
     if isinstance(value, (list, tuple)):
         return tuple(_frozen(item) for item in value)
+    if isinstance(value, dict):
+        return "dict", tuple(sorted((str(key), _frozen(item)) for key, item in value.items()))
+    if isinstance(value, torch.Tensor):  # by content: a tensor changed in place is another setting
+        return "tensor", value.dtype, tuple(value.shape), tuple(value.detach().cpu().flatten().tolist())
     if isinstance(value, GenerationConfig):
-        return "GenerationConfig", value.to_json_string(use_diff=True)
+        return "GenerationConfig", generation_config_key(value)
     if isinstance(value, CompileConfig):
         return "CompileConfig", compile_settings(value)
     return "object", id(value)
+
+
+def generation_config_key(config: GenerationConfig) -> tuple:
+    """A hashable stand-in for every value of ``config`` (what ``generate`` reads to decide tokens): equal for equal
+    contents, different after any change, whether ``config`` was mutated or replaced (~20 us)."""
+    return tuple((name, _frozen(value)) for name, value in sorted(vars(config).items()))
+
+
+#: ``generate``'s settings (a ``GenerationConfig``'s fields, the engine's), never a model input of a session's call
+GENERATE_SETTINGS = frozenset(vars(GenerationConfig())) | frozenset(SPECULATION_KWARGS) | frozenset(
+    ("generation_config", "logits_processor", "stopping_criteria", "prefix_allowed_tokens_fn", "synced_gpus",
+     "negative_prompt_ids", "negative_prompt_attention_mask", "use_model_defaults")
+)  # fmt: skip
 
 
 def _positions_from_mask(attention_mask: torch.Tensor) -> torch.Tensor:

@@ -201,6 +201,13 @@ class DraftHeadDrafter(Drafter):
         scorer = self.draft_head.scorer(handles.lm_head, context.eos_token_ids)
         return _DraftHeadSession(self, handles, scorer, context)
 
+    def settings_key(self) -> tuple | None:
+        """The head (by identity: its weights) and the tree; None once conditioned on a robot's previous action."""
+        if self.previous_bins is not None:
+            return None
+        tree = self.tree_config
+        return id(self.draft_head), self.name, tree.top_k, tree.depth, tree.total_tokens
+
     def __repr__(self) -> str:
         return f"DraftHeadDrafter({self.name}, {self.tree_config})"
 

@@ -118,6 +118,9 @@ class JacobiDrafter(Drafter):
     def max_tree_nodes(self, max_depth: int) -> int | None:
         return max_depth if self.max_tokens is None else min(max_depth, self.max_tokens)  # one chain
 
+    def settings_key(self) -> tuple:
+        return self.max_tokens, None if self.initial_ids is None else tuple(self.initial_ids), self.fill
+
     def __repr__(self) -> str:
         return f"JacobiDrafter(max_tokens={self.max_tokens}, initial_ids={self.initial_ids}, fill={self.fill})"
 
