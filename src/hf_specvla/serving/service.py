@@ -302,6 +302,8 @@ class PolicyService:
                 if cache is None
                 else {"compile_cache": "warm" if warm else "cold", "compile_cache_folder": str(cache.folder)}
             )
+            if cache is not None and cache.set_aside is not None:  # a damaged folder: the start compiles cold
+                self.startup["compile_cache_set_aside"] = str(cache.set_aside)
             table = self._warm_up(calibrate, seed)
         phases = self.startup
         start = {"warm": " (warm start: the compile cache's graphs)", "cold": " (cold start, into the compile cache)"}
