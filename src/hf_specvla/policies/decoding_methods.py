@@ -402,7 +402,9 @@ class DecodingPlan:
         for name, valid in (("acceptance", _ACCEPTANCE_SETTINGS), ("compile", COMPILE_SETTINGS)):
             _check_plan_options(name, getattr(self, name), valid)
             object.__setattr__(self, name, PlanOptions(getattr(self, name)))
-        SpeculationConfig(num_draft_tokens=self.num_draft_tokens, **self.acceptance)  # the values' own checks
+        speculation = SpeculationConfig(drafter=self.assistant_model, num_draft_tokens=self.num_draft_tokens,
+                                        **self.acceptance)  # fmt: skip  # (the values' own checks)
+        object.__setattr__(self, "_speculation", speculation)
         cache = self.compile.get("cache_implementation")
         if cache is not None and not isinstance(cache, str):
             raise TypeError(f"DecodingPlan.compile's cache_implementation must be a transformers cache name "
@@ -414,6 +416,12 @@ class DecodingPlan:
             if not isinstance(compile_config, CompileConfig):
                 raise TypeError(f"DecodingPlan.compile's compile_config must be a transformers CompileConfig, got "
                                 f"{type(compile_config).__name__}")  # fmt: skip
+
+    @property
+    def speculation(self):
+        """The plan's speculation as the engine takes it whole (``generate(speculation=...)``): a
+        ``SpeculationConfig`` of its assistant, chain length and acceptance, made (and checked) with the plan."""
+        return self._speculation
 
     @property
     def speculates(self) -> bool:
@@ -467,24 +475,12 @@ class PlanOptions(Mapping):
         return len(self._options)
 
     def __hash__(self) -> int:
-        return hash(tuple(sorted((name, _hashable(value)) for name, value in self._options.items())))
+        from ..speculative import hashable
+
+        return hash(tuple(sorted((name, hashable(value)) for name, value in self._options.items())))
 
     def __repr__(self) -> str:
         return repr(self._options)
-
-
-def _hashable(value):
-    """A hash stand-in consistent with ``==``: sequences by their items, objects that cannot hash (a
-    ``CompileConfig``) by their type."""
-    if isinstance(value, (list, tuple)):
-        return tuple(_hashable(item) for item in value)
-    if isinstance(value, dict):
-        return tuple(sorted((str(name), _hashable(item)) for name, item in value.items()))
-    try:
-        hash(value)
-    except TypeError:
-        return type(value).__qualname__
-    return value
 
 
 def _check_plan_options(field_name: str, options, valid: tuple[str, ...]) -> None:

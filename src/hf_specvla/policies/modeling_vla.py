@@ -15,7 +15,7 @@ One folder is a complete policy: ``save_pretrained`` writes the model, the token
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -270,12 +270,17 @@ class VLAPolicy:
             self.config.chunk_length,
         )
         if drafter is not None:  # a robot's calls repeat one shape and settings: generate's set-up done once
-            kwargs = {"action_layout": self.action_layout, **kwargs, **plan.acceptance}
+            # the plan's speculation, whole: the episode's drafter is the call's; loose limits beside the plan join it
+            beside = {name: kwargs.pop(name) for name in SPECULATION_KWARGS if name in kwargs}
+            layout = beside.pop("action_layout", None) or plan.speculation.action_layout or self.action_layout
+            speculation = replace(plan.speculation, drafter=None, num_draft_tokens=None, action_layout=layout, **beside)
             call = {name: kwargs.pop(name) for name in ("draft_ids", "on_row_finished") if name in kwargs}
             if self.decoder_sessions and DecoderSession.can_hold(kwargs):
-                output = DecoderSession.of(self.model, **kwargs).generate(**inputs, assistant_model=drafter, **call)
+                session = DecoderSession.of(self.model, speculation=speculation, **kwargs)
+                output = session.generate(**inputs, assistant_model=drafter, **call)
             else:
-                output = self.model.generate(**inputs, assistant_model=drafter, **call, **kwargs)
+                output = self.model.generate(**inputs, assistant_model=drafter, speculation=speculation, **call,
+                                             **kwargs)  # fmt: skip
         else:
             if plan.action_prior:  # the episodes' first step: nothing to draft from, plain greedy decoding
                 for name in (*SPECULATION_KWARGS, "on_row_finished"):  # rows then finish together, after the call

@@ -37,7 +37,7 @@ from .compiled import (
     verification_slots,
     verification_width,
 )
-from .config import RULE_ARGUMENTS, SpeculationConfig
+from .config import RULE_ARGUMENTS, SPECULATION_KWARGS, SpeculationConfig, hashable
 from .configuration_draft_head import DraftHeadConfig
 from .decoder import SpeculativeDecoder
 from .drafter import (
@@ -67,7 +67,6 @@ from .drafters import (
 from .drafters.draft_head import embed_tokens, head_cache_slots
 from .drafters.eagle_tree import num_head_entries
 from .generation import (
-    SPECULATION_KWARGS,
     SpeculativeGenerationMixin,
     disable_speculation,
     enable_speculation,
@@ -92,6 +91,7 @@ __all__ = [
     "SUPPORTED_TRANSFORMERS",
     "SPECULATION_KWARGS",
     "RULE_ARGUMENTS",
+    "hashable",
     "with_generation_config",
     "NODE_BUCKETS",
     "SLOT_MULTIPLE",

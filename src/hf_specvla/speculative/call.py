@@ -76,17 +76,15 @@ def draft_id_candidates(draft_ids, batch_size: int, vocab_size: int) -> list[lis
 
 
 def _call_drafter(
-    model, batch_size: int, drafter, draft_head, draft_ids, settings: SpeculationConfig
+    model, batch_size: int, draft_ids, settings: SpeculationConfig
 ) -> tuple[Drafter, list[list[list[int]]] | None]:
-    """The call's drafter: the assistant (a bare DraftHead drafts a chain), with ``draft_ids``'s candidates first when
-    given; and those candidates (per row), or None.
+    """The call's drafter: the settings' (a bare DraftHead drafts a chain), with ``draft_ids``'s candidates first
+    when given; and those candidates (per row), or None.
 
     Raises:
-        ValueError: both ``drafter`` and ``draft_head``, or nothing to draft with; bad ``draft_ids``.
+        ValueError: nothing to draft with; bad ``draft_ids``.
     """
-    if drafter is not None and draft_head is not None:
-        raise ValueError("pass drafter= or draft_head=, not both")
-    drafter = as_drafter(drafter if drafter is not None else draft_head, settings.num_draft_tokens)
+    drafter = as_drafter(settings.drafter, settings.num_draft_tokens)
     candidates = None
     if draft_ids is not None:
         vocab_size = model.get_output_embeddings().weight.shape[0]
@@ -351,13 +349,11 @@ class CheckedCall:
     layout: ActionLayout | None
 
 
-def _checked_call(
-    model, input_ids, logits_processor, generation_config, settings, drafter, draft_head, draft_ids
-) -> CheckedCall:
+def _checked_call(model, input_ids, logits_processor, generation_config, settings, draft_ids) -> CheckedCall:
     """Every argument of the call checked (before any forward): the drafter, the acceptance rule and its layout, and
     the candidates of ``draft_ids``."""
     batch_size = input_ids.shape[0]
-    drafter, candidates = _call_drafter(model, batch_size, drafter, draft_head, draft_ids, settings)
+    drafter, candidates = _call_drafter(model, batch_size, draft_ids, settings)
     _validate_call(model, generation_config, logits_processor, batch_size, drafter)
     layout = settings.action_layout or drafter.action_layout
     rule = make_acceptance_rule(
@@ -376,13 +372,11 @@ def _checked_call(
 
 
 def prepare(
-    model, input_ids, logits_processor, generation_config, settings, drafter, draft_head, draft_ids, model_kwargs
+    model, input_ids, logits_processor, generation_config, settings: SpeculationConfig, draft_ids, model_kwargs
 ) -> SpeculativeCall:
     """1. The call checked and set up: the prefill's inputs on a cache with room for the trees, each row's drafter
     session, the round plan (compiled or eager, widths, rule)."""
-    checked = _checked_call(
-        model, input_ids, logits_processor, generation_config, settings, drafter, draft_head, draft_ids
-    )
+    checked = _checked_call(model, input_ids, logits_processor, generation_config, settings, draft_ids)
     drafter, layout = checked.drafter, checked.layout
     decoder = SpeculativeDecoder.of(model)  # what the engine keeps for this model between calls (after the checks)
     batch_size = input_ids.shape[0]

@@ -102,3 +102,12 @@ def check_transformers_support(version: str | None = None) -> None:
             version,
             NEWEST_TESTED_TRANSFORMERS,
         )
+
+
+#: Appended to the AttributeError transformers' own assisted generation raises when it is handed a hf_specvla
+#: assistant because the target's ``generate`` was never speculation-enabled (it is not enabled automatically).
+NOT_ENABLED_HINT = (
+    "a hf_specvla assistant (DraftHead or Drafter) needs a speculation-enabled target: call "
+    "hf_specvla.enable_speculation(model) once, or pass generate(custom_generate=hf_specvla.speculative_generate, "
+    "drafter=...)"
+)

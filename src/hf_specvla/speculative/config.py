@@ -1,8 +1,12 @@
-"""The one place the speculative ``generate`` keyword arguments are declared, with their defaults."""
+"""The one speculation setting: [`SpeculationConfig`], what drafts and how drafts count, checked once when made and
+passed whole (``model.generate(..., speculation=...)``); the loose ``generate`` keywords (``assistant_model=``,
+``bin_tolerance=``, ...) are folded into one at the boundary ([`SpeculationConfig.fold`]), as transformers folds
+its keywords into a ``GenerationConfig``. The one place these settings are declared, with their defaults."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from ..actions.tokenizer import ActionLayout
@@ -13,21 +17,19 @@ from .acceptance import (
     check_relaxed_budget,
     validate_per_dimension,
 )
-
-#: Appended to the AttributeError transformers' own assisted generation raises when it is handed a hf_specvla
-#: assistant because the target's ``generate`` was never speculation-enabled (it is not enabled automatically).
-NOT_ENABLED_HINT = (
-    "a hf_specvla assistant (DraftHead or Drafter) needs a speculation-enabled target: call "
-    "hf_specvla.enable_speculation(model) once, or pass generate(custom_generate=hf_specvla.speculative_generate, "
-    "drafter=...)"
-)
+from .drafter import Drafter
+from .modeling_draft_head import DraftHead
 
 
-@dataclass
+@dataclass(frozen=True)
 class SpeculationConfig:
-    """Runtime settings of one speculative ``generate`` call (passed as ``generate`` keyword arguments).
+    """The settings of speculative ``generate`` calls, whole: ``model.generate(**inputs, speculation=settings)``, or
+    the same as loose ``generate`` keywords (``assistant_model=`` for ``drafter``). Frozen and hashable (equal for
+    equal settings); checked when made, each refusal naming its field.
 
     Args:
+        drafter: what drafts after the prefill: a [`Drafter`] or a bare [`DraftHead`] (its chain), or None (only
+            ``draft_ids``, a call's own, then draft). ``generate``'s ``assistant_model``.
         bin_tolerance: the paper's r: accept a drafted action token within this many bins of the target's greedy
             token. An int, one int per action dimension, or one such list per action of a chunk (the last one serving
             the later actions). 0 = lossless (identical to greedy decoding).
@@ -53,6 +55,7 @@ class SpeculationConfig:
             drafts per row than one row can afford.
     """
 
+    drafter: object = None
     bin_tolerance: int | Sequence[int] | Sequence[Sequence[int]] = 0
     num_draft_tokens: int | None = None
     action_layout: ActionLayout | None = None
@@ -65,6 +68,16 @@ class SpeculationConfig:
     confirm_strict_tail: bool = False
 
     def __post_init__(self):
+        if self.drafter is not None and not isinstance(self.drafter, (Drafter, DraftHead)):
+            raise TypeError(
+                f"SpeculationConfig.drafter (generate's assistant_model) must be a hf_specvla DraftHead or Drafter "
+                f"(DraftHeadDrafter, JacobiDrafter, ComposedDrafter, ...) or None, got {type(self.drafter).__name__}"
+            )
+        if isinstance(self.drafter, Drafter) and self.num_draft_tokens is not None:
+            raise ValueError(
+                "num_draft_tokens applies to a bare DraftHead assistant; a Drafter carries its own settings "
+                "(e.g. DraftHeadDrafter(head, num_draft_tokens=k))"
+            )
         k = self.num_draft_tokens
         if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
             raise ValueError(f"num_draft_tokens must be an int >= 1 (tokens drafted per verification), got {k!r}")
@@ -85,6 +98,52 @@ class SpeculationConfig:
             )
         if self.action_layout is not None and not isinstance(self.action_layout, ActionLayout):
             raise TypeError(f"action_layout must be a hf_specvla.ActionLayout, got {type(self.action_layout).__name__}")
+
+    def __hash__(self) -> int:
+        return hash(tuple(hashable(getattr(self, f.name)) for f in dataclasses.fields(self)))
+
+    @classmethod
+    def fold(cls, speculation: SpeculationConfig | None, loose: Mapping) -> SpeculationConfig:
+        """The call's one setting: ``speculation``, or the loose keywords' (``loose``: names of its fields, e.g.
+        ``{"drafter": head, "bin_tolerance": 2}``), made once at the boundary; both at once only when the loose
+        ones add a drafter to a ``speculation`` without one (a robot's drafter, made each call).
+
+        Raises:
+            ValueError: ``speculation`` beside loose settings that say the same, naming them.
+            TypeError: ``speculation`` that is not a SpeculationConfig.
+        """
+        if speculation is None:
+            return cls(**loose)
+        if not isinstance(speculation, SpeculationConfig):
+            raise TypeError(
+                f"speculation must be a hf_specvla SpeculationConfig (or left out for loose keywords), got "
+                f"{type(speculation).__name__}"
+            )
+        clash = sorted(name for name in loose if name != "drafter" or speculation.drafter is not None)
+        if clash:
+            raise ValueError(
+                f"generate got speculation=SpeculationConfig(...) and {', '.join(clash)}: the setting holds them "
+                f"whole; pass one or the other (dataclasses.replace(speculation, {clash[0]}=...) for another value)"
+            )
+        return speculation if not loose else dataclasses.replace(speculation, **loose)
+
+
+#: [`SpeculationConfig`]'s fields as ``generate``'s loose keywords (``drafter`` is ``assistant_model`` there)
+SPECULATION_KWARGS = tuple(f.name for f in dataclasses.fields(SpeculationConfig) if f.name != "drafter")
+
+
+def hashable(value):
+    """A hash stand-in consistent with ``==``: sequences and mappings by their items, an object that cannot hash (a
+    ``CompileConfig``, an ``ActionLayout``) by its type."""
+    if isinstance(value, (list, tuple)):
+        return tuple(hashable(item) for item in value)
+    if isinstance(value, Mapping):
+        return tuple(sorted((str(name), hashable(item)) for name, item in value.items()))
+    try:
+        hash(value)
+    except TypeError:
+        return type(value).__qualname__
+    return value
 
 
 #: the acceptance rule's settings among [`SpeculationConfig`]'s (``make_acceptance_rule``'s arguments but the layout;

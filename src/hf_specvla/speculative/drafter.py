@@ -26,7 +26,7 @@ import torch
 from transformers import CompileConfig, PreTrainedModel
 
 from ..actions.tokenizer import ActionLayout
-from .config import NOT_ENABLED_HINT
+from .compat import NOT_ENABLED_HINT
 from .stats import SpeculationStats
 from .tree import DraftTree
 

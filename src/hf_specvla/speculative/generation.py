@@ -10,25 +10,17 @@ forwarded to a callable), or ``draft_ids`` (drafts known up front, with or witho
 from __future__ import annotations
 
 import copy
-import inspect
 
 from transformers import GenerationConfig, PreTrainedModel
 
 from .compat import check_transformers_support
 from .compiled import allow_graphs_held
-from .config import SpeculationConfig
+from .config import SPECULATION_KWARGS, SpeculationConfig
 from .drafter import Drafter
 from .loop import speculative_generate
 from .modeling_draft_head import DraftHead
 from .precision import EXACT_ATTRIBUTE, keep_greedy_exact
 from .vision import with_compiled_image_features
-
-#: generate() keyword arguments that only mean something with speculative decoding.
-SPECULATION_KWARGS = tuple(
-    name
-    for name in inspect.signature(SpeculationConfig).parameters
-    if name in inspect.signature(speculative_generate).parameters
-)
 
 
 def with_generation_config(generation_config: GenerationConfig, settings: dict) -> dict:
@@ -53,20 +45,22 @@ def with_generation_config(generation_config: GenerationConfig, settings: dict) 
 class SpeculativeGenerationMixin:
     """Mix in before a transformers model class to make ``generate`` speculate.
 
-    ``generate(..., assistant_model=draft_head_or_drafter, draft_ids=..., bin_tolerance=r)`` runs speculative
-    decoding (see [`speculative_generate`]); every other call behaves exactly as the base class's ``generate``. In
+    ``generate(..., speculation=SpeculationConfig(drafter=..., bin_tolerance=r), draft_ids=...)``, or the same as
+    loose keywords (``assistant_model=draft_head_or_drafter, bin_tolerance=r``, folded into one [`SpeculationConfig`]
+    here, once), runs speculative decoding (see [`speculative_generate`]); every other call behaves exactly as the
+    base class's ``generate``. In
     bf16 / fp16 every call first makes sure the model runs eager attention (``speculative.precision``), which keeps
     r=0 speculative calls with greedy ones at near-ties. A compiled speculative call of a VLM encodes its images
     with a compiled encoder too (``speculative.vision``).
     """
 
-    def generate(self, *args, assistant_model=None, draft_ids=None, **kwargs):
+    def generate(self, *args, assistant_model=None, draft_ids=None, speculation=None, **kwargs):
         keep_greedy_exact(self)
         if kwargs.get("compile_config") is not None:  # this thread may not have compiled the graphs it meets
             allow_graphs_held(self)
         ours = isinstance(assistant_model, (DraftHead, Drafter))
-        if ours or draft_ids is not None:
-            kwargs = speculative_call_kwargs(self, assistant_model, draft_ids, kwargs)
+        if ours or draft_ids is not None or speculation is not None:
+            kwargs = speculative_call_kwargs(self, assistant_model, draft_ids, speculation, kwargs)
             return super().generate(*args, custom_generate=speculative_generate, **kwargs)
         if assistant_model is not None and not isinstance(assistant_model, PreTrainedModel):
             raise TypeError(
@@ -84,14 +78,15 @@ class SpeculativeGenerationMixin:
         return super().generate(*args, assistant_model=assistant_model, **kwargs)
 
 
-def speculative_call_kwargs(model: PreTrainedModel, assistant_model, draft_ids, kwargs: dict) -> dict:
-    """The keyword arguments of transformers' ``generate`` for a speculative call (checked): the drafter and
+def speculative_call_kwargs(model: PreTrainedModel, assistant_model, draft_ids, speculation, kwargs: dict) -> dict:
+    """The keyword arguments of transformers' ``generate`` for a speculative call (checked): one
+    [`SpeculationConfig`] (``speculation``, or the loose keywords and ``assistant_model`` folded into one) and
     ``draft_ids`` as [`speculative_generate`] takes them, a compiled call's images encoded by the compiled encoder;
     ``custom_generate`` is the caller's to add.
 
     Raises:
         ValueError / TypeError: ``custom_generate`` or a ``streamer`` beside a speculative call, an assistant that is
-            not ours beside ``draft_ids``.
+            not ours beside ``draft_ids`` or ``speculation``, ``speculation`` beside loose settings that say the same.
     """
     check_transformers_support()
     if kwargs.get("custom_generate") is not None:
@@ -100,11 +95,16 @@ def speculative_call_kwargs(model: PreTrainedModel, assistant_model, draft_ids, 
         raise ValueError("streamer is not supported with speculative decoding; drop streamer=")
     if assistant_model is not None and not isinstance(assistant_model, (DraftHead, Drafter)):
         raise TypeError(
-            f"draft_ids= speculates with hf_specvla's loop, whose assistant must be a DraftHead or a Drafter, "
-            f"got {type(assistant_model).__name__}"
+            f"draft_ids= / speculation= speculate with hf_specvla's loop, whose assistant must be a DraftHead or a "
+            f"Drafter, got {type(assistant_model).__name__}"
         )
+    kwargs = dict(kwargs)
+    loose = {name: kwargs.pop(name) for name in SPECULATION_KWARGS if name in kwargs}
+    if assistant_model is not None:
+        loose["drafter"] = assistant_model
+    speculation = SpeculationConfig.fold(speculation, loose)
     kwargs = with_compiled_image_features(model, kwargs)  # a compiled call's images: a compiled encoder
-    return {**kwargs, "drafter": assistant_model, "draft_ids": draft_ids}
+    return {**kwargs, "speculation": speculation, "draft_ids": draft_ids}
 
 
 def speculative_class(model_class: type[PreTrainedModel]) -> type[PreTrainedModel]:

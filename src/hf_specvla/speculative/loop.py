@@ -36,28 +36,27 @@ Entry point: [`speculative_generate`], a ``custom_generate`` callable for ``mode
 
 from __future__ import annotations
 
+import inspect
 import os
 import sys
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import torch
 from transformers import GenerationConfig, LogitsProcessorList, PreTrainedModel, StoppingCriteriaList
 
-from ..actions.tokenizer import ActionLayout
 from .cache import host_length, open_sliding_windows
 from .call import finish, prepare
 from .compat import check_transformers_support
-from .config import SpeculationConfig
-from .drafter import Drafter
+from .config import SPECULATION_KWARGS, SpeculationConfig
 from .outputs import SpeculativeDecoderOnlyOutput
 from .rounds import CallStopping, decode_round, emit_tokens, prefill
 from .state import RowState
 from .stats import SpeculationStats
 
 if TYPE_CHECKING:
-    from .modeling_draft_head import DraftHead
+    pass
 
 #: the loop's parts that tests and benchmarks reach through it
 __all__ = ["speculative_generate", "RowState", "emit_tokens"]
@@ -69,19 +68,8 @@ def speculative_generate(
     logits_processor: LogitsProcessorList,
     stopping_criteria: StoppingCriteriaList,
     generation_config: GenerationConfig,
-    drafter: Drafter | DraftHead | None = None,
-    draft_head: DraftHead | None = None,
+    speculation: SpeculationConfig | None = None,
     draft_ids: torch.LongTensor | None = None,
-    bin_tolerance: int | Sequence[int] = SpeculationConfig.bin_tolerance,
-    num_draft_tokens: int | None = SpeculationConfig.num_draft_tokens,
-    action_layout: ActionLayout | None = SpeculationConfig.action_layout,
-    profile_speculation: bool = SpeculationConfig.profile_speculation,
-    confidence_gate: float | None = SpeculationConfig.confidence_gate,
-    max_relaxed_per_action: int | None = SpeculationConfig.max_relaxed_per_action,
-    max_drafts_per_row: int | None = SpeculationConfig.max_drafts_per_row,
-    motion_scale: float | Sequence[float] | None = SpeculationConfig.motion_scale,
-    max_deviation: float | Sequence[float] | None = SpeculationConfig.max_deviation,
-    confirm_strict_tail: bool = SpeculationConfig.confirm_strict_tail,
     on_row_finished: Callable[[int, torch.Tensor, SpeculationStats], None] | None = None,
     **model_kwargs,
 ) -> SpeculativeDecoderOnlyOutput | torch.LongTensor:
@@ -89,16 +77,17 @@ def speculative_generate(
 
     ``generate`` has already prepared ``input_ids`` ``[B, S]`` (left-padded when rows differ in length, with the
     2D ``attention_mask`` in ``model_kwargs``), the logits processors, stopping criteria and ``model_kwargs``
-    (cache, position ids, encoded images). Extra keyword arguments of ``generate`` named like the parameters
-    below arrive here (see [`SpeculationConfig`] for the settings).
+    (cache, position ids, encoded images). The settings come whole as ``speculation`` (a [`SpeculationConfig`]: what
+    drafts, how drafts count, limits), or as loose keywords of ``generate`` (``drafter=``, ``bin_tolerance=``, ...:
+    its fields, which this function's signature lists for ``generate`` to route here), folded into one here.
 
     Each row drafts with its own drafter session, accepts its own number of tokens per target forward and stops on
     its own (EOS, ``max_length``, stopping criteria); finished rows leave the batch. With ``bin_tolerance=0`` every
     row's tokens are plain (batched) greedy decoding's.
 
     Args:
-        drafter: a [`Drafter`] (the same for every row, or a [`PerRowDrafter`]) or a [`DraftHead`]
-            (``draft_head=`` is the same, deprecated: a ``FutureWarning``).
+        speculation: the settings; its ``drafter`` is a [`Drafter`] (the same for every row, or a [`PerRowDrafter`])
+            or a [`DraftHead`] (loose: ``drafter=``; ``draft_head=`` is the same, deprecated: a ``FutureWarning``).
         draft_ids: ``[B, k]`` or ``[B, C, k]`` drafts of the first generated tokens of each row, known up front:
             verified inside the prefill forward, with or without a drafter.
         on_row_finished: called as ``on_row_finished(row, new_tokens, stats)`` the moment a row stops (EOS, its
@@ -117,30 +106,10 @@ def speculative_generate(
     if on_row_finished is not None and not callable(on_row_finished):
         raise TypeError(
             f"on_row_finished must be a callable (row: int, new_tokens: Tensor, stats: SpeculationStats) -> None or "
-            f"None, got "
-            f"{type(on_row_finished).__name__}"
+            f"None, got {type(on_row_finished).__name__}"
         )
-    if draft_head is not None:
-        warnings.warn(
-            "speculative_generate(draft_head=...) is deprecated and will be removed: pass drafter= (or "
-            "model.generate(assistant_model=...)), which takes a DraftHead too",
-            FutureWarning,
-            stacklevel=_caller_stacklevel(),
-        )
-    settings = SpeculationConfig(
-        bin_tolerance=bin_tolerance,
-        num_draft_tokens=num_draft_tokens,
-        action_layout=action_layout,
-        profile_speculation=profile_speculation,
-        confidence_gate=confidence_gate,
-        max_relaxed_per_action=max_relaxed_per_action,
-        max_drafts_per_row=max_drafts_per_row,
-        motion_scale=motion_scale,
-        max_deviation=max_deviation,
-        confirm_strict_tail=confirm_strict_tail,
-    )
-    call = prepare(model, input_ids, logits_processor, generation_config, settings, drafter, draft_head, draft_ids,
-                   model_kwargs)  # fmt: skip
+    speculation = SpeculationConfig.fold(speculation, _loose_settings(model_kwargs))
+    call = prepare(model, input_ids, logits_processor, generation_config, speculation, draft_ids, model_kwargs)
     call.on_row_finished = on_row_finished
     cache = call.state.target_cache
     with open_sliding_windows(cache), host_length(cache):  # exact: the generation fits the window (checked)
@@ -149,6 +118,42 @@ def speculative_generate(
         while call.state.rows:
             decode_round(model, call, logits_processor, stopping)
     return finish(call, generation_config)
+
+
+def _loose_settings(model_kwargs: dict) -> dict:
+    """The loose settings among ``model_kwargs`` (taken out): [`SpeculationConfig`]'s fields as ``generate``
+    keywords, ``drafter=`` and its deprecated name ``draft_head=`` (a ``FutureWarning``).
+
+    Raises:
+        ValueError: both ``drafter`` and ``draft_head``.
+    """
+    loose = {name: model_kwargs.pop(name) for name in (*SPECULATION_KWARGS, "drafter") if name in model_kwargs}
+    draft_head = model_kwargs.pop("draft_head", None)
+    if draft_head is not None:
+        warnings.warn(
+            "speculative_generate(draft_head=...) is deprecated and will be removed: pass drafter= (or "
+            "model.generate(assistant_model=...)), which takes a DraftHead too",
+            FutureWarning,
+            stacklevel=_caller_stacklevel(),
+        )
+        if loose.get("drafter") is not None:
+            raise ValueError("pass drafter= or draft_head=, not both")
+        loose["drafter"] = draft_head
+    if loose.get("drafter", ...) is None:
+        del loose["drafter"]
+    return loose
+
+
+#: what ``generate`` reads to route its keywords to a ``custom_generate`` callable: the settings' loose forms beside
+#: the parameters (``drafter=``, ``draft_head=``, ``bin_tolerance=``, ...), keyword-only, all defaulting to unset
+speculative_generate.__signature__ = inspect.signature(speculative_generate).replace(
+    parameters=[
+        *list(inspect.signature(speculative_generate).parameters.values())[:-1],
+        *(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=None)
+          for name in ("drafter", "draft_head", *SPECULATION_KWARGS)),
+        inspect.Parameter("model_kwargs", inspect.Parameter.VAR_KEYWORD),
+    ]
+)  # fmt: skip
 
 
 def _caller_stacklevel() -> int:

@@ -44,8 +44,7 @@ from transformers.cache_utils import Cache
 from transformers.models.llama.modeling_llama import LlamaDecoderLayer, LlamaRMSNorm, LlamaRotaryEmbedding
 
 from ..actions.tokenizer import DEFAULT_N_BINS, ActionTokenizer
-from .compat import CACHE_KEY
-from .config import NOT_ENABLED_HINT
+from .compat import CACHE_KEY, NOT_ENABLED_HINT
 from .configuration_draft_head import DraftHeadConfig
 from .masks import causal_mask
 from .weights import named_weight_errors

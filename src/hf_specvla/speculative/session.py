@@ -17,8 +17,8 @@ multi-component positions) sends every call of that shape through ``generate``, 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
-import inspect
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -32,9 +32,10 @@ from transformers.generation.stopping_criteria import EosTokenCriteria, MaxLengt
 from .cache import holds_buffers
 from .compat import CACHE_KEY
 from .compiled import allow_graphs_held, compile_settings
+from .config import SPECULATION_KWARGS, SpeculationConfig
 from .decoder import SpeculativeDecoder
 from .drafter import Drafter, NoDrafter
-from .generation import SPECULATION_KWARGS, SpeculativeGenerationMixin, speculative_call_kwargs
+from .generation import SpeculativeGenerationMixin, speculative_call_kwargs
 from .loop import speculative_generate
 from .modeling_draft_head import DraftHead
 from .precision import keep_greedy_exact
@@ -42,6 +43,8 @@ from .vision import ENCODED_INPUTS, takes_encoded_images, with_compiled_image_fe
 
 logger = logging.getLogger(__name__)
 
+#: what ``generate`` hands [`speculative_generate`] beside the model's keyword arguments (the engine's, not kept)
+CALL_SETTINGS = ("speculation", "draft_ids", "on_row_finished")
 #: a call's own arguments of [`DecoderSession.generate`], never a session's settings
 CALL_ARGUMENTS = ("input_ids", "attention_mask", "assistant_model", "draft_ids", "on_row_finished")
 #: what a session never holds: a call's arguments, a cache (every session call starts from a fresh one) and what
@@ -147,6 +150,11 @@ class DecoderSession:
         self.model = model
         self.settings = {name: value.clone() if isinstance(value, torch.Tensor) else value
                          for name, value in settings.items()}  # fmt: skip
+        #: the settings' speculation, one [`SpeculationConfig`] (``speculation=`` or the loose settings folded), and
+        #: the rest: ``generate``'s own
+        self.generate_settings = dict(self.settings)
+        loose = {name: self.generate_settings.pop(name) for name in SPECULATION_KWARGS if name in self.settings}
+        self.speculation = SpeculationConfig.fold(self.generate_settings.pop("speculation", None), loose)
         #: the model's class wraps ``generate`` above the mixin (OpenVLA's port: its image rows): what its wrapper
         #: does is its own, so every call goes through ``model.generate``
         self.wraps_generate = type(model).generate is not SpeculativeGenerationMixin.generate
@@ -173,7 +181,7 @@ class DecoderSession:
             TypeError: an assistant that is not a hf_specvla DraftHead or Drafter.
         """
         self._check_inputs(inputs)
-        if assistant_model is None and draft_ids is None:
+        if assistant_model is None and draft_ids is None and self.speculation.drafter is None:
             assistant_model = NoDrafter()
         if not isinstance(assistant_model, (DraftHead, Drafter)) and assistant_model is not None:
             raise TypeError(
@@ -198,8 +206,9 @@ class DecoderSession:
         if prepared is None:
             self.calls_through_generate += 1
             return self.model.generate(
-                input_ids=input_ids, attention_mask=attention_mask, **inputs, **call, **self.settings
-            )
+                input_ids=input_ids, attention_mask=attention_mask, **inputs, **call, speculation=self.speculation,
+                **self.generate_settings,
+            )  # fmt: skip
         self.direct_calls += 1
         return self._direct(prepared, input_ids, attention_mask if padded else None, inputs, call)
 
@@ -273,9 +282,8 @@ class DecoderSession:
         thread's graph limit, the checks, a compiled call's images encoded)."""
         self._ready_model()
         call_kwargs = {name: value for name, value in call.items() if name not in ("assistant_model", "draft_ids")}
-        return speculative_call_kwargs(
-            self.model, call["assistant_model"], call["draft_ids"], {**kwargs, **call_kwargs, **self.settings}
-        )
+        return speculative_call_kwargs(self.model, call["assistant_model"], call["draft_ids"], self.speculation,
+                                       {**kwargs, **call_kwargs, **self.generate_settings})  # fmt: skip
 
     def _ready_model(self) -> None:
         """What the mixin's ``generate`` does to the model before every call: its precision, and this thread's
@@ -294,7 +302,7 @@ class DecoderSession:
             return None
         if not all(type(c) in _SHAPE_ONLY_CRITERIA for c in criteria):
             return None
-        model_kwargs = {name: value for name, value in kept["model_kwargs"].items() if name not in _ENGINE_PARAMETERS}
+        model_kwargs = {name: value for name, value in kept["model_kwargs"].items() if name not in CALL_SETTINGS}
         cache = model_kwargs.pop(CACHE_KEY, None)
         if type(cache) is StaticCache:
             kept_cache = cache
@@ -330,27 +338,19 @@ class DecoderSession:
         model = self.model
         self._ready_model()
         model_kwargs = dict(prepared.shared)
-        encoded = with_compiled_image_features(model, {**inputs, **self.settings})
+        encoded = with_compiled_image_features(model, {**inputs, **self.generate_settings})
         if prepared.encodes_images and takes_encoded_images(model, encoded):
             encoded = with_encoded_images(model, encoded)
-        model_kwargs.update({name: value for name, value in encoded.items() if name not in self.settings})
+        model_kwargs.update({name: value for name, value in encoded.items() if name not in self.generate_settings})
         model_kwargs["attention_mask"] = attention_mask
         if prepared.positions_from_mask:
             model_kwargs["position_ids"] = _positions_from_mask(attention_mask)
         model_kwargs[CACHE_KEY] = self._fresh_cache(prepared)
-        engine = {name: value for name, value in self.settings.items() if name in _ENGINE_PARAMETERS}
-        return speculative_generate(
-            model,
-            input_ids,
-            prepared.logits_processor,
-            prepared.stopping_criteria,
-            prepared.generation_config,
-            drafter=call["assistant_model"],
-            draft_ids=call["draft_ids"],
-            on_row_finished=call["on_row_finished"],
-            **engine,
-            **model_kwargs,
-        )
+        drafter = call["assistant_model"]
+        speculation = SpeculationConfig.fold(self.speculation, {} if drafter is None else {"drafter": drafter})
+        return speculative_generate(model, input_ids, prepared.logits_processor, prepared.stopping_criteria,
+                                    prepared.generation_config, speculation, call["draft_ids"],
+                                    call["on_row_finished"], **model_kwargs)  # fmt: skip
 
     def _fresh_cache(self, prepared: PreparedShape) -> Cache:
         """``generate``'s static cache emptied (as its next call would), or a new dynamic cache (as it makes one)."""
@@ -374,6 +374,8 @@ def _frozen(value):
         return "tensor", value.dtype, tuple(value.shape), tuple(value.detach().cpu().flatten().tolist())
     if isinstance(value, GenerationConfig):
         return "GenerationConfig", generation_config_key(value)
+    if isinstance(value, SpeculationConfig):  # by its settings (each made anew by a robot's call)
+        return "SpeculationConfig", tuple((f.name, _frozen(getattr(value, f.name))) for f in dataclasses.fields(value))
     if isinstance(value, CompileConfig):
         return "CompileConfig", compile_settings(value)
     return "object", id(value)
@@ -387,22 +389,11 @@ def generation_config_key(config: GenerationConfig) -> tuple:
 
 #: ``generate``'s settings (a ``GenerationConfig``'s fields, the engine's), never a model input of a session's call
 GENERATE_SETTINGS = frozenset(vars(GenerationConfig())) | frozenset(SPECULATION_KWARGS) | frozenset(
-    ("generation_config", "logits_processor", "stopping_criteria", "prefix_allowed_tokens_fn", "synced_gpus",
-     "negative_prompt_ids", "negative_prompt_attention_mask", "use_model_defaults")
+    ("speculation", "generation_config", "logits_processor", "stopping_criteria", "prefix_allowed_tokens_fn",
+     "synced_gpus", "negative_prompt_ids", "negative_prompt_attention_mask", "use_model_defaults")
 )  # fmt: skip
 
 
 def _positions_from_mask(attention_mask: torch.Tensor) -> torch.Tensor:
     """``[B, S]`` a left-padded prompt's position ids from its mask: the real tokens counted from 0, padding 0."""
     return (attention_mask.long().cumsum(-1) - 1).masked_fill(attention_mask == 0, 0)
-
-
-#: [`speculative_generate`]'s own parameters (the engine's settings, the drafter...), apart from the model's kwargs
-_ENGINE_PARAMETERS = frozenset(inspect.signature(speculative_generate).parameters) - {
-    "model",
-    "input_ids",
-    "logits_processor",
-    "stopping_criteria",
-    "generation_config",
-    "model_kwargs",
-}
