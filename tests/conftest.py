@@ -131,9 +131,12 @@ SLOW_MODULES = {
 }
 #: fixture -> the kind of slow test every test using it is
 SLOW_FIXTURES = {"ray_cluster": "ray", "distilled_head": "training"}
-#: a fast-tier test's phase (setup or call) over this many seconds fails with its name: move it to the slow tier or
-#: make it faster (HF_SPECVLA_TEST_BUDGET_S overrides; 0 turns the check off)
-FAST_TEST_BUDGET_S = float(os.environ.get("HF_SPECVLA_TEST_BUDGET_S", "60"))
+#: what a fast-tier test's phase (setup or call) should take on 2 cores: the run ends listing those over it (move them
+#: to the slow tier or make them faster), on any machine, whatever its speed (HF_SPECVLA_TEST_TARGET_S overrides)
+FAST_TEST_TARGET_S = float(os.environ.get("HF_SPECVLA_TEST_TARGET_S") or 60)
+#: a fast-tier phase over this many seconds fails, naming itself: CI's tool (``.ci/run`` sets HF_SPECVLA_TEST_BUDGET_S),
+#: unset on a user's machine, so that a test's verdict never depends on the machine's speed (0 or unset: no limit)
+FAST_TEST_BUDGET_S = float(os.environ.get("HF_SPECVLA_TEST_BUDGET_S") or 0)
 
 
 def pytest_addoption(parser):
@@ -172,16 +175,32 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_makereport(item, call):
-    """In the fast tier, a setup or a call over ``FAST_TEST_BUDGET_S`` fails the test, naming it and its time."""
+    """In the fast tier, a setup or a call over ``FAST_TEST_BUDGET_S`` (when set: CI) fails the test, naming it and its
+    time; one over ``FAST_TEST_TARGET_S`` is listed at the end of the run (``pytest_terminal_summary``)."""
     report = yield
-    budget = FAST_TEST_BUDGET_S
-    if budget and report.when in ("setup", "call") and report.passed and report.duration > budget:
+    if report.when in ("setup", "call") and report.passed and report.duration > FAST_TEST_TARGET_S:
         if not runs_slow(item.config) and item.get_closest_marker("slow") is None:
-            report.outcome = "failed"
-            report.longrepr = (f"{item.nodeid}: its {report.when} took {report.duration:.0f} s, over the fast tier's "
-                               f"{budget:.0f} s a test: mark it slow (or a slow kind: {', '.join(SLOW_KINDS)}) or "
-                               f"make it faster")  # fmt: skip
+            report.user_properties.append(("over_fast_target_s", round(report.duration, 1)))
+            budget = FAST_TEST_BUDGET_S
+            if budget and report.duration > budget:
+                report.outcome = "failed"
+                report.longrepr = (f"{item.nodeid}: its {report.when} took {report.duration:.0f} s, over the fast "
+                                   f"tier's {budget:g} s a test (HF_SPECVLA_TEST_BUDGET_S): mark it slow (or a slow "
+                                   f"kind: {', '.join(SLOW_KINDS)}) or make it faster")  # fmt: skip
     return report
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """Lists the fast-tier tests whose setup or call took over ``FAST_TEST_TARGET_S`` (reported, not failed, unless
+    ``HF_SPECVLA_TEST_BUDGET_S`` says otherwise): the fast tier's time is kept by moving them, not by failing a slower
+    machine's run."""
+    over = [(report.nodeid, report.when, dict(report.user_properties)["over_fast_target_s"])
+            for reports in terminalreporter.stats.values() for report in reports
+            if "over_fast_target_s" in dict(getattr(report, "user_properties", ()))]  # fmt: skip
+    if over:
+        terminalreporter.section(f"fast-tier tests over its {FAST_TEST_TARGET_S:g} s target (not failed)")
+        for nodeid, when, seconds in sorted(over, key=lambda row: -row[2]):
+            terminalreporter.write_line(f"{seconds:6.1f} s  {nodeid} ({when})")
 
 
 @pytest.hookimpl(optionalhook=True)
