@@ -10,8 +10,11 @@ def check_ranges(config, at_least_one=(), positive=(), non_negative=(), integers
     (or ``must be an integer`` / ``a number`` when the type is wrong, ``a finite number`` for inf and NaN).
     ``integers``: fields that must be ints."""
     kind = type(config).__name__
-    rules = ((at_least_one, lambda v: v >= 1, ">= 1"), (positive, lambda v: v > 0, "> 0"),
-             (non_negative, lambda v: v >= 0, ">= 0"))  # fmt: skip
+    rules = (
+        (at_least_one, lambda v: v >= 1, ">= 1"),
+        (positive, lambda v: v > 0, "> 0"),
+        (non_negative, lambda v: v >= 0, ">= 0"),
+    )
     for names, ok, rule in rules:
         for name in names:
             value = getattr(config, name)

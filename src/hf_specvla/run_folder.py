@@ -93,8 +93,20 @@ def code_version() -> str:
 
 #: settings named first when a folder holds another run: what the results are *of* (weights, data) before how
 #: they were made
-IMPORTANT_SETTINGS = ("target", "policy", "init_from", "draft_head", "data", "demonstrations", "methods", "env",
-                      "seed_start", "decoding", "policy_config", "draft_head_config")  # fmt: skip
+IMPORTANT_SETTINGS = (
+    "target",
+    "policy",
+    "init_from",
+    "draft_head",
+    "data",
+    "demonstrations",
+    "methods",
+    "env",
+    "seed_start",
+    "decoding",
+    "policy_config",
+    "draft_head_config",
+)
 
 
 #: dotted settings that hold paths in records written before ``RunRecord.paths`` existed: never compared
@@ -204,8 +216,9 @@ def check_run_folder(folder: str | Path, record: RunRecord) -> bool:
         shown = differences[:4] + ([f"and {len(differences) - 4} more"] if len(differences) > 4 else [])
         raise FileExistsError(f"{str(folder)!r} holds another run: {'; '.join(shown)}; {ways_out}")
     if saved.code_version != record.code_version:
-        logger.warning("%s was written by hf_specvla %s; continuing with %s", folder, saved.code_version,
-                       record.code_version)  # fmt: skip
+        logger.warning(
+            "%s was written by hf_specvla %s; continuing with %s", folder, saved.code_version, record.code_version
+        )
     return True
 
 
@@ -253,10 +266,14 @@ class FolderLock:
             ) from None
         previous = os.pread(self.fd, 4096, 0).decode(errors="replace")
         if previous.strip():  # a holder that never released: its process died
-            logger.warning("%s: taking over the lock of a run that is no longer running (%s)", folder,
-                           _describe_holder(previous))  # fmt: skip
-        holder = {"pid": os.getpid(), "command": shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]),
-                  "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}  # fmt: skip
+            logger.warning(
+                "%s: taking over the lock of a run that is no longer running (%s)", folder, _describe_holder(previous)
+            )
+        holder = {
+            "pid": os.getpid(),
+            "command": shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+            "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
         os.ftruncate(self.fd, 0)
         os.pwrite(self.fd, json.dumps(holder).encode(), 0)
 
@@ -428,8 +445,13 @@ def _cpu_model() -> str:
 def machine_fingerprint() -> dict:
     """What a wall time depends on besides a run's settings: OS, architecture, CPU model, CPU count, torch version.
     The host name is left out on purpose: identical machines (or a restarted container) time alike."""
-    return {"system": platform.system(), "arch": platform.machine(), "cpu": _cpu_model(),
-            "cpu_count": os.cpu_count(), "torch": torch.__version__}  # fmt: skip
+    return {
+        "system": platform.system(),
+        "arch": platform.machine(),
+        "cpu": _cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "torch": torch.__version__,
+    }
 
 
 def timing_conditions(workers: int, threads: int, torch_threads: int) -> dict:
@@ -449,8 +471,10 @@ def describe_conditions(conditions: dict, machine: bool = True) -> str:
     text = ", ".join(f"{key}={value}" for key, value in conditions.items() if key != "machine")
     box = conditions.get("machine")
     if machine and box:
-        text += (f" on {box.get('system')} {box.get('arch')}, {box.get('cpu')!r} x {box.get('cpu_count')} CPUs, "
-                 f"torch {box.get('torch')}")  # fmt: skip
+        text += (
+            f" on {box.get('system')} {box.get('arch')}, {box.get('cpu')!r} x {box.get('cpu_count')} CPUs, "
+            f"torch {box.get('torch')}"
+        )
     return text
 
 
@@ -480,8 +504,11 @@ def _condition_differences(recorded: dict, now: dict) -> list[str]:
     """``name: <now> here vs <recorded> there`` for every key ``recorded`` holds (a partial record compares only
     what it knows)."""
     saved, current = _flatten(recorded), _flatten(now)
-    return [f"{key}: {_shorten(current.get(key, '(not set)'))} here vs {_shorten(value)} there"
-            for key, value in saved.items() if current.get(key, "(not set)") != value]  # fmt: skip
+    return [
+        f"{key}: {_shorten(current.get(key, '(not set)'))} here vs {_shorten(value)} there"
+        for key, value in saved.items()
+        if current.get(key, "(not set)") != value
+    ]
 
 
 def _silent(*args, **kwargs) -> None:
@@ -549,22 +576,37 @@ def resolve_timing(
     warn, inform = (logger.warning, logger.info) if announce else (_silent, _silent)
     if saved is not None and not differences:
         if restart:
-            inform("%s: the timing conditions are unchanged (%s): nothing to restart", folder,
-                        describe_conditions(conditions))  # fmt: skip
+            inform(
+                "%s: the timing conditions are unchanged (%s): nothing to restart",
+                folder,
+                describe_conditions(conditions),
+            )
         return saved
     if differences:  # restart: records timed otherwise keep their place, out of speed figures
-        warn("%s: timing restarted (%s): episodes timed under %s stay in the folder, out of the speed "
-                       "figures", folder, describe_conditions(conditions),
-                       "; ".join(describe_conditions(r) for r in recorded))  # fmt: skip
+        warn(
+            "%s: timing restarted (%s): episodes timed under %s stay in the folder, out of the speed figures",
+            folder,
+            describe_conditions(conditions),
+            "; ".join(describe_conditions(r) for r in recorded),
+        )
         return FolderTiming(conditions, saved.untimed_conditions if saved else None)
     if untimed and not restart:
-        warn("%s: %d records were written before timing conditions were recorded; they are taken as timed "
-                       "under this run's (%s); if they were not, rerun with %s to time only new episodes",
-                       folder, untimed, describe_conditions(conditions), restart_flag)  # fmt: skip
+        warn(
+            "%s: %d records were written before timing conditions were recorded; they are taken as timed "
+            "under this run's (%s); if they were not, rerun with %s to time only new episodes",
+            folder,
+            untimed,
+            describe_conditions(conditions),
+            restart_flag,
+        )
         return FolderTiming(conditions, conditions)
     if untimed:
-        warn("%s: %d records written before timing conditions were recorded are left out of the speed "
-                       "figures (%s)", folder, untimed, restart_flag)  # fmt: skip
+        warn(
+            "%s: %d records written before timing conditions were recorded are left out of the speed figures (%s)",
+            folder,
+            untimed,
+            restart_flag,
+        )
     return FolderTiming(conditions, None)
 
 

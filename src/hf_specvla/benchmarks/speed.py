@@ -84,8 +84,9 @@ def speculative_methods(
     compiled = compiled_decoding_kwargs(compiled_on)
     methods.insert(1, Method("greedy:compile", dict(compiled)))
     for k in chain_lengths:
-        methods.append(Method(f"spec k={k} r=0:compile", dict(assistant_model=draft_head, num_draft_tokens=k,
-                                                               **compiled)))  # fmt: skip
+        methods.append(
+            Method(f"spec k={k} r=0:compile", dict(assistant_model=draft_head, num_draft_tokens=k, **compiled))
+        )
     methods.append(Method("jacobi r=0:compile", dict(assistant_model=JacobiDrafter(), **compiled)))
     if assistant_model is not None and assisted_generation_compiles():
         methods.append(Method("assisted (transformers):compile", dict(assistant_model=assistant_model, **compiled)))
@@ -211,17 +212,32 @@ class VerdictRow:
 VERDICT_ROLES = (
     ("greedy", ((r"greedy", "plain greedy decoding, eager"),)),
     ("compiled greedy", ((r"greedy:compile", "transformers' static cache + CompileConfig"),)),
-    ("`exact`", ((r"prior\+jacobi r=0:compile", "previous action + Jacobi drafts, compiled, r=0"),
-                 (r"prior\+jacobi r=0", "previous action + Jacobi drafts, eager, r=0"),
-                 (r"jacobi r=0:compile", "Jacobi drafts, compiled, r=0 (no previous action here)"),
-                 (r"jacobi r=0", "Jacobi drafts, eager, r=0 (no previous action here)"))),
-    ("draft head", ((r"prior\+jacobi\+tree r=0:compile", "`exact` + the draft head's EAGLE-2 tree, compiled"),
-                    (r"prior\+jacobi\+tree r=0", "`exact` + the draft head's EAGLE-2 tree, eager"),
-                    (r"spec k=\d+ r=0:compile", "the draft head's chain, compiled, r=0"),
-                    (r"spec k=\d+ r=0", "the draft head's chain, eager, r=0"))),
-    ("relaxed", ((r"prior\+jacobi r=[1-9]\d*(:compile)?", "`exact` accepting draft tokens up to r bins off"),
-                 (r"spec k=\d+ r=[1-9]\d*(:compile)?", "the head's chain accepting tokens up to r bins off"))),
-)  # fmt: skip
+    (
+        "`exact`",
+        (
+            (r"prior\+jacobi r=0:compile", "previous action + Jacobi drafts, compiled, r=0"),
+            (r"prior\+jacobi r=0", "previous action + Jacobi drafts, eager, r=0"),
+            (r"jacobi r=0:compile", "Jacobi drafts, compiled, r=0 (no previous action here)"),
+            (r"jacobi r=0", "Jacobi drafts, eager, r=0 (no previous action here)"),
+        ),
+    ),
+    (
+        "draft head",
+        (
+            (r"prior\+jacobi\+tree r=0:compile", "`exact` + the draft head's EAGLE-2 tree, compiled"),
+            (r"prior\+jacobi\+tree r=0", "`exact` + the draft head's EAGLE-2 tree, eager"),
+            (r"spec k=\d+ r=0:compile", "the draft head's chain, compiled, r=0"),
+            (r"spec k=\d+ r=0", "the draft head's chain, eager, r=0"),
+        ),
+    ),
+    (
+        "relaxed",
+        (
+            (r"prior\+jacobi r=[1-9]\d*(:compile)?", "`exact` accepting draft tokens up to r bins off"),
+            (r"spec k=\d+ r=[1-9]\d*(:compile)?", "the head's chain accepting tokens up to r bins off"),
+        ),
+    ),
+)
 
 
 def verdict_rows(results: list, action_dim: int) -> list[tuple[VerdictRow, str]]:
@@ -231,8 +247,9 @@ def verdict_rows(results: list, action_dim: int) -> list[tuple[VerdictRow, str]]
 
     rows = []
     for role, candidates in VERDICT_ROLES:
-        found = next(((r, what) for pattern, what in candidates for r in results if re.fullmatch(pattern, r.name)),
-                     None)  # fmt: skip
+        found = next(
+            ((r, what) for pattern, what in candidates for r in results if re.fullmatch(pattern, r.name)), None
+        )
         if found is None or any(row.method == found[0].name for row, _ in rows):
             continue
         result, what = found
@@ -242,8 +259,19 @@ def verdict_rows(results: list, action_dim: int) -> list[tuple[VerdictRow, str]]
         distances = result.bin_distances or [0] * action_dim
         actions = [distances[i : i + action_dim] for i in range(0, len(distances), action_dim)]
         identical = sum(not any(action) for action in actions)
-        rows.append((VerdictRow(role, result.name, result.median_latency, _forwards_per_action(result, action_dim),
-                                identical, len(actions)), what))  # fmt: skip
+        rows.append(
+            (
+                VerdictRow(
+                    role,
+                    result.name,
+                    result.median_latency,
+                    _forwards_per_action(result, action_dim),
+                    identical,
+                    len(actions),
+                ),
+                what,
+            )
+        )
     return rows
 
 
@@ -289,15 +317,21 @@ def verdict_sentence(rows: list[VerdictRow], baseline: VerdictRow) -> str:
         speedup = baseline.median_latency / best.median_latency
         forwards = f"{best.target_forwards:.1f} target forwards per action instead of {baseline.target_forwards:.0f}"
         if speedup > 1:
-            parts.append(f"{best.role} ({best.method}) gives greedy's actions, all {best.actions}, {speedup:.2f}x as "
-                         f"fast as {baseline.role} ({forwards})")  # fmt: skip
+            parts.append(
+                f"{best.role} ({best.method}) gives greedy's actions, all {best.actions}, {speedup:.2f}x as "
+                f"fast as {baseline.role} ({forwards})"
+            )
         else:
-            parts.append(f"no lossless setting beat {baseline.role} on this machine: the best, {best.role} "
-                         f"({best.method}), gives greedy's actions at {speedup:.2f}x its speed "
-                         f"({forwards})")  # fmt: skip
+            parts.append(
+                f"no lossless setting beat {baseline.role} on this machine: the best, {best.role} "
+                f"({best.method}), gives greedy's actions at {speedup:.2f}x its speed "
+                f"({forwards})"
+            )
     elif speculative:
-        parts.append(f"no speculative row gave all of greedy's actions here (a lossless row should: see the full "
-                     f"tables), against {baseline.role}")  # fmt: skip
+        parts.append(
+            f"no speculative row gave all of greedy's actions here (a lossless row should: see the full "
+            f"tables), against {baseline.role}"
+        )
     else:
         parts.append(f"only greedy rows were measured: the fastest is {baseline.role}")
     for row in [row for row in speculative if row.role.startswith("relaxed")][:1]:
@@ -305,11 +339,14 @@ def verdict_sentence(rows: list[VerdictRow], baseline: VerdictRow) -> str:
         if not changed:
             parts.append(f"{row.role} changed no action here ({speedup:.2f}x)")
         elif best is None or row.median_latency < best.median_latency:
-            parts.append(f"{row.role} is faster still ({speedup:.2f}x) but changes {changed:.0%} of the actions: "
-                         f"fidelity traded for speed")  # fmt: skip
+            parts.append(
+                f"{row.role} is faster still ({speedup:.2f}x) but changes {changed:.0%} of the actions: "
+                f"fidelity traded for speed"
+            )
         else:
-            parts.append(f"{row.role} changes {changed:.0%} of the actions and is no faster ({speedup:.2f}x): keep "
-                         f"{best.role}")  # fmt: skip
+            parts.append(
+                f"{row.role} changes {changed:.0%} of the actions and is no faster ({speedup:.2f}x): keep {best.role}"
+            )
     text = "; ".join(parts)
     return f"In one sentence: {text[0].lower()}{text[1:]}."
 
@@ -493,8 +530,9 @@ def run_episode_benchmark(
                         if clock is not None:
                             clock.reset()
                         start = time.perf_counter()
-                        ids, output = act(observation, histories[method.name], method.action_prior,
-                                          **method.generate_kwargs)  # fmt: skip
+                        ids, output = act(
+                            observation, histories[method.name], method.action_prior, **method.generate_kwargs
+                        )
                         elapsed = time.perf_counter() - start
                         result = results[method.name]
                         result.latencies.append(elapsed)
@@ -528,13 +566,19 @@ def format_jacobi_report(results: list[EpisodeMethodResult]) -> str:
     if not rows:
         return ""
     width = max(len(r.guesses.jacobi_guesses_per_position) for r in rows)
-    lines = ["Jacobi guesses right (the target's argmax past a rejection, by position after the bonus token; "
-             "right / checked):", "", "| method | " + " | ".join(f"+{j + 1}" for j in range(width)) + " |",
-             "|---|" + "---:|" * width]  # fmt: skip
+    lines = [
+        "Jacobi guesses right (the target's argmax past a rejection, by position after the bonus token; "
+        "right / checked):",
+        "",
+        "| method | " + " | ".join(f"+{j + 1}" for j in range(width)) + " |",
+        "|---|" + "---:|" * width,
+    ]
     for r in rows:
         rights, guessed = r.guesses.jacobi_right_per_position, r.guesses.jacobi_guesses_per_position
-        cells = [f"{right / guesses:.0%} ({guesses})" if guesses else "-"
-                 for right, guesses in zip(rights + [0] * width, guessed + [0] * width)]  # fmt: skip
+        cells = [
+            f"{right / guesses:.0%} ({guesses})" if guesses else "-"
+            for right, guesses in zip(rights + [0] * width, guessed + [0] * width)
+        ]
         lines.append(f"| {r.name} | " + " | ".join(cells[:width]) + " |")
     return "\n".join(lines)
 
@@ -566,9 +610,14 @@ def format_episode_report(results: list[EpisodeMethodResult]) -> str:
             f"{statistics.mean(r.bin_distances):.2f} / {max(r.bin_distances)} |"
         )
     if all(r.split_seconds for r in results):
-        lines += ["", "Where the time goes (mean ms per call; rest = preprocessing, generate's preparation and the "
-                  "loop's own steps):", "", "| method | " + " | ".join(TIME_SPLIT) + " | total |",
-                  "|---|" + "---:|" * (len(TIME_SPLIT) + 1)]  # fmt: skip
+        lines += [
+            "",
+            "Where the time goes (mean ms per call; rest = preprocessing, generate's preparation and the "
+            "loop's own steps):",
+            "",
+            "| method | " + " | ".join(TIME_SPLIT) + " | total |",
+            "|---|" + "---:|" * (len(TIME_SPLIT) + 1),
+        ]
         for r in results:
             calls = len(r.latencies)
             cells = [f"{1000 * r.split_seconds[part] / calls:.1f}" for part in TIME_SPLIT]
@@ -629,8 +678,11 @@ def _episode_methods(draft_head, bin_tolerances, tree, chain_length: int) -> lis
     methods.append(EpisodeMethod(f"head chain k={chain_length} r=0", dict(assistant_model=chain)))
     if tree_drafter is not None:
         jacobi_tree = ComposedDrafter([JacobiDrafter(fill=False), tree_drafter])
-        for name, drafter, prior in (("head tree", tree_drafter, False), ("prior+tree", tree_drafter, True),
-                                     ("prior+jacobi+tree", jacobi_tree, True)):  # fmt: skip
+        for name, drafter, prior in (
+            ("head tree", tree_drafter, False),
+            ("prior+tree", tree_drafter, True),
+            ("prior+jacobi+tree", jacobi_tree, True),
+        ):
             for r in tolerances:
                 methods.append(EpisodeMethod(f"{name} r={r}", dict(assistant_model=drafter, bin_tolerance=r), prior))
     return methods
@@ -647,9 +699,13 @@ def policy_actor(policy):
         actions = [call[i : i + dim] for call in previous_action_ids for i in range(0, len(call), dim)]
         policy.previous_action_ids = actions[-policy.HISTORY_LENGTH :]
         _, output = policy.predict_action(
-            observation["image"], observation["instruction"], observation["state"], return_output=True,
-            action_prior=action_prior, **generate_kwargs,
-        )  # fmt: skip
+            observation["image"],
+            observation["instruction"],
+            observation["state"],
+            return_output=True,
+            action_prior=action_prior,
+            **generate_kwargs,
+        )
         return output.sequences[0, -policy.config.action_tokens :].tolist(), output
 
     return act
@@ -673,9 +729,13 @@ def toy_actor(pipeline):
         else:
             kwargs.update(assistant_model=drafter, action_layout=layout)
         output = pipeline.target.generate(
-            **toy_inputs([scene], pipeline.tokenizer), max_new_tokens=ACTION_DIM, min_new_tokens=ACTION_DIM,
-            do_sample=False, return_dict_in_generate=True, **kwargs,
-        )  # fmt: skip
+            **toy_inputs([scene], pipeline.tokenizer),
+            max_new_tokens=ACTION_DIM,
+            min_new_tokens=ACTION_DIM,
+            do_sample=False,
+            return_dict_in_generate=True,
+            **kwargs,
+        )
         return output.sequences[0, -ACTION_DIM:].tolist(), output
 
     return act

@@ -51,8 +51,12 @@ PATCH_SIZE = 8
 ACTION_DIM = 7
 COLOURS = {"red": (1.0, 0.1, 0.1), "green": (0.1, 1.0, 0.1), "blue": (0.2, 0.3, 1.0), "yellow": (1.0, 1.0, 0.1)}
 # instruction -> (z action, gripper action)
-TASKS = {"reach the {colour} dot": (0.0, -1.0), "push the {colour} dot": (-0.5, -1.0),
-         "grab the {colour} dot": (0.5, 1.0), "lift the {colour} dot": (0.9, 1.0)}  # fmt: skip
+TASKS = {
+    "reach the {colour} dot": (0.0, -1.0),
+    "push the {colour} dot": (-0.5, -1.0),
+    "grab the {colour} dot": (0.5, 1.0),
+    "lift the {colour} dot": (0.9, 1.0),
+}
 
 
 @dataclass(frozen=True)
@@ -134,9 +138,14 @@ def build_toy_target(size: ToyTargetSize | None = None, seed: int = 0, text_mode
     tokenizer = toy_tokenizer()
     vocab_size = len(tokenizer)
     vision = CLIPVisionConfig(
-        hidden_size=64, intermediate_size=128, num_hidden_layers=2, num_attention_heads=4,
-        image_size=IMAGE_SIZE, patch_size=PATCH_SIZE, projection_dim=64,
-    )  # fmt: skip
+        hidden_size=64,
+        intermediate_size=128,
+        num_hidden_layers=2,
+        num_attention_heads=4,
+        image_size=IMAGE_SIZE,
+        patch_size=PATCH_SIZE,
+        projection_dim=64,
+    )
     text = AutoConfig.for_model(
         text_model_type,
         vocab_size=vocab_size,
@@ -175,8 +184,13 @@ def toy_inputs(scenes: list[DotScene], tokenizer) -> dict[str, torch.Tensor]:
     return {"input_ids": torch.tensor(ids), "pixel_values": torch.stack([scene.image() for scene in scenes])}
 
 
-def train_toy_target(model: LlavaForConditionalGeneration, tokenizer, action_tokenizer: ActionTokenizer,
-                     config: TrainingConfig, progress: bool = True) -> dict[str, float]:  # fmt: skip
+def train_toy_target(
+    model: LlavaForConditionalGeneration,
+    tokenizer,
+    action_tokenizer: ActionTokenizer,
+    config: TrainingConfig,
+    progress: bool = True,
+) -> dict[str, float]:
     """Behaviour-clones the toy task on the training scenes (next-token loss on the 7 action tokens only) with the one
     training loop; saves the target and its tokenizer to ``config.output_dir``. Returns the last metrics."""
 
@@ -196,8 +210,15 @@ def train_toy_target(model: LlavaForConditionalGeneration, tokenizer, action_tok
         model.save_pretrained(folder)
         tokenizer.save_pretrained(folder)
 
-    job = TrainingJob(model, split_scenes()[0], loss, save, collate_fn=collate, checkpoint_name="target",
-                      description="train toy target")  # fmt: skip
+    job = TrainingJob(
+        model,
+        split_scenes()[0],
+        loss,
+        save,
+        collate_fn=collate,
+        checkpoint_name="target",
+        description="train toy target",
+    )
     _, metrics = run_training(job, config, Path(config.output_dir), progress=progress)
     return metrics
 
@@ -205,8 +226,16 @@ def train_toy_target(model: LlavaForConditionalGeneration, tokenizer, action_tok
 def toy_target_training_config(output_dir: str | Path, steps: int, seed: int) -> TrainingConfig:
     """How the demo trains its toy target: 32 scenes a step, AdamW 4e-3 with 10% warm-up then cosine, no checkpoints
     on the way (it takes a minute or two; the loop can resume it when ``save_every`` is set)."""
-    return TrainingConfig(str(output_dir), max_steps=steps, batch_size=32, learning_rate=4e-3,
-                          warmup_steps=max(1, steps // 10), lr_schedule="cosine", save_every=0, seed=seed)  # fmt: skip
+    return TrainingConfig(
+        str(output_dir),
+        max_steps=steps,
+        batch_size=32,
+        learning_rate=4e-3,
+        warmup_steps=max(1, steps // 10),
+        lr_schedule="cosine",
+        save_every=0,
+        seed=seed,
+    )
 
 
 @torch.no_grad()
@@ -256,8 +285,14 @@ def build_toy_pipeline(
 
     size = size or ToyTargetSize()
     root = Path(output_dir)
-    settings = dict(size=asdict(size), target_steps=target_steps, draft_steps=draft_steps,
-                    draft_learning_rate=draft_learning_rate, seed=seed, draft_head=TOY_HEAD_SETTINGS)  # fmt: skip
+    settings = dict(
+        size=asdict(size),
+        target_steps=target_steps,
+        draft_steps=draft_steps,
+        draft_learning_rate=draft_learning_rate,
+        seed=seed,
+        draft_head=TOY_HEAD_SETTINGS,
+    )
     with claim_run_folder(root, RunRecord("demo", settings), overwrite) as run:
         target, tokenizer, action_tokenizer, draft_head = _build_or_load(
             run.bound, size, target_steps, draft_steps, draft_learning_rate, seed, progress
@@ -265,8 +300,15 @@ def build_toy_pipeline(
     return ToyPipeline(str(root), target, tokenizer, action_tokenizer, draft_head.eval())
 
 
-def _build_or_load(root, size: ToyTargetSize, target_steps: int, draft_steps: int, draft_learning_rate: float,
-                   seed: int, progress: bool):  # fmt: skip
+def _build_or_load(
+    root,
+    size: ToyTargetSize,
+    target_steps: int,
+    draft_steps: int,
+    draft_learning_rate: float,
+    seed: int,
+    progress: bool,
+):
     """[`build_toy_pipeline`]'s work in a folder this process holds: (target, tokenizer, action tokenizer, head)."""
     from ..speculative import DraftHead, enable_speculation
     from ..training.draft_head import DraftTrainingConfig, build_distillation_dataset, train_draft_head
@@ -285,15 +327,24 @@ def _build_or_load(root, size: ToyTargetSize, target_steps: int, draft_steps: in
     else:
         scenes = split_scenes()[0]
         prompts = [toy_inputs(scenes[i : i + 64], tokenizer) for i in range(0, len(scenes), 64)]
-        dataset = build_distillation_dataset(target, prompts, ACTION_DIM, action_tokenizer, progress=progress,
-                                             image_features=True)  # fmt: skip
+        dataset = build_distillation_dataset(
+            target, prompts, ACTION_DIM, action_tokenizer, progress=progress, image_features=True
+        )
         torch.manual_seed(seed)  # the head's initialisation, independent of what ran before
-        draft_head = DraftHead.from_target(target, action_tokenizer, action_dim=ACTION_DIM,
-                                           num_draft_tokens=ACTION_DIM - 1, **TOY_HEAD_SETTINGS)  # fmt: skip
+        draft_head = DraftHead.from_target(
+            target, action_tokenizer, action_dim=ACTION_DIM, num_draft_tokens=ACTION_DIM - 1, **TOY_HEAD_SETTINGS
+        )
         config = DraftTrainingConfig(
-            str(draft_dir), max_steps=draft_steps, batch_size=32, learning_rate=draft_learning_rate,
-            lr_schedule="cosine", warmup_steps=50, save_every=0, seed=seed, unroll_steps=ACTION_DIM - 1,
-        )  # fmt: skip
+            str(draft_dir),
+            max_steps=draft_steps,
+            batch_size=32,
+            learning_rate=draft_learning_rate,
+            lr_schedule="cosine",
+            warmup_steps=50,
+            save_every=0,
+            seed=seed,
+            unroll_steps=ACTION_DIM - 1,
+        )
         draft_head = train_draft_head(draft_head, target, dataset, config, progress=progress)
     return target, tokenizer, action_tokenizer, draft_head
 
@@ -338,8 +389,7 @@ class AssistantGenerationMixin:
                 logits_processor = LogitsProcessorList(
                     p for p in logits_processor if not isinstance(p, MinNewTokensLengthLogitsProcessor)
                 )
-        return super().generate(*args, generation_config=generation_config, logits_processor=logits_processor,
-                                **kwargs)  # fmt: skip
+        return super().generate(*args, generation_config=generation_config, logits_processor=logits_processor, **kwargs)
 
 
 def _assistant_class(model_class: type) -> type:

@@ -41,26 +41,35 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--steps", type=POSITIVE, default=40, help="with --policy: steps recorded per episode (at most)"
     )
-    parser.add_argument("--seed-start", type=NON_NEGATIVE, default=BENCH_SEED_START,
-                        help="with --policy: first rollout seed")  # fmt: skip
-    parser.add_argument("--bin-tolerances", type=NON_NEGATIVE, nargs="+", default=[0, 1, 2, 4, 8],
-                        help="r for the prior")  # fmt: skip
-    parser.add_argument("--draft-head", default=None,
-                        help="a DraftHead folder (default: an untrained head, seeded; toy: its own)")  # fmt: skip
-    parser.add_argument("--chain-length", type=POSITIVE, default=None,
-                        help="draft-head chain length k (default: tokens per call - 1)")  # fmt: skip
+    parser.add_argument(
+        "--seed-start", type=NON_NEGATIVE, default=BENCH_SEED_START, help="with --policy: first rollout seed"
+    )
+    parser.add_argument(
+        "--bin-tolerances", type=NON_NEGATIVE, nargs="+", default=[0, 1, 2, 4, 8], help="r for the prior"
+    )
+    parser.add_argument(
+        "--draft-head", default=None, help="a DraftHead folder (default: an untrained head, seeded; toy: its own)"
+    )
+    parser.add_argument(
+        "--chain-length", type=POSITIVE, default=None, help="draft-head chain length k (default: tokens per call - 1)"
+    )
     add_tree_arguments(parser)
-    parser.add_argument("--no-compile", dest="compile", action="store_false",
-                        help="skip the compiled rows (transformers' greedy:compile and every method :compile, on a "
-                             "static cache; they compile on first use, off the clock)")  # fmt: skip
+    parser.add_argument(
+        "--no-compile",
+        dest="compile",
+        action="store_false",
+        help="skip the compiled rows (transformers' greedy:compile and every method :compile, on a "
+        "static cache; they compile on first use, off the clock)",
+    )
     parser.add_argument("--repeats", type=POSITIVE, default=1, help="timed passes over the episodes")
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (method order, untrained head)")
 
 
 def _check_bin_tolerances(args, n_bins: int, parser) -> None:
-    check_bin_tolerances(args.bin_tolerances, n_bins, f"--bin-tolerances {' '.join(map(str, args.bin_tolerances))}",
-                         parser)  # fmt: skip
+    check_bin_tolerances(
+        args.bin_tolerances, n_bins, f"--bin-tolerances {' '.join(map(str, args.bin_tolerances))}", parser
+    )
 
 
 def _policy_episodes(args, parser):
@@ -103,8 +112,11 @@ def run(args, parser) -> int:
     from ..speculative import DraftTreeConfig
 
     check_tasks(args.tasks, parser)
-    tree_settings = {k: v for k, v in (("top_k", args.tree_top_k), ("depth", args.tree_depth),
-                                       ("total_tokens", args.tree_total_tokens)) if v is not None}  # fmt: skip
+    tree_settings = {
+        k: v
+        for k, v in (("top_k", args.tree_top_k), ("depth", args.tree_depth), ("total_tokens", args.tree_total_tokens))
+        if v is not None
+    }
     with usage_errors(parser, errors=(ValueError,)):
         tree = DraftTreeConfig(**tree_settings)
     check_draft_head_flag(args.draft_head, parser)
@@ -112,8 +124,9 @@ def run(args, parser) -> int:
     act, action_dim, episodes, target, draft_head, head_name = source(args, parser)
     compiled_on = target.device.type if args.compile else None
     methods = episode_methods(draft_head, args.bin_tolerances, tree, args.chain_length or action_dim - 1, compiled_on)
-    results = run_episode_benchmark(act, episodes, methods, action_dim, repeats=args.repeats, seed=args.seed,
-                                    clock=ForwardClock(target))  # fmt: skip
+    results = run_episode_benchmark(
+        act, episodes, methods, action_dim, repeats=args.repeats, seed=args.seed, clock=ForwardClock(target)
+    )
     steps = sum(len(e) for e in episodes)
     print(
         f"\n{len(episodes)} episodes, {steps} steps x {args.repeats} repeats, {action_dim} action tokens per action, "

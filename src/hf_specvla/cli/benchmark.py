@@ -24,9 +24,13 @@ def add_benchmark_arguments(parser) -> None:
     parser.add_argument("--repeats", type=POSITIVE, default=3, help="timed passes over the prompts")
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0, help="random seed")
-    parser.add_argument("--no-compile", dest="compile", action="store_false",
-                        help="skip the compiled rows (transformers' greedy:compile and the chains :compile, on a "
-                             "static cache; they compile on first use, off the clock)")  # fmt: skip
+    parser.add_argument(
+        "--no-compile",
+        dest="compile",
+        action="store_false",
+        help="skip the compiled rows (transformers' greedy:compile and the chains :compile, on a "
+        "static cache; they compile on first use, off the clock)",
+    )
 
 
 def add_arguments(parser) -> None:
@@ -60,8 +64,9 @@ def time_pipeline(pipeline, args) -> tuple[list, str]:
     compiled_on = pipeline.target.device.type if args.compile else None
     # transformers' own assisted generation beside ours, with a 1-layer early exit of the target as its small model
     assistant = early_exit_assistant(pipeline.target)
-    methods = speculative_methods(pipeline.draft_head, args.chain_lengths, args.bin_tolerances, compiled_on=compiled_on,
-                                  assistant_model=assistant)  # fmt: skip
+    methods = speculative_methods(
+        pipeline.draft_head, args.chain_lengths, args.bin_tolerances, compiled_on=compiled_on, assistant_model=assistant
+    )
     results = run_benchmark(
         pipeline.target, prompts, methods, ACTION_DIM, pipeline.action_tokenizer, repeats=args.repeats, seed=args.seed
     )

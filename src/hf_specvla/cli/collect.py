@@ -29,25 +29,50 @@ EXAMPLES = """
 
 def add_arguments(parser) -> None:
     parser.add_argument("--tasks", nargs="+", default=["MT10"], help="suites (MT10, MT50) and/or task names")
-    parser.add_argument("--episodes", type=POSITIVE, default=50,
-                        help="successful episodes per task (with --policy: episodes, failed ones kept)")  # fmt: skip
+    parser.add_argument(
+        "--episodes",
+        type=POSITIVE,
+        default=50,
+        help="successful episodes per task (with --policy: episodes, failed ones kept)",
+    )
     parser.add_argument("--output-dir", required=True, help="dataset folder (resumes if it exists)")
-    parser.add_argument("--image-size", type=int, default=None,
-                        help=f"image side (px) (default: the --policy's, else {EnvConfig.image_size})")  # fmt: skip
-    parser.add_argument("--camera", default=None, choices=CAMERAS,
-                        help=f"camera to render from (default: the --policy's, else {EnvConfig.camera})")  # fmt: skip
+    parser.add_argument(
+        "--image-size",
+        type=int,
+        default=None,
+        help=f"image side (px) (default: the --policy's, else {EnvConfig.image_size})",
+    )
+    parser.add_argument(
+        "--camera",
+        default=None,
+        choices=CAMERAS,
+        help=f"camera to render from (default: the --policy's, else {EnvConfig.camera})",
+    )
     parser.add_argument("--seed-start", type=NON_NEGATIVE, default=COLLECT_SEED_START, help="first seed tried per task")
-    parser.add_argument("--action-noise", type=float, default=0.0,
-                        help="std of Gaussian noise added to the executed expert action (recorded actions stay "
-                             "clean): recovery data for behaviour cloning (DART)")  # fmt: skip
-    parser.add_argument("--hand-start-noise", type=float, default=EnvConfig.hand_start_noise,
-                        help="metres: uniform per-axis offset of the hand's start position, drawn from the seed "
-                             "(varied starts keep a cloned policy from copying the state's drift)")  # fmt: skip
+    parser.add_argument(
+        "--action-noise",
+        type=float,
+        default=0.0,
+        help="std of Gaussian noise added to the executed expert action (recorded actions stay "
+        "clean): recovery data for behaviour cloning (DART)",
+    )
+    parser.add_argument(
+        "--hand-start-noise",
+        type=float,
+        default=EnvConfig.hand_start_noise,
+        help="metres: uniform per-axis offset of the hand's start position, drawn from the seed "
+        "(varied starts keep a cloned policy from copying the state's drift)",
+    )
     parser.add_argument("--max-episode-steps", type=int, default=EnvConfig.max_episode_steps, help="step limit")
-    parser.add_argument("--policy", default=None,
-                        help="DAgger: this policy folder drives, the expert labels the states it reaches")  # fmt: skip
-    parser.add_argument("--expert-mix", type=float, default=None,
-                        help="with --policy: probability that a step runs the expert instead (default 0)")  # fmt: skip
+    parser.add_argument(
+        "--policy", default=None, help="DAgger: this policy folder drives, the expert labels the states it reaches"
+    )
+    parser.add_argument(
+        "--expert-mix",
+        type=float,
+        default=None,
+        help="with --policy: probability that a step runs the expert instead (default 0)",
+    )
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (with --policy)")
 
 
@@ -83,11 +108,19 @@ def run(args, parser) -> int:
     with usage_errors(parser, "--output-dir", (ValueError,)):  # a dataset of other settings: before any episode
         check_dataset_folder(args.output_dir, env_config, args.action_noise, policy, args.expert_mix or 0.0)
     summary = collect_demonstrations(
-        args.output_dir, args.tasks, args.episodes, env_config, args.seed_start, action_noise=args.action_noise,
-        policy=policy, expert_mix=args.expert_mix or 0.0,
-    )  # fmt: skip
-    print(f"{summary.episodes_written} episodes written, {summary.episodes_present} in {args.output_dir}, "
-          f"{summary.expert_failures} expert failures skipped")  # fmt: skip
+        args.output_dir,
+        args.tasks,
+        args.episodes,
+        env_config,
+        args.seed_start,
+        action_noise=args.action_noise,
+        policy=policy,
+        expert_mix=args.expert_mix or 0.0,
+    )
+    print(
+        f"{summary.episodes_written} episodes written, {summary.episodes_present} in {args.output_dir}, "
+        f"{summary.expert_failures} expert failures skipped"
+    )
     if policy is not None:
         driver = "the policy"
         if args.expert_mix:

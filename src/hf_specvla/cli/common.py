@@ -58,8 +58,11 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefau
 
 
 @contextmanager
-def usage_errors(parser: argparse.ArgumentParser, flag: str | None = None,
-                 errors: tuple[type[Exception], ...] = (ValueError, FileExistsError, FileNotFoundError)):  # fmt: skip
+def usage_errors(
+    parser: argparse.ArgumentParser,
+    flag: str | None = None,
+    errors: tuple[type[Exception], ...] = (ValueError, FileExistsError, FileNotFoundError),
+):
     """A library refusal raised inside the block (bad value, folder of another run, missing folder) becomes a usage
     error (exit code 2) that names ``flag``: the only place the CLI translates library errors."""
     try:
@@ -198,9 +201,12 @@ def configure_logging(verbose: bool = False) -> None:
 
 def add_tree_arguments(parser: argparse.ArgumentParser) -> None:
     """--tree-top-k, --tree-depth, --tree-total-tokens: the EAGLE-2 tree of the head's tree methods."""
-    parser.add_argument("--tree-top-k", type=POSITIVE, default=None,
-                        help="EAGLE-2 tree top_k (default: DraftTreeConfig's)")  # fmt: skip
-    parser.add_argument("--tree-depth", type=POSITIVE, default=None,
-                        help="EAGLE-2 tree depth (default: DraftTreeConfig's)")  # fmt: skip
-    parser.add_argument("--tree-total-tokens", type=POSITIVE, default=None,
-                        help="EAGLE-2 tree nodes kept (default: DraftTreeConfig's)")  # fmt: skip
+    parser.add_argument(
+        "--tree-top-k", type=POSITIVE, default=None, help="EAGLE-2 tree top_k (default: DraftTreeConfig's)"
+    )
+    parser.add_argument(
+        "--tree-depth", type=POSITIVE, default=None, help="EAGLE-2 tree depth (default: DraftTreeConfig's)"
+    )
+    parser.add_argument(
+        "--tree-total-tokens", type=POSITIVE, default=None, help="EAGLE-2 tree nodes kept (default: DraftTreeConfig's)"
+    )

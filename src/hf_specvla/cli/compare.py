@@ -55,47 +55,83 @@ EXAMPLES = """
 def add_arguments(parser) -> None:
     parser.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
     parser.add_argument("--draft-head", default=None, help="the DraftHead folder the head / tree methods use")
-    parser.add_argument("--methods", nargs="+", default=list(CompareConfig.methods),
-                        help="<drafters>[:<option>,...][:compile], drafters one of " + ", ".join(DRAFTER_CHOICES)
-                             + "; options: " + "; ".join(f"{k}= {v}" for k, v in METHOD_KEYS.items())
-                             + "; or a preset: " + ", ".join(PRESETS) + "; or oracle[:compile], the bound (greedy's "
-                             "own tokens, decoded off the clock, drafted: one target forward a call). Greedy always "
-                             "runs: the baseline; :compile = static cache + compiled verification, greedy:compile = "
-                             "transformers' compiled greedy")  # fmt: skip
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        default=list(CompareConfig.methods),
+        help="<drafters>[:<option>,...][:compile], drafters one of "
+        + ", ".join(DRAFTER_CHOICES)
+        + "; options: "
+        + "; ".join(f"{k}= {v}" for k, v in METHOD_KEYS.items())
+        + "; or a preset: "
+        + ", ".join(PRESETS)
+        + "; or oracle[:compile], the bound (greedy's "
+        "own tokens, decoded off the clock, drafted: one target forward a call). Greedy always "
+        "runs: the baseline; :compile = static cache + compiled verification, greedy:compile = "
+        "transformers' compiled greedy",
+    )
     parser.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
     parser.add_argument("--episodes", type=POSITIVE, default=CompareConfig.episodes_per_task, help="seeds per task")
     parser.add_argument("--seed-start", type=NON_NEGATIVE, default=CompareConfig.seed_start, help="first seed")
-    parser.add_argument("--max-episode-steps", type=POSITIVE, default=CompareConfig.max_episode_steps,
-                        help="step limit")  # fmt: skip
-    parser.add_argument("--workers", type=POSITIVE, default=CompareConfig.workers,
-                        help="processes the seeds are split between (timings compared within a worker)")  # fmt: skip
+    parser.add_argument(
+        "--max-episode-steps", type=POSITIVE, default=CompareConfig.max_episode_steps, help="step limit"
+    )
+    parser.add_argument(
+        "--workers",
+        type=POSITIVE,
+        default=CompareConfig.workers,
+        help="processes the seeds are split between (timings compared within a worker)",
+    )
     parser.add_argument("--threads", type=POSITIVE, default=CompareConfig.threads, help="torch CPU threads per worker")
     parser.add_argument("--seed", type=int, default=CompareConfig.order_seed, help="seeds the method order per seed")
-    parser.add_argument("--motion-threshold", type=positive_number, default=CompareConfig.motion_threshold,
-                        help="the size of greedy's action (|value|, policy's units) from which a motion is large, for "
-                             "the deviation by phase of relaxed methods")  # fmt: skip
+    parser.add_argument(
+        "--motion-threshold",
+        type=positive_number,
+        default=CompareConfig.motion_threshold,
+        help="the size of greedy's action (|value|, policy's units) from which a motion is large, for "
+        "the deviation by phase of relaxed methods",
+    )
     add_tree_arguments(parser)
     parser.add_argument("--output-dir", required=True, help="logs, summary.json, compare.md, plots (resumes)")
     parser.add_argument(
         "--overwrite-output-dir", action="store_true", help="move a folder holding another run aside, start over"
     )
-    parser.add_argument("--restart-timing", action="store_true",
-                        help="continue a folder timed under other conditions (workers, threads, machine): its finished "
-                             "episodes are kept, only episodes timed from now on enter the speed columns")  # fmt: skip
+    parser.add_argument(
+        "--restart-timing",
+        action="store_true",
+        help="continue a folder timed under other conditions (workers, threads, machine): its finished "
+        "episodes are kept, only episodes timed from now on enter the speed columns",
+    )
 
 
 def run(args, parser) -> int:
     check_output_dir_flag(args.output_dir, parser)
     action_dim = read_policy_config(args.policy, parser).action_dim  # the presets resolve to the policy's layout
     with usage_errors(parser, errors=(ValueError,)):
-        config = CompareConfig(args.tasks, args.episodes, args.methods, args.seed_start, args.max_episode_steps,
-                               args.workers, args.threads, args.seed, args.tree_top_k, args.tree_depth,
-                               args.tree_total_tokens, draft_head_given=args.draft_head is not None,
-                               action_dim=action_dim, motion_threshold=args.motion_threshold)  # fmt: skip
+        config = CompareConfig(
+            args.tasks,
+            args.episodes,
+            args.methods,
+            args.seed_start,
+            args.max_episode_steps,
+            args.workers,
+            args.threads,
+            args.seed,
+            args.tree_top_k,
+            args.tree_depth,
+            args.tree_total_tokens,
+            draft_head_given=args.draft_head is not None,
+            action_dim=action_dim,
+            motion_threshold=args.motion_threshold,
+        )
         config.check_draft_head_given(args.draft_head is not None)
     if args.draft_head and not config.draft_head_methods():
-        logger.warning("--draft-head %s is not used: none of the methods %s drafts with a head (head, tree, "
-                       "prior+head, prior+tree); it is ignored", args.draft_head, config.methods)  # fmt: skip
+        logger.warning(
+            "--draft-head %s is not used: none of the methods %s drafts with a head (head, tree, "
+            "prior+head, prior+tree); it is ignored",
+            args.draft_head,
+            config.methods,
+        )
         args.draft_head = None
     check_draft_head_flag(args.draft_head, parser)
     # the runner imports the policy's torch and transformers (seconds): after the flags' cheap checks
@@ -110,9 +146,15 @@ def run(args, parser) -> int:
     try:
         with usage_errors(parser, errors=(FileExistsError, ValueError)):
             summary = run_comparison(
-                policy, config, args.output_dir, draft_head, args.policy, args.draft_head,
-                overwrite=args.overwrite_output_dir, restart_timing=args.restart_timing,
-            )  # fmt: skip
+                policy,
+                config,
+                args.output_dir,
+                draft_head,
+                args.policy,
+                args.draft_head,
+                overwrite=args.overwrite_output_dir,
+                restart_timing=args.restart_timing,
+            )
     except WorkerDiedError as error:  # a killed worker: the folder is consistent, the same command resumes it
         logger.error("%s", error)
         return 1

@@ -53,17 +53,23 @@ TRAINING_DEFAULTS = dict(size="small", target_steps=1500, draft_steps=4800)
 
 def add_arguments(parser) -> None:
     parser.add_argument(
-        "--train", action="store_true",
+        "--train",
+        action="store_true",
         help="build and train the toy target and its draft head on the spot (~15 min on one CPU thread) instead of "
         "timing the shipped ones (policies/toy_dot)",
-    )  # fmt: skip
+    )
     parser.add_argument(
-        "--output-dir", default=None,
+        "--output-dir",
+        default=None,
         help=f"the report's folder (default {OUTPUT_DIRS['shipped']}); with --train also the trained target and "
         f"head (default {OUTPUT_DIRS['train']}; reused when trained with the same settings)",
-    )  # fmt: skip
-    parser.add_argument("--size", choices=sorted(SIZES), default=argparse.SUPPRESS,
-                        help=f"toy target size, with --train (default {TRAINING_DEFAULTS['size']})")  # fmt: skip
+    )
+    parser.add_argument(
+        "--size",
+        choices=sorted(SIZES),
+        default=argparse.SUPPRESS,
+        help=f"toy target size, with --train (default {TRAINING_DEFAULTS['size']})",
+    )
     parser.add_argument(
         "--target-steps",
         type=POSITIVE,
@@ -80,14 +86,17 @@ def add_arguments(parser) -> None:
         "--overwrite-output-dir", action="store_true", help="move a folder holding another run's results aside"
     )
     parser.add_argument(
-        "--episodes", type=NON_NEGATIVE, default=16,
+        "--episodes",
+        type=NON_NEGATIVE,
+        default=16,
         help="moving-dot episodes to replay (0: time the held-out scenes for the verdict instead)",
-    )  # fmt: skip
+    )
     parser.add_argument(
-        "--all-tables", action="store_true",
+        "--all-tables",
+        action="store_true",
         help="also the held-out scenes table (chains of --chain-lengths, transformers' assisted generation) and "
         "every drafter on the episodes, not only the verdict's rows (many more graphs to compile)",
-    )  # fmt: skip
+    )
     add_benchmark_arguments(parser)
 
 
@@ -177,8 +186,14 @@ def load_or_train(args, parser):
     if args.train:
         with usage_errors(parser, errors=(FileExistsError,)):
             size = ToyTargetSize(**SIZES[settings["size"]])
-            return build_toy_pipeline(args.output_dir, size, settings["target_steps"], settings["draft_steps"],
-                                      seed=args.seed, overwrite=args.overwrite_output_dir)  # fmt: skip
+            return build_toy_pipeline(
+                args.output_dir,
+                size,
+                settings["target_steps"],
+                settings["draft_steps"],
+                seed=args.seed,
+                overwrite=args.overwrite_output_dir,
+            )
     shipped = shipped_toy_dir()
     if shipped is None:
         parser.error(

@@ -49,22 +49,32 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--overwrite-output-dir", action="store_true", help="move a folder holding another run aside, start over"
     )
-    parser.add_argument("--method", default=None,
-                        help="a decoding method as `compare` names it (e.g. prior+tree:r=4, head:k=3, "
-                             "prior+jacobi:r=4/4/4/0,m=1:compile) or a preset (exact, fast), instead of "
-                             "--action-prior / --draft-tree / --num-draft-tokens / --bin-tolerance")  # fmt: skip
+    parser.add_argument(
+        "--method",
+        default=None,
+        help="a decoding method as `compare` names it (e.g. prior+tree:r=4, head:k=3, "
+        "prior+jacobi:r=4/4/4/0,m=1:compile) or a preset (exact, fast), instead of "
+        "--action-prior / --draft-tree / --num-draft-tokens / --bin-tolerance",
+    )
     parser.add_argument("--draft-head", default=None, help="speculative decoding with this DraftHead folder")
-    parser.add_argument("--bin-tolerance", type=NON_NEGATIVE, nargs="+", default=None,
-                        help="relaxed acceptance r (or one per dim)")  # fmt: skip
+    parser.add_argument(
+        "--bin-tolerance", type=NON_NEGATIVE, nargs="+", default=None, help="relaxed acceptance r (or one per dim)"
+    )
     parser.add_argument("--num-draft-tokens", type=POSITIVE, default=None, help="chain length k (default: the head's)")
     parser.add_argument("--draft-tree", action="store_true", help="the draft head drafts an EAGLE-2 tree, not a chain")
-    parser.add_argument("--action-prior", action="store_true",
-                        help="draft each action from the episode's previous actions (verified inside the "
-                             "prefill)")  # fmt: skip
+    parser.add_argument(
+        "--action-prior",
+        action="store_true",
+        help="draft each action from the episode's previous actions (verified inside the prefill)",
+    )
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads")
-    parser.add_argument("--num-envs", type=POSITIVE, default=1,
-                        help="episodes run in lockstep, one batched policy call per step for all of them (same "
-                             "results, less wall time)")  # fmt: skip
+    parser.add_argument(
+        "--num-envs",
+        type=POSITIVE,
+        default=1,
+        help="episodes run in lockstep, one batched policy call per step for all of them (same "
+        "results, less wall time)",
+    )
 
 
 def decoding_method(args, parser, action_dim: int | None = None):
@@ -73,9 +83,16 @@ def decoding_method(args, parser, action_dim: int | None = None):
     from ..metaworld.comparison.methods import DecodingMethod, check_tolerance_dims
 
     if args.method is not None:
-        flags = [flag for flag, given in (("--action-prior", args.action_prior), ("--draft-tree", args.draft_tree),
-                 ("--num-draft-tokens", args.num_draft_tokens is not None),
-                 ("--bin-tolerance", args.bin_tolerance is not None)) if given]  # fmt: skip
+        flags = [
+            flag
+            for flag, given in (
+                ("--action-prior", args.action_prior),
+                ("--draft-tree", args.draft_tree),
+                ("--num-draft-tokens", args.num_draft_tokens is not None),
+                ("--bin-tolerance", args.bin_tolerance is not None),
+            )
+            if given
+        ]
         if flags:
             parser.error(f"--method {args.method} already says how to decode; drop {' / '.join(flags)}")
         with usage_errors(parser, "--method", (ValueError,)):
@@ -140,9 +157,18 @@ def run(args, parser) -> int:
         tolerance = args.bin_tolerance[0] if len(args.bin_tolerance) == 1 else args.bin_tolerance
         plan = replace(plan, acceptance={**plan.acceptance, "bin_tolerance": tolerance})
     with usage_errors(parser, errors=(FileExistsError,)):
-        summary = evaluate(policy, args.tasks, args.episodes, args.output_dir, env_config, args.seed_start,
-                           video_path=args.video, overwrite=args.overwrite_output_dir, num_envs=args.num_envs,
-                           decoding=plan)  # fmt: skip
+        summary = evaluate(
+            policy,
+            args.tasks,
+            args.episodes,
+            args.output_dir,
+            env_config,
+            args.seed_start,
+            video_path=args.video,
+            overwrite=args.overwrite_output_dir,
+            num_envs=args.num_envs,
+            decoding=plan,
+        )
     print(format_summary(summary))
     calls = "one batched call decides the actions" if args.num_envs > 1 else "one call decides the action"
     chunk = f" of the next {policy.config.chunk_length} steps" if policy.config.chunk_length > 1 else ""

@@ -25,8 +25,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     commands = parser.add_subparsers(dest="command", required=True)
     for command in COMMANDS:
-        sub = commands.add_parser(command.NAME, help=command.HELP, description=command.__doc__,
-                                  epilog="examples:" + command.EXAMPLES, formatter_class=HelpFormatter)  # fmt: skip
+        sub = commands.add_parser(
+            command.NAME,
+            help=command.HELP,
+            description=command.__doc__,
+            epilog="examples:" + command.EXAMPLES,
+            formatter_class=HelpFormatter,
+        )
         command.add_arguments(sub)
         sub.set_defaults(command_module=command, command_parser=sub)
     return parser

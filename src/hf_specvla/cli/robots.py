@@ -25,12 +25,17 @@ EXAMPLES = """
 def add_arguments(parser) -> None:
     defaults = RobotsConfig
     parser.add_argument("--server", default=defaults.server, help="the policy server's address")
-    parser.add_argument("--api-key", default=argparse.SUPPRESS,
-                        help=f"the server's API key (default: ${API_KEY_VARIABLE})")  # fmt: skip
+    parser.add_argument(
+        "--api-key", default=argparse.SUPPRESS, help=f"the server's API key (default: ${API_KEY_VARIABLE})"
+    )
     parser.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
     parser.add_argument("--episodes", type=POSITIVE, default=defaults.episodes_per_task, help="episodes per task")
-    parser.add_argument("--robots", type=POSITIVE, default=defaults.robots,
-                        help="concurrent robots, each its own environment and server session")  # fmt: skip
+    parser.add_argument(
+        "--robots",
+        type=POSITIVE,
+        default=defaults.robots,
+        help="concurrent robots, each its own environment and server session",
+    )
     parser.add_argument("--seed-start", type=NON_NEGATIVE, default=defaults.seed_start, help="first seed")
     parser.add_argument("--max-episode-steps", type=POSITIVE, default=defaults.max_episode_steps, help="step limit")
     parser.add_argument("--output-dir", required=True, help="episodes.jsonl + summary.json go here (resumes)")
@@ -54,8 +59,11 @@ def _check_server(config: RobotsConfig, parser) -> None:
     try:  # few retries: a server that is not there is said at once
         ServerInfo.from_payload(PolicyClient(url, config.api_key, timeout_s=10.0, retries=2).info())
     except ConnectionError as error:
-        _fail(parser, f"cannot reach the policy server at {url} ({error}); start one with `hf-specvla serve` or "
-                      f"give its address with --server")  # fmt: skip
+        _fail(
+            parser,
+            f"cannot reach the policy server at {url} ({error}); start one with `hf-specvla serve` or "
+            f"give its address with --server",
+        )
     except ServerError as error:
         hint = f"; give its key with --api-key or {API_KEY_VARIABLE}" if error.status in (401, 403) else ""
         _fail(parser, f"the policy server at {url} refused GET /info: {error}{hint}")
@@ -71,8 +79,9 @@ def run(args, parser) -> int:
     check_tasks(args.tasks, parser)
     api_key = getattr(args, "api_key", None) or os.environ.get(API_KEY_VARIABLE) or None
     with usage_errors(parser, errors=(ValueError,)):
-        config = RobotsConfig(args.tasks, args.episodes, args.robots, args.seed_start, args.max_episode_steps,
-                              args.server, api_key)  # fmt: skip
+        config = RobotsConfig(
+            args.tasks, args.episodes, args.robots, args.seed_start, args.max_episode_steps, args.server, api_key
+        )
     _check_server(config, parser)
     resume = f"the finished episodes stay in {args.output_dir}: the same command continues them"
     try:

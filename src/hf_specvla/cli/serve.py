@@ -50,51 +50,91 @@ def add_arguments(parser) -> None:
 
     defaults = ServeConfig()
     parser.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
-    parser.add_argument("--method", nargs="+", default=[defaults.method],
-                        help="the speculative method or preset, as `compare` names it (exact, fast, "
-                             "prior+jacobi:compile, ...), or several: each batch size decodes with the fastest of them "
-                             "and greedy (measured); a preset with --draft-head stands for its methods with and "
-                             "without the head; greedy / greedy:compile serve greedy only")  # fmt: skip
-    parser.add_argument("--draft-head", default=None,
-                        help="a DraftHead folder, for methods that draft with one (with a preset: measured beside "
-                             "the preset's head-less method)")  # fmt: skip
+    parser.add_argument(
+        "--method",
+        nargs="+",
+        default=[defaults.method],
+        help="the speculative method or preset, as `compare` names it (exact, fast, "
+        "prior+jacobi:compile, ...), or several: each batch size decodes with the fastest of them "
+        "and greedy (measured); a preset with --draft-head stands for its methods with and "
+        "without the head; greedy / greedy:compile serve greedy only",
+    )
+    parser.add_argument(
+        "--draft-head",
+        default=None,
+        help="a DraftHead folder, for methods that draft with one (with a preset: measured beside "
+        "the preset's head-less method)",
+    )
     parser.add_argument(
         "--host",
         default=DEFAULT_HOST,
         help=f"address to listen on; other than loopback needs --api-key (or {API_KEY_VARIABLE})",
     )
     parser.add_argument("--port", type=_port, default=DEFAULT_PORT, help="TCP port (0: any free port)")
-    parser.add_argument("--api-key", default=os.environ.get(API_KEY_VARIABLE),
-                        help=f"every request must carry it (default: ${API_KEY_VARIABLE})")  # fmt: skip
-    parser.add_argument("--buckets", type=POSITIVE, nargs="+", default=list(defaults.buckets),
-                        help="batch sizes decoding runs at (one compiled shape each); the largest is the most "
-                             "requests decoded together")  # fmt: skip
-    parser.add_argument("--max-wait-ms", type=float, default=defaults.max_wait_ms,
-                        help=f"ms a batch waits for more after its first request (0..{MAX_WAIT_MS:g})")  # fmt: skip
-    parser.add_argument("--max-prompt-tokens", type=POSITIVE, default=defaults.max_prompt_tokens,
-                        help="the longest prompt served, in tokens, for a compiled method: start-up compiles graphs "
-                             "for every length up to it (default: what the shortest prompt's cache holds; GET /info "
-                             "states it); longer requests get 422")  # fmt: skip
+    parser.add_argument(
+        "--api-key",
+        default=os.environ.get(API_KEY_VARIABLE),
+        help=f"every request must carry it (default: ${API_KEY_VARIABLE})",
+    )
+    parser.add_argument(
+        "--buckets",
+        type=POSITIVE,
+        nargs="+",
+        default=list(defaults.buckets),
+        help="batch sizes decoding runs at (one compiled shape each); the largest is the most "
+        "requests decoded together",
+    )
+    parser.add_argument(
+        "--max-wait-ms",
+        type=float,
+        default=defaults.max_wait_ms,
+        help=f"ms a batch waits for more after its first request (0..{MAX_WAIT_MS:g})",
+    )
+    parser.add_argument(
+        "--max-prompt-tokens",
+        type=POSITIVE,
+        default=defaults.max_prompt_tokens,
+        help="the longest prompt served, in tokens, for a compiled method: start-up compiles graphs "
+        "for every length up to it (default: what the shortest prompt's cache holds; GET /info "
+        "states it); longer requests get 422",
+    )
     parser.add_argument(
         "--max-queue",
         type=POSITIVE,
         default=defaults.max_queue,
         help="requests waiting beyond the batch in decoding; more get 503 + Retry-After",
     )
-    parser.add_argument("--calibration-calls", type=int, default=defaults.calibration_calls,
-                        help="timed calls per bucket and mode at start-up (0: no calibration)")  # fmt: skip
-    parser.add_argument("--speculate-buckets", type=int, nargs="*", default=None,
-                        help="fix the buckets that decode speculatively (the others greedily), instead of measuring; "
-                             "no values: never speculate")  # fmt: skip
-    parser.add_argument("--explore-every", type=int, default=defaults.explore_every,
-                        help="every n-th batch of a bucket runs the mode not chosen, keeping its timing current "
-                             "(0: never)")  # fmt: skip
-    parser.add_argument("--compile-cache", default=None, metavar="DIR",
-                        help="keep torch's compile caches in this folder: a start with the same policy, methods, "
-                             "buckets and versions reuses the previous one's compile (a warm start; with --ray, a "
-                             "folder every replica's node can write)")  # fmt: skip
-    parser.add_argument("--max-request-bytes", type=POSITIVE, default=DEFAULT_MAX_REQUEST_BYTES,
-                        help="the largest request body")  # fmt: skip
+    parser.add_argument(
+        "--calibration-calls",
+        type=int,
+        default=defaults.calibration_calls,
+        help="timed calls per bucket and mode at start-up (0: no calibration)",
+    )
+    parser.add_argument(
+        "--speculate-buckets",
+        type=int,
+        nargs="*",
+        default=None,
+        help="fix the buckets that decode speculatively (the others greedily), instead of measuring; "
+        "no values: never speculate",
+    )
+    parser.add_argument(
+        "--explore-every",
+        type=int,
+        default=defaults.explore_every,
+        help="every n-th batch of a bucket runs the mode not chosen, keeping its timing current (0: never)",
+    )
+    parser.add_argument(
+        "--compile-cache",
+        default=None,
+        metavar="DIR",
+        help="keep torch's compile caches in this folder: a start with the same policy, methods, "
+        "buckets and versions reuses the previous one's compile (a warm start; with --ray, a "
+        "folder every replica's node can write)",
+    )
+    parser.add_argument(
+        "--max-request-bytes", type=POSITIVE, default=DEFAULT_MAX_REQUEST_BYTES, help="the largest request body"
+    )
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (per replica with --ray)")
     parser.add_argument("--ray", action="store_true", help="serve as a Ray Serve deployment")
     parser.add_argument("--replicas", type=POSITIVE, default=None, help="Ray Serve replicas, with --ray (unset: 1)")
@@ -119,11 +159,17 @@ def serve_config(args, parser):
         ServeConfig(buckets=tuple(args.buckets))
     with usage_errors(parser, errors=(ValueError, TypeError)):
         speculate = None if args.speculate_buckets is None else tuple(args.speculate_buckets)
-        return ServeConfig(method=tuple(args.method), buckets=tuple(args.buckets), max_wait_ms=args.max_wait_ms,
-                           max_queue=args.max_queue, calibration_calls=args.calibration_calls,
-                           speculate_buckets=speculate, explore_every=args.explore_every,
-                           max_prompt_tokens=args.max_prompt_tokens,
-                           compile_cache=args.compile_cache and os.path.abspath(args.compile_cache))  # fmt: skip
+        return ServeConfig(
+            method=tuple(args.method),
+            buckets=tuple(args.buckets),
+            max_wait_ms=args.max_wait_ms,
+            max_queue=args.max_queue,
+            calibration_calls=args.calibration_calls,
+            speculate_buckets=speculate,
+            explore_every=args.explore_every,
+            max_prompt_tokens=args.max_prompt_tokens,
+            compile_cache=args.compile_cache and os.path.abspath(args.compile_cache),
+        )
 
 
 def run(args, parser) -> int:
@@ -151,8 +197,12 @@ def run(args, parser) -> int:
         if method.uses_draft_head and not args.draft_head:
             parser.error(f"--method {method.name} drafts with the draft head: give --draft-head")
     if args.draft_head and not any(m.uses_draft_head for m in methods):  # as compare does: said, not dropped silently
-        logger.warning("--draft-head %s is not used: --method %s does not draft with a head (head, tree, prior+head, "
-                       "prior+tree and the presets do); it is ignored", args.draft_head, given)  # fmt: skip
+        logger.warning(
+            "--draft-head %s is not used: --method %s does not draft with a head (head, tree, prior+head, "
+            "prior+tree and the presets do); it is ignored",
+            args.draft_head,
+            given,
+        )
         args.draft_head = None
     names = " ".join(method.name for method in methods)
     if given != names:
@@ -177,17 +227,26 @@ def _run_local(args, parser, config, methods) -> int:
             check_method_rule(method, policy)
     uses_head = any(method.uses_draft_head for method in methods)
     draft_head = load_draft_head_for(policy, args.draft_head, parser) if uses_head else None
-    logger.info("loaded %s%s in %.1f s", args.policy, f" and {args.draft_head}" if draft_head is not None else "",
-                time.perf_counter() - started)  # fmt: skip
+    logger.info(
+        "loaded %s%s in %.1f s",
+        args.policy,
+        f" and {args.draft_head}" if draft_head is not None else "",
+        time.perf_counter() - started,
+    )
     with usage_errors(parser, errors=(ValueError,)):  # e.g. --max-prompt-tokens shorter than any prompt
         service = PolicyService(policy, config, draft_head)
     server = PolicyServer(service, args.host, args.port, args.api_key, args.max_request_bytes, sock=sock)
     compiled = any(method.compiled for method in methods)
-    logger.info("%s buckets %s%s", "compiling and calibrating" if compiled else "calibrating", list(config.buckets),
-                " (a compiled method: ~30 s per bucket on 2 CPU cores)" if compiled else "")  # fmt: skip
+    logger.info(
+        "%s buckets %s%s",
+        "compiling and calibrating" if compiled else "calibrating",
+        list(config.buckets),
+        " (a compiled method: ~30 s per bucket on 2 CPU cores)" if compiled else "",
+    )
     service.warm_up()
-    print(f"serving {args.policy} ({service.methods_name}) on {server.url}: POST /act, GET /info, GET /stats",
-          flush=True)  # fmt: skip
+    print(
+        f"serving {args.policy} ({service.methods_name}) on {server.url}: POST /act, GET /info, GET /stats", flush=True
+    )
     server.run()
     return 0
 
@@ -209,18 +268,28 @@ def _run_ray(args, parser, config) -> int:
     replicas, threads = args.replicas or 1, args.threads or 1
     local = args.ray_address is None and not os.environ.get("RAY_ADDRESS")
     if local and replicas * threads > (os.cpu_count() or 1):
-        parser.error(f"--replicas {replicas} x --threads {threads} need {replicas * threads} CPUs; this machine has "
-                     f"{os.cpu_count()}: fewer --replicas or --threads (or a --ray-address)")  # fmt: skip
+        parser.error(
+            f"--replicas {replicas} x --threads {threads} need {replicas * threads} CPUs; this machine has "
+            f"{os.cpu_count()}: fewer --replicas or --threads (or a --ray-address)"
+        )
     with usage_errors(parser, errors=(ValueError,)):
-        app_args = PolicyAppArgs(policy=str(Path(args.policy).resolve()), serve=config, threads=threads,
-                                 draft_head=str(Path(args.draft_head).resolve()) if args.draft_head else None,
-                                 num_replicas=replicas, max_request_bytes=args.max_request_bytes)  # fmt: skip
+        app_args = PolicyAppArgs(
+            policy=str(Path(args.policy).resolve()),
+            serve=config,
+            threads=threads,
+            draft_head=str(Path(args.draft_head).resolve()) if args.draft_head else None,
+            num_replicas=replicas,
+            max_request_bytes=args.max_request_bytes,
+        )
     settings = serve_config(app_args, args.host, args.port)
     if args.api_key and local:  # the local cluster inherits this environment: the key stays out of Serve's config
         os.environ[API_KEY_VARIABLE] = args.api_key
     elif args.api_key:
-        logger.warning("--api-key with --ray-address: the key travels in the application's arguments (`serve config` "
-                       "shows it); set %s on the cluster's nodes instead to keep it out", API_KEY_VARIABLE)  # fmt: skip
+        logger.warning(
+            "--api-key with --ray-address: the key travels in the application's arguments (`serve config` "
+            "shows it); set %s on the cluster's nodes instead to keep it out",
+            API_KEY_VARIABLE,
+        )
         settings["applications"][0]["args"]["api_key"] = args.api_key
     host = f"[{args.host}]" if ":" in args.host else args.host
     url = f"http://{host}:{args.port}"
@@ -228,8 +297,11 @@ def _run_ray(args, parser, config) -> int:
     given = " ".join(text.strip() for text in args.method)
 
     def ready(url: str) -> None:
-        print(f"serving {args.policy} ({given}) on {url}: POST /act, GET /info, GET /stats "
-              f"(Ray Serve, {replicas} replicas)", flush=True)  # fmt: skip
+        print(
+            f"serving {args.policy} ({given}) on {url}: POST /act, GET /info, GET /stats "
+            f"(Ray Serve, {replicas} replicas)",
+            flush=True,
+        )
 
     with tempfile.TemporaryDirectory(prefix="hf-specvla-serve-") as folder:
         config_file = Path(folder) / "serve_config.yaml"  # JSON is YAML: serve run reads it as such

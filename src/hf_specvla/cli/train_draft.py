@@ -44,55 +44,113 @@ def add_arguments(parser) -> None:
     parser.add_argument("--policy", required=True, help="the policy folder (train-vla output)")
     parser.add_argument("--output-dir", required=True, help="the draft head folder (and checkpoints)")
     parser.add_argument("--tasks", nargs="+", default=["MT10"], help="suites and/or task names")
-    parser.add_argument("--data", nargs="+", default=None,
-                        help="also distil on frames of these `collect` folders (default: rollouts only)")  # fmt: skip
-    parser.add_argument("--demo-frames-per-task", type=NON_NEGATIVE, default=None,
-                        help=f"with --data: frames sampled per task (default: "
-                             f"{DraftDataConfig.demo_frames_per_task})")  # fmt: skip
-    parser.add_argument("--rollouts", default=None,
-                        help="read the on-policy frames from this `hf-specvla rollouts` folder of the policy "
-                             "instead of rolling it out here")  # fmt: skip
-    parser.add_argument("--rollout-episodes", type=POSITIVE, default=None,
-                        help=f"greedy on-policy episodes per task, the last --validation-episodes held out (default: "
-                             f"{DraftDataConfig.rollout_episodes}); with --rollouts, every finished one")  # fmt: skip
-    parser.add_argument("--rollout-max-steps", type=POSITIVE, default=None,
-                        help=f"steps kept per rollout (default: {DraftDataConfig.rollout_max_steps}); with --rollouts, "
-                             f"the folder's")  # fmt: skip
-    parser.add_argument("--rollout-seed-start", type=NON_NEGATIVE, default=None,
-                        help=f"first rollout seed (default: {DraftDataConfig.rollout_seed_start}); with --rollouts, "
-                             f"the folder's")  # fmt: skip
-    parser.add_argument("--validation-episodes", type=POSITIVE, default=DraftDataConfig.validation_episodes,
-                        help="held-out rollouts per task")  # fmt: skip
-    parser.add_argument("--validation-frames", type=POSITIVE, default=DraftDataConfig.validation_frames,
-                        help="held-out frames the engine validates on (evenly spread)")  # fmt: skip
-    parser.add_argument("--num-draft-tokens", type=POSITIVE, default=None,
-                        help="the head's default chain length k (default: tokens per call - 1)")  # fmt: skip
-    parser.add_argument("--head", choices=HEAD_VERSIONS, default=HEAD_VERSIONS[0],
-                        help="v1: the policy's last hidden state; v2: a low, a middle and the top layer and the "
-                             "robot's previous action (EAGLE-3 + the last action)")  # fmt: skip
-    parser.add_argument("--prefill-image-features", action="store_true",
-                        help="with --head v3: its drafts before the prefill read the encoded camera frame too (paid "
-                             "on the demo's toy target, not on policy v3)")  # fmt: skip
-    parser.add_argument("--unroll-steps", type=POSITIVE, default=None,
-                        help="draft steps trained per example on the head's own features (training-time test; "
-                             "default: 1 for v1, the chain length for v2 and v3)")  # fmt: skip
+    parser.add_argument(
+        "--data",
+        nargs="+",
+        default=None,
+        help="also distil on frames of these `collect` folders (default: rollouts only)",
+    )
+    parser.add_argument(
+        "--demo-frames-per-task",
+        type=NON_NEGATIVE,
+        default=None,
+        help=f"with --data: frames sampled per task (default: {DraftDataConfig.demo_frames_per_task})",
+    )
+    parser.add_argument(
+        "--rollouts",
+        default=None,
+        help="read the on-policy frames from this `hf-specvla rollouts` folder of the policy "
+        "instead of rolling it out here",
+    )
+    parser.add_argument(
+        "--rollout-episodes",
+        type=POSITIVE,
+        default=None,
+        help=f"greedy on-policy episodes per task, the last --validation-episodes held out (default: "
+        f"{DraftDataConfig.rollout_episodes}); with --rollouts, every finished one",
+    )
+    parser.add_argument(
+        "--rollout-max-steps",
+        type=POSITIVE,
+        default=None,
+        help=f"steps kept per rollout (default: {DraftDataConfig.rollout_max_steps}); with --rollouts, the folder's",
+    )
+    parser.add_argument(
+        "--rollout-seed-start",
+        type=NON_NEGATIVE,
+        default=None,
+        help=f"first rollout seed (default: {DraftDataConfig.rollout_seed_start}); with --rollouts, the folder's",
+    )
+    parser.add_argument(
+        "--validation-episodes",
+        type=POSITIVE,
+        default=DraftDataConfig.validation_episodes,
+        help="held-out rollouts per task",
+    )
+    parser.add_argument(
+        "--validation-frames",
+        type=POSITIVE,
+        default=DraftDataConfig.validation_frames,
+        help="held-out frames the engine validates on (evenly spread)",
+    )
+    parser.add_argument(
+        "--num-draft-tokens",
+        type=POSITIVE,
+        default=None,
+        help="the head's default chain length k (default: tokens per call - 1)",
+    )
+    parser.add_argument(
+        "--head",
+        choices=HEAD_VERSIONS,
+        default=HEAD_VERSIONS[0],
+        help="v1: the policy's last hidden state; v2: a low, a middle and the top layer and the "
+        "robot's previous action (EAGLE-3 + the last action)",
+    )
+    parser.add_argument(
+        "--prefill-image-features",
+        action="store_true",
+        help="with --head v3: its drafts before the prefill read the encoded camera frame too (paid "
+        "on the demo's toy target, not on policy v3)",
+    )
+    parser.add_argument(
+        "--unroll-steps",
+        type=POSITIVE,
+        default=None,
+        help="draft steps trained per example on the head's own features (training-time test; "
+        "default: 1 for v1, the chain length for v2 and v3)",
+    )
     defaults = PolicyDraftTrainingConfig
     parser.add_argument("--max-steps", type=POSITIVE, default=defaults.max_steps, help="optimizer steps")
     parser.add_argument("--batch-size", type=POSITIVE, default=defaults.batch_size, help="sequences per step")
-    parser.add_argument("--learning-rate", type=float, default=defaults.learning_rate,
-                        help="peak AdamW learning rate")  # fmt: skip
-    parser.add_argument("--feature-loss-weight", type=float, default=defaults.feature_loss_weight,
-                        help="weight of the SmoothL1 loss on the features (EAGLE-1/2; EAGLE-3 uses 0)")  # fmt: skip
-    parser.add_argument("--token-loss-weight", type=float, default=defaults.token_loss_weight,
-                        help="weight of the soft cross-entropy on the tokens")  # fmt: skip
-    parser.add_argument("--lr-schedule", choices=("constant", "cosine"), default=defaults.lr_schedule,
-                        help="after warm-up")  # fmt: skip
-    parser.add_argument("--warmup-steps", type=NON_NEGATIVE, default=defaults.warmup_steps,
-                        help="linear warm-up steps")  # fmt: skip
-    parser.add_argument("--eval-every", type=NON_NEGATIVE, default=defaults.eval_every,
-                        help="steps between validations (0: only at the end)")  # fmt: skip
-    parser.add_argument("--save-every", type=NON_NEGATIVE, default=defaults.save_every,
-                        help="steps between checkpoints (0: only the final head)")  # fmt: skip
+    parser.add_argument("--learning-rate", type=float, default=defaults.learning_rate, help="peak AdamW learning rate")
+    parser.add_argument(
+        "--feature-loss-weight",
+        type=float,
+        default=defaults.feature_loss_weight,
+        help="weight of the SmoothL1 loss on the features (EAGLE-1/2; EAGLE-3 uses 0)",
+    )
+    parser.add_argument(
+        "--token-loss-weight",
+        type=float,
+        default=defaults.token_loss_weight,
+        help="weight of the soft cross-entropy on the tokens",
+    )
+    parser.add_argument(
+        "--lr-schedule", choices=("constant", "cosine"), default=defaults.lr_schedule, help="after warm-up"
+    )
+    parser.add_argument("--warmup-steps", type=NON_NEGATIVE, default=defaults.warmup_steps, help="linear warm-up steps")
+    parser.add_argument(
+        "--eval-every",
+        type=NON_NEGATIVE,
+        default=defaults.eval_every,
+        help="steps between validations (0: only at the end)",
+    )
+    parser.add_argument(
+        "--save-every",
+        type=NON_NEGATIVE,
+        default=defaults.save_every,
+        help="steps between checkpoints (0: only the final head)",
+    )
     add_training_run_arguments(parser, defaults.seed)
 
 
@@ -101,8 +159,10 @@ def run(args, parser) -> int:
 
     check_output_dir_flag(args.output_dir, parser)
     if args.prefill_image_features and args.head != "v3":
-        parser.error(f"--prefill-image-features is read by a head v3's drafts before the prefill; got --head "
-                     f"{args.head}: add --head v3")  # fmt: skip
+        parser.error(
+            f"--prefill-image-features is read by a head v3's drafts before the prefill; got --head "
+            f"{args.head}: add --head v3"
+        )
     if args.demo_frames_per_task is not None and not args.data:
         parser.error("--demo-frames-per-task samples frames of the --data folders: give --data (or drop the flag)")
     check_training_folder(args.output_dir, args.resume, args.overwrite_output_dir, parser)
@@ -119,16 +179,31 @@ def run(args, parser) -> int:
         demo_frames = args.demo_frames_per_task
         demo_frames = DraftDataConfig.demo_frames_per_task if demo_frames is None else demo_frames
         data_config = DraftDataConfig(
-            args.tasks, episodes, max_steps, seed_start,
-            args.validation_episodes, args.validation_frames, demo_frames, seed=args.seed,
-        )  # fmt: skip
+            args.tasks,
+            episodes,
+            max_steps,
+            seed_start,
+            args.validation_episodes,
+            args.validation_frames,
+            demo_frames,
+            seed=args.seed,
+        )
         training_config = PolicyDraftTrainingConfig(
-            args.output_dir, max_steps=args.max_steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
-            warmup_steps=args.warmup_steps, lr_schedule=args.lr_schedule, save_every=args.save_every,
-            feature_loss_weight=args.feature_loss_weight, token_loss_weight=args.token_loss_weight,
-            eval_every=args.eval_every, resume=args.resume, overwrite_output_dir=args.overwrite_output_dir,
-            seed=args.seed, unroll_steps=unroll_steps,
-        )  # fmt: skip
+            args.output_dir,
+            max_steps=args.max_steps,
+            batch_size=args.batch_size,
+            learning_rate=args.learning_rate,
+            warmup_steps=args.warmup_steps,
+            lr_schedule=args.lr_schedule,
+            save_every=args.save_every,
+            feature_loss_weight=args.feature_loss_weight,
+            token_loss_weight=args.token_loss_weight,
+            eval_every=args.eval_every,
+            resume=args.resume,
+            overwrite_output_dir=args.overwrite_output_dir,
+            seed=args.seed,
+            unroll_steps=unroll_steps,
+        )
         if args.data:  # imports torch (seconds): only where there are demonstrations to check
             from ..metaworld.demonstrations import dataset_info
 
@@ -144,9 +219,17 @@ def run(args, parser) -> int:
 
     command = shlex.join(["hf-specvla", *args.argv])
     with usage_errors(parser, errors=(FileExistsError,)):
-        head = train_policy_draft_head(policy, training_config, data_config, args.data or [], args.num_draft_tokens,
-                                       command=command, head_version=args.head, rollouts=args.rollouts,
-                                       image_features=args.prefill_image_features)  # fmt: skip
+        head = train_policy_draft_head(
+            policy,
+            training_config,
+            data_config,
+            args.data or [],
+            args.num_draft_tokens,
+            command=command,
+            head_version=args.head,
+            rollouts=args.rollouts,
+            image_features=args.prefill_image_features,
+        )
     if not is_secondary_process():
         print(f"draft head saved to {args.output_dir} ({head.num_parameters():,} parameters); see its README.md")
     return 0
@@ -162,8 +245,11 @@ def rollout_defaults(args) -> tuple[int, int, int]:
     defaults = DraftDataConfig
     episodes, max_steps, seed_start = args.rollout_episodes, args.rollout_max_steps, args.rollout_seed_start
     if args.rollouts is None:
-        return (episodes or defaults.rollout_episodes, max_steps or defaults.rollout_max_steps,
-                defaults.rollout_seed_start if seed_start is None else seed_start)  # fmt: skip
+        return (
+            episodes or defaults.rollout_episodes,
+            max_steps or defaults.rollout_max_steps,
+            defaults.rollout_seed_start if seed_start is None else seed_start,
+        )
     from ..metaworld.env import resolve_tasks
     from ..training.rollouts import finished_episodes_per_task, read_rollouts_record
 

@@ -182,8 +182,14 @@ _INFO_DEFAULTS = {
 }
 
 
-def _check_info(root: Path, env_config: EnvConfig, action_noise: float, driver: dict, write: bool = True,
-                shown_as: Path | None = None) -> None:  # fmt: skip
+def _check_info(
+    root: Path,
+    env_config: EnvConfig,
+    action_noise: float,
+    driver: dict,
+    write: bool = True,
+    shown_as: Path | None = None,
+) -> None:
     """Refuses a folder holding a dataset collected with other settings; ``write``: record ours in a new one;
     ``shown_as``: the folder's name in messages (``root`` may be a held folder's bound ``/proc`` path)."""
     info_path = root / "meta" / "info.json"
@@ -245,11 +251,14 @@ def _check_unrecorded(root: Path, shown_as: Path) -> None:
         except (ValueError, AttributeError):
             command = None
         made_by = f"`hf-specvla {command}`" if isinstance(command, str) else "another command"
-        raise ValueError(f"{shown_as} holds a run of {made_by} ({RUN_FILE}), not a dataset; collect into another "
-                         "folder")  # fmt: skip
+        raise ValueError(
+            f"{shown_as} holds a run of {made_by} ({RUN_FILE}), not a dataset; collect into another folder"
+        )
     shown = ", ".join(sorted(entry.name for entry in root.iterdir() if entry.name != LOCK_FILE)[:5])
-    raise ValueError(f"{shown_as} is not empty ({shown}) and holds no dataset record (meta/info.json): it cannot be "
-                     "told what it holds; collect into an empty or new folder")  # fmt: skip
+    raise ValueError(
+        f"{shown_as} is not empty ({shown}) and holds no dataset record (meta/info.json): it cannot be "
+        "told what it holds; collect into an empty or new folder"
+    )
 
 
 def collected_seeds(root: Path, task: str) -> list[int]:
@@ -284,8 +293,11 @@ def check_dataset_folder(
     driver = {"policy": None, "expert_mix": None, "policy_weights": None}
     if policy is not None:
         env_config.check_renders_for(policy.config)
-        driver = {"policy": policy.name_or_path or "in-memory", "expert_mix": float(expert_mix),
-                  "policy_weights": fingerprint(policy.model)}  # fmt: skip
+        driver = {
+            "policy": policy.name_or_path or "in-memory",
+            "expert_mix": float(expert_mix),
+            "policy_weights": fingerprint(policy.model),
+        }
     _check_info(Path(output_dir), env_config, float(action_noise), driver, write=False)
     return driver
 
@@ -324,22 +336,45 @@ def collect_demonstrations(
     with lock_folder(root) as held:
         # under the lock: writes meta/info.json
         _check_info(held.bound, env_config, float(action_noise), driver, shown_as=root)
-        return _collect_into(held.bound, tasks, episodes_per_task, env_config, seed_start, max_seed_tries, progress,
-                             action_noise, policy, expert_mix)  # fmt: skip
+        return _collect_into(
+            held.bound,
+            tasks,
+            episodes_per_task,
+            env_config,
+            seed_start,
+            max_seed_tries,
+            progress,
+            action_noise,
+            policy,
+            expert_mix,
+        )
 
 
 def _collect_into(
-    root: Path, tasks: list[str], episodes_per_task: int, env_config: EnvConfig, seed_start: int,
-    max_seed_tries: int, progress: bool, action_noise: float, policy, expert_mix: float,
-) -> CollectSummary:  # fmt: skip
+    root: Path,
+    tasks: list[str],
+    episodes_per_task: int,
+    env_config: EnvConfig,
+    seed_start: int,
+    max_seed_tries: int,
+    progress: bool,
+    action_noise: float,
+    policy,
+    expert_mix: float,
+) -> CollectSummary:
     """[`collect_demonstrations`]'s work, in a folder this process holds."""
     if policy is not None:
         max_seed_tries = 1  # every seed gives an episode
     written = failures = driven_successes = 0
     total = len(tasks) * episodes_per_task
     done = {task: collected_seeds(root, task) for task in tasks}
-    bar = progress_bar(total=total, initial=sum(min(len(s), episodes_per_task) for s in done.values()),
-               desc="collect", unit="episode", disable=not progress)  # fmt: skip
+    bar = progress_bar(
+        total=total,
+        initial=sum(min(len(s), episodes_per_task) for s in done.values()),
+        desc="collect",
+        unit="episode",
+        disable=not progress,
+    )
     for task in tasks:
         have = set(done[task])
         if len(have) >= episodes_per_task:
@@ -502,9 +537,13 @@ def load_demonstrations(
         else:
             scene_states = None
     return Demonstrations(
-        EncodedFrames(images), np.asarray(states, np.float32), np.asarray(actions, np.float32), task_names,
-        np.asarray(episodes, np.int64), None if scene_states is None else np.asarray(scene_states, np.float32),
-    )  # fmt: skip
+        EncodedFrames(images),
+        np.asarray(states, np.float32),
+        np.asarray(actions, np.float32),
+        task_names,
+        np.asarray(episodes, np.int64),
+        None if scene_states is None else np.asarray(scene_states, np.float32),
+    )
 
 
 def _compute_stats(files: list[Path]) -> dict:
@@ -584,8 +623,9 @@ def dataset_stats(roots: str | Path | list[str | Path]) -> DatasetStats:
             logger.warning("%s is damaged; recomputing it from the episodes", path)
             stats = write_stats(roots[0])
     scene = ActionNormalizer.from_dict(stats["scene_state"]) if "scene_state" in stats else None
-    return DatasetStats(ActionNormalizer.from_dict(stats["action"]), ActionNormalizer.from_dict(stats["state"]),
-                        scene, source)  # fmt: skip
+    return DatasetStats(
+        ActionNormalizer.from_dict(stats["action"]), ActionNormalizer.from_dict(stats["state"]), scene, source
+    )
 
 
 def read_stats(roots: str | Path | list[str | Path]) -> tuple[ActionNormalizer, ActionNormalizer]:

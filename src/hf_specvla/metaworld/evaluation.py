@@ -253,9 +253,12 @@ def evaluate(
     env_config.check_renders_for(policy.config)
     output_dir = Path(output_dir)
     generate_kwargs = dict(generate_kwargs or {})
-    settings = {"policy": fingerprint(policy.model), "env": asdict(env_config), "seed_start": seed_start,
-                "decoding": describe_decoding({**(decoding.predict_kwargs() if decoding else {}),
-                                               **generate_kwargs})}  # fmt: skip
+    settings = {
+        "policy": fingerprint(policy.model),
+        "env": asdict(env_config),
+        "seed_start": seed_start,
+        "decoding": describe_decoding({**(decoding.predict_kwargs() if decoding else {}), **generate_kwargs}),
+    }
     with claim_run_folder(output_dir, RunRecord("eval", settings), overwrite) as run:
         folder = run.bound  # writes stay in the claimed folder, renamed or not
         log_path = folder / "episodes.jsonl"
@@ -339,8 +342,9 @@ def check_video_path(path: str | Path) -> None:
         raise ValueError(f"video {str(path)!r}: is a folder; give a file path (e.g. {str(path / 'episode.gif')!r})")
     existing = next((p for p in path.parents if p.exists()), Path("."))  # Path.exists: False under a file
     if not existing.is_dir():
-        raise ValueError(f"video {str(path)!r}: {existing} is a file, so no folder can be made under it; give "
-                         "another path")  # fmt: skip
+        raise ValueError(
+            f"video {str(path)!r}: {existing} is a file, so no folder can be made under it; give another path"
+        )
     if not os.access(existing, os.W_OK | os.X_OK):
         raise ValueError(f"video {str(path)!r}: {existing} is not writable; give a path you can write to")
     if suffix == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:

@@ -82,15 +82,22 @@ class RobotsConfig:
 
     def __post_init__(self):
         self.tasks = resolve_tasks(self.tasks)
-        check_ranges(self, at_least_one=("episodes_per_task", "robots", "max_episode_steps"),
-                     non_negative=("seed_start",),
-                     integers=("episodes_per_task", "robots", "max_episode_steps", "seed_start"))  # fmt: skip
+        check_ranges(
+            self,
+            at_least_one=("episodes_per_task", "robots", "max_episode_steps"),
+            non_negative=("seed_start",),
+            integers=("episodes_per_task", "robots", "max_episode_steps", "seed_start"),
+        )
         if self.max_episode_steps > MAX_EPISODE_STEPS:
-            raise ValueError(f"RobotsConfig.max_episode_steps must be <= {MAX_EPISODE_STEPS} (Meta-World's "
-                             f"max_path_length), got {self.max_episode_steps}")  # fmt: skip
+            raise ValueError(
+                f"RobotsConfig.max_episode_steps must be <= {MAX_EPISODE_STEPS} (Meta-World's "
+                f"max_path_length), got {self.max_episode_steps}"
+            )
         if not isinstance(self.server, str) or not self.server.startswith(("http://", "https://")):
-            raise ValueError(f"RobotsConfig.server must be an http:// or https:// address (e.g. {DEFAULT_SERVER}), "
-                             f"got {self.server!r}")  # fmt: skip
+            raise ValueError(
+                f"RobotsConfig.server must be an http:// or https:// address (e.g. {DEFAULT_SERVER}), "
+                f"got {self.server!r}"
+            )
 
     def pairs(self) -> list[tuple[str, int]]:
         """Every (task, seed) the run holds, task by task (the order robots take them in)."""
@@ -134,23 +141,38 @@ class ServerInfo:
         """
         if not isinstance(payload, dict):
             raise ServerReplyError(f"/info must be a JSON object, got {type(payload).__name__}")
-        kinds = {"policy": str, "fingerprint": str, "image_size": int, "camera": str, "state_dim": int,
-                 "action_dim": int, "chunk_length": int, "use_state": bool, "method": str, "buckets": list}  # fmt: skip
+        kinds = {
+            "policy": str,
+            "fingerprint": str,
+            "image_size": int,
+            "camera": str,
+            "state_dim": int,
+            "action_dim": int,
+            "chunk_length": int,
+            "use_state": bool,
+            "method": str,
+            "buckets": list,
+        }
         for name, kind in kinds.items():
             value = payload.get(name)
             if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-                raise ServerReplyError(f"/info field {name!r} must be {kind.__name__}, got {value!r}: not an "
-                                       f"hf-specvla policy server?")  # fmt: skip
+                raise ServerReplyError(
+                    f"/info field {name!r} must be {kind.__name__}, got {value!r}: not an hf-specvla policy server?"
+                )
         buckets = payload["buckets"]
         if not buckets or not all(isinstance(b, int) and not isinstance(b, bool) and b >= 1 for b in buckets):
             raise ServerReplyError(f"/info field 'buckets' must be a non-empty list of ints >= 1, got {buckets!r}")
         info = cls(**{name: payload[name] for name in kinds if name != "buckets"}, buckets=tuple(buckets))
         if info.action_dim != ACTION_DIM:
-            raise ServerReplyError(f"the server's policy acts in {info.action_dim} dimensions; Meta-World robots take "
-                                   f"{ACTION_DIM} (xyz delta + gripper)")  # fmt: skip
+            raise ServerReplyError(
+                f"the server's policy acts in {info.action_dim} dimensions; Meta-World robots take "
+                f"{ACTION_DIM} (xyz delta + gripper)"
+            )
         if info.use_state and info.state_dim != STATE_DIM:
-            raise ServerReplyError(f"the server's policy reads {info.state_dim} state numbers; Meta-World robots send "
-                                   f"{STATE_DIM} (hand xyz + gripper opening)")  # fmt: skip
+            raise ServerReplyError(
+                f"the server's policy reads {info.state_dim} state numbers; Meta-World robots send "
+                f"{STATE_DIM} (hand xyz + gripper opening)"
+            )
         if info.chunk_length < 1:
             raise ServerReplyError(f"/info field 'chunk_length' must be >= 1, got {info.chunk_length}")
         info.env_config()  # a camera or image size the simulator refuses
@@ -172,8 +194,9 @@ class ServerInfo:
         action = np.asarray(action, dtype=np.float64)
         expected = (self.action_dim,) if self.chunk_length == 1 else (self.chunk_length, self.action_dim)
         if action.shape != expected:
-            raise ServerReplyError(f"the server sent an action of shape {list(action.shape)}; its /info promised "
-                                   f"{list(expected)}")  # fmt: skip
+            raise ServerReplyError(
+                f"the server sent an action of shape {list(action.shape)}; its /info promised {list(expected)}"
+            )
         return [action] if action.ndim == 1 else list(action)
 
 
@@ -231,8 +254,9 @@ class RobotEpisode:
         self.speculative.append(bool(served.speculative))
 
 
-def run_episode(env: MetaWorldEnv, seed: int, client, info: ServerInfo, session: str,
-                stop: threading.Event | None = None) -> RobotEpisode | None:  # fmt: skip
+def run_episode(
+    env: MetaWorldEnv, seed: int, client, info: ServerInfo, session: str, stop: threading.Event | None = None
+) -> RobotEpisode | None:
     """One episode of one robot: ``env.reset(seed)``, then request -> execute the action (a chunk whole) until the
     env ends the episode (success, or its step limit). The first request starts the session's episode (``reset``).
 
@@ -252,8 +276,9 @@ def run_episode(env: MetaWorldEnv, seed: int, client, info: ServerInfo, session:
             return None
         state = observation["state"] if info.use_state else None
         start = time.perf_counter()
-        reply = client.act(observation["image"], observation["instruction"], state, session=session,
-                           reset=not episode.latencies_ms)  # fmt: skip
+        reply = client.act(
+            observation["image"], observation["instruction"], state, session=session, reset=not episode.latencies_ms
+        )
         episode.record_reply(1000 * (time.perf_counter() - start), reply.served)
         for action in info.action_rows(reply.action):
             observation, _, done, step_info = env.step(action)
@@ -329,8 +354,10 @@ class _Fleet:
 def _drive_fleet(fleet: _Fleet, clients: list) -> None:
     """Runs one thread per client until the pairs are done; re-raises the first robot's error (the others stop after
     their current request; their unfinished episodes are not logged)."""
-    threads = [threading.Thread(target=fleet.drive, args=(robot, client), name=f"robot-{robot}", daemon=True)
-               for robot, client in enumerate(clients)]  # fmt: skip
+    threads = [
+        threading.Thread(target=fleet.drive, args=(robot, client), name=f"robot-{robot}", daemon=True)
+        for robot, client in enumerate(clients)
+    ]
     for thread in threads:
         thread.start()
     try:
@@ -378,8 +405,13 @@ def run_robots(
     info = ServerInfo.from_payload(make_client().info())
     env_config = info.env_config(config.max_episode_steps)
     output_dir = Path(output_dir)
-    settings = {"policy": info.fingerprint, "decoding": {"method": info.method, "buckets": list(info.buckets)},
-                "env": asdict(env_config), "seed_start": config.seed_start, "robots": config.robots}  # fmt: skip
+    settings = {
+        "policy": info.fingerprint,
+        "decoding": {"method": info.method, "buckets": list(info.buckets)},
+        "env": asdict(env_config),
+        "seed_start": config.seed_start,
+        "robots": config.robots,
+    }
     record = RunRecord("robots", settings, paths={"policy": info.policy, "server": config.server})
     with claim_run_folder(output_dir, record, overwrite) as run:
         folder = run.bound  # writes stay in the claimed folder, renamed or not
@@ -390,14 +422,27 @@ def run_robots(
         pending = [pair for pair in wanted if pair not in done]
         if pending:
             robots = min(config.robots, len(pending))
-            logger.info("%d robots drive %s (%s, method %s) at %s: %d episodes to run, %d already in %s", robots,
-                        info.policy, info.fingerprint, info.method, config.server, len(pending),
-                        len(wanted) - len(pending), output_dir)  # fmt: skip
+            logger.info(
+                "%d robots drive %s (%s, method %s) at %s: %d episodes to run, %d already in %s",
+                robots,
+                info.policy,
+                info.fingerprint,
+                info.method,
+                config.server,
+                len(pending),
+                len(wanted) - len(pending),
+                output_dir,
+            )
             pairs: queue.SimpleQueue = queue.SimpleQueue()
             for pair in pending:
                 pairs.put(pair)
-            bar = progress_bar(total=len(wanted), initial=len(wanted) - len(pending), desc="robots", unit="episode",
-                               disable=not progress)  # fmt: skip
+            bar = progress_bar(
+                total=len(wanted),
+                initial=len(wanted) - len(pending),
+                desc="robots",
+                unit="episode",
+                disable=not progress,
+            )
             clients = [make_client() for _ in range(robots)]  # one each: a client's draft states are its robot's
             try:
                 with log_path.open("a") as log:
@@ -449,8 +494,11 @@ def summarize(episodes: list[RobotEpisode]) -> dict:
     per_task = {}
     for task in tasks:
         items = [e for e in episodes if e.task == task]
-        per_task[task] = {"episodes": len(items), "success_rate": sum(e.success for e in items) / len(items),
-                          "mean_episode_length": float(np.mean([e.length for e in items]))}  # fmt: skip
+        per_task[task] = {
+            "episodes": len(items),
+            "success_rate": sum(e.success for e in items) / len(items),
+            "mean_episode_length": float(np.mean([e.length for e in items])),
+        }
     runs: dict[str, list[RobotEpisode]] = {}
     for episode in episodes:
         runs.setdefault(episode.run, []).append(episode)

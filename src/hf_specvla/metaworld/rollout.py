@@ -35,8 +35,13 @@ class Episode:
     decisions: int = 0
 
 
-def rollout(envs: Sequence[MetaWorldEnv], seeds: Sequence[int], decide: Decide, on_step: OnStep | None = None,
-            max_decisions: int | None = None) -> list[Episode]:  # fmt: skip
+def rollout(
+    envs: Sequence[MetaWorldEnv],
+    seeds: Sequence[int],
+    decide: Decide,
+    on_step: OnStep | None = None,
+    max_decisions: int | None = None,
+) -> list[Episode]:
     """Runs one episode per env (``envs[b].reset(seeds[b])``) in lockstep; ``max_decisions`` cuts an episode after
     that many decisions (unfinished: ``success`` False).
 

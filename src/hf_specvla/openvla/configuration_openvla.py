@@ -136,7 +136,7 @@ class OpenVLAConfig(PretrainedConfig):
             ("pad_to_multiple_of", pad_to_multiple_of, int, "an int", False),
             ("output_projector_states", output_projector_states, bool, "true or false", False),
             ("image_token_id", image_token_id, int, "an int (a token id)", True),
-        ):  # fmt: skip
+        ):
             _check_type(name, value, expected, description, optional)
         _check_list("timm_model_ids", timm_model_ids, str, "timm model ids (strings)")
         _check_list("image_sizes", image_sizes, int, "ints (pixels)")

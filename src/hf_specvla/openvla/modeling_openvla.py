@@ -499,8 +499,9 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         drafts = isinstance(kwargs.get("assistant_model"), (DraftHead, Drafter)) or kwargs.get("draft_ids") is not None
         if drafts and "action_layout" not in kwargs:
             kwargs["action_layout"] = layout if layout is not None else self.action_layout(unnorm_key)
-        kwargs = self._action_length(action_dim, kwargs.pop("min_new_tokens", action_dim),
-                                     kwargs.pop("generation_config", None), kwargs)  # fmt: skip
+        kwargs = self._action_length(
+            action_dim, kwargs.pop("min_new_tokens", action_dim), kwargs.pop("generation_config", None), kwargs
+        )
         generated = self.generate(input_ids, **kwargs)
         sequences = generated if isinstance(generated, torch.Tensor) else generated.sequences
         action_token_ids = sequences[0, -action_dim:]
@@ -531,8 +532,9 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         ActionPriorDrafter(previous_action_ids, layout)  # each a list of action_dim action token ids, or it names it
 
     @staticmethod
-    def _action_length(action_dim: int, min_new_tokens: int, generation_config: GenerationConfig | None,
-                       kwargs: dict) -> dict:  # fmt: skip
+    def _action_length(
+        action_dim: int, min_new_tokens: int, generation_config: GenerationConfig | None, kwargs: dict
+    ) -> dict:
         """``generate``'s keyword arguments: ``kwargs`` with the length settings (``action_dim`` new tokens); or,
         given the caller's ``generation_config`` (which decides how to decode, e.g. its ``do_sample=True`` samples),
         a copy of it holding the length and every generation setting of ``kwargs`` (e.g. a compiled method's

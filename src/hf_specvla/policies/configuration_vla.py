@@ -75,8 +75,11 @@ class VLAPolicyConfig:
                 "vision_hidden_size must be a positive multiple of 4 (the encoder's attention heads) and "
                 f"vision_layers >= 1, got {self.vision_hidden_size} and {self.vision_layers}"
             )
-        check_ranges(self, at_least_one=("text_hidden_size", "text_layers", "text_heads", "chunk_length"),
-                     integers=("text_hidden_size", "text_layers", "text_heads", "chunk_length"))  # fmt: skip
+        check_ranges(
+            self,
+            at_least_one=("text_hidden_size", "text_layers", "text_heads", "chunk_length"),
+            integers=("text_hidden_size", "text_layers", "text_heads", "chunk_length"),
+        )
         if self.text_hidden_size % self.text_heads:
             raise ValueError(
                 f"text_hidden_size {self.text_hidden_size} must be a multiple of text_heads {self.text_heads}"

@@ -49,21 +49,34 @@ from .configuration_vla import VLAPolicyConfig
 if TYPE_CHECKING:
     from ..speculative import DraftHead, DraftTreeConfig
 
-DRAFTER_CHOICES = ("greedy", "head", "tree", "prior", "prior+head", "prior+tree", "jacobi", "prior+jacobi",
-                   "jacobi+tree", "prior+jacobi+tree", "none")  # fmt: skip
+DRAFTER_CHOICES = (
+    "greedy",
+    "head",
+    "tree",
+    "prior",
+    "prior+head",
+    "prior+tree",
+    "jacobi",
+    "prior+jacobi",
+    "jacobi+tree",
+    "prior+jacobi+tree",
+    "none",
+)
 #: drafting nothing: ``greedy`` is transformers' own greedy decoding, ``none`` greedy decoding run by hf_specvla's
 #: engine (one token a verification, through the policy's decoder session: what the engine's path alone saves)
 DRAFTLESS = ("greedy", "none")
-METHOD_KEYS = {"r": "bin tolerance: an int, or one per action dimension joined by / (0 = lossless)",
-               "rl": "bin tolerance of a chunk's later actions (default: r)",
-               "rho": "motion-scaled tolerance: bins per bin of the target's distance from zero motion, one number or "
-                      "one per action dimension joined by /",
-               "dev": "the largest accepted deviation from the target's action in the policy's units, one number or "
-                      "one per action dimension joined by /",
-               "m": "at most this many relaxed tokens per action",
-               "gate": "relax only where the target's top-1 probability is below this (0 < p <= 1)",
-               "confirm": "1: keep a relaxed token only when its action's strict dimensions after it are confirmed",
-               "k": "draft-head chain length (head only)"}  # fmt: skip
+METHOD_KEYS = {
+    "r": "bin tolerance: an int, or one per action dimension joined by / (0 = lossless)",
+    "rl": "bin tolerance of a chunk's later actions (default: r)",
+    "rho": "motion-scaled tolerance: bins per bin of the target's distance from zero motion, one number or "
+    "one per action dimension joined by /",
+    "dev": "the largest accepted deviation from the target's action in the policy's units, one number or "
+    "one per action dimension joined by /",
+    "m": "at most this many relaxed tokens per action",
+    "gate": "relax only where the target's top-1 probability is below this (0 < p <= 1)",
+    "confirm": "1: keep a relaxed token only when its action's strict dimensions after it are confirmed",
+    "k": "draft-head chain length (head only)",
+}
 #: the bound a comparison measures beside the methods: greedy's own tokens (decoded off the clock on the same
 #: observation) drafted in the prefill, so every draft is right and a call costs one target forward; only ``compare``
 #: runs it (nothing else knows greedy's tokens before decoding)
@@ -89,20 +102,26 @@ _MINIMUM = {"r": 0, "rl": 0, "m": 0, "k": 1}
 def _parse_integer(text: str, key: str, value: str) -> int:
     """One integer of option ``key`` (``value``: as written), at least ``_MINIMUM[key]``."""
     if not _INTEGER.fullmatch(value.strip()):
-        raise ValueError(f"decoding method {text!r}: bad option '{key}={value}'; {key} is {METHOD_KEYS[key]} "
-                         f"(an integer in digits 0-9)")  # fmt: skip
+        raise ValueError(
+            f"decoding method {text!r}: bad option '{key}={value}'; {key} is {METHOD_KEYS[key]} "
+            f"(an integer in digits 0-9)"
+        )
     number = int(value)
     if number < _MINIMUM[key]:
-        raise ValueError(f"decoding method {text!r}: {key} must be an integer >= {_MINIMUM[key]} "
-                         f"({METHOD_KEYS[key]}), got {key}={value}")  # fmt: skip
+        raise ValueError(
+            f"decoding method {text!r}: {key} must be an integer >= {_MINIMUM[key]} "
+            f"({METHOD_KEYS[key]}), got {key}={value}"
+        )
     return number
 
 
 def _parse_tolerance(text: str, value: str, key: str) -> Tolerance:
     parts = value.split("/")
     if not all(_INTEGER.fullmatch(p.strip()) for p in parts):
-        raise ValueError(f"decoding method {text!r}: bad option '{key}={value}'; {key} is {METHOD_KEYS[key]} "
-                         f"(integers in digits 0-9)")  # fmt: skip
+        raise ValueError(
+            f"decoding method {text!r}: bad option '{key}={value}'; {key} is {METHOD_KEYS[key]} "
+            f"(integers in digits 0-9)"
+        )
     numbers = [_parse_integer(text, key, p) for p in parts]
     return numbers[0] if len(numbers) == 1 else tuple(numbers)
 
@@ -166,8 +185,9 @@ class DecodingMethod:
     confirm_tail: bool = False  # confirm=1: the strict dimensions after a relaxed token confirmed in its verification
 
     @classmethod
-    def parse(cls, text: str, draft_head_given: bool = False, action_dim: int | None = None,
-              oracle: bool = False) -> DecodingMethod:  # fmt: skip
+    def parse(
+        cls, text: str, draft_head_given: bool = False, action_dim: int | None = None, oracle: bool = False
+    ) -> DecodingMethod:
         """``"prior+tree:r=4"`` -> DecodingMethod("prior+tree", 4); a preset (``exact``, ``fast``) -> the method it
         names for a policy with (``draft_head_given``) or without a draft head and with ``action_dim``-dimensional
         actions ([`Preset.resolve`]; None: this project's policies' layout). With ``action_dim``, a per-dimension r
@@ -181,13 +201,17 @@ class DecodingMethod:
         preset = PRESETS.get(text.strip())
         if preset is not None:
             return preset.resolve(draft_head_given, action_dim)
-        valid = (f"valid: {', '.join(DRAFTER_CHOICES)}, optionally followed by :<option>=<value>,... and/or :compile "
-                 f"(e.g. prior+tree:r=4, greedy:compile, prior+jacobi:r=4/4/4/0,m=1:compile), or a preset: "
-                 f"{', '.join(PRESETS)}")  # fmt: skip
+        valid = (
+            f"valid: {', '.join(DRAFTER_CHOICES)}, optionally followed by :<option>=<value>,... and/or :compile "
+            f"(e.g. prior+tree:r=4, greedy:compile, prior+jacobi:r=4/4/4/0,m=1:compile), or a preset: "
+            f"{', '.join(PRESETS)}"
+        )
         drafters, _, options = text.strip().partition(":")
         if drafters == ORACLE and not oracle:
-            raise ValueError(f"decoding method {text!r}: {ORACLE} (greedy's own tokens drafted, the bound) is measured "
-                             f"by `compare` only, beside greedy; {valid}")  # fmt: skip
+            raise ValueError(
+                f"decoding method {text!r}: {ORACLE} (greedy's own tokens drafted, the bound) is measured "
+                f"by `compare` only, beside greedy; {valid}"
+            )
         if drafters not in (*DRAFTER_CHOICES, *((ORACLE,) if oracle else ())):
             raise ValueError(f"unknown decoding method {text!r}: {drafters!r} is not a drafter; {valid}")
         values: dict = {}
@@ -207,9 +231,18 @@ class DecodingMethod:
             values[key] = _parse_option(text, key, value.strip())
         if options and not values and not compiled:
             raise ValueError(f"decoding method {text!r}: empty options after ':'; {valid}")
-        method = cls(drafters, values.get("r", 0), values.get("k"), compiled, values.get("rl"), values.get("m"),
-                     values.get("gate"), values.get("rho"), values.get("dev"),
-                     bool(values.get("confirm", 0)))  # fmt: skip
+        method = cls(
+            drafters,
+            values.get("r", 0),
+            values.get("k"),
+            compiled,
+            values.get("rl"),
+            values.get("m"),
+            values.get("gate"),
+            values.get("rho"),
+            values.get("dev"),
+            bool(values.get("confirm", 0)),
+        )
         restricting = [key for key in ("m", "gate", "dev", "confirm") if key in values]
         relaxing = method.widest_tolerance or method.scales_with_motion or "rl" in values or "rho" in values
         if method.drafters in (*DRAFTLESS, ORACLE) and (relaxing or restricting or method.num_draft_tokens):
@@ -220,8 +253,10 @@ class DecodingMethod:
         if method.num_draft_tokens is not None and "head" not in method.drafters.split("+"):
             raise ValueError(f"decoding method {text!r}: k (a chain length) needs the head chain (head, prior+head)")
         if not method.widest_tolerance and not method.scales_with_motion and restricting:
-            raise ValueError(f"decoding method {text!r}: {', '.join(restricting)} only restrict relaxed acceptance; "
-                             f"give r (or rl) > 0 or rho > 0 too")  # fmt: skip
+            raise ValueError(
+                f"decoding method {text!r}: {', '.join(restricting)} only restrict relaxed acceptance; "
+                f"give r (or rl) > 0 or rho > 0 too"
+            )
         if action_dim is not None:
             method.check_action_dim(action_dim)
         return method
@@ -230,8 +265,12 @@ class DecodingMethod:
         """Refuses a per-dimension r (or rl) whose length is not ``action_dim`` (ValueError naming the method), and an
         ``action_dim`` that is not a positive int."""
         _check_action_dim(action_dim)
-        for key, tolerance in (("r", self.bin_tolerance), ("rl", self.later_tolerance), ("rho", self.motion_scale),
-                               ("dev", self.max_deviation)):  # fmt: skip
+        for key, tolerance in (
+            ("r", self.bin_tolerance),
+            ("rl", self.later_tolerance),
+            ("rho", self.motion_scale),
+            ("dev", self.max_deviation),
+        ):
             if tolerance is not None:
                 given = f"decoding method {self.name!r}: {key}={_format_tolerance(tolerance)}"
                 check_tolerance_dims(tolerance, action_dim, given)
@@ -395,27 +434,34 @@ class DecodingPlan:
         from ..speculative import Drafter, DraftHead, SpeculationConfig
 
         if self.assistant_model is not None and not isinstance(self.assistant_model, (Drafter, DraftHead)):
-            raise TypeError(f"DecodingPlan.assistant_model must be a hf_specvla Drafter or DraftHead, or None, got "
-                            f"{type(self.assistant_model).__name__}")  # fmt: skip
+            raise TypeError(
+                f"DecodingPlan.assistant_model must be a hf_specvla Drafter or DraftHead, or None, got "
+                f"{type(self.assistant_model).__name__}"
+            )
         if not isinstance(self.action_prior, bool):
             raise TypeError(f"DecodingPlan.action_prior must be True or False, got {self.action_prior!r}")
         for name, valid in (("acceptance", _ACCEPTANCE_SETTINGS), ("compile", COMPILE_SETTINGS)):
             _check_plan_options(name, getattr(self, name), valid)
             object.__setattr__(self, name, PlanOptions(getattr(self, name)))
-        speculation = SpeculationConfig(drafter=self.assistant_model, num_draft_tokens=self.num_draft_tokens,
-                                        **self.acceptance)  # fmt: skip  # (the values' own checks)
+        speculation = SpeculationConfig(
+            drafter=self.assistant_model, num_draft_tokens=self.num_draft_tokens, **self.acceptance
+        )  # (the values' own checks)
         object.__setattr__(self, "_speculation", speculation)
         cache = self.compile.get("cache_implementation")
         if cache is not None and not isinstance(cache, str):
-            raise TypeError(f"DecodingPlan.compile's cache_implementation must be a transformers cache name "
-                            f"('static'), got {type(cache).__name__}")  # fmt: skip
+            raise TypeError(
+                f"DecodingPlan.compile's cache_implementation must be a transformers cache name "
+                f"('static'), got {type(cache).__name__}"
+            )
         compile_config = self.compile.get("compile_config")
         if compile_config is not None:
             from transformers import CompileConfig
 
             if not isinstance(compile_config, CompileConfig):
-                raise TypeError(f"DecodingPlan.compile's compile_config must be a transformers CompileConfig, got "
-                                f"{type(compile_config).__name__}")  # fmt: skip
+                raise TypeError(
+                    f"DecodingPlan.compile's compile_config must be a transformers CompileConfig, got "
+                    f"{type(compile_config).__name__}"
+                )
 
     @property
     def speculation(self):
@@ -445,16 +491,26 @@ class DecodingPlan:
 COMPILE_SETTINGS = ("cache_implementation", "compile_config")
 #: the acceptance rule's settings (``speculative.RULE_ARGUMENTS``, restated here: no torch at import; a test keeps
 #: the two equal)
-_ACCEPTANCE_SETTINGS = ("bin_tolerance", "confidence_gate", "max_relaxed_per_action", "motion_scale", "max_deviation",
-                        "confirm_strict_tail")  # fmt: skip
+_ACCEPTANCE_SETTINGS = (
+    "bin_tolerance",
+    "confidence_gate",
+    "max_relaxed_per_action",
+    "motion_scale",
+    "max_deviation",
+    "confirm_strict_tail",
+)
 #: why a setting that is no plan field's own is not: what a user who put it there meant
 _NOT_A_PLAN_SETTING = {
-    **dict.fromkeys(("max_new_tokens", "min_new_tokens", "max_length", "min_length"),
-                    "the action's length is the policy's own (its config's action tokens)"),
-    **dict.fromkeys(("do_sample", "temperature", "top_k", "top_p", "min_p", "num_beams"),
-                    "how tokens are chosen is generate's: pass predict_action(generation_config=GenerationConfig("
-                    "do_sample=True, ...)); a plan's acceptance only says which drafts count"),
-}  # fmt: skip
+    **dict.fromkeys(
+        ("max_new_tokens", "min_new_tokens", "max_length", "min_length"),
+        "the action's length is the policy's own (its config's action tokens)",
+    ),
+    **dict.fromkeys(
+        ("do_sample", "temperature", "top_k", "top_p", "min_p", "num_beams"),
+        "how tokens are chosen is generate's: pass predict_action(generation_config=GenerationConfig("
+        "do_sample=True, ...)); a plan's acceptance only says which drafts count",
+    ),
+}
 
 
 class PlanOptions(Mapping):
@@ -462,8 +518,9 @@ class PlanOptions(Mapping):
     hashable, equal for equal settings; lists held as given (a folder's record reads them)."""
 
     def __init__(self, options: Mapping):
-        self._options = {name: copy.deepcopy(value) if isinstance(value, (list, dict)) else value
-                         for name, value in options.items()}  # fmt: skip
+        self._options = {
+            name: copy.deepcopy(value) if isinstance(value, (list, dict)) else value for name, value in options.items()
+        }
 
     def __getitem__(self, name: str):
         return self._options[name]
@@ -491,15 +548,19 @@ def _check_plan_options(field_name: str, options, valid: tuple[str, ...]) -> Non
         ValueError: a setting that is not among ``valid``, naming it, the field and what is valid.
     """
     if not isinstance(options, Mapping):
-        raise TypeError(f"DecodingPlan.{field_name} must be a mapping of its settings ({', '.join(valid)}), got "
-                        f"{type(options).__name__} {options!r}")  # fmt: skip
+        raise TypeError(
+            f"DecodingPlan.{field_name} must be a mapping of its settings ({', '.join(valid)}), got "
+            f"{type(options).__name__} {options!r}"
+        )
     for name in options:
         if name in valid:
             continue
         other = "acceptance" if name in _ACCEPTANCE_SETTINGS else "compile" if name in COMPILE_SETTINGS else None
         why = f"it belongs in DecodingPlan.{other}" if other else _NOT_A_PLAN_SETTING.get(name, "")
-        raise ValueError(f"DecodingPlan.{field_name} holds {name!r}, which is not one of its settings (valid: "
-                         f"{', '.join(valid)}){'; ' + why if why else ''}")  # fmt: skip
+        raise ValueError(
+            f"DecodingPlan.{field_name} holds {name!r}, which is not one of its settings (valid: "
+            f"{', '.join(valid)}){'; ' + why if why else ''}"
+        )
 
 
 def check_decoding_plan(decoding, given_to: str) -> None:
@@ -519,8 +580,10 @@ def _parse_option(text: str, key: str, value: str):
     if key in ("rho", "dev"):
         parts = value.split("/")
         if not all(_NUMBER.fullmatch(p.strip()) for p in parts):
-            raise ValueError(f"decoding method {text!r}: bad option '{key}={value}'; {key} is {METHOD_KEYS[key]} "
-                             f"(numbers >= 0 in digits 0-9, e.g. {key}=0.1 or {key}=0.1/0.1/0.1/0)")  # fmt: skip
+            raise ValueError(
+                f"decoding method {text!r}: bad option '{key}={value}'; {key} is {METHOD_KEYS[key]} "
+                f"(numbers >= 0 in digits 0-9, e.g. {key}=0.1 or {key}=0.1/0.1/0.1/0)"
+            )
         numbers = [float(p) for p in parts]
         return numbers[0] if len(numbers) == 1 else tuple(numbers)
     if key == "confirm":
@@ -530,8 +593,10 @@ def _parse_option(text: str, key: str, value: str):
     if key == "gate":
         gate = float(value) if _PROBABILITY.fullmatch(value) else -1.0
         if not 0 < gate <= 1:
-            raise ValueError(f"decoding method {text!r}: gate must be a probability in (0, 1] written in digits 0-9 "
-                             f"({METHOD_KEYS[key]}), got gate={value}")  # fmt: skip
+            raise ValueError(
+                f"decoding method {text!r}: gate must be a probability in (0, 1] written in digits 0-9 "
+                f"({METHOD_KEYS[key]}), got gate={value}"
+            )
         return gate
     return _parse_integer(text, key, value)
 
@@ -604,19 +669,26 @@ class Preset:
         if layout is None:
             known = "; ".join(f"{size}: {' '.join(dims)}" for size, dims in ACTION_LAYOUTS.items())
             guess = tuple(self.position_tolerance if i < 3 else 0 for i in range(action_dim))  # x y z first, a guess
-            spelled = DecodingMethod(self.drafters, guess, compiled=self.compiled, confidence_gate=self.confidence_gate,
-                                     confirm_tail=self.confirm_strict_tail)  # fmt: skip
+            spelled = DecodingMethod(
+                self.drafters,
+                guess,
+                compiled=self.compiled,
+                confidence_gate=self.confidence_gate,
+                confirm_tail=self.confirm_strict_tail,
+            )
             raise ValueError(
                 f"preset {self.name!r} relaxes by kind of action dimension, but the policy's {action_dim}-dimensional "
                 f"actions have no known layout (known: {known}); spell the method out with one r per dimension, "
                 f"e.g. {spelled.name}"
             )
         row = tuple(
-            self.position_tolerance if dim in POSITION_DIMENSIONS
-            else self.gripper_tolerance if dim in GRIPPER_DIMENSIONS
+            self.position_tolerance
+            if dim in POSITION_DIMENSIONS
+            else self.gripper_tolerance
+            if dim in GRIPPER_DIMENSIONS
             else self.rotation_tolerance
             for dim in layout
-        )  # fmt: skip
+        )
         return row[0] if len(set(row)) == 1 else row
 
     def resolve(self, draft_head_given: bool = False, action_dim: int | None = None) -> DecodingMethod:
@@ -662,7 +734,7 @@ PRESETS = {
         Preset("exact", "prior+jacobi", "prior+jacobi"),
         Preset(
             "fast", "prior+jacobi", "prior+jacobi", position_tolerance=4, confidence_gate=0.5, confirm_strict_tail=True
-        ),  # fmt: skip
+        ),
     )
 }
 
@@ -674,8 +746,9 @@ def resolve_preset(name: str, draft_head_given: bool, action_dim: int | None = N
     return None if preset is None else preset.resolve(draft_head_given, action_dim).name
 
 
-def serving_methods(text: str | tuple[str, ...] | list[str], draft_head_given: bool = False,
-                    action_dim: int | None = None) -> tuple[DecodingMethod, ...]:  # fmt: skip
+def serving_methods(
+    text: str | tuple[str, ...] | list[str], draft_head_given: bool = False, action_dim: int | None = None
+) -> tuple[DecodingMethod, ...]:
     """The speculative methods a policy server measures and picks from per batch size (``ServeConfig.method``): one
     method or preset, or several; a preset given a draft head stands for its methods with and without the head
     ([`Preset.candidates`]: ``exact`` -> ``prior+jacobi:compile`` and ``prior+jacobi+tree:compile``). ``greedy`` /
@@ -691,15 +764,22 @@ def serving_methods(text: str | tuple[str, ...] | list[str], draft_head_given: b
     methods: list[DecodingMethod] = []
     for one in texts:
         preset = PRESETS.get(one.strip())
-        found = (preset.candidates(draft_head_given, action_dim) if preset is not None
-                 else (DecodingMethod.parse(one, draft_head_given, action_dim),))  # fmt: skip
+        found = (
+            preset.candidates(draft_head_given, action_dim)
+            if preset is not None
+            else (DecodingMethod.parse(one, draft_head_given, action_dim),)
+        )
         methods += [m for m in found if m not in methods]
     if len(methods) > 1 and any(m.drafters == "greedy" for m in methods):
-        raise ValueError(f"methods {[m.name for m in methods]}: greedy is the baseline every method is measured "
-                         f"against; list speculative methods only (or greedy alone: a greedy-only server)")  # fmt: skip
+        raise ValueError(
+            f"methods {[m.name for m in methods]}: greedy is the baseline every method is measured "
+            f"against; list speculative methods only (or greedy alone: a greedy-only server)"
+        )
     if len({m.compiled for m in methods}) > 1:
-        raise ValueError(f"methods {[m.name for m in methods]} mix compiled and eager decoding: the greedy baseline "
-                         f"they are measured against is one or the other; add or drop :{COMPILE} on all")  # fmt: skip
+        raise ValueError(
+            f"methods {[m.name for m in methods]} mix compiled and eager decoding: the greedy baseline "
+            f"they are measured against is one or the other; add or drop :{COMPILE} on all"
+        )
     return tuple(methods)
 
 

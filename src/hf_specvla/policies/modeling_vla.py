@@ -112,22 +112,34 @@ class VLAPolicy:
         config.scene_stats = scene_normalizer.to_dict() if config.scene_state_dim else {}
         tokenizer = build_vla_tokenizer([*instructions, "state:"])
         vision = CLIPVisionConfig(
-            hidden_size=config.vision_hidden_size, intermediate_size=2 * config.vision_hidden_size,
-            num_hidden_layers=config.vision_layers, num_attention_heads=4, image_size=config.image_size,
-            patch_size=config.patch_size, projection_dim=config.vision_hidden_size,
-        )  # fmt: skip
+            hidden_size=config.vision_hidden_size,
+            intermediate_size=2 * config.vision_hidden_size,
+            num_hidden_layers=config.vision_layers,
+            num_attention_heads=4,
+            image_size=config.image_size,
+            patch_size=config.patch_size,
+            projection_dim=config.vision_hidden_size,
+        )
         text = LlamaConfig(
-            vocab_size=len(tokenizer), hidden_size=config.text_hidden_size,
-            intermediate_size=2 * config.text_hidden_size, num_hidden_layers=config.text_layers,
-            num_attention_heads=config.text_heads, num_key_value_heads=max(1, config.text_heads // 2),
-            max_position_embeddings=256, bos_token_id=tokenizer.bos_token_id, eos_token_id=tokenizer.eos_token_id,
+            vocab_size=len(tokenizer),
+            hidden_size=config.text_hidden_size,
+            intermediate_size=2 * config.text_hidden_size,
+            num_hidden_layers=config.text_layers,
+            num_attention_heads=config.text_heads,
+            num_key_value_heads=max(1, config.text_heads // 2),
+            max_position_embeddings=256,
+            bos_token_id=tokenizer.bos_token_id,
+            eos_token_id=tokenizer.eos_token_id,
             pad_token_id=tokenizer.pad_token_id,
-        )  # fmt: skip
+        )
         llava = LlavaConfig(
-            vision_config=vision, text_config=text, image_token_id=tokenizer.convert_tokens_to_ids("<image>"),
-            image_seq_length=config.num_image_tokens, vision_feature_select_strategy="default",
+            vision_config=vision,
+            text_config=text,
+            image_token_id=tokenizer.convert_tokens_to_ids("<image>"),
+            image_seq_length=config.num_image_tokens,
+            vision_feature_select_strategy="default",
             vision_feature_layer=-1,
-        )  # fmt: skip
+        )
         torch.manual_seed(seed)
         model = LlavaForConditionalGeneration(llava)
         model.generation_config.pad_token_id = tokenizer.pad_token_id
@@ -251,11 +263,16 @@ class VLAPolicy:
         if any(len(p) < width for p in prompts):
             mask = [[0] * (width - len(p)) + [1] * len(p) for p in prompts]
             inputs["attention_mask"] = torch.tensor(mask, device=self.model.device)
-        length = [f"{name}={generate_kwargs[name]!r}" for name in ("max_new_tokens", "min_new_tokens", "max_length")
-                  if name in generate_kwargs]  # fmt: skip
+        length = [
+            f"{name}={generate_kwargs[name]!r}"
+            for name in ("max_new_tokens", "min_new_tokens", "max_length")
+            if name in generate_kwargs
+        ]
         if length:
-            raise ValueError(f"predict_action decodes the policy's {self.config.action_tokens} action tokens: drop "
-                             f"{', '.join(length)}")  # fmt: skip
+            raise ValueError(
+                f"predict_action decodes the policy's {self.config.action_tokens} action tokens: drop "
+                f"{', '.join(length)}"
+            )
         generate_kwargs = dict(generate_kwargs)
         generation_config = generate_kwargs.pop("generation_config", None)
         kwargs = self._generation_settings(
@@ -279,8 +296,9 @@ class VLAPolicy:
                 session = DecoderSession.of(self.model, speculation=speculation, **kwargs)
                 output = session.generate(**inputs, assistant_model=drafter, **call)
             else:
-                output = self.model.generate(**inputs, assistant_model=drafter, speculation=speculation, **call,
-                                             **kwargs)  # fmt: skip
+                output = self.model.generate(
+                    **inputs, assistant_model=drafter, speculation=speculation, **call, **kwargs
+                )
         else:
             if plan.action_prior:  # the episodes' first step: nothing to draft from, plain greedy decoding
                 for name in (*SPECULATION_KWARGS, "on_row_finished"):  # rows then finish together, after the call
@@ -302,8 +320,9 @@ class VLAPolicy:
         actions = self.actions_from_token_ids(action_ids)  # [B, H, A]
         return (actions[:, 0] if chunk == 1 else actions), action_ids
 
-    def _generation_settings(self, generation_config: GenerationConfig | None, pad_id: int, return_output: bool,
-                             generate_kwargs: dict) -> dict:  # fmt: skip
+    def _generation_settings(
+        self, generation_config: GenerationConfig | None, pad_id: int, return_output: bool, generate_kwargs: dict
+    ) -> dict:
         """``generate``'s keyword arguments: the action's tokens, greedy decoding (whatever the model's saved
         generation config says) and the caller's ``generate_kwargs``; or, when the caller's ``generation_config``
         says how to decode (its ``do_sample=True`` samples), a copy of it holding the action's tokens and every

@@ -94,8 +94,10 @@ class VLAProcessor:
         ids = self.tokenizer(text.lower(), add_special_tokens=False, split_special_tokens=True)["input_ids"]
         found = [self.tokenizer.convert_ids_to_tokens(i) for i in ids if i in self._special_ids]
         if found:
-            raise ValueError(f"{text[:80]!r} tokenizes to special tokens {found[:5]} with this tokenizer "
-                             f"({type(self.tokenizer).__name__}): remove them from the instruction")  # fmt: skip
+            raise ValueError(
+                f"{text[:80]!r} tokenizes to special tokens {found[:5]} with this tokenizer "
+                f"({type(self.tokenizer).__name__}): remove them from the instruction"
+            )
         return ids
 
     def prompt_ids(self, instruction: str, state=None) -> list[int]:

@@ -65,12 +65,17 @@ class Backend(Protocol):
 class PolicyRoutes:
     """The routes over a backend (``api_key``: None for an open server)."""
 
-    def __init__(self, backend: Backend, api_key: str | None = None,
-                 max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES):  # fmt: skip
+    def __init__(
+        self, backend: Backend, api_key: str | None = None, max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES
+    ):
         self.backend, self.api_key, self.max_request_bytes = backend, api_key, max_request_bytes
         self.client_hangups = 0  # robots that hung up before their reply (mid-body, or while their request waited)
-        self.routes = {("POST", "/act"): self.act, ("GET", "/info"): self.info, ("GET", "/stats"): self.stats,
-                       ("GET", "/health"): self.health}  # fmt: skip
+        self.routes = {
+            ("POST", "/act"): self.act,
+            ("GET", "/info"): self.info,
+            ("GET", "/stats"): self.stats,
+            ("GET", "/health"): self.health,
+        }
 
     async def dispatch(self, request: Request) -> Response:
         """Any request -> its response (Ray Serve replicas call this from ``__call__``)."""
@@ -90,8 +95,9 @@ class PolicyRoutes:
             logger.info("a robot hung up before its request's body arrived (%s %s)", method, path)
             return Response(status_code=CLIENT_CLOSED_REQUEST)
         except Overloaded as error:
-            return JSONResponse({"error": str(error), "field": None}, 503,
-                                headers={"Retry-After": str(error.retry_after_s)})  # fmt: skip
+            return JSONResponse(
+                {"error": str(error), "field": None}, 503, headers={"Retry-After": str(error.retry_after_s)}
+            )
         except Exception as error:  # noqa: BLE001 (the robot gets a 500; the server goes on)
             logger.exception("%s %s failed", method, path)
             return JSONResponse({"error": f"internal error: {type(error).__name__}: {error}", "field": None}, 500)
@@ -156,8 +162,9 @@ class PolicyRoutes:
     async def _body(self, request: Request) -> bytes:
         declared = request.headers.get("content-length")
         if declared is not None and (not declared.isdigit() or int(declared) > self.max_request_bytes):
-            raise RequestError(f"the body ({declared} bytes) exceeds this server's limit of "
-                               f"{self.max_request_bytes} bytes", None, 413)  # fmt: skip
+            raise RequestError(
+                f"the body ({declared} bytes) exceeds this server's limit of {self.max_request_bytes} bytes", None, 413
+            )
         chunks, size = [], 0
         async for chunk in request.stream():
             size += len(chunk)
@@ -180,8 +187,9 @@ class PolicyRoutes:
     def _check_key(self, key) -> None:
         if not isinstance(key, str) or not hmac.compare_digest(key.encode(), self.api_key.encode()):
             shown = "no API key" if key is None else "a wrong API key"
-            raise RequestError(f"{shown}: send 'Authorization: Bearer <key>' (or X-API-Key, or the body's api_key)",
-                               "api_key", 401)  # fmt: skip
+            raise RequestError(
+                f"{shown}: send 'Authorization: Bearer <key>' (or X-API-Key, or the body's api_key)", "api_key", 401
+            )
 
 
 def _error(error: RequestError) -> Response:

@@ -117,8 +117,9 @@ class Batcher:
                 except queue.Empty:
                     break
             for pending in stranded:  # their robots get a 500 saying why, rather than waiting forever
-                if not pending.future.done() and (pending.future.running()
-                                                  or pending.future.set_running_or_notify_cancel()):  # fmt: skip
+                if not pending.future.done() and (
+                    pending.future.running() or pending.future.set_running_or_notify_cancel()
+                ):
                     pending.future.set_exception(RuntimeError(self.unhealthy()))
 
     def _serve(self) -> None:

@@ -44,9 +44,14 @@ class ModeChooser:
         baseline: the greedy baseline's name (mode 0).
     """
 
-    def __init__(self, buckets: tuple[int, ...], methods: tuple[str, ...] = ("speculative",),
-                 speculate_buckets: tuple[int, ...] | None = None, explore_every: int = 16,
-                 baseline: str = "greedy"):  # fmt: skip
+    def __init__(
+        self,
+        buckets: tuple[int, ...],
+        methods: tuple[str, ...] = ("speculative",),
+        speculate_buckets: tuple[int, ...] | None = None,
+        explore_every: int = 16,
+        baseline: str = "greedy",
+    ):
         self.buckets, self.explore_every = tuple(buckets), explore_every
         self.names = (baseline, *methods)  # mode -> name
         self.speculates = bool(methods)
@@ -119,10 +124,15 @@ class ModeChooser:
             self._decide(bucket, "calibration")
         medians = {mode: statistics.median(times) for mode, times in times_ms.items() if times}
         greedy, spec = medians.get(GREEDY_MODE), self._fastest_speculative(medians)
-        row = {"bucket": bucket, "greedy_ms": _round(greedy), "speculative_ms": _round(spec),
-               "speed_up": round(greedy / spec, 3) if greedy and spec else None,
-               "speculate": self.speculate(bucket), "method": self.names[self._choice[bucket]],
-               "methods_ms": {self.names[mode]: round(ms, 2) for mode, ms in medians.items()}}  # fmt: skip
+        row = {
+            "bucket": bucket,
+            "greedy_ms": _round(greedy),
+            "speculative_ms": _round(spec),
+            "speed_up": round(greedy / spec, 3) if greedy and spec else None,
+            "speculate": self.speculate(bucket),
+            "method": self.names[self._choice[bucket]],
+            "methods_ms": {self.names[mode]: round(ms, 2) for mode, ms in medians.items()},
+        }
         self.calibration.append(row)
         return row
 
@@ -135,19 +145,35 @@ class ModeChooser:
         fastest = min(measured, key=lambda m: (medians[m], m != current))  # a tie keeps the current choice
         if fastest != current or why == "calibration":
             if fastest != current:
-                logger.info("bucket %d now decodes with %s (medians: %s; %s)", bucket, self.names[fastest],
-                            _format_medians(medians, self.names), why)  # fmt: skip
+                logger.info(
+                    "bucket %d now decodes with %s (medians: %s; %s)",
+                    bucket,
+                    self.names[fastest],
+                    _format_medians(medians, self.names),
+                    why,
+                )
             named = {self.names[m]: round(ms, 2) for m, ms in medians.items()}
-            self.decisions.append({"bucket": bucket, "speculate": fastest != GREEDY_MODE,
-                                   "method": self.names[fastest], "why": why, "batch": self.calls[bucket],
-                                   "speculative_ms": _round(self._fastest_speculative(medians)),
-                                   "greedy_ms": _round(medians.get(GREEDY_MODE)), "medians_ms": named})  # fmt: skip
+            self.decisions.append(
+                {
+                    "bucket": bucket,
+                    "speculate": fastest != GREEDY_MODE,
+                    "method": self.names[fastest],
+                    "why": why,
+                    "batch": self.calls[bucket],
+                    "speculative_ms": _round(self._fastest_speculative(medians)),
+                    "greedy_ms": _round(medians.get(GREEDY_MODE)),
+                    "medians_ms": named,
+                }
+            )
         self._choice[bucket] = fastest
 
     def _medians(self, bucket: int) -> dict[int, float]:
         """Each mode's median of its recent calls in ``bucket`` (the modes with none left out)."""
-        return {mode: statistics.median(self.timings[(bucket, mode)])
-                for mode in range(len(self.names)) if self.timings[(bucket, mode)]}  # fmt: skip
+        return {
+            mode: statistics.median(self.timings[(bucket, mode)])
+            for mode in range(len(self.names))
+            if self.timings[(bucket, mode)]
+        }
 
     @staticmethod
     def _fastest_speculative(medians: Mapping[int, float]) -> float | None:
@@ -162,8 +188,11 @@ class ModeChooser:
         buckets, counts = {}, {True: 0, False: 0}
         for bucket in self.buckets:
             chosen, medians = self._choice[bucket], self._medians(bucket)
-            row = {"speculate": chosen != GREEDY_MODE, "mode": "speculative" if chosen else "greedy",
-                   "method": self.names[chosen]}  # fmt: skip
+            row = {
+                "speculate": chosen != GREEDY_MODE,
+                "mode": "speculative" if chosen else "greedy",
+                "method": self.names[chosen],
+            }
             methods = {}
             for mode, name in enumerate(self.names):
                 batches, rows = self.served[(bucket, mode)]
@@ -178,8 +207,11 @@ class ModeChooser:
             counts[True] += row["speculative_batches"]
             counts[False] += row["greedy_batches"]
             buckets[str(bucket)] = row
-        return {"buckets": buckets, "speculative_share": _share(counts[True], counts[False]),
-                "decisions": list(self.decisions)}  # fmt: skip
+        return {
+            "buckets": buckets,
+            "speculative_share": _share(counts[True], counts[False]),
+            "decisions": list(self.decisions),
+        }
 
 
 def _round(ms: float | None) -> float | None:
@@ -201,8 +233,10 @@ def format_calibration(table: list[dict]) -> str:
     if not table:
         return ""
     names = list(table[0]["methods_ms"])
-    lines = ["| bucket | " + " | ".join(f"{name} ms/call" for name in names) + " | speed-up | decodes with |",
-             "|---:|" + "---:|" * len(names) + "---:|---|"]  # fmt: skip
+    lines = [
+        "| bucket | " + " | ".join(f"{name} ms/call" for name in names) + " | speed-up | decodes with |",
+        "|---:|" + "---:|" * len(names) + "---:|---|",
+    ]
     for row in table:
         times = " | ".join("-" if row["methods_ms"].get(n) is None else f"{row['methods_ms'][n]:.1f}" for n in names)
         speed_up = "-" if row["speed_up"] is None else f"{row['speed_up']:.2f}x"

@@ -51,8 +51,9 @@ class PolicyClient:
         backoff_s: the first wait between attempts (doubled each time; a 503's ``Retry-After`` wins).
     """
 
-    def __init__(self, url: str, api_key: str | None = None, timeout_s: float = 60.0, retries: int = 8,
-                 backoff_s: float = 0.25):  # fmt: skip
+    def __init__(
+        self, url: str, api_key: str | None = None, timeout_s: float = 60.0, retries: int = 8, backoff_s: float = 0.25
+    ):
         if not url.startswith(("http://", "https://")):
             raise ValueError(f"url must start with http:// or https://, got {url!r}")
         self.url = url.rstrip("/")
@@ -65,8 +66,9 @@ class PolicyClient:
         the batch buckets."""
         return json.loads(self._request("GET", "/info"))
 
-    def act(self, image: np.ndarray, instruction: str, state=None, session: str | None = None,
-            reset: bool = False) -> ActReply:  # fmt: skip
+    def act(
+        self, image: np.ndarray, instruction: str, state=None, session: str | None = None, reset: bool = False
+    ) -> ActReply:
         """One action: ``POST /act``. ``session`` names the robot (its drafts); ``reset`` starts its new episode."""
         payload: dict[str, Any] = {"image": np.asarray(image), "instruction": instruction}
         if state is not None:

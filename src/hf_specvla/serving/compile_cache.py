@@ -176,8 +176,9 @@ class CompileCache:
                 described.append(f"{record_file.parent.name}: the same settings under another name")
                 continue
             first = differing[0]
-            described.append(f"{record_file.parent.name}: {first} {theirs.get(first)!r} there, "
-                             f"{self.record.get(first)!r} here")  # fmt: skip
+            described.append(
+                f"{record_file.parent.name}: {first} {theirs.get(first)!r} there, {self.record.get(first)!r} here"
+            )
         return described
 
     @contextmanager
@@ -198,12 +199,23 @@ class CompileCache:
             except FileNotFoundError:  # another start (a replica) set it aside meanwhile
                 aside = "another start's name"
             except OSError as error:  # e.g. a folder the server may read but not rename: compile without it
-                logger.warning("compile cache %s: %s is damaged, %s, and cannot be set aside (%s): this start "
-                               "compiles without the compile cache", self.root, self.folder, damage, error)  # fmt: skip
+                logger.warning(
+                    "compile cache %s: %s is damaged, %s, and cannot be set aside (%s): this start "
+                    "compiles without the compile cache",
+                    self.root,
+                    self.folder,
+                    damage,
+                    error,
+                )
                 yield False
                 return
-            logger.warning("compile cache %s: %s is damaged, %s: set aside as %s; this start compiles cold",
-                           self.root, self.folder, damage, aside)  # fmt: skip
+            logger.warning(
+                "compile cache %s: %s is damaged, %s: set aside as %s; this start compiles cold",
+                self.root,
+                self.folder,
+                damage,
+                aside,
+            )
         warm = damage is None and (self.folder / RECORD_FILE).exists()
         inductor = self.folder / INDUCTOR_FOLDER
         reused = warm or bool(_cache_files(self.folder))  # a warm folder, or what an unfinished warm-up left
@@ -224,8 +236,13 @@ class CompileCache:
                 healed = f"set aside as {self._set_folder_aside()}: the next start compiles cold"
             except OSError as rename_error:  # e.g. gone already: another start set it aside
                 healed = f"not set aside ({rename_error}): a start compiles cold once it is gone"
-            logger.warning("compile cache %s: a start from the compiled files in %s failed (%s); the folder is %s",
-                           self.root, self.folder, type(error).__name__, healed)  # fmt: skip
+            logger.warning(
+                "compile cache %s: a start from the compiled files in %s failed (%s); the folder is %s",
+                self.root,
+                self.folder,
+                type(error).__name__,
+                healed,
+            )
             raise RuntimeError(
                 f"compile cache {self.root}: a start from the compiled files in {self.folder} failed "
                 f"({type(error).__name__}, above); the folder is {healed}"
@@ -240,6 +257,10 @@ def environment_record() -> dict:
 
     from ..run_folder import code_version
 
-    return {"torch": torch.__version__, "transformers": transformers.__version__,
-            "python": ".".join(map(str, sys.version_info[:3])), "hf_specvla": code_version(),
-            "machine": platform.machine()}  # fmt: skip
+    return {
+        "torch": torch.__version__,
+        "transformers": transformers.__version__,
+        "python": ".".join(map(str, sys.version_info[:3])),
+        "hf_specvla": code_version(),
+        "machine": platform.machine(),
+    }

@@ -71,24 +71,33 @@ class ServeConfig:
             self.method = self.method[0] if len(self.method) == 1 else tuple(self.method)
         texts = (self.method,) if isinstance(self.method, str) else self.method
         if not texts or not all(isinstance(text, str) and text.strip() for text in texts):
-            raise ValueError(f"ServeConfig.method must be a decoding method or preset (e.g. exact, "
-                             f"prior+jacobi:compile), or a list of them, got {self.method!r}")  # fmt: skip
+            raise ValueError(
+                f"ServeConfig.method must be a decoding method or preset (e.g. exact, "
+                f"prior+jacobi:compile), or a list of them, got {self.method!r}"
+            )
         self.buckets = tuple(self.buckets)
-        if not self.buckets or any(isinstance(b, bool) or not isinstance(b, int) or not 1 <= b <= MAX_BUCKET
-                                   for b in self.buckets):  # fmt: skip
+        if not self.buckets or any(
+            isinstance(b, bool) or not isinstance(b, int) or not 1 <= b <= MAX_BUCKET for b in self.buckets
+        ):
             raise ValueError(f"buckets must be batch sizes 1..{MAX_BUCKET}, got {list(self.buckets)}")
         if list(self.buckets) != sorted(set(self.buckets)):
-            raise ValueError(f"buckets must be increasing without repeats, got {list(self.buckets)} "
-                             f"(e.g. 1,2,4,8,16)")  # fmt: skip
-        check_ranges(self, at_least_one=("max_queue", "max_sessions"),
-                     non_negative=("max_wait_ms", "calibration_calls", "explore_every"),
-                     integers=("max_queue", "max_sessions", "calibration_calls", "explore_every"))  # fmt: skip
+            raise ValueError(f"buckets must be increasing without repeats, got {list(self.buckets)} (e.g. 1,2,4,8,16)")
+        check_ranges(
+            self,
+            at_least_one=("max_queue", "max_sessions"),
+            non_negative=("max_wait_ms", "calibration_calls", "explore_every"),
+            integers=("max_queue", "max_sessions", "calibration_calls", "explore_every"),
+        )
         if not math.isfinite(self.max_wait_ms) or self.max_wait_ms > MAX_WAIT_MS:
-            raise ValueError(f"ServeConfig.max_wait_ms must be a finite number of milliseconds 0..{MAX_WAIT_MS:g}, "
-                             f"got {self.max_wait_ms!r}")  # fmt: skip
+            raise ValueError(
+                f"ServeConfig.max_wait_ms must be a finite number of milliseconds 0..{MAX_WAIT_MS:g}, "
+                f"got {self.max_wait_ms!r}"
+            )
         if self.calibration_calls > MAX_CALIBRATION_CALLS:
-            raise ValueError(f"ServeConfig.calibration_calls must be 0..{MAX_CALIBRATION_CALLS} (timed calls per "
-                             f"bucket and mode at start-up), got {self.calibration_calls}")  # fmt: skip
+            raise ValueError(
+                f"ServeConfig.calibration_calls must be 0..{MAX_CALIBRATION_CALLS} (timed calls per "
+                f"bucket and mode at start-up), got {self.calibration_calls}"
+            )
         if self.compile_cache is not None and (not isinstance(self.compile_cache, str) or not self.compile_cache):
             raise ValueError(f"ServeConfig.compile_cache must be a folder (a path), got {self.compile_cache!r}")
         if self.max_prompt_tokens is not None:
@@ -121,5 +130,7 @@ def check_exposure(host: str, api_key: str | None) -> None:
         ValueError: a non-loopback ``host`` and no ``api_key``.
     """
     if not is_loopback(host) and not api_key:
-        raise ValueError(f"host {host!r} is reachable from other machines: pass --api-key (or set "
-                         f"{API_KEY_VARIABLE}) so that every request must carry it, or serve on 127.0.0.1")  # fmt: skip
+        raise ValueError(
+            f"host {host!r} is reachable from other machines: pass --api-key (or set "
+            f"{API_KEY_VARIABLE}) so that every request must carry it, or serve on 127.0.0.1"
+        )

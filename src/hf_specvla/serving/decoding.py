@@ -130,8 +130,14 @@ class DecodeStep:
         """The longest prompt served, in tokens (None: no limit beyond the instruction's characters: eager)."""
         return self.prompt_tiers[-1][1] if self.prompt_tiers else None
 
-    def run(self, requests: list[ActRequest], histories: list[list[list[int]]], bucket: int, mode: int,
-            on_row: Callable[[int, DecodedRow], None] | None = None) -> DecodedBatch:  # fmt: skip
+    def run(
+        self,
+        requests: list[ActRequest],
+        histories: list[list[list[int]]],
+        bucket: int,
+        mode: int,
+        on_row: Callable[[int, DecodedRow], None] | None = None,
+    ) -> DecodedBatch:
         """Decodes ``requests`` (each with its robot's ``histories``, left as they were) in one call of ``bucket``
         rows in ``mode`` (0: the greedy baseline, else that speculative method). ``on_row(i, row)`` is called (in
         this thread) for each request's row the engine hands on before the call returns, all but the last of the
@@ -165,15 +171,18 @@ class DecodeStep:
 
             kwargs = {**kwargs, "on_row_finished": finished}
         started = time.perf_counter()
-        actions, output = self.policy.predict_action(images, instructions, states, return_output=True,
-                                                     previous_action_ids=memories, decoding=plan,
-                                                     **kwargs)  # fmt: skip
+        actions, output = self.policy.predict_action(
+            images, instructions, states, return_output=True, previous_action_ids=memories, decoding=plan, **kwargs
+        )
         done = time.perf_counter()
         forwards = self._target_forwards(output, bucket)
         stats = getattr(output, "speculation", None)
         batch_forwards = stats.num_batch_forwards if stats is not None else self.policy.config.action_tokens
-        rest = {row: DecodedRow(np.asarray(actions[row]), memories[row], forwards[row], done, batch_forwards)
-                for row in range(rows) if row not in early}  # fmt: skip
+        rest = {
+            row: DecodedRow(np.asarray(actions[row]), memories[row], forwards[row], done, batch_forwards)
+            for row in range(rows)
+            if row not in early
+        }
         return DecodedBatch(1000 * (done - started), batch_forwards, rest)
 
     def _target_forwards(self, output, bucket: int) -> list[int]:
@@ -220,8 +229,10 @@ class DecodeStep:
         rules = []
         if self.method.compiled and self.speculates:
             rules.append(self._verification_rule())
-            rules += [partial(lambda tree, length: head_cache_slots(length + tokens, tree), tree)
-                      for tree in self._head_trees(draft_head)]  # fmt: skip
+            rules += [
+                partial(lambda tree, length: head_cache_slots(length + tokens, tree), tree)
+                for tree in self._head_trees(draft_head)
+            ]
         if self.baseline.compiled and not rules:  # greedy only: its cache's own tiers (else it follows the method's)
             rules.append(lambda length: rounded_slots(length + tokens))
         return rules
@@ -265,8 +276,10 @@ class DecodeStep:
         """
         rules, shortest, longest = self._slot_rules(draft_head), self.shortest_prompt, self.config.max_prompt_tokens
         if longest is not None and longest < shortest:
-            raise ValueError(f"max_prompt_tokens {longest} is shorter than this policy's shortest prompt ({shortest} "
-                             f"tokens: image, state and the prompt's words without an instruction)")  # fmt: skip
+            raise ValueError(
+                f"max_prompt_tokens {longest} is shorter than this policy's shortest prompt ({shortest} "
+                f"tokens: image, state and the prompt's words without an instruction)"
+            )
         if not rules:
             return [] if longest is None else [(shortest, longest)]
 

@@ -99,10 +99,14 @@ def decode_array(payload: dict, name: str = "array") -> np.ndarray:
         dtype = None
     if dtype is None or dtype.kind not in ARRAY_KINDS or dtype.fields is not None or dtype.subdtype is not None:
         raise RequestError(f"{name}: dtype {str(descr)[:40]!r} is not read here; send bool, int or float arrays", name)
-    if (not isinstance(shape, list | tuple) or len(shape) > MAX_ARRAY_DIMS
-            or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)):  # fmt: skip
-        raise RequestError(f"{name}: shape must be a list of at most {MAX_ARRAY_DIMS} non-negative ints, got "
-                           f"{str(shape)[:80]}", name)  # fmt: skip
+    if (
+        not isinstance(shape, list | tuple)
+        or len(shape) > MAX_ARRAY_DIMS
+        or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)
+    ):
+        raise RequestError(
+            f"{name}: shape must be a list of at most {MAX_ARRAY_DIMS} non-negative ints, got {str(shape)[:80]}", name
+        )
     data = payload.get("__numpy__")
     try:
         raw = base64.b64decode(data, validate=True) if isinstance(data, str) else None
@@ -114,8 +118,9 @@ def decode_array(payload: dict, name: str = "array") -> np.ndarray:
         raise RequestError(f"{name}: shape {str(shape)[:80]} has a dimension larger than its {len(raw)} bytes", name)
     expected = math.prod(shape) * dtype.itemsize
     if len(raw) != expected:
-        raise RequestError(f"{name}: {len(raw)} bytes do not fill shape {list(shape)} of {dtype} ({expected} bytes)",
-                           name)  # fmt: skip
+        raise RequestError(
+            f"{name}: {len(raw)} bytes do not fill shape {list(shape)} of {dtype} ({expected} bytes)", name
+        )
     return np.frombuffer(raw, dtype).reshape(shape) if shape else np.frombuffer(raw, dtype)[0]
 
 
@@ -161,8 +166,9 @@ def _check_text(value: str, name: str) -> None:
     try:
         value.encode("utf-8")
     except UnicodeEncodeError as error:
-        raise RequestError(f"{name} is not valid Unicode text: {error.reason} at character {error.start}",
-                           name) from None  # fmt: skip
+        raise RequestError(
+            f"{name} is not valid Unicode text: {error.reason} at character {error.start}", name
+        ) from None
 
 
 # ----------------------------------------------------------------------------- requests
@@ -216,29 +222,41 @@ class ActRequest:
         """
         payload, double_encoded = unwrap(payload)
         if not isinstance(payload, dict):
-            raise RequestError(f"the body must be a JSON object with {', '.join(REQUEST_FIELDS)}, "
-                               f"got {type(payload).__name__}", None, 400)  # fmt: skip
+            raise RequestError(
+                f"the body must be a JSON object with {', '.join(REQUEST_FIELDS)}, got {type(payload).__name__}",
+                None,
+                400,
+            )
         image = _field_array(payload.get("image"), "image")
         expected = (image_size, image_size, 3)
         if not isinstance(image, np.ndarray):
             raise RequestError(f"image is required: a json_numpy uint8 array of shape {list(expected)}", "image")
         if image.dtype != np.uint8 or image.shape != expected:
-            raise RequestError(f"image must be uint8 of shape {list(expected)}, got {image.dtype} {list(image.shape)}",
-                               "image")  # fmt: skip
+            raise RequestError(
+                f"image must be uint8 of shape {list(expected)}, got {image.dtype} {list(image.shape)}", "image"
+            )
         instruction = payload.get("instruction")
         if not isinstance(instruction, str) or not instruction.strip():
             raise RequestError("instruction is required: the task in words (a non-empty string)", "instruction")
         if len(instruction) > MAX_INSTRUCTION_LENGTH:
-            raise RequestError(f"instruction has {len(instruction)} characters, at most {MAX_INSTRUCTION_LENGTH}",
-                               "instruction")  # fmt: skip
+            raise RequestError(
+                f"instruction has {len(instruction)} characters, at most {MAX_INSTRUCTION_LENGTH}", "instruction"
+            )
         _check_text(instruction, "instruction")
         unnorm_key = payload.get("unnorm_key")
         if unnorm_key is not None and not isinstance(unnorm_key, str):
             raise RequestError(f"unnorm_key must be a string, got {type(unnorm_key).__name__}", "unnorm_key")
         state = _state(_field_array(payload.get("state"), "state"), state_dim, needs_state)
         draft_state = _draft_state(_field_array(payload.get("draft_state"), "draft_state"))
-        return cls(image, instruction, state, _session(payload.get("session")),
-                   _flag(payload.get("reset", False), "reset"), draft_state, double_encoded)  # fmt: skip
+        return cls(
+            image,
+            instruction,
+            state,
+            _session(payload.get("session")),
+            _flag(payload.get("reset", False), "reset"),
+            draft_state,
+            double_encoded,
+        )
 
 
 def _state(value, state_dim: int, needs_state: bool) -> np.ndarray | None:
@@ -250,8 +268,9 @@ def _state(value, state_dim: int, needs_state: bool) -> np.ndarray | None:
         try:
             value = np.asarray(value, dtype=np.float64)
         except OverflowError:  # an int past float64's range
-            raise RequestError(f"state must hold finite numbers, got an integer of "
-                               f"{max(len(str(v)) for v in value)} digits", "state") from None  # fmt: skip
+            raise RequestError(
+                f"state must hold finite numbers, got an integer of {max(len(str(v)) for v in value)} digits", "state"
+            ) from None
     if not isinstance(value, np.ndarray) or value.dtype.kind not in "iuf" or value.shape != (state_dim,):
         shown = f"{value.dtype} {list(value.shape)}" if isinstance(value, np.ndarray) else type(value).__name__
         raise RequestError(f"state must be {state_dim} numbers (a list or a numeric array), got {shown}", "state")
@@ -266,8 +285,11 @@ def _session(value) -> str | None:
     if value is None:
         return None
     if not isinstance(value, str) or not 0 < len(value) <= MAX_SESSION_LENGTH:
-        raise RequestError(f"session must be a string of 1..{MAX_SESSION_LENGTH} characters (the robot's id), got "
-                           f"{type(value).__name__} {str(value)[:40]!r}", "session")  # fmt: skip
+        raise RequestError(
+            f"session must be a string of 1..{MAX_SESSION_LENGTH} characters (the robot's id), got "
+            f"{type(value).__name__} {str(value)[:40]!r}",
+            "session",
+        )
     _check_text(value, "session")
     return value
 
@@ -286,11 +308,16 @@ def _draft_state(value) -> list[list[int]] | None:
     if not isinstance(value, list) or not all(
         isinstance(row, list) and all(isinstance(v, int) and not isinstance(v, bool) for v in row) for row in value
     ):
-        raise RequestError("draft_state must be what the last reply's 'served.draft_state' held: a list of actions, "
-                           "each a list of token ids (ints)", "draft_state")  # fmt: skip
+        raise RequestError(
+            "draft_state must be what the last reply's 'served.draft_state' held: a list of actions, "
+            "each a list of token ids (ints)",
+            "draft_state",
+        )
     if not all(0 <= v <= MAX_TOKEN_ID for row in value for v in row):
-        raise RequestError(f"draft_state must hold token ids 0..{MAX_TOKEN_ID} (as the last reply sent), got "
-                           f"{str(value)[:80]}", "draft_state")  # fmt: skip
+        raise RequestError(
+            f"draft_state must hold token ids 0..{MAX_TOKEN_ID} (as the last reply sent), got {str(value)[:80]}",
+            "draft_state",
+        )
     return value
 
 

@@ -203,10 +203,20 @@ class PolicyAppArgs:
 
 
 #: how each argument is read (the rest are text)
-_ARG_KINDS = {"method": "texts", "buckets": "ints", "speculate_buckets": "ints", "max_wait_ms": "number",
-              "max_queue": "int", "calibration_calls": "int", "explore_every": "int", "max_sessions": "int",
-              "max_prompt_tokens": "int", "threads": "int", "num_replicas": "int",
-              "max_request_bytes": "int"}  # fmt: skip
+_ARG_KINDS = {
+    "method": "texts",
+    "buckets": "ints",
+    "speculate_buckets": "ints",
+    "max_wait_ms": "number",
+    "max_queue": "int",
+    "calibration_calls": "int",
+    "explore_every": "int",
+    "max_sessions": "int",
+    "max_prompt_tokens": "int",
+    "threads": "int",
+    "num_replicas": "int",
+    "max_request_bytes": "int",
+}
 
 
 def _read_arg(name: str, value: Any, kind: str) -> Any:
@@ -240,8 +250,10 @@ def _existing_folder(folder: str, name: str) -> str:
     """``folder`` as an absolute path (the replicas' working directory may not be this one)."""
     path = Path(folder).expanduser()
     if not path.is_dir():
-        raise ValueError(f"argument {name}: no folder {folder!r} (looked in {os.getcwd()}; give an absolute path, one "
-                         f"that exists on the machine that builds the application)")  # fmt: skip
+        raise ValueError(
+            f"argument {name}: no folder {folder!r} (looked in {os.getcwd()}; give an absolute path, one "
+            f"that exists on the machine that builds the application)"
+        )
     return str(path.resolve())
 
 
@@ -279,10 +291,14 @@ def policy_deployment(app_args: PolicyAppArgs):
         options["num_replicas"] = app_args.num_replicas
     config = app_args.serve
     return serve.deployment(
-        PolicyDeployment, name=DEPLOYMENT_NAME, ray_actor_options={"num_cpus": app_args.threads},
-        max_ongoing_requests=max_ongoing_requests(config), max_queued_requests=config.max_queue,
-        health_check_period_s=HEALTH_CHECK_PERIOD_S, **options,
-    )  # fmt: skip
+        PolicyDeployment,
+        name=DEPLOYMENT_NAME,
+        ray_actor_options={"num_cpus": app_args.threads},
+        max_ongoing_requests=max_ongoing_requests(config),
+        max_queued_requests=config.max_queue,
+        health_check_period_s=HEALTH_CHECK_PERIOD_S,
+        **options,
+    )
 
 
 class PolicyDeployment:
@@ -306,12 +322,18 @@ class PolicyDeployment:
         self.node = ray.get_runtime_context().get_node_id()  #: the Ray node this replica runs on
         started = time.perf_counter()
         config = app_args.serve
-        self.service: PolicyService = PolicyService.from_pretrained(app_args.policy, config, app_args.draft_head,
-                                                                    app_args.threads)  # fmt: skip
+        self.service: PolicyService = PolicyService.from_pretrained(
+            app_args.policy, config, app_args.draft_head, app_args.threads
+        )
         self.service.warm_up()
-        logger.info("replica %s: %s (%s) ready in %.1f s (%s)", self.replica, app_args.policy,
-                    self.service.methods_name, time.perf_counter() - started,
-                    ", ".join(f"{k} {v}" for k, v in self.service.startup.items()))  # fmt: skip
+        logger.info(
+            "replica %s: %s (%s) ready in %.1f s (%s)",
+            self.replica,
+            app_args.policy,
+            self.service.methods_name,
+            time.perf_counter() - started,
+            ", ".join(f"{k} {v}" for k, v in self.service.startup.items()),
+        )
         api_key = app_args.api_key if app_args.api_key is not None else os.environ.get(API_KEY_VARIABLE) or None
         self.routes = PolicyRoutes(self, api_key, app_args.max_request_bytes)
         self.batcher = Batcher(self.service).start()  # the one-machine server's batching (module docstring)
@@ -325,17 +347,31 @@ class PolicyDeployment:
     def info(self) -> dict:
         """The service's info, plus ``deployment: "ray"``, this replica and the batching / overload limits."""
         config = self.service.config
-        return {**self.service.info(), "deployment": "ray", "replica": self.replica, "node": self.node,
-                "replica_actor": self.replica_actor, "replicas": self.world_size, "max_wait_ms": config.max_wait_ms,
-                "max_queue": config.max_queue, "max_ongoing_requests": max_ongoing_requests(config)}  # fmt: skip
+        return {
+            **self.service.info(),
+            "deployment": "ray",
+            "replica": self.replica,
+            "node": self.node,
+            "replica_actor": self.replica_actor,
+            "replicas": self.world_size,
+            "max_wait_ms": config.max_wait_ms,
+            "max_queue": config.max_queue,
+            "max_ongoing_requests": max_ongoing_requests(config),
+        }
 
     def stats(self) -> dict:
         """This replica's figures (each replica counts its own; ``replica`` says which answered)."""
         batcher = self.batcher
-        return {**self.service.stats(), "deployment": "ray", "replica": self.replica, "node": self.node,
-                "batches": batcher.batches,
-                "waiting": batcher.waiting, "dropped": batcher.dropped,
-                "uptime_s": round(time.time() - self.started, 1)}  # fmt: skip
+        return {
+            **self.service.stats(),
+            "deployment": "ray",
+            "replica": self.replica,
+            "node": self.node,
+            "batches": batcher.batches,
+            "waiting": batcher.waiting,
+            "dropped": batcher.dropped,
+            "uptime_s": round(time.time() - self.started, 1),
+        }
 
     def unhealthy(self) -> str | None:
         """Why this replica cannot serve (its batching thread died), else None."""
@@ -374,8 +410,12 @@ def serve_config(app_args: PolicyAppArgs, host: str, port: int) -> dict:
     return {"http_options": {"host": host, "port": port}, "applications": [application]}
 
 
-def serve_run(config_file: str | Path, address: str | None = None, on_ready: Callable[[str], None] | None = None,
-              url: str | None = None) -> int:  # fmt: skip
+def serve_run(
+    config_file: str | Path,
+    address: str | None = None,
+    on_ready: Callable[[str], None] | None = None,
+    url: str | None = None,
+) -> int:
     """Runs Ray Serve's own ``serve run <config_file>`` in this process (it starts or joins the Ray cluster, deploys,
     blocks, and on Ctrl-C / SIGINT shuts Serve down); ``on_ready(url)`` once the application is running. Returns the
     exit status: 0 after Ctrl-C or SIGTERM, 1 when the application failed to deploy (its message logged).

@@ -44,12 +44,21 @@ class LocalBackend:
 
     def info(self) -> dict:
         config = self.service.config
-        return {**self.service.info(), "deployment": "local", "max_wait_ms": config.max_wait_ms,
-                "max_queue": config.max_queue}  # fmt: skip
+        return {
+            **self.service.info(),
+            "deployment": "local",
+            "max_wait_ms": config.max_wait_ms,
+            "max_queue": config.max_queue,
+        }
 
     def stats(self) -> dict:
-        return {**self.service.stats(), "batches": self.batcher.batches, "waiting": self.batcher.waiting,
-                "dropped": self.batcher.dropped, "uptime_s": round(time.time() - self.started, 1)}  # fmt: skip
+        return {
+            **self.service.stats(),
+            "batches": self.batcher.batches,
+            "waiting": self.batcher.waiting,
+            "dropped": self.batcher.dropped,
+            "uptime_s": round(time.time() - self.started, 1),
+        }
 
     def unhealthy(self) -> str | None:
         return self.batcher.unhealthy()
@@ -73,9 +82,16 @@ class PolicyServer:
         sock: a socket already listening ([`bind`]: e.g. taken before the policy loads), instead of host / port.
     """
 
-    def __init__(self, service: PolicyService, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
-                 api_key: str | None = None, max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
-                 drain_timeout_s: float = 30.0, sock: socket.socket | None = None):  # fmt: skip
+    def __init__(
+        self,
+        service: PolicyService,
+        host: str = DEFAULT_HOST,
+        port: int = DEFAULT_PORT,
+        api_key: str | None = None,
+        max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
+        drain_timeout_s: float = 30.0,
+        sock: socket.socket | None = None,
+    ):
         check_exposure(host, api_key)
         if isinstance(max_request_bytes, bool) or not isinstance(max_request_bytes, int) or max_request_bytes < 1:
             raise ValueError(f"max_request_bytes must be an integer >= 1, got {max_request_bytes!r}")
@@ -101,8 +117,12 @@ class PolicyServer:
     @contextlib.asynccontextmanager
     async def _lifespan(self, app):
         self.backend.batcher.start()
-        logger.info("serving %s (%s) on %s", self.backend.service.policy.name_or_path,
-                    self.backend.service.methods_name, self.url)  # fmt: skip
+        logger.info(
+            "serving %s (%s) on %s",
+            self.backend.service.policy.name_or_path,
+            self.backend.service.methods_name,
+            self.url,
+        )
         yield
         self.backend.batcher.stop()
         logger.info("stopped: %d batches served", self.backend.batcher.batches)
@@ -110,8 +130,13 @@ class PolicyServer:
     def _uvicorn(self, log_level: str = "warning"):
         import uvicorn
 
-        config = uvicorn.Config(self.routes.app(self._lifespan), log_level=log_level, access_log=False,
-                                timeout_graceful_shutdown=self.drain_timeout_s, lifespan="on")  # fmt: skip
+        config = uvicorn.Config(
+            self.routes.app(self._lifespan),
+            log_level=log_level,
+            access_log=False,
+            timeout_graceful_shutdown=self.drain_timeout_s,
+            lifespan="on",
+        )
         self._server = uvicorn.Server(config)
         return self._server
 
@@ -121,8 +146,14 @@ class PolicyServer:
         so that a drained server exits normally)."""
         stopped_by: list[int] = []
         main = threading.current_thread() is threading.main_thread()
-        previous = {sig: signal.signal(sig, lambda number, frame: stopped_by.append(number))
-                    for sig in (signal.SIGTERM, signal.SIGINT)} if main else {}  # fmt: skip
+        previous = (
+            {
+                sig: signal.signal(sig, lambda number, frame: stopped_by.append(number))
+                for sig in (signal.SIGTERM, signal.SIGINT)
+            }
+            if main
+            else {}
+        )
         try:
             self._uvicorn(log_level).run(sockets=[self._socket])
         finally:
@@ -133,8 +164,9 @@ class PolicyServer:
 
     def __enter__(self) -> PolicyServer:
         server = self._uvicorn()
-        self._thread = threading.Thread(target=server.run, kwargs={"sockets": [self._socket]}, daemon=True,
-                                        name="hf-specvla-server")  # fmt: skip
+        self._thread = threading.Thread(
+            target=server.run, kwargs={"sockets": [self._socket]}, daemon=True, name="hf-specvla-server"
+        )
         self._thread.start()
         deadline = time.time() + 30
         while not server.started:

@@ -72,17 +72,22 @@ class PolicyService:
         self.step, self.draft_head = DecodeStep(policy, self.config, draft_head), draft_head
         self.method, self.baseline = self.step.method, self.step.baseline
         self.sessions = Sessions(self.config.max_sessions)
-        self.chooser = ModeChooser(self.config.buckets, tuple(m.name for m in self.step.methods),
-                                   self.config.speculate_buckets, self.config.explore_every,
-                                   self.baseline.name)  # fmt: skip
+        self.chooser = ModeChooser(
+            self.config.buckets,
+            tuple(m.name for m in self.step.methods),
+            self.config.speculate_buckets,
+            self.config.explore_every,
+            self.baseline.name,
+        )
         self.failed_batches = 0  # batches whose call failed (then decoded one request at a time)
         #: the warm-up's phases (seconds) and whether it started warm: filled by ``warm_up``, shown by ``GET /info``
         self.startup: dict = {}
         self._decoder = ThreadPoolExecutor(1, "hf-specvla-decode")  # generate raises its recompile limit there
 
     @classmethod
-    def from_pretrained(cls, policy_folder, config: ServeConfig | None = None, draft_head_folder=None,
-                        threads: int | None = None) -> PolicyService:  # fmt: skip
+    def from_pretrained(
+        cls, policy_folder, config: ServeConfig | None = None, draft_head_folder=None, threads: int | None = None
+    ) -> PolicyService:
         """Loads the policy (and draft head) from their folders."""
         import torch
 
@@ -158,21 +163,27 @@ class PolicyService:
         try:
             tokens = len(self.policy.prompt_ids(request.instruction, request.state))
         except Exception as error:  # noqa: BLE001 (the tokenizer's refusal, reported to the robot)
-            raise RequestError(f"instruction could not be tokenized: {type(error).__name__}: {error}",
-                               "instruction") from None  # fmt: skip
+            raise RequestError(
+                f"instruction could not be tokenized: {type(error).__name__}: {error}", "instruction"
+            ) from None
         limit = self.step.max_prompt_tokens
         if limit is not None and tokens > limit:
-            raise RequestError(f"instruction makes a prompt of {tokens} tokens; this server compiled its graphs for "
-                               f"prompts of at most {limit} tokens ({limit - self.step.shortest_prompt} for the "
-                               f"instruction; GET /info: max_prompt_tokens): send a shorter instruction, or start "
-                               f"the server with a larger max_prompt_tokens", "instruction")  # fmt: skip
+            raise RequestError(
+                f"instruction makes a prompt of {tokens} tokens; this server compiled its graphs for "
+                f"prompts of at most {limit} tokens ({limit - self.step.shortest_prompt} for the "
+                f"instruction; GET /info: max_prompt_tokens): send a shorter instruction, or start "
+                f"the server with a larger max_prompt_tokens",
+                "instruction",
+            )
 
     def _check_draft_state(self, draft_state: list[list[int]]) -> None:
         dim, tokenizer = self.policy.config.action_dim, self.policy.action_tokenizer
         if len(draft_state) > self.policy.HISTORY_LENGTH or any(len(action) != dim for action in draft_state):
-            raise RequestError(f"draft_state must hold at most {self.policy.HISTORY_LENGTH} actions of {dim} token "
-                               f"ids each (as the last reply sent), got {[len(a) for a in draft_state]}",
-                               "draft_state")  # fmt: skip
+            raise RequestError(
+                f"draft_state must hold at most {self.policy.HISTORY_LENGTH} actions of {dim} token "
+                f"ids each (as the last reply sent), got {[len(a) for a in draft_state]}",
+                "draft_state",
+            )
         ids = np.asarray(draft_state, dtype=np.int64).reshape(-1)
         if ids.size and not bool(tokenizer.is_action_token(ids).all()):
             raise RequestError("draft_state holds ids that are not this policy's action tokens", "draft_state")
@@ -197,8 +208,12 @@ class PolicyService:
             raise failure
         return results
 
-    def act_each(self, requests: list[ActRequest], arrived: list[float] | None = None,
-                 on_reply: Callable[[int, ActReply | Exception], None] | None = None) -> list:  # fmt: skip
+    def act_each(
+        self,
+        requests: list[ActRequest],
+        arrived: list[float] | None = None,
+        on_reply: Callable[[int, ActReply | Exception], None] | None = None,
+    ) -> list:
         """Decodes ``requests`` (any number: batches of at most the largest bucket) on the decoding thread; returns
         one result per request, in order: its reply, or the exception its decode raised when decoded alone (a
         batch that fails is decoded again one unanswered request at a time, so a failure fails only its request).
@@ -221,13 +236,19 @@ class PolicyService:
         for start in range(0, len(requests), size):
             batch = list(range(start, min(start + size, len(requests))))
             try:
-                self._decode([requests[i] for i in batch], [arrived[i] for i in batch],
-                             lambda row, reply, batch=batch: answer(batch[row], reply))  # fmt: skip
+                self._decode(
+                    [requests[i] for i in batch],
+                    [arrived[i] for i in batch],
+                    lambda row, reply, batch=batch: answer(batch[row], reply),
+                )
             except Exception:  # one request at a time: a failing one fails alone
                 self.failed_batches += 1
                 unanswered = [i for i in batch if results[i] is None]
-                logger.exception("a batch of %d failed; decoding its %d unanswered requests one at a time",
-                                 len(batch), len(unanswered))  # fmt: skip
+                logger.exception(
+                    "a batch of %d failed; decoding its %d unanswered requests one at a time",
+                    len(batch),
+                    len(unanswered),
+                )
                 for i in unanswered:
                     try:
                         self._decode([requests[i]], [arrived[i]], lambda row, reply, i=i: answer(i, reply))
@@ -235,8 +256,13 @@ class PolicyService:
                         answer(i, error)
         return results
 
-    def _decode(self, requests: list[ActRequest], arrived: list[float],
-                answer: Callable[[int, ActReply], None], mode: bool | None = None) -> None:  # fmt: skip
+    def _decode(
+        self,
+        requests: list[ActRequest],
+        arrived: list[float],
+        answer: Callable[[int, ActReply], None],
+        mode: bool | None = None,
+    ) -> None:
         """One batched call; ``answer(i, reply)`` per request as its row is decoded. ``mode``: None for traffic
         (the chooser's mode, the call's time observed), else the mode of a warm-up call (nothing counted)."""
         rows, bucket = len(requests), self.bucket_for(len(requests))
@@ -249,13 +275,21 @@ class PolicyService:
             request = requests[i]
             if request.session is not None:
                 self.sessions.remember(request.session, row.history)
-            figures = ServedFigures(self.step.name(mode), mode != 0, row.target_forwards, rows, bucket,
-                                    queue_ms=1000 * (started - arrived[i]), decode_ms=1000 * (row.done - started),
-                                    server_ms=1000 * (row.done - arrived[i]), session=request.session,
-                                    draft_state=[list(a) for a in row.history],
-                                    batch_forwards=row.batch_forwards, early=row.early,
-                                    intake_ms=0.0 if request.received is None else
-                                    1000 * (request.received - arrived[i]))  # fmt: skip
+            figures = ServedFigures(
+                self.step.name(mode),
+                mode != 0,
+                row.target_forwards,
+                rows,
+                bucket,
+                queue_ms=1000 * (started - arrived[i]),
+                decode_ms=1000 * (row.done - started),
+                server_ms=1000 * (row.done - arrived[i]),
+                session=request.session,
+                draft_state=[list(a) for a in row.history],
+                batch_forwards=row.batch_forwards,
+                early=row.early,
+                intake_ms=0.0 if request.received is None else 1000 * (request.received - arrived[i]),
+            )
             answer(i, ActReply(np.asarray(row.action), figures))
 
         batch = self.step.run(requests, histories, bucket, mode, reply)
@@ -282,11 +316,15 @@ class PolicyService:
         from ..run_folder import fingerprint
         from .compile_cache import CompileCache, environment_record
 
-        record = {**environment_record(), "policy": self.policy.weights_fingerprint(),
-                  "draft_head": fingerprint(self.draft_head) if self.draft_head is not None else None,
-                  "methods": [step.name(mode) for mode in step.modes], "buckets": list(self.config.buckets),
-                  "prompt_tiers": [list(tier) for tier in step.prompt_tiers],
-                  "device": self.policy.model.device.type}  # fmt: skip
+        record = {
+            **environment_record(),
+            "policy": self.policy.weights_fingerprint(),
+            "draft_head": fingerprint(self.draft_head) if self.draft_head is not None else None,
+            "methods": [step.name(mode) for mode in step.modes],
+            "buckets": list(self.config.buckets),
+            "prompt_tiers": [list(tier) for tier in step.prompt_tiers],
+            "device": self.policy.model.device.type,
+        }
         return CompileCache(self.config.compile_cache, record)
 
     def _warm_up_with_cache(self, calibrate: bool, seed: int) -> list[dict]:
@@ -294,8 +332,9 @@ class PolicyService:
         ``startup``."""
         cache = self.compile_cache()
         if cache is None and self.config.compile_cache is not None:
-            logger.warning("compile cache %s not used: %s compiles nothing", self.config.compile_cache,
-                           self.methods_name)  # fmt: skip
+            logger.warning(
+                "compile cache %s not used: %s compiles nothing", self.config.compile_cache, self.methods_name
+            )
         with cache.compiling() if cache is not None else contextlib.nullcontext() as warm:
             self.startup = (
                 {"compile_cache": None}
@@ -307,8 +346,12 @@ class PolicyService:
             table = self._warm_up(calibrate, seed)
         phases = self.startup
         start = {"warm": " (warm start: the compile cache's graphs)", "cold": " (cold start, into the compile cache)"}
-        logger.info("warmed up: compile %.1f s%s, calibrate %.1f s", phases["compile_s"],
-                    start.get(phases["compile_cache"], ""), phases["calibrate_s"])  # fmt: skip
+        logger.info(
+            "warmed up: compile %.1f s%s, calibrate %.1f s",
+            phases["compile_s"],
+            start.get(phases["compile_cache"], ""),
+            phases["calibrate_s"],
+        )
         return table
 
     def _warm_up(self, calibrate: bool, seed: int) -> list[dict]:
@@ -349,17 +392,20 @@ class PolicyService:
             if measure:
                 table.append(self.chooser.calibrate(bucket, times))
         if table:
-            logger.info("calibration (%d calls per bucket and mode):\n%s", self.config.calibration_calls,
-                        format_calibration(table))  # fmt: skip
+            logger.info(
+                "calibration (%d calls per bucket and mode):\n%s",
+                self.config.calibration_calls,
+                format_calibration(table),
+            )
         self.startup.update({f"{phase}_s": round(ms / 1000, 2) for phase, ms in spent_ms.items()})
         return table
 
-    def _warm_up_call(self, sessions: list[str], instruction: str, images: np.ndarray, first: bool,
-                      mode: int) -> float:  # fmt: skip
+    def _warm_up_call(self, sessions: list[str], instruction: str, images: np.ndarray, first: bool, mode: int) -> float:
         """One warm-up call of ``len(sessions)`` robots in the given mode (nothing counted); its ms."""
         state = np.zeros(self.policy.config.state_dim)
-        requests = [ActRequest(image, instruction, state, session, reset=first)
-                    for image, session in zip(images, sessions)]  # fmt: skip
+        requests = [
+            ActRequest(image, instruction, state, session, reset=first) for image, session in zip(images, sessions)
+        ]
         started = time.perf_counter()
         self._decode(requests, [started] * len(requests), lambda i, reply: None, mode=mode)
         return 1000 * (time.perf_counter() - started)

@@ -236,13 +236,15 @@ class RelaxedBinMatch(AcceptanceRule):
         #: one row (every action alike) as a tuple of ints, else the table
         self.bin_tolerance = self.tolerance_table[0] if len(self.tolerance_table) == 1 else self.tolerance_table
         self.motion_scale = (
-            None if motion_scale is None else validate_per_dimension(motion_scale, dims, "motion_scale",
-                                                                     MOTION_SCALE_MEANING)
-        )  # fmt: skip
+            None
+            if motion_scale is None
+            else validate_per_dimension(motion_scale, dims, "motion_scale", MOTION_SCALE_MEANING)
+        )
         self.max_deviation = (
-            None if max_deviation is None else validate_per_dimension(max_deviation, dims, "max_deviation",
-                                                                      MAX_DEVIATION_MEANING)
-        )  # fmt: skip
+            None
+            if max_deviation is None
+            else validate_per_dimension(max_deviation, dims, "max_deviation", MAX_DEVIATION_MEANING)
+        )
         units = action_layout.units
         if (self.motion_scale is not None or self.max_deviation is not None) and units is None:
             raise ValueError(
@@ -475,9 +477,15 @@ def make_acceptance_rule(
     if not isinstance(confirm_strict_tail, (bool, np.bool_)):
         raise TypeError(f"confirm_strict_tail must be True or False, got {confirm_strict_tail!r}")
     scaling = motion_scale is not None and any(
-        v != 0 for v in (motion_scale.tolist() if isinstance(motion_scale, torch.Tensor) else
-                         motion_scale if _is_sequence(motion_scale) else [motion_scale])
-    )  # fmt: skip
+        v != 0
+        for v in (
+            motion_scale.tolist()
+            if isinstance(motion_scale, torch.Tensor)
+            else motion_scale
+            if _is_sequence(motion_scale)
+            else [motion_scale]
+        )
+    )
     if action_layout is None:
         values = bin_tolerance.tolist() if isinstance(bin_tolerance, torch.Tensor) else bin_tolerance
         rows = values if _is_sequence(values) and len(values) and all(_is_sequence(r) for r in values) else [values]
@@ -592,9 +600,18 @@ def accept_trees(
     # one read from the device per verification: the paths, distances, bonus tokens, drafted and target tokens, the
     # parents (a tree drafted on the device is then known on the host too)
     packed = search_paths(
-        tokens, trees.ancestor_or_self, trees.parents, trees.depths, trees.is_real, target_ids, prior, earlier,
-        top1_probs, rule, action_layout,
-    ).tolist()  # fmt: skip
+        tokens,
+        trees.ancestor_or_self,
+        trees.parents,
+        trees.depths,
+        trees.is_real,
+        target_ids,
+        prior,
+        earlier,
+        top1_probs,
+        rule,
+        action_layout,
+    ).tolist()
     return read_paths(packed, trees)
 
 

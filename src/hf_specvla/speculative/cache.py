@@ -110,8 +110,7 @@ def check_rollback_cache(cache: Cache, max_length: int) -> None:
                 )
 
 
-def with_draft_slots(model, cache: Cache | None, slots_for: Callable[[int], int],
-                     batch_size: int = 1) -> Cache | None:  # fmt: skip
+def with_draft_slots(model, cache: Cache | None, slots_for: Callable[[int], int], batch_size: int = 1) -> Cache | None:
     """``generate``'s own static cache (``cache_implementation="static"``) replaced by one of ``slots_for(its slots)``
     slots, so that a draft tree fits beside the tokens greedy decoding would store (``generate`` sizes it for those
     alone; ``compiled.verification_slots``: room for the widest verification, rounded up). The
@@ -320,8 +319,10 @@ def preserved_entries(cache: Cache):
     """Empties ``cache`` for the block (e.g. a throw-away forward writing from slot 0) and puts its entries back
     afterwards, in place (a static layer's buffers keep their addresses)."""
     length = cache_length(cache)
-    saved = [(layer, layer.keys[..., :length, :].clone(), layer.values[..., :length, :].clone())
-             for layer in _stored_layers(cache)]  # fmt: skip
+    saved = [
+        (layer, layer.keys[..., :length, :].clone(), layer.values[..., :length, :].clone())
+        for layer in _stored_layers(cache)
+    ]
     truncate_cache(cache, 0)
     try:
         yield

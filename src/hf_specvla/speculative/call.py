@@ -89,9 +89,11 @@ def _call_drafter(
     if draft_ids is not None:
         vocab_size = model.get_output_embeddings().weight.shape[0]
         candidates = draft_id_candidates(draft_ids, batch_size, vocab_size)
-        known = CandidateDrafter(candidates[0]) if batch_size == 1 else PerRowDrafter(
-            [CandidateDrafter(row) for row in candidates]
-        )  # fmt: skip
+        known = (
+            CandidateDrafter(candidates[0])
+            if batch_size == 1
+            else PerRowDrafter([CandidateDrafter(row) for row in candidates])
+        )
         drafter = known if drafter is None else ComposedDrafter([known, drafter])
     if drafter is None:
         raise ValueError(
@@ -357,9 +359,14 @@ def _checked_call(model, input_ids, logits_processor, generation_config, setting
     _validate_call(model, generation_config, logits_processor, batch_size, drafter)
     layout = settings.action_layout or drafter.action_layout
     rule = make_acceptance_rule(
-        settings.bin_tolerance, layout, settings.confidence_gate, settings.max_relaxed_per_action,
-        settings.motion_scale, settings.max_deviation, settings.confirm_strict_tail,
-    )  # fmt: skip
+        settings.bin_tolerance,
+        layout,
+        settings.confidence_gate,
+        settings.max_relaxed_per_action,
+        settings.motion_scale,
+        settings.max_deviation,
+        settings.confirm_strict_tail,
+    )
     if generation_config.do_sample and not rule.is_lossless:
         raise ValueError(
             f"relaxed acceptance ({rule!r}) is greedy only: with do_sample=True the drafts are verified by speculative "
@@ -410,16 +417,28 @@ def prepare(
     if drafter.needs_prompt_embeddings:  # a head drafting before the prefill from the encoded images
         prompt_embeddings = prompt_input_embeddings(model, input_ids, model_kwargs, start=cached_tokens)
     contexts = _draft_contexts(
-        model, batch_size, layout, eos_ids, None if prompt_padding is None else prompt_padding[:, -num_new:],
-        generation_config.max_length, generation_config.compile_config if verifier is not None else None,
-        cached_tokens, prompt_embeddings,
-    )  # fmt: skip
+        model,
+        batch_size,
+        layout,
+        eos_ids,
+        None if prompt_padding is None else prompt_padding[:, -num_new:],
+        generation_config.max_length,
+        generation_config.compile_config if verifier is not None else None,
+        cached_tokens,
+        prompt_embeddings,
+    )
     rows = [
         RowState(b, input_ids[b : b + 1], drafter.start(context), SpeculationStats(), committed_length=cached_tokens)
         for b, context in enumerate(contexts)
     ]
-    state = DecodeState(rows, prompt_ids, prompt_positions, position_offsets,
-                        None if prompt_padding is None else prompt_padding.bool(), cache)  # fmt: skip
+    state = DecodeState(
+        rows,
+        prompt_ids,
+        prompt_positions,
+        position_offsets,
+        None if prompt_padding is None else prompt_padding.bool(),
+        cache,
+    )
     plan, prefill_key = _round_plan(
         model, checked, verifier, model_inputs, prompt_ids, position_offsets, past_length, input_ids.shape[1]
     )

@@ -257,8 +257,9 @@ class CompiledVerifier:
         return buffers
 
     # ----------------------------------------------------------------- drafters' graphs
-    def compiled_function(self, function: Callable, graphs: int, fullgraph: bool | None = None,
-                          guard_filter: Callable | None = None) -> Callable:  # fmt: skip
+    def compiled_function(
+        self, function: Callable, graphs: int, fullgraph: bool | None = None, guard_filter: Callable | None = None
+    ) -> Callable:
         """``torch.compile(function)`` with this verifier's ``CompileConfig`` settings (as transformers'
         ``get_compiled_call`` compiles a model's call; ``fullgraph`` overrides the config's), made once; dynamo's
         recompile limit is raised so that ``graphs`` graphs (one per input shape the caller will meet) fit beside
@@ -351,13 +352,16 @@ class CompiledVerifier:
             self.prefills_eager.add(key)
             logger.warning(
                 "the prefill of %s stays eager: its forward over the prompt does not compile into one graph (%s: %s)",
-                type(model).__name__, type(error).__name__, str(error).splitlines()[0] if str(error) else "",
-            )  # fmt: skip
+                type(model).__name__,
+                type(error).__name__,
+                str(error).splitlines()[0] if str(error) else "",
+            )
             return time.perf_counter() - start
         self.prefills_compiled.add(key)
         seconds = time.perf_counter() - start
-        logger.info("compiled the prefill (every prompt length, %d slots, hidden states %s) in %.1f s",
-                    *key[:2], seconds)  # fmt: skip
+        logger.info(
+            "compiled the prefill (every prompt length, %d slots, hidden states %s) in %.1f s", *key[:2], seconds
+        )
         return seconds
 
     # ----------------------------------------------------------------- the rounds

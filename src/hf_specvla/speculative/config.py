@@ -148,5 +148,11 @@ def hashable(value):
 
 #: the acceptance rule's settings among [`SpeculationConfig`]'s (``make_acceptance_rule``'s arguments but the layout;
 #: a test keeps the two equal)
-RULE_ARGUMENTS = ("bin_tolerance", "confidence_gate", "max_relaxed_per_action", "motion_scale", "max_deviation",
-                  "confirm_strict_tail")  # fmt: skip
+RULE_ARGUMENTS = (
+    "bin_tolerance",
+    "confidence_gate",
+    "max_relaxed_per_action",
+    "motion_scale",
+    "max_deviation",
+    "confirm_strict_tail",
+)

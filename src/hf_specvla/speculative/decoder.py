@@ -71,8 +71,10 @@ class SpeculativeDecoder:
         decoder = model.__dict__.get(DECODER_ATTRIBUTE)
         if decoder is None or decoder.model_ref() is not model:
             if decoder is not None:
-                logger.info("this %s is a copy of the model its compiled graphs were made for: compiling its own",
-                            type(model).__name__)  # fmt: skip
+                logger.info(
+                    "this %s is a copy of the model its compiled graphs were made for: compiling its own",
+                    type(model).__name__,
+                )
                 _forget_copied_compiled_call(model)
             decoder = model.__dict__[DECODER_ATTRIBUTE] = cls(model)
         if decoder.epoch != SpeculativeDecoder._epoch:  # reset_compilation since: what it compiled is gone

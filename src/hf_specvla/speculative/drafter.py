@@ -413,8 +413,10 @@ def _common_hidden_state_layers(drafters: Sequence[Drafter]) -> tuple[int, ...]:
     """The target hidden states the drafters that read them read (one set: each Commit carries one)."""
     layers = {tuple(d.hidden_state_layers) for d in drafters if d.needs_hidden_states}
     if len(layers) > 1:
-        raise ValueError(f"these drafters read different target hidden states {sorted(layers)} (draft heads of "
-                         f"different feature_layers); one call serves one set")  # fmt: skip
+        raise ValueError(
+            f"these drafters read different target hidden states {sorted(layers)} (draft heads of "
+            f"different feature_layers); one call serves one set"
+        )
     return layers.pop() if layers else (-1,)
 
 

@@ -54,8 +54,9 @@ def accepting_forward(model, output_hidden: tuple[int, ...] | None, name: str = 
     """
     wants_hidden = bool(output_hidden)
 
-    def verify_and_accept(inputs: dict, token_ids, parents, depths, is_real, ancestor_or_self, lengths, eos_ids,
-                          eos_below):  # fmt: skip
+    def verify_and_accept(
+        inputs: dict, token_ids, parents, depths, is_real, ancestor_or_self, lengths, eos_ids, eos_below
+    ):
         outputs = model(**inputs, output_hidden_states=wants_hidden, return_dict=True)
         scores = outputs.logits  # [B, 1 + N, V] in the model's dtype: its argmax is the float32 copy's
         prefix_lengths = torch.cat([lengths, lengths + 1 + depths], dim=1)  # [B, 1 + N]
@@ -65,21 +66,36 @@ def accepting_forward(model, output_hidden: tuple[int, ...] | None, name: str = 
         if token_ids.shape[1] == 0:  # a plain decoding step: the bonus token is the target's after the root
             packed = torch.cat([target_ids[:, :1], target_ids], dim=1)
         else:
-            packed = search_paths(token_ids, ancestor_or_self, parents, depths, is_real, target_ids, None, None, None,
-                                  _EXACT, None)  # fmt: skip
+            packed = search_paths(
+                token_ids, ancestor_or_self, parents, depths, is_real, target_ids, None, None, None, _EXACT, None
+            )
         hidden = read_hidden_states(outputs.hidden_states, output_hidden) if wants_hidden else None
         return packed, hidden
 
     # a code object of its own per (model, hidden states): dynamo keeps graphs and guards per code object, so one
     # function's guard filter ([`round_guards`]) and graphs are its own, never another model's or caller's
     code = verify_and_accept.__code__
-    return types.FunctionType(code.replace(co_name=name, co_qualname=name), verify_and_accept.__globals__, name,
-                              verify_and_accept.__defaults__, verify_and_accept.__closure__)  # fmt: skip
+    return types.FunctionType(
+        code.replace(co_name=name, co_qualname=name),
+        verify_and_accept.__globals__,
+        name,
+        verify_and_accept.__defaults__,
+        verify_and_accept.__closure__,
+    )
 
 
 #: the arguments of [`accepting_forward`]'s function: the only objects whose guards a compiled round keeps
-ROUND_ARGUMENTS = ("inputs", "token_ids", "parents", "depths", "is_real", "ancestor_or_self", "lengths", "eos_ids",
-                   "eos_below")  # fmt: skip
+ROUND_ARGUMENTS = (
+    "inputs",
+    "token_ids",
+    "parents",
+    "depths",
+    "is_real",
+    "ancestor_or_self",
+    "lengths",
+    "eos_ids",
+    "eos_below",
+)
 #: the guards on the model a compiled round drops ([`round_guards`]): dict-membership checks, most of the model guards'
 #: cost (modules' ``__dict__`` key sets, attributes absent from a class), which no change a graph depends on passes
 #: unseen by the kept guards (a module's class, tensors, own forward, hooks)
@@ -137,8 +153,17 @@ class GraphAcceptance:
     def __call__(self, inputs: dict, trees: TreeBatch, lengths: torch.Tensor):
         """(packed ``[B, 5 N + 2]``, hidden or None) for one verification: ``lengths`` ``[B, 1]`` the rows' sequence
         lengths (an idle row's: any)."""
-        return self.call(inputs, trees.token_ids, trees.parents, trees.depths, trees.is_real, trees.ancestor_or_self,
-                         lengths, self.eos_ids, self.eos_below)  # fmt: skip
+        return self.call(
+            inputs,
+            trees.token_ids,
+            trees.parents,
+            trees.depths,
+            trees.is_real,
+            trees.ancestor_or_self,
+            lengths,
+            self.eos_ids,
+            self.eos_below,
+        )
 
 
 def eos_hiding(logits_processor: LogitsProcessorList, device) -> tuple[torch.Tensor, torch.Tensor] | None:
@@ -161,8 +186,9 @@ def eos_hiding(logits_processor: LogitsProcessorList, device) -> tuple[torch.Ten
     return torch.tensor(ids, dtype=torch.long, device=device), torch.tensor(below, dtype=torch.long, device=device)
 
 
-def accepts_in_graph(rule: AcceptanceRule, sampling: bool, keep_scores: bool, keep_logits: bool,
-                     position_offsets) -> bool:  # fmt: skip
+def accepts_in_graph(
+    rule: AcceptanceRule, sampling: bool, keep_scores: bool, keep_logits: bool, position_offsets
+) -> bool:
     """Whether a compiled call's rounds can accept inside the verification's graph (besides its processors, see
     [`eos_hiding`]): exact acceptance of greedy tokens, nothing of the logits kept, 2D positions."""
     return (

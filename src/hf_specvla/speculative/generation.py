@@ -117,8 +117,9 @@ def speculative_class(model_class: type[PreTrainedModel]) -> type[PreTrainedMode
     for subclass in model_class.__subclasses__():
         if subclass.__bases__ == bases:
             return subclass
-    return type(model_class.__name__, bases, {"__module__": model_class.__module__,
-                                              "__qualname__": model_class.__qualname__})  # fmt: skip
+    return type(
+        model_class.__name__, bases, {"__module__": model_class.__module__, "__qualname__": model_class.__qualname__}
+    )
 
 
 def enable_speculation(model: PreTrainedModel, exact_reduced_precision: bool = True) -> PreTrainedModel:

@@ -149,11 +149,13 @@ def _loose_settings(model_kwargs: dict) -> dict:
 speculative_generate.__signature__ = inspect.signature(speculative_generate).replace(
     parameters=[
         *list(inspect.signature(speculative_generate).parameters.values())[:-1],
-        *(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=None)
-          for name in ("drafter", "draft_head", *SPECULATION_KWARGS)),
+        *(
+            inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=None)
+            for name in ("drafter", "draft_head", *SPECULATION_KWARGS)
+        ),
         inspect.Parameter("model_kwargs", inspect.Parameter.VAR_KEYWORD),
     ]
-)  # fmt: skip
+)
 
 
 def _caller_stacklevel() -> int:

@@ -354,8 +354,15 @@ class DraftHead(PreTrainedModel):
             raise ValueError(f"{valid}, got {previous_action!r}") from error
         if ids.ndim != 1 or ids.dtype == torch.bool or ids.is_floating_point() or ids.is_complex():
             shown = previous_action if isinstance(previous_action, (list, tuple)) else ids.tolist()  # as given
-            kind = ("nested" if ids.ndim > 1 else "not a sequence" if ids.ndim == 0
-                    else "bools" if ids.dtype == torch.bool else f"{ids.dtype} values, not ints")  # fmt: skip
+            kind = (
+                "nested"
+                if ids.ndim > 1
+                else "not a sequence"
+                if ids.ndim == 0
+                else "bools"
+                if ids.dtype == torch.bool
+                else f"{ids.dtype} values, not ints"
+            )
             raise ValueError(f"{valid}, got {shown} ({kind})")
         ids = ids.long()
         if ids.shape[0] != self.config.action_dim or not bool(tokenizer.is_action_token(ids).all()):

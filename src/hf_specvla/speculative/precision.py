@@ -54,12 +54,23 @@ def keep_greedy_exact(model: PreTrainedModel) -> None:
         logger.warning(
             "%s runs in %s with %s attention, which rounds a multi-token forward differently from a one-token step, "
             "and it could not switch to %s attention (%s): r=0 speculative decoding may depart from greedy decoding "
-            "at near-ties", type(model).__name__, model.dtype, current, STABLE_ATTENTION, error,
-        )  # fmt: skip
+            "at near-ties",
+            type(model).__name__,
+            model.dtype,
+            current,
+            STABLE_ATTENTION,
+            error,
+        )
         return
     logger.warning(
         "%s runs in %s: its attention is switched from %s to %s, for greedy and speculative generate alike, so that "
         "r=0 speculative decoding keeps greedy decoding's tokens at near-ties (%s attention rounds a multi-token "
         "forward differently from a one-token step). enable_speculation(model, exact_reduced_precision=False) keeps "
-        "%s attention", type(model).__name__, model.dtype, current, STABLE_ATTENTION, current, current,
-    )  # fmt: skip
+        "%s attention",
+        type(model).__name__,
+        model.dtype,
+        current,
+        STABLE_ATTENTION,
+        current,
+        current,
+    )

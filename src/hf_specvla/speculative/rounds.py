@@ -99,7 +99,7 @@ def commit_paths(
                 tree_target_list=path.target_ids,
                 kept_inputs=_kept_inputs(
                     state.pending_ids[b : b + 1], state.pending_positions[b : b + 1], path_tokens, path.bonus_id
-                ),  # fmt: skip
+                ),
             )
         )
     # [B, 1] the bonus tokens, at the position after each row's path
@@ -118,8 +118,10 @@ def _kept_inputs(pending_ids, pending_positions, path_tokens, bonus_id: int):
     def make() -> tuple[torch.Tensor, torch.Tensor]:
         bonus = path_tokens.new_full((1, 1), bonus_id)
         steps = torch.arange(1, path_tokens.shape[1] + 1, device=pending_positions.device)[None]
-        return (torch.cat([pending_ids[:, 1:], path_tokens, bonus], dim=1),
-                torch.cat([pending_positions, pending_positions[:, -1:] + steps], dim=1))  # fmt: skip
+        return (
+            torch.cat([pending_ids[:, 1:], path_tokens, bonus], dim=1),
+            torch.cat([pending_positions, pending_positions[:, -1:] + steps], dim=1),
+        )
 
     return make
 
@@ -166,8 +168,9 @@ class CallStopping:
         return stopping if isinstance(stopping, CallStopping) else cls(stopping)
 
 
-def emit_tokens(rows: list[RowState], emitted: list[list[int]],
-                stopping: CallStopping | StoppingCriteriaList) -> list[int]:  # fmt: skip
+def emit_tokens(
+    rows: list[RowState], emitted: list[list[int]], stopping: CallStopping | StoppingCriteriaList
+) -> list[int]:
     """Appends each row's ``emitted`` tokens up to where the stopping criteria first fire, as greedy decoding (which
     asks them after every token) would stop, and marks those rows finished.
 
@@ -193,10 +196,12 @@ def emit_tokens(rows: list[RowState], emitted: list[list[int]],
                 if stop_length[b] is None and on_host(length, emitted[b][length - lengths[b] - 1]):
                     stop_length[b] = length
     elif asked:  # every prefix asked (the criteria are functions of the ids), then one read of all the answers
-        answers = torch.cat([
-            stopping_criteria(torch.stack([extended[b][:length] for b in group]), None).reshape(-1)
-            for length, group in asked
-        ]).tolist()  # fmt: skip
+        answers = torch.cat(
+            [
+                stopping_criteria(torch.stack([extended[b][:length] for b in group]), None).reshape(-1)
+                for length, group in asked
+            ]
+        ).tolist()
         for (length, group), start in zip(asked, itertools.accumulate([0] + [len(g) for _, g in asked])):
             for b, stop in zip(group, answers[start : start + len(group)]):
                 if stop and stop_length[b] is None:
@@ -307,8 +312,11 @@ def verify(model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: T
     the acceptance in the graph). A static cache's idle rows (finished, kept in its batch) are fed a filler token and
     an empty tree, their outputs dropped."""
     pending_ids, positions, key_valid, offsets = (
-        state.pending_ids, state.pending_positions, state.key_valid, state.position_offsets
-    )  # fmt: skip
+        state.pending_ids,
+        state.pending_positions,
+        state.key_valid,
+        state.position_offsets,
+    )
     if state.cache_rows is not None:
         pending_ids, positions = in_cache_batch(state, pending_ids, 0), in_cache_batch(state, positions, 0)
         if key_valid is None:
@@ -324,8 +332,9 @@ def verify(model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: T
         trees = TreeBatch(rows, min_nodes=trees.num_nodes, structures=plan.tree_structures)
     lengths = None  # the rows' sequence lengths, for an acceptance in the graph (it hides EOS by them)
     if plan.verification.reads_lengths:
-        lengths = in_cache_batch(state, torch.tensor([[row.sequence.shape[1]] for row in state.rows],
-                                                     device=pending_ids.device), 0)  # fmt: skip
+        lengths = in_cache_batch(
+            state, torch.tensor([[row.sequence.shape[1]] for row in state.rows], device=pending_ids.device), 0
+        )
     pending = Pending({CACHE_KEY: state.target_cache}, pending_ids, positions, key_valid, offsets, lengths)
     output = plan.verification.verify(model, pending, trees)
     if state.cache_rows is None:

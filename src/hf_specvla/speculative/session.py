@@ -148,8 +148,9 @@ class DecoderSession:
             )
         # a tensor setting (a stop token) copied: the caller may change theirs in place, which is another setting
         self.model = model
-        self.settings = {name: value.clone() if isinstance(value, torch.Tensor) else value
-                         for name, value in settings.items()}  # fmt: skip
+        self.settings = {
+            name: value.clone() if isinstance(value, torch.Tensor) else value for name, value in settings.items()
+        }
         #: the settings' speculation, one [`SpeculationConfig`] (``speculation=`` or the loose settings folded), and
         #: the rest: ``generate``'s own
         self.generate_settings = dict(self.settings)
@@ -206,9 +207,13 @@ class DecoderSession:
         if prepared is None:
             self.calls_through_generate += 1
             return self.model.generate(
-                input_ids=input_ids, attention_mask=attention_mask, **inputs, **call, speculation=self.speculation,
+                input_ids=input_ids,
+                attention_mask=attention_mask,
+                **inputs,
+                **call,
+                speculation=self.speculation,
                 **self.generate_settings,
-            )  # fmt: skip
+            )
         self.direct_calls += 1
         return self._direct(prepared, input_ids, attention_mask if padded else None, inputs, call)
 
@@ -282,8 +287,13 @@ class DecoderSession:
         thread's graph limit, the checks, a compiled call's images encoded)."""
         self._ready_model()
         call_kwargs = {name: value for name, value in call.items() if name not in ("assistant_model", "draft_ids")}
-        return speculative_call_kwargs(self.model, call["assistant_model"], call["draft_ids"], self.speculation,
-                                       {**kwargs, **call_kwargs, **self.generate_settings})  # fmt: skip
+        return speculative_call_kwargs(
+            self.model,
+            call["assistant_model"],
+            call["draft_ids"],
+            self.speculation,
+            {**kwargs, **call_kwargs, **self.generate_settings},
+        )
 
     def _ready_model(self) -> None:
         """What the mixin's ``generate`` does to the model before every call: its precision, and this thread's
@@ -348,9 +358,17 @@ class DecoderSession:
         model_kwargs[CACHE_KEY] = self._fresh_cache(prepared)
         drafter = call["assistant_model"]
         speculation = SpeculationConfig.fold(self.speculation, {} if drafter is None else {"drafter": drafter})
-        return speculative_generate(model, input_ids, prepared.logits_processor, prepared.stopping_criteria,
-                                    prepared.generation_config, speculation, call["draft_ids"],
-                                    call["on_row_finished"], **model_kwargs)  # fmt: skip
+        return speculative_generate(
+            model,
+            input_ids,
+            prepared.logits_processor,
+            prepared.stopping_criteria,
+            prepared.generation_config,
+            speculation,
+            call["draft_ids"],
+            call["on_row_finished"],
+            **model_kwargs,
+        )
 
     def _fresh_cache(self, prepared: PreparedShape) -> Cache:
         """``generate``'s static cache emptied (as its next call would), or a new dynamic cache (as it makes one)."""
@@ -388,10 +406,23 @@ def generation_config_key(config: GenerationConfig) -> tuple:
 
 
 #: ``generate``'s settings (a ``GenerationConfig``'s fields, the engine's), never a model input of a session's call
-GENERATE_SETTINGS = frozenset(vars(GenerationConfig())) | frozenset(SPECULATION_KWARGS) | frozenset(
-    ("speculation", "generation_config", "logits_processor", "stopping_criteria", "prefix_allowed_tokens_fn",
-     "synced_gpus", "negative_prompt_ids", "negative_prompt_attention_mask", "use_model_defaults")
-)  # fmt: skip
+GENERATE_SETTINGS = (
+    frozenset(vars(GenerationConfig()))
+    | frozenset(SPECULATION_KWARGS)
+    | frozenset(
+        (
+            "speculation",
+            "generation_config",
+            "logits_processor",
+            "stopping_criteria",
+            "prefix_allowed_tokens_fn",
+            "synced_gpus",
+            "negative_prompt_ids",
+            "negative_prompt_attention_mask",
+            "use_model_defaults",
+        )
+    )
+)
 
 
 def _positions_from_mask(attention_mask: torch.Tensor) -> torch.Tensor:

@@ -11,10 +11,20 @@ import torch
 from torch.overrides import TorchFunctionMode
 
 #: the tensor methods that read a value (or a data-dependent shape) back to the host
-SYNC_METHODS = frozenset({
-    torch.Tensor.item, torch.Tensor.tolist, torch.Tensor.cpu, torch.Tensor.numpy, torch.Tensor.__bool__,
-    torch.Tensor.__int__, torch.Tensor.__float__, torch.Tensor.__index__, torch.Tensor.nonzero, torch.Tensor.unique,
-})  # fmt: skip
+SYNC_METHODS = frozenset(
+    {
+        torch.Tensor.item,
+        torch.Tensor.tolist,
+        torch.Tensor.cpu,
+        torch.Tensor.numpy,
+        torch.Tensor.__bool__,
+        torch.Tensor.__int__,
+        torch.Tensor.__float__,
+        torch.Tensor.__index__,
+        torch.Tensor.nonzero,
+        torch.Tensor.unique,
+    }
+)
 
 
 class HostSyncCounter(TorchFunctionMode):
@@ -39,6 +49,7 @@ class HostSyncCounter(TorchFunctionMode):
             self.count += 1
             stack = traceback.extract_stack()[:-1]
             frames = [f for f in stack if "hf_specvla" in f.filename and f.filename != __file__]
-            self.sites[f"{frames[-1].filename.rsplit('hf_specvla/', 1)[-1]}:{frames[-1].lineno}" if frames
-                       else "elsewhere"] += 1  # fmt: skip
+            self.sites[
+                f"{frames[-1].filename.rsplit('hf_specvla/', 1)[-1]}:{frames[-1].lineno}" if frames else "elsewhere"
+            ] += 1
         return func(*args, **(kwargs or {}))

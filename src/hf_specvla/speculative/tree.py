@@ -252,9 +252,14 @@ class DraftTree:
         if not self.knows_structure():  # parents come first: the first nodes are a tree, cut on the device
             keep = max(max_nodes, 0)
             return DraftTree(
-                self.token_ids[:keep], self.parents[:keep], self.sources[:keep], None,
-                None if self.token_list is None else self.token_list[:keep], True, self.depth_bound,
-            )  # fmt: skip
+                self.token_ids[:keep],
+                self.parents[:keep],
+                self.sources[:keep],
+                None,
+                None if self.token_list is None else self.token_list[:keep],
+                True,
+                self.depth_bound,
+            )
         return self.select([i < max(max_nodes, 0) for i in range(self.num_nodes)])
 
     def merge(self, other: DraftTree) -> DraftTree:

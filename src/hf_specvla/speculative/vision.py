@@ -119,8 +119,10 @@ def encode_images(model: PreTrainedModel, inputs: dict):
         return None
     encoder = getattr(model.base_model, "get_image_features", None)
     if encoder is None:
-        raise ValueError(f"{type(model).__name__} has no base_model.get_image_features: its images cannot be encoded "
-                         f"before its forward")  # fmt: skip
+        raise ValueError(
+            f"{type(model).__name__} has no base_model.get_image_features: its images cannot be encoded "
+            f"before its forward"
+        )
     return encoder(**_encoder_inputs(encoder, inputs), return_dict=True)
 
 

@@ -9,15 +9,29 @@ are re-exported here.
 from .._lazy import lazy_exports
 
 _EXPORTS = {
-    ".configuration": ("DraftDataConfig", "DraftTrainingConfig", "PolicyDraftTrainingConfig", "TrainingConfig",
-                       "VLATrainingConfig"),
+    ".configuration": (
+        "DraftDataConfig",
+        "DraftTrainingConfig",
+        "PolicyDraftTrainingConfig",
+        "TrainingConfig",
+        "VLATrainingConfig",
+    ),
     ".loop": ("TRAINING_LOG", "VALIDATION_LOG", "TrainingJob", "learning_rate_factor", "run_training"),
-    ".draft_head": ("build_distillation_dataset", "collate_distillation", "distillation_loss", "draft_training_record",
-                    "head_settings", "head_v2_settings", "head_v3_settings", "speculative_acceptance",
-                    "train_draft_head", "accuracy_by_position"),
+    ".draft_head": (
+        "build_distillation_dataset",
+        "collate_distillation",
+        "distillation_loss",
+        "draft_training_record",
+        "head_settings",
+        "head_v2_settings",
+        "head_v3_settings",
+        "speculative_acceptance",
+        "train_draft_head",
+        "accuracy_by_position",
+    ),
     ".behaviour_cloning": ("train_vla",),
     ".rollouts": ("RolloutConfig", "collect_rollouts", "read_rollout_frames"),
-}  # fmt: skip
+}
 __all__ = sorted(name for names in _EXPORTS.values() for name in names)
 
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())

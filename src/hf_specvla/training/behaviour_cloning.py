@@ -224,8 +224,15 @@ def grow_from(policy: VLAPolicy, source: VLAPolicy) -> dict[int, int]:
         ValueError: the two policies differ in anything but decoder depth and image resolution at the same token
             grid (widths, vocabulary, token grid).
     """
-    keys = ("action_dim", "state_dim", "use_state", "vision_hidden_size", "vision_layers", "text_hidden_size",
-            "text_heads")  # fmt: skip
+    keys = (
+        "action_dim",
+        "state_dim",
+        "use_state",
+        "vision_hidden_size",
+        "vision_layers",
+        "text_hidden_size",
+        "text_heads",
+    )
     new, old = policy.config, source.config
     scale = new.image_size // old.image_size
     finer = new.num_image_tokens == old.num_image_tokens and scale >= 1 and new.patch_size == scale * old.patch_size
@@ -261,8 +268,10 @@ def grow_from(policy: VLAPolicy, source: VLAPolicy) -> dict[int, int]:
             tensor.copy_(source_kernel / scale**2)
         elif name in renamed:
             if renamed[name].shape != tensor.shape:
-                raise ValueError(f"--init-from: {name} has shape {tuple(renamed[name].shape)} in the source, "
-                                 f"{tuple(tensor.shape)} here")  # fmt: skip
+                raise ValueError(
+                    f"--init-from: {name} has shape {tuple(renamed[name].shape)} in the source, "
+                    f"{tuple(tensor.shape)} here"
+                )
             tensor.copy_(renamed[name])
         elif name.startswith(prefix) and name.endswith(("self_attn.o_proj.weight", "mlp.down_proj.weight")):
             tensor.zero_()  # a new layer: its residual branches start silent
@@ -336,10 +345,13 @@ def train_vla(
     train_idx, val_idx = split_episodes(demos, config.val_episodes, config.seed)
     if config.resume and not config.overwrite_output_dir:
         _check_resumed_policy_config(output_dir, policy.config)
-    model_settings = {f.name: getattr(policy.config, f.name) for f in fields(policy.config)
-                      if not f.name.endswith("_stats")}  # fmt: skip
-    inputs = {"policy_config": model_settings,
-              "data": fingerprint_arrays(demos.actions, demos.states, demos.episode_index)}  # fmt: skip
+    model_settings = {
+        f.name: getattr(policy.config, f.name) for f in fields(policy.config) if not f.name.endswith("_stats")
+    }
+    inputs = {
+        "policy_config": model_settings,
+        "data": fingerprint_arrays(demos.actions, demos.states, demos.episode_index),
+    }
     if init_from is not None:
         inputs["init_from"] = init_from.weights_fingerprint()
         layer_map = grow_from(policy, init_from)  # in memory only: refusals come before the folder is touched
@@ -376,10 +388,16 @@ def train_vla(
             policy.save_pretrained(folder)
 
         job = TrainingJob(
-            model, FrameDataset(demos, train_idx, chunk), loss, save,
+            model,
+            FrameDataset(demos, train_idx, chunk),
+            loss,
+            save,
             validate=(lambda model: validate(policy, model, val_loader, readout)) if len(val_idx) else None,
-            collate_fn=_collate, drop_last=True, checkpoint_name="policy", description="train-vla",
-        )  # fmt: skip
+            collate_fn=_collate,
+            drop_last=True,
+            checkpoint_name="policy",
+            description="train-vla",
+        )
         model, metrics = run_training(job, config, run.bound, progress=progress)  # the claimed folder
         policy.model = policy_model(model)
         return metrics

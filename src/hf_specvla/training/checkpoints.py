@@ -53,9 +53,17 @@ def latest_checkpoint(output_dir: str | Path) -> Path | None:
 
 #: Training settings that do not change what a run computes: a resumed run may change them.
 RUN_INDEPENDENT_SETTINGS = frozenset(
-    {"output_dir", "resume", "overwrite_output_dir", "max_steps", "eval_every", "save_every", "log_every",
-     "keep_checkpoints"}
-)  # fmt: skip
+    {
+        "output_dir",
+        "resume",
+        "overwrite_output_dir",
+        "max_steps",
+        "eval_every",
+        "save_every",
+        "log_every",
+        "keep_checkpoints",
+    }
+)
 
 
 def training_record(command: str, config, inputs: dict, paths: dict | None = None) -> RunRecord:
@@ -70,8 +78,9 @@ def training_record(command: str, config, inputs: dict, paths: dict | None = Non
     return RunRecord(command, {**settings, **inputs}, paths=paths)
 
 
-def check_output_dir(output_dir: Path, record: RunRecord | None, resume: bool, overwrite: bool,
-                     kind: str = "training run") -> None:  # fmt: skip
+def check_output_dir(
+    output_dir: Path, record: RunRecord | None, resume: bool, overwrite: bool, kind: str = "training run"
+) -> None:
     """The refusals of [`prepare_output_dir`], without writing anything (call it before a long preparation;
     ``record=None``: all but the comparison with the folder's record, e.g. before the data is known). ``kind``: what
     the folder holds, for messages; only a "training run" needs a checkpoint to resume (a folder of episodes, e.g.

@@ -33,15 +33,21 @@ def check_draft_chain(num_draft_tokens: int, tokens_per_call: int, unroll_steps:
         ValueError: naming the value, the bound and the setting to change.
     """
     if not 1 <= num_draft_tokens <= tokens_per_call - 1:
-        raise ValueError(f"num_draft_tokens={num_draft_tokens}: a call generates {tokens_per_call} tokens, the "
-                         f"first from the prefill, so a chain drafts 1..{tokens_per_call - 1} of them")  # fmt: skip
+        raise ValueError(
+            f"num_draft_tokens={num_draft_tokens}: a call generates {tokens_per_call} tokens, the "
+            f"first from the prefill, so a chain drafts 1..{tokens_per_call - 1} of them"
+        )
     if blocks and unroll_steps != num_draft_tokens:
-        raise ValueError(f"a head v3 drafts blocks of num_draft_tokens={num_draft_tokens} tokens and is trained on as "
-                         f"many: set unroll_steps={num_draft_tokens} (or leave it to its default), got "
-                         f"unroll_steps={unroll_steps}")  # fmt: skip
+        raise ValueError(
+            f"a head v3 drafts blocks of num_draft_tokens={num_draft_tokens} tokens and is trained on as "
+            f"many: set unroll_steps={num_draft_tokens} (or leave it to its default), got "
+            f"unroll_steps={unroll_steps}"
+        )
     if unroll_steps > num_draft_tokens:
-        raise ValueError(f"unroll_steps={unroll_steps} trains more draft steps than the head's chain of "
-                         f"num_draft_tokens={num_draft_tokens} drafts: use 1..{num_draft_tokens}")  # fmt: skip
+        raise ValueError(
+            f"unroll_steps={unroll_steps} trains more draft steps than the head's chain of "
+            f"num_draft_tokens={num_draft_tokens} drafts: use 1..{num_draft_tokens}"
+        )
 
 
 @dataclass
@@ -86,9 +92,12 @@ class TrainingConfig:
     mixed_precision: str = "no"
 
     def __post_init__(self):
-        check_ranges(self, at_least_one=("max_steps", "batch_size", "log_every", "keep_checkpoints"),
-                     positive=("learning_rate", "max_grad_norm"),
-                     non_negative=("weight_decay", "warmup_steps", "save_every", "eval_every"))  # fmt: skip
+        check_ranges(
+            self,
+            at_least_one=("max_steps", "batch_size", "log_every", "keep_checkpoints"),
+            positive=("learning_rate", "max_grad_norm"),
+            non_negative=("weight_decay", "warmup_steps", "save_every", "eval_every"),
+        )
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
         if self.mixed_precision not in ("no", "fp16", "bf16"):
@@ -120,11 +129,17 @@ class DraftTrainingConfig(TrainingConfig):
 
     def __post_init__(self):
         super().__post_init__()
-        check_ranges(self, non_negative=("feature_noise", "feature_loss_weight", "token_loss_weight"),
-                     at_least_one=("unroll_steps",), integers=("unroll_steps",))  # fmt: skip
+        check_ranges(
+            self,
+            non_negative=("feature_noise", "feature_loss_weight", "token_loss_weight"),
+            at_least_one=("unroll_steps",),
+            integers=("unroll_steps",),
+        )
         if self.feature_loss_weight == 0 and self.token_loss_weight == 0:
-            raise ValueError("feature_loss_weight and token_loss_weight are both 0: the loss would be 0 and the head "
-                             "untrained; give one of them a weight > 0")  # fmt: skip
+            raise ValueError(
+                "feature_loss_weight and token_loss_weight are both 0: the loss would be 0 and the head "
+                "untrained; give one of them a weight > 0"
+            )
 
 
 @dataclass
@@ -210,9 +225,11 @@ class DraftDataConfig:
 
     def __post_init__(self):
         self.tasks = resolve_tasks(self.tasks)
-        check_ranges(self, at_least_one=("rollout_max_steps", "validation_episodes", "validation_frames",
-                                         "prompt_batch_size"),
-                     non_negative=("demo_frames_per_task", "rollout_seed_start"))  # fmt: skip
+        check_ranges(
+            self,
+            at_least_one=("rollout_max_steps", "validation_episodes", "validation_frames", "prompt_batch_size"),
+            non_negative=("demo_frames_per_task", "rollout_seed_start"),
+        )
         if self.rollout_episodes <= self.validation_episodes:
             raise ValueError(
                 f"rollout_episodes ({self.rollout_episodes}) must exceed validation_episodes "

@@ -169,8 +169,9 @@ def build_distillation_dataset(
         total = sum(int(inputs["input_ids"].shape[0]) for inputs in prompts)
     bar = progress_bar(total=total, desc="self-distillation data", unit="example", disable=not progress)
     for inputs in prompts:
-        batch = _distil_prompt(target, inputs, max_new_tokens, action_tokenizer, layers, action_dim, hidden_dtype,
-                               image_features)  # fmt: skip
+        batch = _distil_prompt(
+            target, inputs, max_new_tokens, action_tokenizer, layers, action_dim, hidden_dtype, image_features
+        )
         examples.extend(batch)
         del inputs  # this prompt's images: only one prompt's are alive at a time
         bar.update(len(batch))
@@ -214,9 +215,16 @@ def _distil_prompt(
         generated_action = (positions >= prompt_len) & action_tokenizer.is_action_token(ids)
         loss_mask = torch.zeros(length, dtype=torch.bool)
         loss_mask[: length - 2] = generated_action[2:]  # position p predicts token p+2
-        examples.append({"input_ids": ids, "hidden": row_states, "loss_mask": loss_mask,
-                         "first_position": torch.tensor(prompt_len),
-                         PREVIOUS_ACTION: row_previous.long(), **row_images})  # fmt: skip
+        examples.append(
+            {
+                "input_ids": ids,
+                "hidden": row_states,
+                "loss_mask": loss_mask,
+                "first_position": torch.tensor(prompt_len),
+                PREVIOUS_ACTION: row_previous.long(),
+                **row_images,
+            }
+        )
     return examples
 
 
@@ -404,8 +412,9 @@ def block_entries(features: torch.Tensor, roots: torch.Tensor, num_queries: int)
     return features.gather(1, drafting[..., None].expand(-1, -1, features.shape[-1]))
 
 
-def _uniform_rows(generators: list[torch.Generator] | None, lengths: list[int], width: int, batch: int,
-                  length: int) -> torch.Tensor:  # fmt: skip
+def _uniform_rows(
+    generators: list[torch.Generator] | None, lengths: list[int], width: int, batch: int, length: int
+) -> torch.Tensor:
     """``[batch, length, width]`` uniform [0, 1) numbers: row i's first ``lengths[i]`` positions from
     ``generators[i]`` (the rest 0: padding); without generators, the whole from torch's global generator."""
     if generators is None:
@@ -608,8 +617,10 @@ def _previous_bins(draft_head: DraftHead, batch: dict[str, torch.Tensor]) -> tor
     if bool((ids < 0).all()):  # no example has one
         return draft_head.no_previous_action(ids.device).expand(ids.shape[0], -1)
     if ids.shape[1] != action_dim:
-        raise ValueError(f"the distillation set's previous actions have {ids.shape[1]} tokens, the head's actions "
-                         f"{action_dim}: build the set with the policy's previous actions")  # fmt: skip
+        raise ValueError(
+            f"the distillation set's previous actions have {ids.shape[1]} tokens, the head's actions "
+            f"{action_dim}: build the set with the policy's previous actions"
+        )
     tokenizer = draft_head.config.action_tokenizer()
     known = tokenizer.is_action_token(ids).all(dim=1, keepdim=True)  # [B, 1]: a whole previous action
     none = torch.full_like(ids, draft_head.config.n_action_bins)
@@ -680,11 +691,15 @@ def train_draft_head(
             return losses["loss"], {name: value.detach() for name, value in losses.items()}
 
         job = TrainingJob(
-            DistillationObjective(draft_head, handles, config), dataset, loss,
+            DistillationObjective(draft_head, handles, config),
+            dataset,
+            loss,
             save=lambda objective, folder: objective.head.save_pretrained(folder),
             validate=None if validate is None else lambda objective: validate(objective.head),
-            collate_fn=collate_distillation, checkpoint_name="draft_head", description="train draft head",
-        )  # fmt: skip
+            collate_fn=collate_distillation,
+            checkpoint_name="draft_head",
+            description="train draft head",
+        )
         objective, _ = run_training(job, config, run.bound, accelerator, progress)  # run.bound: the claimed folder
         return objective.head
 
@@ -755,25 +770,40 @@ def distil_draft_head(
     target_fingerprint = target_fingerprint or fingerprint(target)
     torch.manual_seed(training_config.seed)  # the head's initialisation
     head = DraftHead.from_target(
-        target, action_tokenizer, action_dim=action_dim, num_draft_tokens=num_draft_tokens,
-        target_name_or_path=target_name_or_path, target_fingerprint=target_fingerprint, **(head_settings or {}),
-    )  # fmt: skip
+        target,
+        action_tokenizer,
+        action_dim=action_dim,
+        num_draft_tokens=num_draft_tokens,
+        target_name_or_path=target_name_or_path,
+        target_fingerprint=target_fingerprint,
+        **(head_settings or {}),
+    )
     if hidden_dtype is None:  # half of a float32 target's; a half-precision target's stay as they are
         hidden_dtype = STORED_HIDDEN_DTYPE if target.dtype == torch.float32 else target.dtype
     recipe = {**recipe, "distillation": {"hidden_dtype": str(hidden_dtype).removeprefix("torch.")}}
     record = draft_training_record(head, target_fingerprint, training_config, recipe, paths)
-    check_output_dir(Path(training_config.output_dir), record, training_config.resume,
-                     training_config.overwrite_output_dir)  # fmt: skip
+    check_output_dir(
+        Path(training_config.output_dir), record, training_config.resume, training_config.overwrite_output_dir
+    )
     training_prompts, held_out_prompts = prompts()
     action_tokenizer = action_tokenizer or target.action_tokenizer  # the labels' action ids, as the head's default
-    build = dict(max_new_tokens=tokens_per_call, action_tokenizer=action_tokenizer, action_dim=action_dim,
-                 hidden_state_layers=head.config.hidden_state_layers, hidden_dtype=hidden_dtype,
-                 image_features=head.config.prefill_image_features)  # fmt: skip
+    build = dict(
+        max_new_tokens=tokens_per_call,
+        action_tokenizer=action_tokenizer,
+        action_dim=action_dim,
+        hidden_state_layers=head.config.hidden_state_layers,
+        hidden_dtype=hidden_dtype,
+        image_features=head.config.prefill_image_features,
+    )
     dataset = build_distillation_dataset(target, training_prompts, progress=progress, **build)
     data_record = distillation_set_record(dataset)
-    logger.info("distillation set: %d examples, %.2f GB of hidden states (%s); peak memory so far %.2f GB",
-                len(dataset), data_record["measured"]["hidden_bytes"] / 1e9, data_record["data"]["hidden_dtype"],
-                data_record["measured"]["peak_rss_gb"])  # fmt: skip
+    logger.info(
+        "distillation set: %d examples, %.2f GB of hidden states (%s); peak memory so far %.2f GB",
+        len(dataset),
+        data_record["measured"]["hidden_bytes"] / 1e9,
+        data_record["data"]["hidden_dtype"],
+        data_record["measured"]["peak_rss_gb"],
+    )
 
     by_position = {}  # head v3: top-1 by token position on training and held-out frames, so overfitting shows
     if head.config.uses_mask_queries:
@@ -782,16 +812,27 @@ def distil_draft_head(
         by_position = {"train": DistillationDataset([dataset[i] for i in spread]), "held_out": held_out}
 
     def validate(draft_head: DraftHead) -> dict:
-        metrics = speculative_acceptance(target, draft_head, held_out_prompts, tokens_per_call,
-                                         action_layout=action_layout)  # fmt: skip
+        metrics = speculative_acceptance(
+            target, draft_head, held_out_prompts, tokens_per_call, action_layout=action_layout
+        )
         if by_position:
-            metrics["accuracy_by_position"] = {name: accuracy_by_position(draft_head, target, frames)
-                                               for name, frames in by_position.items()}  # fmt: skip
+            metrics["accuracy_by_position"] = {
+                name: accuracy_by_position(draft_head, target, frames) for name, frames in by_position.items()
+            }
         return metrics
 
-    return train_draft_head(head, target, dataset, training_config, progress=progress, validate=validate,
-                            inputs=recipe, target_fingerprint=target_fingerprint, paths=paths,
-                            data_record=data_record)  # fmt: skip
+    return train_draft_head(
+        head,
+        target,
+        dataset,
+        training_config,
+        progress=progress,
+        validate=validate,
+        inputs=recipe,
+        target_fingerprint=target_fingerprint,
+        paths=paths,
+        data_record=data_record,
+    )
 
 
 def distillation_set_record(dataset: DistillationDataset) -> dict:
@@ -799,9 +840,11 @@ def distillation_set_record(dataset: DistillationDataset) -> dict:
     resumed: the examples, their token ids' fingerprint, the hidden states' dtype) and ``measured`` (for people: the
     hidden states' size in bytes and the process's peak memory when the set was built, in GB)."""
     hidden = [example["hidden"] for example in dataset.examples]
-    data = {"examples": len(dataset),
-            "token_ids": fingerprint_arrays(*[example["input_ids"] for example in dataset.examples]),
-            "hidden_dtype": str(hidden[0].dtype).removeprefix("torch.")}  # fmt: skip
+    data = {
+        "examples": len(dataset),
+        "token_ids": fingerprint_arrays(*[example["input_ids"] for example in dataset.examples]),
+        "hidden_dtype": str(hidden[0].dtype).removeprefix("torch."),
+    }
     hidden_bytes = sum(h.numel() * h.element_size() for h in hidden)
     return {"data": data, "measured": {"hidden_bytes": hidden_bytes, "peak_rss_gb": round(peak_rss_gb(), 3)}}
 
@@ -823,8 +866,11 @@ def _check_data_record(folder: Path, data_record: dict, continued: bool) -> None
     path = folder / DATA_RECORD
     if continued and path.is_file():
         saved = json.loads(path.read_text())["data"]
-        differences = [f"{key}: {data_record['data'].get(key)!r} here vs {value!r} there"
-                       for key, value in saved.items() if data_record["data"].get(key) != value]  # fmt: skip
+        differences = [
+            f"{key}: {data_record['data'].get(key)!r} here vs {value!r} there"
+            for key, value in saved.items()
+            if data_record["data"].get(key) != value
+        ]
         if differences:
             raise FileExistsError(
                 f"{str(folder)!r} was trained on another distillation set than the one rebuilt to resume it "
@@ -925,10 +971,15 @@ def speculative_acceptance(
         if previous is not None and bool((previous >= 0).all()):
             drafter = chain.with_previous_action(previous[0].tolist())
         output = target.generate(
-            **inputs, max_new_tokens=max_new_tokens, min_new_tokens=max_new_tokens, do_sample=False,
-            custom_generate=speculative_generate, drafter=drafter, return_dict_in_generate=True,
+            **inputs,
+            max_new_tokens=max_new_tokens,
+            min_new_tokens=max_new_tokens,
+            do_sample=False,
+            custom_generate=speculative_generate,
+            drafter=drafter,
+            return_dict_in_generate=True,
             **{"bin_tolerance": 0, **generate_kwargs},
-        )  # fmt: skip
+        )
         stats = stats.merge(output.speculation)
         sequences += 1
     if not sequences:

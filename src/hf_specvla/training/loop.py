@@ -87,9 +87,11 @@ def default_accelerator(config) -> Accelerator:
     the schedule stepped once an optimizer step (accelerate's default steps it once a process: n processes would
     warm up and decay n times faster than one)."""
     return Accelerator(
-        mixed_precision=config.mixed_precision, dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
-        cpu=on_cpu_processes(), step_scheduler_with_optimizer=False,
-    )  # fmt: skip
+        mixed_precision=config.mixed_precision,
+        dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
+        cpu=on_cpu_processes(),
+        step_scheduler_with_optimizer=False,
+    )
 
 
 def _numbers(metrics: dict, over_processes: bool = False) -> dict:
@@ -112,8 +114,9 @@ def _append_jsonl(path: Path, row: dict) -> None:
         log.write(json.dumps(row) + "\n")
 
 
-def run_training(job: TrainingJob, config, output_dir: Path, accelerator: Accelerator | None = None,
-                 progress: bool = True) -> tuple[torch.nn.Module, dict[str, float]]:  # fmt: skip
+def run_training(
+    job: TrainingJob, config, output_dir: Path, accelerator: Accelerator | None = None, progress: bool = True
+) -> tuple[torch.nn.Module, dict[str, float]]:
     """Trains ``job.model`` for ``config.max_steps`` optimizer steps into ``output_dir`` (a folder the caller holds,
     see ``checkpoints.prepare_output_dir``); with ``config.resume`` continues from its newest checkpoint.
 
@@ -137,8 +140,9 @@ def run_training(job: TrainingJob, config, output_dir: Path, accelerator: Accele
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda step: learning_rate_factor(step, config.warmup_steps, config.max_steps, config.lr_schedule)
     )
-    loader = DataLoader(job.dataset, batch_size=config.batch_size, shuffle=True, collate_fn=job.collate_fn,
-                        drop_last=job.drop_last)  # fmt: skip
+    loader = DataLoader(
+        job.dataset, batch_size=config.batch_size, shuffle=True, collate_fn=job.collate_fn, drop_last=job.drop_last
+    )
     model, optimizer, loader, scheduler = accelerator.prepare(model, optimizer, loader, scheduler)
     if len(loader) == 0:
         raise ValueError(f"batch_size={config.batch_size} leaves no batch of {len(job.dataset)} examples")
@@ -162,8 +166,12 @@ def run_training(job: TrainingJob, config, output_dir: Path, accelerator: Accele
         logger.info("%s: resuming from step %d", job.description, step)
     if step >= config.max_steps:
         logger.info("%s: nothing to do, checkpoint step %d >= max_steps %d", job.description, step, config.max_steps)
-    bar = progress_bar(total=config.max_steps, initial=step, desc=job.description,
-                       disable=not progress or not accelerator.is_main_process)  # fmt: skip
+    bar = progress_bar(
+        total=config.max_steps,
+        initial=step,
+        desc=job.description,
+        disable=not progress or not accelerator.is_main_process,
+    )
     metrics: dict[str, float] = {}
     while step < config.max_steps:
         epoch, offset = divmod(step, len(loader))

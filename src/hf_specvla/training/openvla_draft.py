@@ -123,8 +123,10 @@ def distillation_prompts(
                 f"frame {index}: previous_action must be {action_dim} action token ids (ids "
                 f"{tokenizer.action_token_begin}..{tokenizer.vocab_size - 1}), got {previous}"
             )
-    return [{**prompt, PREVIOUS_ACTION: torch.tensor([frame.previous_action or [-1] * action_dim])}
-            for prompt, frame in zip(openvla_prompts(model, processor, frames), frames)]  # fmt: skip
+    return [
+        {**prompt, PREVIOUS_ACTION: torch.tensor([frame.previous_action or [-1] * action_dim])}
+        for prompt, frame in zip(openvla_prompts(model, processor, frames), frames)
+    ]
 
 
 def train_openvla_draft_head(
@@ -159,11 +161,18 @@ def train_openvla_draft_head(
         return train_prompts, distillation_prompts(model, processor, validation_frames, unnorm_key)
 
     return distil_draft_head(
-        model, training_config, recipe, prompts, action_dim, action_dim=action_dim,
-        num_draft_tokens=num_draft_tokens, action_layout=model.action_layout(unnorm_key),
-        target_name_or_path=model.config._name_or_path or None, progress=progress,
+        model,
+        training_config,
+        recipe,
+        prompts,
+        action_dim,
+        action_dim=action_dim,
+        num_draft_tokens=num_draft_tokens,
+        action_layout=model.action_layout(unnorm_key),
+        target_name_or_path=model.config._name_or_path or None,
+        progress=progress,
         head_settings=head_v2_settings(model) if head_version == "v2" else None,
-    )  # fmt: skip
+    )
 
 
 def fingerprint_prompts(prompts: list[dict[str, torch.Tensor]]) -> str:

@@ -96,8 +96,11 @@ class PolicyPrompts(Sequence):
         by_instruction: dict[str, list[int]] = {}  # frame indices per instruction, in order of first appearance
         for index, instruction in enumerate(instructions):
             by_instruction.setdefault(instruction, []).append(index)
-        self.batches = [group[start : start + batch_size] for group in by_instruction.values()
-                        for start in range(0, len(group), batch_size)]  # fmt: skip
+        self.batches = [
+            group[start : start + batch_size]
+            for group in by_instruction.values()
+            for start in range(0, len(group), batch_size)
+        ]
         self.num_examples = len(instructions)
 
     def __len__(self) -> int:
@@ -171,28 +174,40 @@ def train_policy_draft_head(
     output_dir = Path(training_config.output_dir)
     if num_draft_tokens is None:
         num_draft_tokens = policy.config.action_tokens - 1
-    check_draft_chain(num_draft_tokens, policy.config.action_tokens, training_config.unroll_steps,
-                      head_version == "v3")  # before any rollout  # fmt: skip
+    check_draft_chain(
+        num_draft_tokens, policy.config.action_tokens, training_config.unroll_steps, head_version == "v3"
+    )  # before any rollout
     env_config = EnvConfig(image_size=policy.config.image_size, camera=policy.config.camera)
-    recipe = {"data": {**asdict(data_config),
-                       "demonstration_fingerprints": [dataset_fingerprint(root) for root in demonstrations],
-                       "demonstration_info": [dataset_info(root) for root in demonstrations]}}  # fmt: skip
+    recipe = {
+        "data": {
+            **asdict(data_config),
+            "demonstration_fingerprints": [dataset_fingerprint(root) for root in demonstrations],
+            "demonstration_info": [dataset_info(root) for root in demonstrations],
+        }
+    }
     paths = {"demonstrations": demonstrations}
     read = None  # the frames of a rollouts folder, read (and fingerprinted) before the folder rule is checked
     if rollouts is not None:
         read = read_rollout_frames(rollouts, policy, data_config)
         recipe["data"]["rollouts_fingerprint"] = read.fingerprint
         paths["rollouts"] = str(rollouts)
-        logger.info("read %d episodes (%d + %d frames) from %s (fingerprint %s)", read.episodes, len(read.train),
-                    len(read.validation), rollouts, read.fingerprint)  # fmt: skip
+        logger.info(
+            "read %d episodes (%d + %d frames) from %s (fingerprint %s)",
+            read.episodes,
+            len(read.train),
+            len(read.validation),
+            rollouts,
+            read.fingerprint,
+        )
     sequences = 0  # training sequences, one per frame (for the model card)
 
     def prompts() -> tuple[PolicyPrompts, PolicyPrompts]:
         if read is not None:  # read lazily, an episode at a time, as each batch of prompts is built
             train_frames, validation_frames = read.train, read.validation
         else:
-            logger.info("on-policy rollouts: %d per task on %d tasks", data_config.rollout_episodes,
-                        len(data_config.tasks))  # fmt: skip
+            logger.info(
+                "on-policy rollouts: %d per task on %d tasks", data_config.rollout_episodes, len(data_config.tasks)
+            )
             train_frames, validation_frames = rollout_frames(policy, data_config, env_config)
         if demonstrations:
             train_frames = ConcatDataset([train_frames, demonstration_frames(demonstrations, data_config, policy)])
@@ -200,20 +215,40 @@ def train_policy_draft_head(
         logger.info("%d training frames, %d held-out frames", len(train_frames), len(validation_frames))
         nonlocal sequences
         sequences = len(train_frames)
-        return (policy_prompts(policy, train_frames, data_config.prompt_batch_size),
-                policy_prompts(policy, validation_frames, batch_size=1))  # fmt: skip
+        return (
+            policy_prompts(policy, train_frames, data_config.prompt_batch_size),
+            policy_prompts(policy, validation_frames, batch_size=1),
+        )
 
     head = distil_draft_head(
-        policy.model, training_config, recipe, prompts, policy.config.action_tokens,
-        action_tokenizer=policy.action_tokenizer, action_dim=policy.config.action_dim,
-        num_draft_tokens=num_draft_tokens, action_layout=policy.action_layout, target_name_or_path=policy.name_or_path,
-        target_fingerprint=policy.weights_fingerprint(), paths=paths, progress=progress,
+        policy.model,
+        training_config,
+        recipe,
+        prompts,
+        policy.config.action_tokens,
+        action_tokenizer=policy.action_tokenizer,
+        action_dim=policy.config.action_dim,
+        num_draft_tokens=num_draft_tokens,
+        action_layout=policy.action_layout,
+        target_name_or_path=policy.name_or_path,
+        target_fingerprint=policy.weights_fingerprint(),
+        paths=paths,
+        progress=progress,
         head_settings=head_settings(head_version, policy.model, image_features),
-    )  # fmt: skip
+    )
     if is_main_process():
-        write_model_card(output_dir, head, training_config, data_config, demonstrations, sequences, command,
-                         policy.config.action_tokens, paths.get("rollouts"),
-                         read.fingerprint if read else None)  # fmt: skip
+        write_model_card(
+            output_dir,
+            head,
+            training_config,
+            data_config,
+            demonstrations,
+            sequences,
+            command,
+            policy.config.action_tokens,
+            paths.get("rollouts"),
+            read.fingerprint if read else None,
+        )
     return head
 
 
@@ -221,8 +256,11 @@ def train_policy_draft_head(
 def _head_v3_card(config, training_config: DraftTrainingConfig, by_position: dict) -> str:
     """The model card's head-v3 paragraph: its modes, and its top-1 by token position on training and held-out frames
     (``accuracy_by_position`` of the last validation), side by side so that overfitting shows."""
-    modes = [f"drafts a block of {config.num_draft_tokens} tokens per head forward" if config.draft_mode == "block"
-             else "drafts a chain (one head forward per token)"]  # fmt: skip
+    modes = [
+        f"drafts a block of {config.num_draft_tokens} tokens per head forward"
+        if config.draft_mode == "block"
+        else "drafts a chain (one head forward per token)"
+    ]
     if config.prefill_drafts:
         modes.append("drafts the whole action before the prefill (from the prompt and the previous action)")
     text = (
@@ -235,10 +273,12 @@ def _head_v3_card(config, training_config: DraftTrainingConfig, by_position: dic
             continue
         first = 0 if mode == "before_prefill" else 1  # the action's token each entry drafts
         header = " | ".join(f"token {first + i}" for i in range(len(train)))
-        text += (f"\nTop-1 by token {mode.replace('_', ' ')} (teacher-forced, the policy's own greedy tokens):\n\n"
-                 f"| frames | {header} |\n|---|{'---:|' * len(train)}\n"
-                 f"| training | {' | '.join(f'{x:.1%}' for x in train)} |\n"
-                 f"| held-out | {' | '.join(f'{x:.1%}' for x in held_out)} |\n")  # fmt: skip
+        text += (
+            f"\nTop-1 by token {mode.replace('_', ' ')} (teacher-forced, the policy's own greedy tokens):\n\n"
+            f"| frames | {header} |\n|---|{'---:|' * len(train)}\n"
+            f"| training | {' | '.join(f'{x:.1%}' for x in train)} |\n"
+            f"| held-out | {' | '.join(f'{x:.1%}' for x in held_out)} |\n"
+        )
     return text
 
 
@@ -266,14 +306,19 @@ def write_model_card(
         reads = [f"the policy's hidden states of layers {list(config.hidden_state_layers)} (fused)"]
         if config.previous_action_input:
             reads.append("the robot's previous action")
-        version = (f"\nHead v2: it reads {' and '.join(reads)}; trained on {training_config.unroll_steps} unrolled "
-                   f"draft steps of its own features (training-time test).\n")  # fmt: skip
+        version = (
+            f"\nHead v2: it reads {' and '.join(reads)}; trained on {training_config.unroll_steps} unrolled "
+            f"draft steps of its own features (training-time test).\n"
+        )
     if config.uses_mask_queries:
         version = _head_v3_card(config, training_config, final.get("accuracy_by_position", {}))
     tasks = ", ".join(data_config.tasks)
     kept_rollouts = data_config.rollout_episodes - data_config.validation_episodes
-    source = (f", read from the `hf-specvla rollouts` folder `{rollouts}` (episodes fingerprint "
-              f"`{rollouts_fingerprint}`)" if rollouts else "")  # fmt: skip
+    source = (
+        f", read from the `hf-specvla rollouts` folder `{rollouts}` (episodes fingerprint `{rollouts_fingerprint}`)"
+        if rollouts
+        else ""
+    )
     demo_text = (
         f"and {data_config.demo_frames_per_task} demonstration frames per task from {', '.join(demonstrations)}"
         if demonstrations

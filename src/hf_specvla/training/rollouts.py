@@ -91,9 +91,12 @@ class RolloutConfig:
 
     def __post_init__(self):
         self.tasks = resolve_tasks(self.tasks)
-        check_ranges(self, at_least_one=("episodes_per_task", "max_steps", "workers", "threads"),
-                     non_negative=("seed_start",),
-                     integers=("episodes_per_task", "max_steps", "workers", "threads", "seed_start"))  # fmt: skip
+        check_ranges(
+            self,
+            at_least_one=("episodes_per_task", "max_steps", "workers", "threads"),
+            non_negative=("seed_start",),
+            integers=("episodes_per_task", "max_steps", "workers", "threads", "seed_start"),
+        )
         if self.max_episodes is not None:
             check_ranges(self, at_least_one=("max_episodes",), integers=("max_episodes",))
         self.decoding_method()  # refuses a method that is unknown, relaxed or needs a head
@@ -109,9 +112,11 @@ class RolloutConfig:
         method = DecodingMethod.parse(self.method, draft_head_given=False, action_dim=action_dim)
         if not method.lossless or method.uses_draft_head:
             why = "relaxes acceptance (its tokens are not greedy's)" if not method.lossless else "needs a draft head"
-            raise ValueError(f"RolloutConfig.method {self.method!r} {why}: the labels are the policy's greedy actions; "
-                             f"give a lossless method without a head: greedy, prior+jacobi, exact (the "
-                             f"fastest)")  # fmt: skip
+            raise ValueError(
+                f"RolloutConfig.method {self.method!r} {why}: the labels are the policy's greedy actions; "
+                f"give a lossless method without a head: greedy, prior+jacobi, exact (the "
+                f"fastest)"
+            )
         return method
 
     def pairs(self) -> list[tuple[str, int]]:
@@ -130,8 +135,13 @@ def env_config_for(policy_config) -> EnvConfig:
 def rollout_settings(policy: VLAPolicy, config: RolloutConfig) -> dict:
     """The settings a rollouts folder records and compares (``run.json``): what the episodes' content depends on."""
     method = config.decoding_method(policy.config.action_dim)
-    return {"policy": policy.weights_fingerprint(), "env": asdict(env_config_for(policy.config)),
-            "seed_start": config.seed_start, "max_steps": config.max_steps, "method": method.name}  # fmt: skip
+    return {
+        "policy": policy.weights_fingerprint(),
+        "env": asdict(env_config_for(policy.config)),
+        "seed_start": config.seed_start,
+        "max_steps": config.max_steps,
+        "method": method.name,
+    }
 
 
 # ----------------------------------------------------------------------------- one episode
@@ -140,9 +150,14 @@ def episode_path(folder: str | Path, task: str, seed: int) -> Path:
     return Path(folder) / EPISODES_DIR / task / f"{seed}.npz"
 
 
-def collect_episode(policy: VLAPolicy, env: MetaWorldEnv, seed: int, max_steps: int,
-                    generate_kwargs: dict | None = None, decoding: DecodingPlan | None = None,
-                    ) -> dict[str, np.ndarray]:  # fmt: skip
+def collect_episode(
+    policy: VLAPolicy,
+    env: MetaWorldEnv,
+    seed: int,
+    max_steps: int,
+    generate_kwargs: dict | None = None,
+    decoding: DecodingPlan | None = None,
+) -> dict[str, np.ndarray]:
     """One greedy episode from ``env.reset(seed)``, at most ``max_steps`` policy calls: the arrays of the module
     docstring (the frames ``record_observations`` records, plus the labels and the executed actions). ``decoding``
     (a lossless method's typed plan) and ``generate_kwargs`` go to every ``predict_action``."""
@@ -155,11 +170,24 @@ def collect_episode(policy: VLAPolicy, env: MetaWorldEnv, seed: int, max_steps: 
     def decide(rows: list[int], current: list[dict]) -> list:
         obs = current[0]
         previous = policy.previous_action_ids[-1] if policy.previous_action_ids else [-1] * action_dim
-        action, output = policy.predict_action(obs["image"], obs["instruction"], obs["state"], return_output=True,
-                                               decoding=decoding, **(generate_kwargs or {}))  # fmt: skip
+        action, output = policy.predict_action(
+            obs["image"],
+            obs["instruction"],
+            obs["state"],
+            return_output=True,
+            decoding=decoding,
+            **(generate_kwargs or {}),
+        )
         sequences = output.sequences if hasattr(output, "sequences") else output
-        frames.append({"image": obs["image"], "state": obs["state"], "previous_action": previous,
-                       "action_ids": sequences[0, -tokens:].tolist(), "action": action})  # fmt: skip
+        frames.append(
+            {
+                "image": obs["image"],
+                "state": obs["state"],
+                "previous_action": previous,
+                "action_ids": sequences[0, -tokens:].tolist(),
+                "action": action,
+            }
+        )
         return [policy.action_steps(action)]
 
     (episode,) = rollout([env], [seed], decide, max_decisions=max_steps)
@@ -214,16 +242,27 @@ def episode_frames(arrays: dict[str, np.ndarray], max_steps: int | None = None) 
     frames = []
     for t in range(count):
         previous = arrays["previous_action"][t]
-        frames.append({"image": arrays["image"][t], "instruction": instruction, "state": arrays["state"][t],
-                       "previous_action": None if previous[0] < 0 else previous.tolist()})  # fmt: skip
+        frames.append(
+            {
+                "image": arrays["image"][t],
+                "instruction": instruction,
+                "state": arrays["state"][t],
+                "previous_action": None if previous[0] < 0 else previous.tolist(),
+            }
+        )
     return frames
 
 
 # ----------------------------------------------------------------------------- collection
 def _manifest_entry(arrays: dict[str, np.ndarray]) -> dict:
-    return {"task": str(arrays["task"]), "seed": int(arrays["seed"]), "frames": len(arrays["image"]),
-            "length": int(arrays["length"]), "success": bool(arrays["success"]),
-            "fingerprint": episode_fingerprint(arrays)}  # fmt: skip
+    return {
+        "task": str(arrays["task"]),
+        "seed": int(arrays["seed"]),
+        "frames": len(arrays["image"]),
+        "length": int(arrays["length"]),
+        "success": bool(arrays["success"]),
+        "fingerprint": episode_fingerprint(arrays),
+    }
 
 
 def rollouts_fingerprint(entries: list[dict]) -> str:
@@ -267,8 +306,13 @@ class _EnvCache:
         self.envs = {}
 
 
-def _collect_pairs(policy: VLAPolicy, config: RolloutConfig, pairs: list[tuple[str, int]], folder: Path,
-                   on_episode: Callable[[dict], None] | None = None) -> None:  # fmt: skip
+def _collect_pairs(
+    policy: VLAPolicy,
+    config: RolloutConfig,
+    pairs: list[tuple[str, int]],
+    folder: Path,
+    on_episode: Callable[[dict], None] | None = None,
+) -> None:
     """Collects and saves each (task, seed) of ``pairs`` in order into ``folder``; ``on_episode(arrays)`` after each."""
     method = config.decoding_method(policy.config.action_dim)
     plan = method.plan(None, policy.model.device.type, action_dim=policy.config.action_dim)
@@ -309,8 +353,9 @@ def _collect_in_workers(policy_dir: str, config: RolloutConfig, pending: list, f
     shards = [pending[i :: config.workers] for i in range(config.workers)]
     start, shown = len(finished_pairs(folder)), 0
     with ProcessPoolExecutor(config.workers, mp_context=get_context("spawn")) as pool:
-        running = {pool.submit(_worker_main, policy_dir, asdict(config), shard, str(folder))
-                   for shard in shards if shard}  # fmt: skip
+        running = {
+            pool.submit(_worker_main, policy_dir, asdict(config), shard, str(folder)) for shard in shards if shard
+        }
         while running:
             finished, running = wait(running, timeout=5, return_when=FIRST_EXCEPTION)
             for future in finished:
@@ -320,8 +365,14 @@ def _collect_in_workers(policy_dir: str, config: RolloutConfig, pending: list, f
             shown = saved
 
 
-def collect_rollouts(policy: VLAPolicy, config: RolloutConfig, output_dir: str | Path, resume: bool = False,
-                     overwrite: bool = False, progress: bool = True) -> dict:  # fmt: skip
+def collect_rollouts(
+    policy: VLAPolicy,
+    config: RolloutConfig,
+    output_dir: str | Path,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> dict:
     """Collects ``config``'s greedy episodes of ``policy`` into ``output_dir`` (see module docstring); resumable.
 
     ``workers`` > 1 spawns processes that load the policy from ``policy.name_or_path``.
@@ -342,8 +393,10 @@ def collect_rollouts(policy: VLAPolicy, config: RolloutConfig, output_dir: str |
 
     output_dir = Path(output_dir)
     if config.workers > 1 and policy.name_or_path is None:
-        raise ValueError("RolloutConfig.workers > 1 loads the policy in each worker: load it with "
-                         "VLAPolicy.from_pretrained(folder), or use workers=1")  # fmt: skip
+        raise ValueError(
+            "RolloutConfig.workers > 1 loads the policy in each worker: load it with "
+            "VLAPolicy.from_pretrained(folder), or use workers=1"
+        )
     record = RunRecord(COMMAND, rollout_settings(policy, config), paths={"policy": policy.name_or_path})
     check_rollouts_folder(output_dir, record, resume, overwrite)
     started = time.perf_counter()
@@ -357,19 +410,25 @@ def collect_rollouts(policy: VLAPolicy, config: RolloutConfig, output_dir: str |
         missing = [pair for pair in wanted if pair not in done]
         pending = missing[: config.max_episodes]  # (None: all)
         finished = len(wanted) - len(missing)
-        logger.info("%d of %d episodes already in %s; collecting %d with %d worker(s), method %s", finished,
-                    len(wanted), output_dir, len(pending), config.workers,
-                    config.decoding_method(policy.config.action_dim).name)  # fmt: skip
-        bar = progress_bar(total=len(wanted), initial=finished, desc="rollouts", unit="episode",
-                           disable=not progress)  # fmt: skip
+        logger.info(
+            "%d of %d episodes already in %s; collecting %d with %d worker(s), method %s",
+            finished,
+            len(wanted),
+            output_dir,
+            len(pending),
+            config.workers,
+            config.decoding_method(policy.config.action_dim).name,
+        )
+        bar = progress_bar(total=len(wanted), initial=finished, desc="rollouts", unit="episode", disable=not progress)
         successes, frames = [], []
 
         def on_episode(arrays: dict) -> None:
             successes.append(bool(arrays["success"]))
             frames.append(len(arrays["image"]))
             bar.update(1)
-            bar.set_postfix(task=str(arrays["task"]), success=f"{np.mean(successes):.0%}",
-                            frames=f"{np.mean(frames):.0f}")  # fmt: skip
+            bar.set_postfix(
+                task=str(arrays["task"]), success=f"{np.mean(successes):.0%}", frames=f"{np.mean(frames):.0f}"
+            )
 
         if config.workers == 1 or len(pending) <= 1:
             _collect_pairs(policy, config, pending, folder, on_episode)
@@ -379,8 +438,15 @@ def collect_rollouts(policy: VLAPolicy, config: RolloutConfig, output_dir: str |
         manifest = write_manifest(folder, set(wanted))
         manifest["new_episodes"], manifest["seconds"] = len(pending), time.perf_counter() - started
     rate = 60 * len(pending) / max(manifest["seconds"], 1e-9)
-    logger.info("%d new episodes in %.0f s (%.2f per minute); %d in %s, complete: %s", len(pending),
-                manifest["seconds"], rate, len(manifest["episodes"]), output_dir, manifest["complete"])  # fmt: skip
+    logger.info(
+        "%d new episodes in %.0f s (%.2f per minute); %d in %s, complete: %s",
+        len(pending),
+        manifest["seconds"],
+        rate,
+        len(manifest["episodes"]),
+        output_dir,
+        manifest["complete"],
+    )
     return manifest
 
 
@@ -425,8 +491,10 @@ def read_rollouts_record(folder: str | Path) -> dict:
     run_file = folder / RUN_FILE
     record = json.loads(run_file.read_text()) if run_file.is_file() else {}
     if record.get("command") != COMMAND:
-        raise FileNotFoundError(f"{str(folder)!r} is not a rollouts folder (no {RUN_FILE} of hf-specvla rollouts); "
-                                f"collect one with hf-specvla rollouts --policy ... --output-dir {folder}")  # fmt: skip
+        raise FileNotFoundError(
+            f"{str(folder)!r} is not a rollouts folder (no {RUN_FILE} of hf-specvla rollouts); "
+            f"collect one with hf-specvla rollouts --policy ... --output-dir {folder}"
+        )
     return record["settings"]
 
 
@@ -504,21 +572,27 @@ def check_rollouts_for(folder: str | Path, policy: VLAPolicy, data_config) -> No
     folder = Path(folder)
     settings = read_rollouts_record(folder)
     if settings["policy"] != policy.weights_fingerprint():
-        raise ValueError(f"rollouts folder {str(folder)!r} holds rollouts of another policy (weights fingerprint "
-                         f"{settings['policy']}; {policy.name_or_path or 'this policy'} is "
-                         f"{policy.weights_fingerprint()}); collect this policy's with hf-specvla rollouts --policy "
-                         f"{policy.name_or_path or '<folder>'}")  # fmt: skip
+        raise ValueError(
+            f"rollouts folder {str(folder)!r} holds rollouts of another policy (weights fingerprint "
+            f"{settings['policy']}; {policy.name_or_path or 'this policy'} is "
+            f"{policy.weights_fingerprint()}); collect this policy's with hf-specvla rollouts --policy "
+            f"{policy.name_or_path or '<folder>'}"
+        )
     env = asdict(env_config_for(policy.config))
     if settings["env"] != env:
         raise ValueError(f"rollouts folder {str(folder)!r} was rendered with {settings['env']}, the policy sees {env}")
     if settings["seed_start"] != data_config.rollout_seed_start:
-        raise ValueError(f"rollouts folder {str(folder)!r} starts at seed {settings['seed_start']}, "
-                         f"rollout_seed_start is {data_config.rollout_seed_start}: give --rollout-seed-start "
-                         f"{settings['seed_start']}")  # fmt: skip
+        raise ValueError(
+            f"rollouts folder {str(folder)!r} starts at seed {settings['seed_start']}, "
+            f"rollout_seed_start is {data_config.rollout_seed_start}: give --rollout-seed-start "
+            f"{settings['seed_start']}"
+        )
     if data_config.rollout_max_steps > settings["max_steps"]:
-        raise ValueError(f"rollouts folder {str(folder)!r} cut its episodes at {settings['max_steps']} policy calls, "
-                         f"rollout_max_steps is {data_config.rollout_max_steps}: give --rollout-max-steps <= "
-                         f"{settings['max_steps']}")  # fmt: skip
+        raise ValueError(
+            f"rollouts folder {str(folder)!r} cut its episodes at {settings['max_steps']} policy calls, "
+            f"rollout_max_steps is {data_config.rollout_max_steps}: give --rollout-max-steps <= "
+            f"{settings['max_steps']}"
+        )
     available = finished_episodes_per_task(folder, data_config.tasks, settings["seed_start"])
     if available < data_config.rollout_episodes:
         raise ValueError(

@@ -31,8 +31,17 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_METHODS = ("greedy", "head", "tree", "tree:r=4", "prior", "prior:r=2", "prior:r=4", "prior:r=8",
-                   "prior+tree:r=4")  # fmt: skip
+DEFAULT_METHODS = (
+    "greedy",
+    "head",
+    "tree",
+    "tree:r=4",
+    "prior",
+    "prior:r=2",
+    "prior:r=4",
+    "prior:r=8",
+    "prior+tree:r=4",
+)
 
 
 def parse_methods(
@@ -94,8 +103,10 @@ class CompareConfig:
             check_ranges(self, at_least_one=("action_dim",), integers=("action_dim",))
         threshold = self.motion_threshold
         if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0 < threshold < float("inf"):
-            raise ValueError(f"motion_threshold must be a finite number > 0 (the size of greedy's action, in the "
-                             f"policy's units, from which a motion is large), got {threshold!r}")  # fmt: skip
+            raise ValueError(
+                f"motion_threshold must be a finite number > 0 (the size of greedy's action, in the "
+                f"policy's units, from which a motion is large), got {threshold!r}"
+            )
         for name in self.methods:
             resolved = resolve_preset(name, self.draft_head_given, self.action_dim)
             if resolved is not None:

@@ -134,11 +134,19 @@ def run_method_episode(
 
     episode = rollout([env], [seed], decide)[0]
     return {
-        "task": env.task, "seed": seed, "method": method.name, "success": episode.success,
-        "length": episode.length, "latencies_ms": latencies, "target_forwards": target_forwards,
-        "new_tokens": new_tokens, "accept_length_counts": {str(k): v for k, v in sorted(accept_counts.items())},
-        "bin_distance_sum": sum(distances), "bin_distance_count": len(distances),
-        "bin_distance_max": max(distances, default=0), "actions_digest": digest.hexdigest()[:16],
+        "task": env.task,
+        "seed": seed,
+        "method": method.name,
+        "success": episode.success,
+        "length": episode.length,
+        "latencies_ms": latencies,
+        "target_forwards": target_forwards,
+        "new_tokens": new_tokens,
+        "accept_length_counts": {str(k): v for k, v in sorted(accept_counts.items())},
+        "bin_distance_sum": sum(distances),
+        "bin_distance_count": len(distances),
+        "bin_distance_max": max(distances, default=0),
+        "actions_digest": digest.hexdigest()[:16],
         # per action dimension (token i of a call is dimension i % action_dim)
         "bin_distance_sum_per_dim": [sum(distances[d::dims]) for d in range(dims)],
         "bin_distance_max_per_dim": [max(distances[d::dims], default=0) for d in range(dims)],
@@ -146,9 +154,16 @@ def run_method_episode(
         "accepted_by_position": accepted_by_position,
         # relaxed methods, per token of every call: its bin distance from greedy's and the size of greedy's action
         # there (|value| in the policy's units), for the deviation by phase (large / small motions); bin widths in units
-        **({"bin_distances": distances, "reference_magnitudes": reference_magnitudes,
-            "bin_widths": list(policy.action_layout.units.bin_widths)} if distances else {}),
-    }  # fmt: skip
+        **(
+            {
+                "bin_distances": distances,
+                "reference_magnitudes": reference_magnitudes,
+                "bin_widths": list(policy.action_layout.units.bin_widths),
+            }
+            if distances
+            else {}
+        ),
+    }
 
 
 def warm_up_compiled(
@@ -227,8 +242,9 @@ def _exit_with_parent(poll_seconds: float = 1.0) -> None:
     threading.Thread(target=watch, daemon=True, name="exit-with-parent").start()
 
 
-def _worker_main(policy_dir: str, draft_head_dir: str | None, config: dict, pairs: list, log_path: str,
-                 done: list) -> None:  # fmt: skip
+def _worker_main(
+    policy_dir: str, draft_head_dir: str | None, config: dict, pairs: list, log_path: str, done: list
+) -> None:
     """Entry point of a worker process (spawned: loads its own policy and head)."""
     from transformers.utils import logging as transformers_logging
 
@@ -240,8 +256,7 @@ def _worker_main(policy_dir: str, draft_head_dir: str | None, config: dict, pair
     timing = timing_conditions(config.workers, config.threads, torch.get_num_threads())  # as this worker times
     policy = VLAPolicy.from_pretrained(policy_dir)
     draft_head = None if draft_head_dir is None else DraftHead.from_pretrained(draft_head_dir).eval()
-    _run_shard(policy, draft_head, config, [tuple(p) for p in pairs], Path(log_path), {tuple(d) for d in done},
-               timing)  # fmt: skip
+    _run_shard(policy, draft_head, config, [tuple(p) for p in pairs], Path(log_path), {tuple(d) for d in done}, timing)
 
 
 def _count_log_lines(output_dir: Path) -> int:
@@ -300,8 +315,15 @@ def check_timing(output_dir: str | Path, config: CompareConfig, restart_timing: 
     output_dir = Path(output_dir)
     if output_dir.is_dir():
         records = _peek_episode_logs(output_dir)
-        resolve_timing(output_dir, compare_timing_conditions(config), records, restart_timing,
-                       _untimed_hint(output_dir), RESTART_TIMING_FLAG, announce=False)  # fmt: skip
+        resolve_timing(
+            output_dir,
+            compare_timing_conditions(config),
+            records,
+            restart_timing,
+            _untimed_hint(output_dir),
+            RESTART_TIMING_FLAG,
+            announce=False,
+        )
 
 
 def run_comparison(
@@ -345,27 +367,37 @@ def run_comparison(
     settings = {
         "policy": policy.weights_fingerprint(),
         "draft_head": None if draft_head is None else fingerprint(draft_head),
-        "env": asdict(env_config), "seed_start": config.seed_start, "methods": sorted(config.methods),
+        "env": asdict(env_config),
+        "seed_start": config.seed_start,
+        "methods": sorted(config.methods),
         "order_seed": config.order_seed,
-    }  # fmt: skip
+    }
     if any("tree" in m.drafters.split("+") for m in methods):
         settings["tree"] = asdict(config.tree_config())  # what the tree methods drafted with
     with claim_run_folder(output_dir, RunRecord("compare", settings), overwrite) as run:
         output_dir = run.bound  # writes stay in the claimed folder, renamed or not
         records = read_episode_logs(output_dir, run.path)
-        timing = resolve_timing(run.path, compare_timing_conditions(config), records, restart_timing,
-                                _untimed_hint(output_dir), RESTART_TIMING_FLAG)  # fmt: skip
+        timing = resolve_timing(
+            run.path,
+            compare_timing_conditions(config),
+            records,
+            restart_timing,
+            _untimed_hint(output_dir),
+            RESTART_TIMING_FLAG,
+        )
         write_timing(output_dir, timing)
         done = {(r["task"], r["seed"], r["method"]) for r in records}
         pairs = config.pairs()
         total = len(pairs) * len(methods)
         remaining = sum((t, s, m.name) not in done for t, s in pairs for m in methods)
-        logger.info("compare: %d episodes (%d methods x %d seeds), %d to run", total, len(methods), len(pairs),
-                    remaining)  # fmt: skip
+        logger.info(
+            "compare: %d episodes (%d methods x %d seeds), %d to run", total, len(methods), len(pairs), remaining
+        )
         bar = progress_bar(total=total, initial=total - remaining, desc="compare", unit="episode", disable=not progress)
         if config.workers == 1:
-            _run_shard(policy, draft_head, config, pairs, output_dir / "episodes.worker-0.jsonl", done,
-                       timing.conditions, bar)  # fmt: skip
+            _run_shard(
+                policy, draft_head, config, pairs, output_dir / "episodes.worker-0.jsonl", done, timing.conditions, bar
+            )
         else:
             try:
                 _run_in_workers(config, pairs, done, output_dir, policy_dir, draft_head_dir, bar)
@@ -387,13 +419,22 @@ def run_comparison(
             logger.warning(
                 "summary.json and compare.md cover the %d episodes this run asked for (%d tasks x %d seeds x %d "
                 "methods); the folder holds %d, and a run with more --episodes summarises them all",
-                len(records), len(config.tasks), config.episodes_per_task, len(methods), in_folder,
-            )  # fmt: skip
+                len(records),
+                len(config.tasks),
+                config.episodes_per_task,
+                len(methods),
+                in_folder,
+            )
         summary = summarize_comparison(
             records, config.methods, timed=timing.timed, motion_threshold=config.motion_threshold
         )
-        summary["settings"] = {**settings, "tasks": config.tasks, "episodes_per_task": config.episodes_per_task,
-                               "workers": config.workers, "threads": config.threads}  # fmt: skip
+        summary["settings"] = {
+            **settings,
+            "tasks": config.tasks,
+            "episodes_per_task": config.episodes_per_task,
+            "workers": config.workers,
+            "threads": config.threads,
+        }
         summary["timing"] = _timing_summary(timing, records)
         summary["action_dim"] = policy.config.action_dim  # names the token positions of a call
         write_json_atomic(output_dir / "summary.json", summary)
@@ -408,9 +449,12 @@ def _timing_summary(timing: FolderTiming, records: list[dict]) -> dict:
     timed = sum(timing.timed(r) for r in records)
     left_out = len(records) - timed
     if left_out:
-        logger.warning("speed figures: %d of %d episodes were timed under other conditions (or before conditions "
-                       "were recorded) and are left out of them; success and the other columns count them all",
-                       left_out, len(records))  # fmt: skip
+        logger.warning(
+            "speed figures: %d of %d episodes were timed under other conditions (or before conditions "
+            "were recorded) and are left out of them; success and the other columns count them all",
+            left_out,
+            len(records),
+        )
     return {"conditions": timing.conditions, "episodes_timed": timed, "episodes_timed_otherwise": left_out}
 
 
@@ -436,8 +480,15 @@ def _describe_dead_worker(processes: dict) -> str:
     return f"a compare worker process (pid {pid}) died: {_describe_exit(exitcode)}"
 
 
-def _run_in_workers(config: CompareConfig, pairs: list, done: set, output_dir: Path, policy_dir: str | None,
-                    draft_head_dir: str | None, bar) -> None:  # fmt: skip
+def _run_in_workers(
+    config: CompareConfig,
+    pairs: list,
+    done: set,
+    output_dir: Path,
+    policy_dir: str | None,
+    draft_head_dir: str | None,
+    bar,
+) -> None:
     """Splits ``pairs`` between ``config.workers`` spawned processes (a seed never spans two) and follows their
     logs on ``bar``.
 
@@ -456,7 +507,7 @@ def _run_in_workers(config: CompareConfig, pairs: list, done: set, output_dir: P
                 shard,
                 str(output_dir / f"episodes.worker-{i}.jsonl"),
                 sorted(done),
-            )  # fmt: skip
+            )
             for i, shard in enumerate(shards)
             if shard
         }

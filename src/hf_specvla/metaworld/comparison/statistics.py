@@ -58,10 +58,13 @@ def paired_difference(
     means = differences[rng.integers(0, len(differences), (resamples, len(differences)))].mean(axis=1)
     low, high = np.percentile(means, [2.5, 97.5])
     return {
-        "difference": float(differences.mean()), "ci_low": float(low), "ci_high": float(high),
-        "pairs": len(differences), "greedy_only": int(((greedy == 1) & (method == 0)).sum()),
+        "difference": float(differences.mean()),
+        "ci_low": float(low),
+        "ci_high": float(high),
+        "pairs": len(differences),
+        "greedy_only": int(((greedy == 1) & (method == 0)).sum()),
         "method_only": int(((method == 1) & (greedy == 0)).sum()),
-    }  # fmt: skip
+    }
 
 
 def paired_speedup(
@@ -84,8 +87,10 @@ def paired_speedup(
         ValueError: the lists differ in length, are empty, or an episode has no calls.
     """
     if len(baseline_ms) != len(method_ms) or not baseline_ms:
-        raise ValueError(f"paired timings must be two equally long, non-empty lists of episodes, got "
-                         f"{len(baseline_ms)} and {len(method_ms)}")  # fmt: skip
+        raise ValueError(
+            f"paired timings must be two equally long, non-empty lists of episodes, got "
+            f"{len(baseline_ms)} and {len(method_ms)}"
+        )
     if any(len(episode) == 0 for episode in [*baseline_ms, *method_ms]):
         raise ValueError("every paired episode needs at least one timed call, got an episode with none")
     # per episode: total ms and number of calls, [pairs]
@@ -129,8 +134,9 @@ def _speedups(baseline: dict, episodes: dict, timed_keys: set) -> tuple[float | 
     paired = [key for key in paired if episodes[key]["latencies_ms"] and baseline[key]["latencies_ms"]]
     if not paired:
         return None, None
-    ratios = [statistics.median(baseline[k]["latencies_ms"]) / statistics.median(episodes[k]["latencies_ms"])
-              for k in paired]  # fmt: skip
+    ratios = [
+        statistics.median(baseline[k]["latencies_ms"]) / statistics.median(episodes[k]["latencies_ms"]) for k in paired
+    ]
     total = paired_speedup([baseline[k]["latencies_ms"] for k in paired], [episodes[k]["latencies_ms"] for k in paired])
     return statistics.median(ratios), total
 
@@ -170,8 +176,10 @@ def summarize_comparison(
         calls = sum(len(r["latencies_ms"]) for r in episodes.values())
         speedup, speedup_total = _speedups(greedy, episodes, timed_keys)
         compiled_speedup, compiled_total = _speedups(compiled_greedy, episodes, timed_keys)
-        summary["per_call_ms"][name] = {f"{task}:{seed}": format_per_call_ms(episodes[task, seed]["latencies_ms"])
-                                        for task, seed in sorted(timed_keys)}  # fmt: skip
+        summary["per_call_ms"][name] = {
+            f"{task}:{seed}": format_per_call_ms(episodes[task, seed]["latencies_ms"])
+            for task, seed in sorted(timed_keys)
+        }
         accept_counts: Counter = Counter()
         for record in episodes.values():
             accept_counts.update({int(k): v for k, v in record["accept_length_counts"].items()})
@@ -208,7 +216,7 @@ def summarize_comparison(
             "accept_length_counts": {str(k): v for k, v in sorted(accept_counts.items())},
             "mean_bin_deviation": (
                 sum(r["bin_distance_sum"] for r in episodes.values()) / distance_count if distance_count else 0.0
-            ),  # fmt: skip
+            ),
             "max_bin_deviation": max(r["bin_distance_max"] for r in episodes.values()),
             # the executed action's distance from greedy's on the same observation, per action dimension
             **_deviation_per_dim(list(episodes.values())),
@@ -236,10 +244,11 @@ def _deviation_per_dim(records: list[dict]) -> dict:
     dims = len(records[0]["bin_distance_sum_per_dim"])
     per_dim = count / dims  # every dimension has the same number of tokens
     return {
-        "mean_bin_deviation_per_dim": [sum(r["bin_distance_sum_per_dim"][d] for r in records) / per_dim
-                                       for d in range(dims)],
+        "mean_bin_deviation_per_dim": [
+            sum(r["bin_distance_sum_per_dim"][d] for r in records) / per_dim for d in range(dims)
+        ],
         "max_bin_deviation_per_dim": [max(r["bin_distance_max_per_dim"][d] for r in records) for d in range(dims)],
-    }  # fmt: skip
+    }
 
 
 def deviation_by_phase(records: list[dict], threshold: float = DEFAULT_MOTION_THRESHOLD) -> dict:
@@ -276,8 +285,9 @@ def deviation_by_phase(records: list[dict], threshold: float = DEFAULT_MOTION_TH
 
 def format_deviation_by_phase(summary: dict) -> str:
     """A markdown table: per relaxed method and phase, the mean bin deviation per dimension and the share changed."""
-    rows = [(name, row["deviation_by_phase"]) for name, row in summary["methods"].items()
-            if row.get("deviation_by_phase")]  # fmt: skip
+    rows = [
+        (name, row["deviation_by_phase"]) for name, row in summary["methods"].items() if row.get("deviation_by_phase")
+    ]
     if not rows:
         return ""
     threshold = rows[0][1]["threshold"]
@@ -291,8 +301,9 @@ def format_deviation_by_phase(summary: dict) -> str:
     for name, phases in rows:
         for phase in ("large", "small"):
             figures = phases[phase]
-            per_dim = " / ".join(f"{m:.2f} ({c:.0%})" for m, c in zip(figures["mean_bins_per_dim"],
-                                                                      figures["changed_per_dim"]))  # fmt: skip
+            per_dim = " / ".join(
+                f"{m:.2f} ({c:.0%})" for m, c in zip(figures["mean_bins_per_dim"], figures["changed_per_dim"])
+            )
             units = " / ".join(f"{u:.4f}" for u in figures["mean_units_per_dim"])
             lines.append(f"| {name} | {phase} | {per_dim} | {units} | {sum(figures['tokens_per_dim'])} |")
     return "\n".join(lines)
@@ -307,8 +318,9 @@ def _acceptance_by_position(records: list[dict]) -> dict:
     if not calls:
         return {}
     positions = len(records[0]["accepted_by_position"])
-    return {"accepted_by_position": [sum(r["accepted_by_position"][p] for r in records) / calls
-                                     for p in range(positions)]}  # fmt: skip
+    return {
+        "accepted_by_position": [sum(r["accepted_by_position"][p] for r in records) / calls for p in range(positions)]
+    }
 
 
 def format_acceptance_by_position(summary: dict) -> str:
@@ -317,8 +329,9 @@ def format_acceptance_by_position(summary: dict) -> str:
     ``t0``, ``t1``, ... without the summary's ``action_dim``); empty when no method recorded it."""
     from ...policies.decoding_methods import ACTION_LAYOUTS
 
-    rows = {name: row["accepted_by_position"] for name, row in summary["methods"].items()
-            if row.get("accepted_by_position")}  # fmt: skip
+    rows = {
+        name: row["accepted_by_position"] for name, row in summary["methods"].items() if row.get("accepted_by_position")
+    }
     if not rows:
         return ""
     positions = len(next(iter(rows.values())))
@@ -326,8 +339,9 @@ def format_acceptance_by_position(summary: dict) -> str:
     names = ACTION_LAYOUTS.get(action_dim, tuple(f"d{d}" for d in range(action_dim)))
     if "action_dim" not in summary:
         names = tuple(f"t{p}" for p in range(positions))
-    header = [f"a{p // action_dim}.{names[p % action_dim]}" if "action_dim" in summary else names[p]
-              for p in range(positions)]  # fmt: skip
+    header = [
+        f"a{p // action_dim}.{names[p % action_dim]}" if "action_dim" in summary else names[p] for p in range(positions)
+    ]
     lines = ["| method | " + " | ".join(header) + " |", "|---|" + "---:|" * positions]
     lines += [f"| {name} | " + " | ".join(f"{share:.0%}" for share in shares) + " |" for name, shares in rows.items()]
     return "\n".join(lines)
@@ -368,10 +382,14 @@ def format_comparison(summary: dict) -> str:
         else:
             versus = f"{paired['difference']:+.1%} [{paired['ci_low']:+.1%}, {paired['ci_high']:+.1%}]"
             discordant = f"{paired['greedy_only']} / {paired['method_only']}"
-        speeds = " | ".join([_format_speedup(row.get("speedup_total"), row["episodes"]),
-                             _format_ratio(row.get("speedup")),
-                             _format_speedup(row.get("speedup_total_vs_greedy_compile"), row["episodes"]),
-                             _format_ratio(row.get("speedup_vs_greedy_compile"))])  # fmt: skip
+        speeds = " | ".join(
+            [
+                _format_speedup(row.get("speedup_total"), row["episodes"]),
+                _format_ratio(row.get("speedup")),
+                _format_speedup(row.get("speedup_total_vs_greedy_compile"), row["episodes"]),
+                _format_ratio(row.get("speedup_vs_greedy_compile")),
+            ]
+        )
         median_ms = "-" if row.get("median_ms_per_call") is None else f"{row['median_ms_per_call']:.2f}"
         relaxed = row.get("relaxed", bool(row["bin_tolerance"]))
         deviation = "-" if not relaxed else f"{row['mean_bin_deviation']:.2f} / {row['max_bin_deviation']}"
@@ -438,13 +456,22 @@ def plot_comparison(summary: dict, output_dir: str | Path) -> list[Path]:
 
     figure, axis = plt.subplots(figsize=(6, 4))
     for family, points in families.items():  # mean per call, with its 95% interval
-        points = sorted(((r, row["speedup_total"]) for r, row in points if row.get("speedup_total")),
-                        key=lambda p: p[0])  # fmt: skip
+        points = sorted(
+            ((r, row["speedup_total"]) for r, row in points if row.get("speedup_total")), key=lambda p: p[0]
+        )
         if not points:
             continue
-        axis.errorbar([p[0] for p in points], [p[1]["speedup"] for p in points], marker="o", capsize=3, label=family,
-                      yerr=[[p[1]["speedup"] - p[1]["ci_low"] for p in points],
-                            [p[1]["ci_high"] - p[1]["speedup"] for p in points]])  # fmt: skip
+        axis.errorbar(
+            [p[0] for p in points],
+            [p[1]["speedup"] for p in points],
+            marker="o",
+            capsize=3,
+            label=family,
+            yerr=[
+                [p[1]["speedup"] - p[1]["ci_low"] for p in points],
+                [p[1]["ci_high"] - p[1]["speedup"] for p in points],
+            ],
+        )
     _finish_plot(plt, figure, axis, 1.0, "speed-up vs greedy, mean per call (95% CI)", "Speed-up", paths[0])
 
     figure, axis = plt.subplots(figsize=(6, 4))
@@ -452,8 +479,10 @@ def plot_comparison(summary: dict, output_dir: str | Path) -> list[Path]:
         points = sorted((r, row["vs_greedy"]) for r, row in points if "vs_greedy" in row)
         x = [p[0] + 0.08 * offset for p in points]
         y = [100 * p[1]["difference"] for p in points]
-        errors = [[100 * (p[1]["difference"] - p[1]["ci_low"]) for p in points],
-                  [100 * (p[1]["ci_high"] - p[1]["difference"]) for p in points]]  # fmt: skip
+        errors = [
+            [100 * (p[1]["difference"] - p[1]["ci_low"]) for p in points],
+            [100 * (p[1]["ci_high"] - p[1]["difference"]) for p in points],
+        ]
         axis.errorbar(x, y, yerr=errors, marker="o", capsize=3, label=family)
     _finish_plot(plt, figure, axis, 0.0, "success - greedy's (points, 95% CI)", "Success, paired", paths[1])
 

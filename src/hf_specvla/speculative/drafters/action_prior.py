@@ -109,8 +109,9 @@ class ActionPriorDrafter(Drafter):
         paths = [last * chunk]
         velocity = None
         if older is not None:
-            steps = [[min(max(a + (n + 1) * (a - b), low), high) for a, b in zip(last, older)]
-                     for n in range(chunk)]  # fmt: skip  # ids are bins (reversed): the velocity is in bins
+            steps = [
+                [min(max(a + (n + 1) * (a - b), low), high) for a, b in zip(last, older)] for n in range(chunk)
+            ]  # ids are bins (reversed): the velocity is in bins
             velocity = steps[0]
             paths += [[t for action in steps for t in action], older * chunk]
         for dim, value in enumerate(last):
@@ -160,8 +161,13 @@ def with_action_prior(
     if drafter is None:
         return ActionPriorDrafter(previous_actions, action_layout, chunk_length=chunk_length)
     # before another drafter: the held action alone, in the prefill only (a chain: the model's causal path)
-    held = ActionPriorDrafter(previous_actions, action_layout, max_nodes=chunk_length * action_layout.action_dim,
-                              chunk_length=chunk_length, later_rounds=False)  # fmt: skip
+    held = ActionPriorDrafter(
+        previous_actions,
+        action_layout,
+        max_nodes=chunk_length * action_layout.action_dim,
+        chunk_length=chunk_length,
+        later_rounds=False,
+    )
     return ComposedDrafter([held, drafter.with_previous_action(previous_actions[-1])])
 
 

@@ -190,8 +190,16 @@ class DraftHeadDrafter(Drafter):
         inputs), whatever their weights."""
         tree = (self.tree_config.top_k, self.tree_config.depth, self.tree_config.total_tokens)
         weights = self.draft_head.fuse.weight
-        return ("draft-head round", self._architecture_json(), weights.dtype, weights.device,
-                compile_settings(compile_config), key_length, tree, graph_depth)  # fmt: skip
+        return (
+            "draft-head round",
+            self._architecture_json(),
+            weights.dtype,
+            weights.device,
+            compile_settings(compile_config),
+            key_length,
+            tree,
+            graph_depth,
+        )
 
     def max_tree_nodes(self, max_depth: int) -> int | None:
         return self.tree_config.total_tokens
@@ -335,8 +343,19 @@ class _DraftHeadSession(DraftSession):
                     "its drafter needs DraftContext.prompt_embeddings of the row's whole prompt"
                 )
             pair_embeddings = self.prompt_embeddings[:, 1:]
-        arguments = (self.head, self.embed, self.scorer, sequence[:, 1:], None, positions, num_pairs, None, 0,
-                     depth - 1, self.config.top_k)  # no cache: the block's entries are never kept  # fmt: skip
+        arguments = (
+            self.head,
+            self.embed,
+            self.scorer,
+            sequence[:, 1:],
+            None,
+            positions,
+            num_pairs,
+            None,
+            0,
+            depth - 1,
+            self.config.top_k,
+        )  # no cache: the block's entries are never kept
         settings = dict(key_valid=key_valid, previous=self.previous, pair_embeddings=pair_embeddings)
         if self.compile_config is None:
             table = block_round(*arguments, **settings)
@@ -347,8 +366,9 @@ class _DraftHeadSession(DraftSession):
             )
             if seconds:
                 self.compile_seconds += seconds
-                logger.info("compiled the draft head's block before the prefill (%d pairs) in %.1f s", num_pairs,
-                            seconds)  # fmt: skip
+                logger.info(
+                    "compiled the draft head's block before the prefill (%d pairs) in %.1f s", num_pairs, seconds
+                )
             table = self.compiled.functions[block_round](*arguments, **settings)
         self.num_forwards += 1
         return self._block_tree(table, depth)
@@ -361,10 +381,21 @@ class _DraftHeadSession(DraftSession):
         key_valid = sequence_key_padding(self.prompt_padding, self.cache_length + tokens.shape[1])
         try:
             table = block_round(
-                self.head, self.embed, self.scorer, tokens, hidden, positions, tokens.shape[1], self.cache,
-                self.cache_length, depth - 1, self.config.top_k, key_length=self.key_length,
-                key_valid=None if key_valid is None else key_valid[0], previous=self.previous,
-            )  # fmt: skip
+                self.head,
+                self.embed,
+                self.scorer,
+                tokens,
+                hidden,
+                positions,
+                tokens.shape[1],
+                self.cache,
+                self.cache_length,
+                depth - 1,
+                self.config.top_k,
+                key_length=self.key_length,
+                key_valid=None if key_valid is None else key_valid[0],
+                previous=self.previous,
+            )
         finally:
             truncate_cache(self.cache, committed)
         self.num_forwards += 1
@@ -389,8 +420,9 @@ class _DraftHeadSession(DraftSession):
         num_nodes = token_ids.shape[0]
         if self.config.top_k == 1 or self.config.total_tokens <= depth:
             return DraftTree.chain(token_ids, self.name)
-        return DraftTree(token_ids, parents, [self.name] * num_nodes, structure_on_device=True,
-                         depth_bound=min(depth, num_nodes))  # fmt: skip
+        return DraftTree(
+            token_ids, parents, [self.name] * num_nodes, structure_on_device=True, depth_bound=min(depth, num_nodes)
+        )
 
     def _expand(self, depth: int, root_position: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """One eager expansion ([`expand_tree`]) below the root; the head's cache keeps only its committed entries."""
@@ -398,10 +430,20 @@ class _DraftHeadSession(DraftSession):
         try:
             self.num_forwards += depth - 1
             return expand_tree(
-                self.head, self.embed, self.scorer, self.root_feature, root_position, self.cache, self.cache_length,
-                None if padding is None else padding[0], self.config.top_k, depth, self.config.total_tokens,
-                key_length=self.key_length, previous=self.previous,
-            )  # fmt: skip
+                self.head,
+                self.embed,
+                self.scorer,
+                self.root_feature,
+                root_position,
+                self.cache,
+                self.cache_length,
+                None if padding is None else padding[0],
+                self.config.top_k,
+                depth,
+                self.config.total_tokens,
+                key_length=self.key_length,
+                previous=self.previous,
+            )
         finally:
             truncate_cache(self.cache, self.cache_length)
 
@@ -437,11 +479,20 @@ class _DraftHeadSession(DraftSession):
         def run(depth_limit: int) -> tuple[torch.Tensor, torch.Tensor]:
             try:
                 return self.compiled_round(
-                    self.head, self.embed, self.scorer, *pairs, root_position, self.cache,
-                    self.cache.layers[0].cumulative_length.clone(), self.key_length, self.config.top_k,
-                    self.graph_depth, self.config.total_tokens, torch.tensor(depth_limit, device=device),
+                    self.head,
+                    self.embed,
+                    self.scorer,
+                    *pairs,
+                    root_position,
+                    self.cache,
+                    self.cache.layers[0].cumulative_length.clone(),
+                    self.key_length,
+                    self.config.top_k,
+                    self.graph_depth,
+                    self.config.total_tokens,
+                    torch.tensor(depth_limit, device=device),
                     self.previous,
-                )  # fmt: skip
+                )
             finally:
                 truncate_cache(self.cache, self.cache_length)
 

@@ -115,9 +115,23 @@ def catch_up_and_expand(
     bins = None if previous is None else head.slot_bins(*previous, positions)
     features = head(embed(token_ids), hidden, positions, mask, cache, bins)
     root_feature = features.index_select(1, (num_new - 1).reshape(1))  # [1, 1, H]
-    return expand_tree(head, embed, scorer, root_feature, root_position, cache, committed + num_new, None,
-                       top_k, depth, total_tokens, tree_start=committed + q_len, key_length=key_length,
-                       depth_limit=depth_limit, previous=previous)  # fmt: skip
+    return expand_tree(
+        head,
+        embed,
+        scorer,
+        root_feature,
+        root_position,
+        cache,
+        committed + num_new,
+        None,
+        top_k,
+        depth,
+        total_tokens,
+        tree_start=committed + q_len,
+        key_length=key_length,
+        depth_limit=depth_limit,
+        previous=previous,
+    )
 
 
 def expand_tree(

@@ -101,8 +101,9 @@ class JacobiDrafter(Drafter):
     name = "jacobi"
 
     def __init__(self, max_tokens: int | None = None, initial_ids: Sequence[int] | None = None, fill: bool = True):
-        if max_tokens is not None and (isinstance(max_tokens, bool) or not isinstance(max_tokens, int)
-                                       or max_tokens < 1):  # fmt: skip
+        if max_tokens is not None and (
+            isinstance(max_tokens, bool) or not isinstance(max_tokens, int) or max_tokens < 1
+        ):
             raise ValueError(f"JacobiDrafter max_tokens must be an int >= 1 or None, got {max_tokens!r}")
         if not isinstance(fill, bool):
             raise TypeError(f"JacobiDrafter fill must be True or False, got {fill!r}")
