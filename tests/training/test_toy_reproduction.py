@@ -14,7 +14,10 @@ Measured on an Intel Xeon of these machines (2026-12-02), one log line (one batc
 | the head's loss / feature loss / token loss | +0.4% / +2.0% / +0.2% | +3.5% / +7.2% / +9.7% |
 | the head's, seed 1 instead of 0 | +10.7% / +12.3% / +14.3% | +5.0% / +8.6% / +7.8% |
 
-so the first log line is compared: by step 200 the CPU's rounding moves the losses as far as another seed does."""
+so the first log line is compared: by step 200 the CPU's rounding moves the losses as far as another seed does. On an
+AMD EPYC of these machines (2026-12-04) the head's step-100 losses are +2.2% / +1.6% / **+10.7%** from the shipped
+log (the same on the tree before that session's changes): the token loss, one batch's, moves furthest with the CPU. Its
+tolerance is 15%; the total loss (3%) is what tells another seed apart (+10.7% there)."""
 
 import json
 import shutil
@@ -54,9 +57,10 @@ def _retrace(monkeypatch, folder: Path) -> None:
         toy.build_toy_pipeline(str(folder), progress=False)
 
 
-#: how far a logged loss may be from the shipped log's: the total loss 3%, its parts 10% (one batch's value; a
-#: changed setting moves them far more, and the learning rate, a function of the settings alone, is checked exactly)
-TOLERANCES = {"loss": 0.03, "feature_loss": 0.10, "token_loss": 0.10}
+#: how far a logged loss may be from the shipped log's: the total loss 3%, its parts 10% and 15% (one batch's value;
+#: the token loss moves +10.7% on an AMD EPYC by rounding alone; a changed setting moves the total far more, and the
+#: learning rate, a function of the settings alone, is checked exactly)
+TOLERANCES = {"loss": 0.03, "feature_loss": 0.10, "token_loss": 0.15}
 
 
 def _assert_same_trajectory(ours: list[dict], shipped: list[dict], keys: tuple[str, ...]) -> None:
