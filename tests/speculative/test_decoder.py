@@ -151,3 +151,26 @@ def test_one_speculative_class_a_model_class_found_without_a_registry():
     assert type(enable_speculation(first)) is mixed  # enabling twice changes nothing
     bases = (SpeculativeGenerationMixin, LlamaForCausalLM)
     assert [sub for sub in LlamaForCausalLM.__subclasses__() if sub.__bases__ == bases] == [mixed]
+
+
+def test_nothing_is_written_on_transformers_cache_objects(tiny_llama, monkeypatch):
+    """The host's count of a static cache's entries during a call is the call's own (engine v6): every forward of a
+    speculative call on a static cache sees a cache with no attribute of hf_specvla's, and the tokens are greedy's."""
+    from hf_specvla.speculative.compat import CACHE_KEY
+
+    seen = []
+    forward = tiny_llama.forward
+
+    def spying_forward(*args, **kwargs):
+        cache = kwargs.get(CACHE_KEY)
+        if cache is not None:
+            seen.append([name for name in vars(cache) if "hf_specvla" in name])
+        return forward(*args, **kwargs)
+
+    monkeypatch.setattr(tiny_llama, "forward", spying_forward)
+    input_ids = torch.randint(6, 64, (1, 9), generator=torch.Generator().manual_seed(0))
+    settings = dict(max_new_tokens=6, do_sample=False, cache_implementation="static")
+    out = tiny_llama.generate(input_ids, assistant_model=JacobiDrafter(), **settings)
+    assert len(seen) >= 2 and all(names == [] for names in seen), seen
+    monkeypatch.undo()
+    assert torch.equal(out, tiny_llama.generate(input_ids, **settings))

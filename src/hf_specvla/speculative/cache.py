@@ -29,6 +29,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from contextlib import contextmanager
+from contextvars import ContextVar
 
 import torch
 from transformers.cache_utils import (
@@ -181,9 +182,11 @@ def static_capacity(cache: Cache) -> int | None:
     return min(sizes) if sizes else None
 
 
-#: the attribute a cache's entry count is mirrored in on the host while a speculative call works on it
-#: ([`host_length`]): a static layer counts on the device, and reading its counter waits for the device
-_HOST_LENGTH = "_hf_specvla_host_length"
+#: the host's count of each cache's entries while a speculative call works on it ([`host_length`]; a static layer
+#: counts on the device, and reading its counter waits for the device): the call's own, by cache (``id`` -> entries),
+#: in a context variable (each thread's call its own, a nested call its own copy), never an attribute written on
+#: transformers' cache objects
+_HOST_LENGTHS: ContextVar[dict[int, int] | None] = ContextVar("hf_specvla_host_lengths", default=None)
 #: set to 1 (the tests do) to check the host's count against the cache's own counter at every read
 CHECK_HOST_LENGTH = os.environ.get("HF_SPECVLA_CHECK_CACHE_LENGTH") == "1"
 
@@ -191,7 +194,8 @@ CHECK_HOST_LENGTH = os.environ.get("HF_SPECVLA_CHECK_CACHE_LENGTH") == "1"
 def cache_length(cache: Cache) -> int:
     """The number of entries the cache holds: the host's count inside [`host_length`], else the cache's own (a
     static layer's counter read from the device)."""
-    known = getattr(cache, _HOST_LENGTH, None)
+    lengths = _HOST_LENGTHS.get()
+    known = None if lengths is None else lengths.get(id(cache))
     if known is None:
         return int(cache.get_seq_length())
     if CHECK_HOST_LENGTH and known != int(cache.get_seq_length()):
@@ -207,23 +211,25 @@ def host_length(cache: Cache):
     if static_capacity(cache) is None:  # a dynamic cache counts on the host already
         yield
         return
-    setattr(cache, _HOST_LENGTH, int(cache.get_seq_length()))
+    outer = _HOST_LENGTHS.get()
+    token = _HOST_LENGTHS.set({**(outer or {}), id(cache): int(cache.get_seq_length())})
     try:
         yield
     finally:
-        delattr(cache, _HOST_LENGTH)
+        _HOST_LENGTHS.reset(token)
 
 
 def _note_length(cache: Cache, length: int) -> None:
-    if getattr(cache, _HOST_LENGTH, None) is not None:
-        setattr(cache, _HOST_LENGTH, length)
+    lengths = _HOST_LENGTHS.get()
+    if lengths is not None and id(cache) in lengths:
+        lengths[id(cache)] = length
 
 
 def note_appended(cache: Cache, count: int) -> None:
     """A forward wrote ``count`` new entries after the cache's (what [`host_length`] counts)."""
-    known = getattr(cache, _HOST_LENGTH, None)
-    if known is not None:
-        setattr(cache, _HOST_LENGTH, known + count)
+    lengths = _HOST_LENGTHS.get()
+    if lengths is not None and id(cache) in lengths:
+        lengths[id(cache)] += count
 
 
 def holds_buffers(cache: Cache) -> bool:
@@ -334,9 +340,9 @@ def preserved_entries(cache: Cache):
 
 def truncate_cache(cache: Cache, length: int) -> None:
     """Keeps the first ``length`` positions of every layer, in place (a static layer: its counter moves back)."""
-    known = getattr(cache, _HOST_LENGTH, None)
-    if known is not None:
-        _note_length(cache, min(known, length))
+    lengths = _HOST_LENGTHS.get()
+    if lengths is not None and id(cache) in lengths:
+        lengths[id(cache)] = min(lengths[id(cache)], length)
     for layer in _stored_layers(cache):
         if type(layer) in STATIC_LAYER_TYPES:  # the counter only moves back, on the device (no host read)
             layer.cumulative_length.clamp_(max=length)
