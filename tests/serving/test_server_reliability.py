@@ -363,3 +363,71 @@ def test_a_robot_that_hangs_up_mid_body_is_counted_not_logged_as_an_error(policy
     serving = [r for r in caplog.records if r.name.startswith("hf_specvla.serving")]
     assert not [r for r in serving if r.levelno >= logging.WARNING or r.exc_info], [r.getMessage() for r in serving]
     assert any("hung up" in r.getMessage() for r in serving)
+
+
+# ----------------------------------------------------------------------------- reliability-6: hang-ups and shutdown
+class _HeldService:
+    """A service stub whose batches wait until ``release`` is set (the queue fills behind the first); each reply is
+    the request's session."""
+
+    def __init__(self, max_queue: int):
+        self.config = ServeConfig(method="exact", buckets=(1, 2), max_queue=max_queue, max_wait_ms=1.0)
+        self.release = threading.Event()
+
+    def act_each(self, requests, arrived=None, on_reply=None):
+        self.release.wait(30)
+        for index, request in enumerate(requests):
+            on_reply(index, request.session)
+
+
+def test_a_hung_up_robots_request_frees_its_queue_slot_at_once():
+    """Reliability-6 row 8: a robot that hung up while its request waited kept its queue slot until the worker reached
+    it, so a live robot got a 503 it should not; a cancelled request now frees its slot the moment it is cancelled."""
+    from hf_specvla.serving.batching import Batcher
+    from hf_specvla.serving.protocol import ActRequest, Overloaded
+
+    service = _HeldService(max_queue=3)
+    batcher = Batcher(service).start()
+    try:
+        first = batcher.submit(ActRequest(image=None, instruction="x", session="decoding"))
+        _wait_until(lambda: batcher.waiting == 0, "the first request is taken into a (held) batch")
+        queued = [batcher.submit(ActRequest(image=None, instruction="x", session=f"r{i}")) for i in range(3)]
+        with pytest.raises(Overloaded):  # full: three live requests wait
+            batcher.submit(ActRequest(image=None, instruction="x", session="late"))
+        for future in queued[:2]:
+            assert future.cancel()  # their robots hang up
+        assert batcher.waiting == 1
+        live = [batcher.submit(ActRequest(image=None, instruction="x", session=f"live{i}")) for i in range(2)]
+        service.release.set()
+        assert first.result(30) == "decoding" and queued[2].result(30) == "r2"
+        assert [future.result(30) for future in live] == ["live0", "live1"]
+        _wait_until(lambda: batcher.dropped == 2, "the hung-up requests are dropped, not decoded")
+    finally:
+        service.release.set()
+        batcher.stop()
+
+
+def test_shutdown_ends_a_half_sent_bodys_wait_within_the_body_timeout(policy):
+    """Reliability-6 row 9: a client that sent half a body held a shutdown for the whole drain timeout (30 s); its
+    request is now answered 408 once ``body_timeout_s`` passes (10 s by default, 2 here), so the shutdown ends then,
+    while a request already received is still answered during the drain."""
+    server = PolicyServer(_service(policy), port=0, drain_timeout_s=30.0)
+    server.routes.body_timeout_s = 2.0
+    with server:
+        with socket.create_connection(("127.0.0.1", server.port)) as stalled:
+            stalled.sendall(b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                            b"Content-Length: 100000\r\n\r\n" + b'{"image": ' + b"1" * 1000)  # fmt: skip
+            stalled.settimeout(20)
+            started = time.perf_counter()
+            answer = stalled.recv(4096)  # the server gives up on the body
+            waited = time.perf_counter() - started
+            code, _, _ = _post(server.url + "/act", dumps(_observation(policy, 5)))  # the server serves on
+            stalled2 = socket.create_connection(("127.0.0.1", server.port))
+            stalled2.sendall(b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Length: 100000\r\n\r\n" + b"{" * 100)
+            time.sleep(0.2)  # the server is reading its body when the shutdown begins
+            closing = time.perf_counter()
+    closed = time.perf_counter() - closing  # leaving the block: close() drains, then stops
+    stalled2.close()
+    assert answer.startswith(b"HTTP/1.1 408") and b"did not arrive whole within 2 s" in answer, answer[:300]
+    assert 1.5 < waited < 15 and code == 200
+    assert closed < 15, f"the shutdown waited {closed:.1f} s for a half-sent body (drain timeout 30 s)"

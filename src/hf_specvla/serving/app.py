@@ -13,9 +13,11 @@ the request is). A body larger than ``max_request_bytes`` is refused (413) befor
 request gets a 4xx JSON error naming the field (``{"error": ..., "field": ...}``) before it reaches a batch, so it
 never fails or delays the others.
 
-**Faults.** A robot that disconnects before its batch starts is dropped from it; one that disconnects later does
-not hold the batch up (its reply is discarded). A robot that hangs up (mid-body or while it waits) is counted in
-``/stats`` (``client_hangups``) and logged at INFO, not as an error. A full queue answers 503 with ``Retry-After``.
+**Faults.** A robot that disconnects before its batch starts is dropped from it, and its queue slot is free at once;
+one that disconnects later does not hold the batch up (its reply is discarded). A robot that hangs up (mid-body or
+while it waits) is counted in ``/stats`` (``client_hangups``) and logged at INFO, not as an error. A full queue (of
+live requests) answers 503 with ``Retry-After``. A body must arrive whole within ``body_timeout_s`` (10 s) of its
+request, else 408: a client holding a half-sent body never holds a worker, or a shutdown's drain, longer than that.
 
 The routes are served the same way by the server on one machine (``server``) and by each Ray Serve replica
 (``ray_deployment``): a *backend* ([`Backend`]) decodes, the app only speaks HTTP.
@@ -44,6 +46,9 @@ logger = logging.getLogger(__name__)
 DISCONNECT_POLL_S = 0.05
 #: the status logged for a request whose robot went away before its reply (nginx's convention)
 CLIENT_CLOSED_REQUEST = 499
+#: the longest a request's body may take to arrive whole (a robot's observation arrives in milliseconds): past it the
+#: request is answered 408, so that a client holding a half-sent body delays a shutdown's drain at most this long
+BODY_TIMEOUT_S = 10.0
 
 
 class Backend(Protocol):
@@ -66,9 +71,14 @@ class PolicyRoutes:
     """The routes over a backend (``api_key``: None for an open server)."""
 
     def __init__(
-        self, backend: Backend, api_key: str | None = None, max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES
+        self,
+        backend: Backend,
+        api_key: str | None = None,
+        max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
+        body_timeout_s: float = BODY_TIMEOUT_S,
     ):
         self.backend, self.api_key, self.max_request_bytes = backend, api_key, max_request_bytes
+        self.body_timeout_s = body_timeout_s
         self.client_hangups = 0  # robots that hung up before their reply (mid-body, or while their request waited)
         self.routes = {
             ("POST", "/act"): self.act,
@@ -165,12 +175,27 @@ class PolicyRoutes:
             raise RequestError(
                 f"the body ({declared} bytes) exceeds this server's limit of {self.max_request_bytes} bytes", None, 413
             )
-        chunks, size = [], 0
-        async for chunk in request.stream():
-            size += len(chunk)
-            if size > self.max_request_bytes:
-                raise RequestError(f"the body exceeds this server's limit of {self.max_request_bytes} bytes", None, 413)
-            chunks.append(chunk)
+        chunks: list[bytes] = []
+
+        async def read() -> None:
+            size = 0
+            async for chunk in request.stream():
+                size += len(chunk)
+                if size > self.max_request_bytes:
+                    raise RequestError(
+                        f"the body exceeds this server's limit of {self.max_request_bytes} bytes", None, 413
+                    )
+                chunks.append(chunk)
+
+        try:
+            await asyncio.wait_for(read(), self.body_timeout_s)
+        except asyncio.TimeoutError:
+            raise RequestError(
+                f"the body did not arrive whole within {self.body_timeout_s:g} s of the request (this server's limit: "
+                f"send the whole body at once)",
+                None,
+                408,
+            ) from None
         return b"".join(chunks)
 
     @staticmethod

@@ -8,7 +8,9 @@ counts as active from its request's arrival until ``ACTIVE_WINDOW_S`` after its 
 the requests whose robots gave up meanwhile (their futures cancelled) and hands the rest to
 [`PolicyService.act_each`], which answers each robot as soon as its row is decoded. The queue is bounded: past
 ``max_queue`` waiting requests, [`submit`] raises [`Overloaded`] with the seconds after which a retry is likely to be
-served (HTTP 503 + Retry-After), rather than letting latency grow without bound. A
+served (HTTP 503 + Retry-After), rather than letting latency grow without bound. Only live requests count: one whose
+robot gave up (its future cancelled) frees its slot at once, though the worker drops it from the queue only when it
+reaches it. A
 batch whose call fails is retried one request at a time (by the service, as on Ray Serve), so one request's failure
 never fails the others. Each Ray Serve replica batches the same way, with a [`Batcher`] of its own
 (``ray_deployment``).
@@ -38,6 +40,7 @@ class _Pending:
     request: ActRequest
     arrived: float = field(default_factory=time.perf_counter)
     future: Future = field(default_factory=Future)
+    counted: bool = True  # it holds one of the queue's ``max_queue`` slots (until taken or cancelled)
 
 
 class Batcher:
@@ -47,7 +50,11 @@ class Batcher:
         self.service = service
         config = service.config
         self.max_wait_s, self.max_batch_size = config.max_wait_ms / 1000, config.max_batch_size
-        self._queue: queue.Queue[_Pending] = queue.Queue(maxsize=config.max_queue)
+        self.max_queue = config.max_queue
+        #: requests in arrival order (live ones, and cancelled ones the worker has not reached yet)
+        self._queue: queue.Queue[_Pending] = queue.Queue()
+        self._live = 0  # the queued requests whose robots still wait: what ``max_queue`` bounds
+        self._slots = threading.Lock()
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
         self._recent_batch_s = 0.05  # a running mean, for Retry-After
@@ -70,7 +77,15 @@ class Batcher:
 
     @property
     def waiting(self) -> int:
-        return self._queue.qsize()
+        """Queued requests whose robots still wait."""
+        return self._live
+
+    def _release(self, pending: _Pending) -> None:
+        """Frees ``pending``'s queue slot (once: when the worker takes it, or the moment its robot gives up)."""
+        with self._slots:
+            if pending.counted:
+                pending.counted = False
+                self._live -= 1
 
     def unhealthy(self) -> str | None:
         """Why requests would not be served now (None: the worker is running)."""
@@ -93,15 +108,20 @@ class Batcher:
         if self.failure is not None:
             raise RuntimeError(self.unhealthy())
         pending = _Pending(request) if arrived is None else _Pending(request, arrived)
-        try:
-            self._queue.put_nowait(pending)
-        except queue.Full:
-            batches_ahead = self._queue.maxsize / self.max_batch_size + 1
+        with self._slots:
+            full = self._live >= self.max_queue
+            if not full:
+                self._live += 1
+        if full:
+            batches_ahead = self.max_queue / self.max_batch_size + 1
             retry_after_s = max(1, math.ceil(batches_ahead * self._recent_batch_s))
             raise Overloaded(
-                f"{self._queue.maxsize} requests are waiting, the most this server queues: retry in {retry_after_s} s",
+                f"{self.max_queue} requests are waiting, the most this server queues: retry in {retry_after_s} s",
                 retry_after_s,
-            ) from None
+            )
+        # a robot that gives up while its request waits frees the slot at once
+        pending.future.add_done_callback(lambda future: future.cancelled() and self._release(pending))
+        self._queue.put_nowait(pending)
         return pending.future
 
     def _run(self) -> None:
@@ -125,15 +145,15 @@ class Batcher:
     def _serve(self) -> None:
         while not (self._stopping.is_set() and self._queue.empty()):
             try:
-                first = self._queue.get(timeout=0.1)
+                first = self._take(timeout=0.1)
             except queue.Empty:
                 continue
             batch = self._in_hand = [self._seen(first)]
             deadline = time.perf_counter() + self.max_wait_s
-            while len(batch) < min(self.max_batch_size, self._active_robots(len(batch)) + self._queue.qsize()):
+            while len(batch) < min(self.max_batch_size, self._active_robots(len(batch)) + self.waiting):
                 try:
                     remaining = deadline - time.perf_counter()
-                    pending = self._queue.get(timeout=remaining) if remaining > 0 else self._queue.get_nowait()
+                    pending = self._take(timeout=remaining) if remaining > 0 else self._take()
                 except queue.Empty:
                     break
                 batch.append(self._seen(pending))
@@ -141,6 +161,23 @@ class Batcher:
             self.dropped += len(batch) - len(live)
             if live:
                 self._decode(live)
+
+    def _take(self, timeout: float | None = None) -> _Pending:
+        """The next live queued request (cancelled ones on the way dropped and counted), its slot freed.
+
+        Raises:
+            queue.Empty: none within ``timeout`` (None: none now).
+        """
+        deadline = None if timeout is None else time.perf_counter() + timeout
+        while True:
+            if deadline is None:
+                pending = self._queue.get_nowait()
+            else:
+                pending = self._queue.get(timeout=max(0.0, deadline - time.perf_counter()))
+            self._release(pending)
+            if not pending.future.cancelled():
+                return pending
+            self.dropped += 1
 
     def _seen(self, pending: _Pending, at: float | None = None) -> _Pending:
         """Notes the request's session as active (``at``: its reply's time; default its arrival)."""
