@@ -21,7 +21,7 @@ from hf_specvla.serving.batching import ACTIVE_WINDOW_S
 from hf_specvla.serving.protocol import decode_array, dumps, encode_array
 from hf_specvla.serving.server import PolicyServer
 
-from .test_server import POLICY, _greedy, _observation, _post, _service, _wait_until
+from .test_server import POLICY, _greedy, _observation, _post, _service, _slowed, _wait_until
 
 
 @pytest.fixture(scope="module")
@@ -431,3 +431,103 @@ def test_shutdown_ends_a_half_sent_bodys_wait_within_the_body_timeout(policy):
     assert answer.startswith(b"HTTP/1.1 408") and b"did not arrive whole within 2 s" in answer, answer[:300]
     assert 1.5 < waited < 15 and code == 200
     assert closed < 15, f"the shutdown waited {closed:.1f} s for a half-sent body (drain timeout 30 s)"
+
+
+def _send_whole(port: int, body: bytes) -> socket.socket:
+    """A raw connection that has sent a whole ``POST /act`` (and not yet read its answer)."""
+    robot = socket.create_connection(("127.0.0.1", port))
+    robot.sendall(b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                  + f"Content-Length: {len(body)}\r\n\r\n".encode() + body)  # fmt: skip
+    return robot
+
+
+def test_robots_that_hung_up_leave_the_full_queue_to_a_live_robot_over_http(policy):
+    """Reliability-6 item 5 over HTTP: two robots fill the queue (max_queue=2) behind a batch being decoded, then hang
+    up; a live robot's request right after is queued and answered (it once got a 503 "queue full": the hung-up
+    requests held their slots until the worker reached them), and the hung-up ones are dropped, never decoded."""
+    service = _service(policy, max_queue=2, buckets=(1,), max_wait_ms=0.0)
+    act_each, decoding, release = service.act_each, threading.Event(), threading.Event()
+
+    def held(requests, arrived=None, on_reply=None):
+        decoding.set()
+        assert release.wait(30)
+        return act_each(requests, arrived, on_reply)
+
+    service.act_each = held
+    body, results = dumps(_observation(policy, 60)), {}
+    with PolicyServer(service, port=0) as server:
+        batcher = server.backend.batcher
+        robots = {key: threading.Thread(target=lambda k=key: results.update({k: _post(server.url + "/act", body)}))
+                  for key in ("first", "live")}  # fmt: skip
+        try:
+            robots["first"].start()
+            assert decoding.wait(30), "the first request never reached the decoder"
+            gone = [_send_whole(server.port, body) for _ in range(2)]
+            _wait_until(lambda: batcher.waiting == 2, "the two robots' requests fill the queue")
+            for robot in gone:
+                robot.close()
+            _wait_until(lambda: server.routes.client_hangups == 2, "both hang-ups are noticed")
+            robots["live"].start()
+            _wait_until(lambda: "live" in results or batcher.waiting == 1, "the live request is answered or queued")
+        finally:
+            release.set()
+            for robot in robots.values():
+                if robot.ident is not None:
+                    robot.join()
+        _, stats = _get(server.url + "/stats")
+    assert results["live"][0] == 200, results["live"][:2]
+    assert results["first"][0] == 200
+    assert stats["dropped"] == 2 and stats["batches"] == 2 and stats["client_hangups"] == 2, stats
+
+
+def test_a_shutdown_beside_a_half_sent_body_still_answers_the_requests_received(policy):
+    """Reliability-6 item 5: the shutdown begins while robot A's request is being decoded, robot C's waits behind it
+    and a client holds a half-sent body: A and C get their actions during the drain, the half-sent body its 408 once
+    ``body_timeout_s`` (2 s here) passes, and ``close()`` returns then, far inside the 30 s drain timeout."""
+    service = _slowed(_service(policy, buckets=(1,), max_wait_ms=0.0), 0.5)
+    server = PolicyServer(service, port=0, drain_timeout_s=30.0)
+    server.routes.body_timeout_s = 2.0
+    body, results = dumps(_observation(policy, 61)), {}
+    robots = {key: threading.Thread(target=lambda k=key: results.update({k: _post(server.url + "/act", body)}))
+              for key in ("a", "c")}  # fmt: skip
+    with server, socket.create_connection(("127.0.0.1", server.port)) as stalled:
+        robots["a"].start()
+        assert service.decoding.wait(30), "robot A's request never reached the decoder"
+        robots["c"].start()
+        _wait_until(lambda: server.backend.batcher.waiting == 1, "robot C's request is queued behind A's")
+        stalled.sendall(b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                        b"Content-Length: 100000\r\n\r\n" + b'{"image": ' + b"1" * 1000)  # fmt: skip
+        time.sleep(0.2)  # the server is reading its body
+        started = time.perf_counter()
+        server.close()
+        closed = time.perf_counter() - started
+        for robot in robots.values():
+            robot.join()
+        stalled.settimeout(10)
+        answer = stalled.recv(4096)
+    assert results["a"][0] == results["c"][0] == 200, (results["a"][:2], results["c"][:2])
+    assert answer.startswith(b"HTTP/1.1 408"), answer[:300]
+    assert closed < 2.0 + 8, f"the shutdown took {closed:.1f} s beside a half-sent body (drain timeout 30 s)"
+
+
+def test_a_flood_of_robots_that_hang_up_holds_at_most_twice_the_queue():
+    """Cancelled requests free their slots at once but wait in the queue for the worker; a flood of them (robots that
+    send and hang up, over and over, during a long batch) is let go of before the queue holds twice ``max_queue``."""
+    from hf_specvla.serving.batching import Batcher
+    from hf_specvla.serving.protocol import ActRequest
+
+    service = _HeldService(max_queue=4)
+    batcher = Batcher(service).start()
+    try:
+        batcher.submit(ActRequest(image=None, instruction="x", session="decoding"))
+        _wait_until(lambda: batcher.waiting == 0, "the first request is taken into a (held) batch")
+        for i in range(100):
+            assert batcher.submit(ActRequest(image=None, instruction="x", session=f"r{i}")).cancel()
+            assert batcher._queue.qsize() <= 2 * 4 + 1
+        live = batcher.submit(ActRequest(image=None, instruction="x", session="live"))
+        service.release.set()
+        assert live.result(30) == "live"
+        _wait_until(lambda: batcher.dropped == 100, "every hung-up request dropped, none decoded")
+    finally:
+        service.release.set()
+        batcher.stop()

@@ -121,8 +121,19 @@ class Batcher:
             )
         # a robot that gives up while its request waits frees the slot at once
         pending.future.add_done_callback(lambda future: future.cancelled() and self._release(pending))
+        if self._queue.qsize() > 2 * self.max_queue:  # mostly requests nobody waits for: let go of their data now
+            self._drop_cancelled()
         self._queue.put_nowait(pending)
         return pending.future
+
+    def _drop_cancelled(self) -> None:
+        """Takes the cancelled requests out of the queue (a flood of robots that hang up holds at most
+        ``2 * max_queue`` requests' images until the worker reaches them)."""
+        with self._queue.mutex:
+            kept = [pending for pending in self._queue.queue if not pending.future.cancelled()]
+            self.dropped += len(self._queue.queue) - len(kept)
+            self._queue.queue.clear()
+            self._queue.queue.extend(kept)
 
     def _run(self) -> None:
         try:

@@ -10,7 +10,9 @@
 
 It binds 127.0.0.1 unless told otherwise; a host reachable from other machines needs an API key
 ([`check_exposure`]). SIGTERM (and Ctrl-C) stop accepting connections, let the requests in flight get their actions
-(up to ``drain_timeout_s``), then stop the batcher.
+(up to ``drain_timeout_s``), then stop the batcher. A request whose body is still arriving holds the drain at most
+until its body timeout (``app.BODY_TIMEOUT_S``, 10 s after its arrival: then it is answered 408), not the whole
+``drain_timeout_s``.
 """
 
 from __future__ import annotations
@@ -78,7 +80,8 @@ class PolicyServer:
         host / port: where to listen (port 0: any free port; see ``url``).
         api_key: every request must carry it (None: an open server; refused off loopback).
         max_request_bytes: the largest request body.
-        drain_timeout_s: how long SIGTERM waits for the requests in flight.
+        drain_timeout_s: how long SIGTERM waits for the requests in flight (one whose body is still arriving: at most
+            ``routes.body_timeout_s``, 10 s after its arrival).
         sock: a socket already listening ([`bind`]: e.g. taken before the policy loads), instead of host / port.
     """
 
