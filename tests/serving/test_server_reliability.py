@@ -531,3 +531,21 @@ def test_a_flood_of_robots_that_hang_up_holds_at_most_twice_the_queue():
     finally:
         service.release.set()
         batcher.stop()
+
+
+def test_the_body_timeout_is_a_setting_checked_before_anything_loads(policy, capsys):
+    """``serve --body-timeout-s`` (and ``PolicyServer(body_timeout_s=)``, Ray's ``body_timeout_s=``): seconds in
+    (0, 600]; another value is a usage error naming the flag, before the policy loads."""
+    from hf_specvla.cli import main
+    from hf_specvla.serving.ray_deployment import PolicyAppArgs
+
+    for value in ("0", "601", "nan", "soon"):
+        with pytest.raises(SystemExit) as exited:
+            main(["serve", "--policy", "does/not/exist", "--body-timeout-s", value])
+        assert exited.value.code == 2
+        assert "--body-timeout-s" in capsys.readouterr().err, value
+    with pytest.raises(ValueError, match=r"body_timeout_s must be seconds in \(0, 600\]"):
+        PolicyServer(_service(policy), port=0, body_timeout_s=-1)
+    assert PolicyAppArgs.from_args({"policy": str(POLICY), "body_timeout_s": "2.5"}).body_timeout_s == 2.5
+    with pytest.raises(ValueError, match="body_timeout_s"):
+        PolicyAppArgs.from_args({"policy": str(POLICY), "body_timeout_s": "0"})

@@ -11,7 +11,14 @@ import logging
 import os
 import time
 
-from .common import POSITIVE, check_draft_head_flag, load_draft_head_for, read_policy_config, usage_errors
+from .common import (
+    POSITIVE,
+    check_draft_head_flag,
+    load_draft_head_for,
+    positive_number,
+    read_policy_config,
+    usage_errors,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -41,6 +48,7 @@ EXAMPLES = """
 def add_arguments(parser) -> None:
     from ..serving.config import (
         API_KEY_VARIABLE,
+        BODY_TIMEOUT_S,
         DEFAULT_HOST,
         DEFAULT_MAX_REQUEST_BYTES,
         DEFAULT_PORT,
@@ -135,6 +143,13 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--max-request-bytes", type=POSITIVE, default=DEFAULT_MAX_REQUEST_BYTES, help="the largest request body"
     )
+    parser.add_argument(
+        "--body-timeout-s",
+        type=positive_number,
+        default=BODY_TIMEOUT_S,
+        help="the longest a request's body may take to arrive whole, in seconds (408 past it; a half-sent body holds "
+        "a shutdown at most this long; at most 600)",
+    )
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (per replica with --ray)")
     parser.add_argument("--ray", action="store_true", help="serve as a Ray Serve deployment")
     parser.add_argument("--replicas", type=POSITIVE, default=None, help="Ray Serve replicas, with --ray (unset: 1)")
@@ -174,7 +189,7 @@ def serve_config(args, parser):
 
 def run(args, parser) -> int:
     from ..policies.decoding_methods import serving_methods
-    from ..serving.config import check_exposure
+    from ..serving.config import check_body_timeout, check_exposure
 
     if (args.replicas is not None or args.ray_address is not None) and not args.ray:
         parser.error("--replicas / --ray-address are for Ray Serve: add --ray")
@@ -183,6 +198,8 @@ def run(args, parser) -> int:
         parser.error(f"serving needs {' and '.join(missing)}: pip install 'hf_specvla[serve]'")
     with usage_errors(parser, "--host", (ValueError,)):
         check_exposure(args.host, args.api_key)
+    with usage_errors(parser, "--body-timeout-s", (ValueError,)):
+        check_body_timeout(args.body_timeout_s)
     config = serve_config(args, parser)
     if args.compile_cache is not None:
         from .common import check_output_dir_flag
@@ -235,7 +252,15 @@ def _run_local(args, parser, config, methods) -> int:
     )
     with usage_errors(parser, errors=(ValueError,)):  # e.g. --max-prompt-tokens shorter than any prompt
         service = PolicyService(policy, config, draft_head)
-    server = PolicyServer(service, args.host, args.port, args.api_key, args.max_request_bytes, sock=sock)
+    server = PolicyServer(
+        service,
+        args.host,
+        args.port,
+        args.api_key,
+        args.max_request_bytes,
+        sock=sock,
+        body_timeout_s=args.body_timeout_s,
+    )
     compiled = any(method.compiled for method in methods)
     logger.info(
         "%s buckets %s%s",
@@ -280,6 +305,7 @@ def _run_ray(args, parser, config) -> int:
             draft_head=str(Path(args.draft_head).resolve()) if args.draft_head else None,
             num_replicas=replicas,
             max_request_bytes=args.max_request_bytes,
+            body_timeout_s=args.body_timeout_s,
         )
     settings = serve_config(app_args, args.host, args.port)
     if args.api_key and local:  # the local cluster inherits this environment: the key stays out of Serve's config

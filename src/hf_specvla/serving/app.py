@@ -37,7 +37,7 @@ from starlette.requests import ClientDisconnect, Request
 from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 
-from .config import DEFAULT_MAX_REQUEST_BYTES
+from .config import BODY_TIMEOUT_S, DEFAULT_MAX_REQUEST_BYTES, check_body_timeout
 from .protocol import ActReply, ActRequest, Overloaded, RequestError, dumps, encode_array, loads, unwrap
 
 logger = logging.getLogger(__name__)
@@ -46,9 +46,6 @@ logger = logging.getLogger(__name__)
 DISCONNECT_POLL_S = 0.05
 #: the status logged for a request whose robot went away before its reply (nginx's convention)
 CLIENT_CLOSED_REQUEST = 499
-#: the longest a request's body may take to arrive whole (a robot's observation arrives in milliseconds): past it the
-#: request is answered 408, so that a client holding a half-sent body delays a shutdown's drain at most this long
-BODY_TIMEOUT_S = 10.0
 
 
 class Backend(Protocol):
@@ -77,6 +74,7 @@ class PolicyRoutes:
         max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
         body_timeout_s: float = BODY_TIMEOUT_S,
     ):
+        check_body_timeout(body_timeout_s)
         self.backend, self.api_key, self.max_request_bytes = backend, api_key, max_request_bytes
         self.body_timeout_s = body_timeout_s
         self.client_hangups = 0  # robots that hung up before their reply (mid-body, or while their request waited)

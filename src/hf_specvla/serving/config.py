@@ -134,3 +134,28 @@ def check_exposure(host: str, api_key: str | None) -> None:
             f"host {host!r} is reachable from other machines: pass --api-key (or set "
             f"{API_KEY_VARIABLE}) so that every request must carry it, or serve on 127.0.0.1"
         )
+
+
+#: the longest a request's body may take to arrive whole by default (a robot's observation arrives in milliseconds;
+#: 10 s carries a 4 MiB body at 3.2 Mbit/s): past it the request is answered 408, so that a client holding a half-sent
+#: body delays a shutdown's drain at most this long (``serve --body-timeout-s``)
+BODY_TIMEOUT_S = 10.0
+#: the longest ``body_timeout_s`` may be set to
+MAX_BODY_TIMEOUT_S = 600.0
+
+
+def check_body_timeout(body_timeout_s) -> None:
+    """Refuses a body timeout that is not seconds in (0, ``MAX_BODY_TIMEOUT_S``].
+
+    Raises:
+        ValueError: naming the value and what is valid.
+    """
+    if (
+        isinstance(body_timeout_s, bool)
+        or not isinstance(body_timeout_s, int | float)
+        or not 0 < body_timeout_s <= MAX_BODY_TIMEOUT_S
+    ):
+        raise ValueError(
+            f"body_timeout_s must be seconds in (0, {MAX_BODY_TIMEOUT_S:g}] (how long a request's body may take to "
+            f"arrive whole), got {body_timeout_s!r}"
+        )

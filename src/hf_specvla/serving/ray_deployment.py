@@ -69,7 +69,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .config import API_KEY_VARIABLE, DEFAULT_MAX_REQUEST_BYTES, ServeConfig
+from .config import API_KEY_VARIABLE, BODY_TIMEOUT_S, DEFAULT_MAX_REQUEST_BYTES, ServeConfig, check_body_timeout
 from .protocol import ActReply, ActRequest
 
 if TYPE_CHECKING:
@@ -130,6 +130,7 @@ class PolicyAppArgs:
         num_replicas: replicas (None: Serve's default, 1, or what the config file sets: ``num_replicas`` or
             ``autoscaling_config``, which the code's own ``num_replicas`` would clash with).
         max_request_bytes: the largest request body.
+        body_timeout_s: the longest a request's body may take to arrive whole (408 past it; seconds in (0, 600]).
     """
 
     policy: str
@@ -139,6 +140,7 @@ class PolicyAppArgs:
     threads: int = 1
     num_replicas: int | None = None
     max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES
+    body_timeout_s: float = BODY_TIMEOUT_S
 
     def __post_init__(self):
         for name in ("threads", "num_replicas", "max_request_bytes"):
@@ -147,6 +149,7 @@ class PolicyAppArgs:
                 continue
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        check_body_timeout(self.body_timeout_s)
 
     @classmethod
     def from_args(cls, args: dict[str, Any]) -> PolicyAppArgs:
@@ -216,6 +219,7 @@ _ARG_KINDS = {
     "threads": "int",
     "num_replicas": "int",
     "max_request_bytes": "int",
+    "body_timeout_s": "number",
 }
 
 
@@ -335,7 +339,7 @@ class PolicyDeployment:
             ", ".join(f"{k} {v}" for k, v in self.service.startup.items()),
         )
         api_key = app_args.api_key if app_args.api_key is not None else os.environ.get(API_KEY_VARIABLE) or None
-        self.routes = PolicyRoutes(self, api_key, app_args.max_request_bytes)
+        self.routes = PolicyRoutes(self, api_key, app_args.max_request_bytes, app_args.body_timeout_s)
         self.batcher = Batcher(self.service).start()  # the one-machine server's batching (module docstring)
         self.started = time.time()
 

@@ -11,7 +11,7 @@
 It binds 127.0.0.1 unless told otherwise; a host reachable from other machines needs an API key
 ([`check_exposure`]). SIGTERM (and Ctrl-C) stop accepting connections, let the requests in flight get their actions
 (up to ``drain_timeout_s``), then stop the batcher. A request whose body is still arriving holds the drain at most
-until its body timeout (``app.BODY_TIMEOUT_S``, 10 s after its arrival: then it is answered 408), not the whole
+until its body timeout (``body_timeout_s``, 10 s after its arrival by default: then it is answered 408), not the whole
 ``drain_timeout_s``.
 """
 
@@ -27,7 +27,7 @@ import time
 
 from .app import PolicyRoutes
 from .batching import Batcher
-from .config import DEFAULT_HOST, DEFAULT_MAX_REQUEST_BYTES, DEFAULT_PORT, check_exposure
+from .config import BODY_TIMEOUT_S, DEFAULT_HOST, DEFAULT_MAX_REQUEST_BYTES, DEFAULT_PORT, check_exposure
 from .protocol import ActReply, ActRequest
 from .service import PolicyService
 
@@ -83,6 +83,7 @@ class PolicyServer:
         drain_timeout_s: how long SIGTERM waits for the requests in flight (one whose body is still arriving: at most
             ``routes.body_timeout_s``, 10 s after its arrival).
         sock: a socket already listening ([`bind`]: e.g. taken before the policy loads), instead of host / port.
+        body_timeout_s: the longest a request's body may take to arrive whole (408 past it; seconds in (0, 600]).
     """
 
     def __init__(
@@ -94,6 +95,7 @@ class PolicyServer:
         max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
         drain_timeout_s: float = 30.0,
         sock: socket.socket | None = None,
+        body_timeout_s: float = BODY_TIMEOUT_S,
     ):
         check_exposure(host, api_key)
         if isinstance(max_request_bytes, bool) or not isinstance(max_request_bytes, int) or max_request_bytes < 1:
@@ -105,7 +107,7 @@ class PolicyServer:
         ):
             raise ValueError(f"drain_timeout_s must be seconds 0..{MAX_DRAIN_TIMEOUT_S:g}, got {drain_timeout_s!r}")
         self.backend = LocalBackend(service)
-        self.routes = PolicyRoutes(self.backend, api_key, max_request_bytes)
+        self.routes = PolicyRoutes(self.backend, api_key, max_request_bytes, body_timeout_s)
         self.host, self.drain_timeout_s = host, drain_timeout_s
         self._socket = sock if sock is not None else bind(host, port)
         self.port = self._socket.getsockname()[1]
