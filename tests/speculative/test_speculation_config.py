@@ -92,3 +92,20 @@ def test_each_refusal_names_its_field(tiny_llama, random_draft):
         tiny_llama.generate(input_ids, speculation={"bin_tolerance": 1}, assistant_model=random_draft)
     with pytest.raises(ValueError, match="needs something to draft with"):
         tiny_llama.generate(input_ids, speculation=SpeculationConfig(), max_new_tokens=3)
+
+
+def test_the_acceptance_rule_is_built_once_per_layout_and_shared_by_a_sessions_calls(action_tokenizer):
+    """Engine v6 item 1, "the acceptance rule built once": a setting builds its rule once per layout, and a setting
+    folded from it by adding a call's drafter (a robot's call through a session) uses the same rule."""
+    from hf_specvla import ActionLayout
+
+    layouts = [ActionLayout(action_tokenizer, 7), ActionLayout(action_tokenizer, 4)]
+    settings = SpeculationConfig(bin_tolerance=2, max_relaxed_per_action=1)
+    rule = settings.acceptance_rule(layouts[0])
+    assert settings.acceptance_rule(layouts[0]) is rule and not rule.is_lossless
+    assert settings.acceptance_rule(layouts[1]) is not rule  # another layout, another rule
+    for _ in range(2):  # each call's drafter folded in: the rule is the session setting's
+        call = SpeculationConfig.fold(settings, {"drafter": JacobiDrafter()})
+        assert call.acceptance_rule(layouts[0]) is rule and call == dataclasses.replace(settings, drafter=call.drafter)
+    other = dataclasses.replace(settings, bin_tolerance=1)  # other acceptance: its own rules
+    assert other.acceptance_rule(layouts[0]) is not rule

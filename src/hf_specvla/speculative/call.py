@@ -14,7 +14,7 @@ from transformers.cache_utils import Cache
 from transformers.generation.logits_process import PrefixConstrainedLogitsProcessor
 
 from ..actions.tokenizer import ActionLayout
-from .acceptance import AcceptanceRule, make_acceptance_rule
+from .acceptance import AcceptanceRule
 from .assistant import as_drafter
 from .cache import (
     ROLLBACK_LAYER_TYPES,
@@ -358,15 +358,7 @@ def _checked_call(model, input_ids, logits_processor, generation_config, setting
     drafter, candidates = _call_drafter(model, batch_size, draft_ids, settings)
     _validate_call(model, generation_config, logits_processor, batch_size, drafter)
     layout = settings.action_layout or drafter.action_layout
-    rule = make_acceptance_rule(
-        settings.bin_tolerance,
-        layout,
-        settings.confidence_gate,
-        settings.max_relaxed_per_action,
-        settings.motion_scale,
-        settings.max_deviation,
-        settings.confirm_strict_tail,
-    )
+    rule = settings.acceptance_rule(layout)
     if generation_config.do_sample and not rule.is_lossless:
         raise ValueError(
             f"relaxed acceptance ({rule!r}) is greedy only: with do_sample=True the drafts are verified by speculative "

@@ -13,8 +13,10 @@ from ..actions.tokenizer import ActionLayout
 from .acceptance import (
     MAX_DEVIATION_MEANING,
     MOTION_SCALE_MEANING,
+    AcceptanceRule,
     check_confidence_gate,
     check_relaxed_budget,
+    make_acceptance_rule,
     validate_per_dimension,
 )
 from .drafter import Drafter
@@ -125,7 +127,31 @@ class SpeculationConfig:
                 f"generate got speculation=SpeculationConfig(...) and {', '.join(clash)}: the setting holds them "
                 f"whole; pass one or the other (dataclasses.replace(speculation, {clash[0]}=...) for another value)"
             )
-        return speculation if not loose else dataclasses.replace(speculation, **loose)
+        if not loose:
+            return speculation
+        folded = dataclasses.replace(speculation, **loose)
+        if set(loose) == {"drafter"}:  # the same acceptance: the rules built for it are the folded setting's too
+            folded.__dict__["_rules"] = speculation.__dict__.setdefault("_rules", {})
+        return folded
+
+    def acceptance_rule(self, layout: ActionLayout | None) -> AcceptanceRule:
+        """The acceptance rule of these settings for ``layout`` (the settings' own, else the drafter's), built once
+        per layout and kept: a setting [`fold`] made from this one by adding a drafter (a robot's call through a
+        decoder session) shares them. Rules hold no per-call state."""
+        rules = self.__dict__.setdefault("_rules", {})  # not a field: equality and hash ignore it
+        kept = rules.get(id(layout))
+        if kept is None:  # the layout kept beside its rule: its id is not another's while the entry lives
+            rule = make_acceptance_rule(
+                self.bin_tolerance,
+                layout,
+                self.confidence_gate,
+                self.max_relaxed_per_action,
+                self.motion_scale,
+                self.max_deviation,
+                self.confirm_strict_tail,
+            )
+            kept = rules[id(layout)] = (layout, rule)
+        return kept[1]
 
 
 #: [`SpeculationConfig`]'s fields as ``generate``'s loose keywords (``drafter`` is ``assistant_model`` there)
