@@ -431,7 +431,7 @@ class DecodingPlan:
             ValueError: a setting that is not the field's own (an action length, sampling, a compile setting among
                 the acceptance's...) or a bad value, naming it and what is valid.
         """
-        from ..speculative import Drafter, DraftHead, SpeculationConfig
+        from ..speculative import RULE_ARGUMENTS, Drafter, DraftHead, SpeculationConfig
 
         if self.assistant_model is not None and not isinstance(self.assistant_model, (Drafter, DraftHead)):
             raise TypeError(
@@ -440,8 +440,9 @@ class DecodingPlan:
             )
         if not isinstance(self.action_prior, bool):
             raise TypeError(f"DecodingPlan.action_prior must be True or False, got {self.action_prior!r}")
-        for name, valid in (("acceptance", _ACCEPTANCE_SETTINGS), ("compile", COMPILE_SETTINGS)):
-            _check_plan_options(name, getattr(self, name), valid)
+        fields = {"acceptance": RULE_ARGUMENTS, "compile": COMPILE_SETTINGS}  # each field's own settings
+        for name, valid in fields.items():
+            _check_plan_options(name, getattr(self, name), valid, fields)
             object.__setattr__(self, name, PlanOptions(getattr(self, name)))
         speculation = SpeculationConfig(
             drafter=self.assistant_model, num_draft_tokens=self.num_draft_tokens, **self.acceptance
@@ -489,16 +490,6 @@ class DecodingPlan:
 
 #: the compilation settings a plan's ``compile`` holds (``speculative.compiled_decoding_kwargs``'s)
 COMPILE_SETTINGS = ("cache_implementation", "compile_config")
-#: the acceptance rule's settings (``speculative.RULE_ARGUMENTS``, restated here: no torch at import; a test keeps
-#: the two equal)
-_ACCEPTANCE_SETTINGS = (
-    "bin_tolerance",
-    "confidence_gate",
-    "max_relaxed_per_action",
-    "motion_scale",
-    "max_deviation",
-    "confirm_strict_tail",
-)
 #: why a setting that is no plan field's own is not: what a user who put it there meant
 _NOT_A_PLAN_SETTING = {
     **dict.fromkeys(
@@ -540,8 +531,9 @@ class PlanOptions(Mapping):
         return repr(self._options)
 
 
-def _check_plan_options(field_name: str, options, valid: tuple[str, ...]) -> None:
-    """Refuses a plan field (``acceptance`` / ``compile``) that is not a mapping of its own settings.
+def _check_plan_options(field_name: str, options, valid: tuple[str, ...], fields: dict[str, tuple[str, ...]]) -> None:
+    """Refuses a plan field (``acceptance`` / ``compile``) that is not a mapping of its own settings (``valid``;
+    ``fields``: every field's, to say where a misplaced one belongs).
 
     Raises:
         TypeError: not a mapping (None, a list, a string), naming the field and its type.
@@ -555,7 +547,7 @@ def _check_plan_options(field_name: str, options, valid: tuple[str, ...]) -> Non
     for name in options:
         if name in valid:
             continue
-        other = "acceptance" if name in _ACCEPTANCE_SETTINGS else "compile" if name in COMPILE_SETTINGS else None
+        other = next((field for field, settings in fields.items() if name in settings), None)
         why = f"it belongs in DecodingPlan.{other}" if other else _NOT_A_PLAN_SETTING.get(name, "")
         raise ValueError(
             f"DecodingPlan.{field_name} holds {name!r}, which is not one of its settings (valid: "
