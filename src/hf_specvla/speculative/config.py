@@ -75,11 +75,8 @@ class SpeculationConfig:
                 f"SpeculationConfig.drafter (generate's assistant_model) must be a hf_specvla DraftHead or Drafter "
                 f"(DraftHeadDrafter, JacobiDrafter, ComposedDrafter, ...) or None, got {type(self.drafter).__name__}"
             )
-        if isinstance(self.drafter, Drafter) and self.num_draft_tokens is not None:
-            raise ValueError(
-                "num_draft_tokens applies to a bare DraftHead assistant; a Drafter carries its own settings "
-                "(e.g. DraftHeadDrafter(head, num_draft_tokens=k))"
-            )
+        if isinstance(self.drafter, Drafter):  # a chain length is a bare head's: the drafter's own check
+            self.drafter.as_drafter(self.num_draft_tokens)
         k = self.num_draft_tokens
         if k is not None and (isinstance(k, bool) or not isinstance(k, int) or k < 1):
             raise ValueError(f"num_draft_tokens must be an int >= 1 (tokens drafted per verification), got {k!r}")
