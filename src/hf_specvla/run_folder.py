@@ -97,6 +97,8 @@ IMPORTANT_SETTINGS = (
     "target",
     "policy",
     "init_from",
+    "device",  # before the draft head: a draft head cast to another dtype has another fingerprint too
+    "dtype",
     "draft_head",
     "data",
     "demonstrations",
@@ -135,6 +137,9 @@ ADDED_SETTINGS = {
     "scene_readout_weight": 0.0,
     # the env's rendering (metaworld.env.RENDER_REVISION): runs before it was recorded rendered revision 1
     "env.render_revision": 1,
+    # eval and compare ran every policy on the CPU in float32 before --device / --dtype
+    "device": "cpu",
+    "dtype": "float32",
 }
 
 

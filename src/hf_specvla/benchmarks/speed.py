@@ -728,8 +728,9 @@ def toy_actor(pipeline):
             kwargs = {k: v for k, v in kwargs.items() if k not in SPECULATION_KWARGS}
         else:
             kwargs.update(assistant_model=drafter, action_layout=layout)
+        inputs = toy_inputs([scene], pipeline.tokenizer)
         output = pipeline.target.generate(
-            **toy_inputs([scene], pipeline.tokenizer),
+            **{name: value.to(pipeline.target.device) for name, value in inputs.items()},  # the target's device
             max_new_tokens=ACTION_DIM,
             min_new_tokens=ACTION_DIM,
             do_sample=False,

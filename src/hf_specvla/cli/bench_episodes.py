@@ -9,6 +9,7 @@ from .benchmark import load_pipeline
 from .common import (
     NON_NEGATIVE,
     POSITIVE,
+    add_device_arguments,
     add_tree_arguments,
     check_bin_tolerances,
     check_draft_head_flag,
@@ -16,6 +17,7 @@ from .common import (
     load_draft_head,
     load_draft_head_for,
     load_policy,
+    resolve_placement,
     usage_errors,
 )
 
@@ -27,6 +29,8 @@ EXAMPLES = """
     hf-specvla bench-episodes --pipeline-dir policies/toy_dot --episodes 16 --threads 1
     # Eager rows only (no compilation)
     hf-specvla bench-episodes --pipeline-dir policies/toy_dot --episodes 4 --threads 1 --no-compile
+    # On the CPU in float32 (default: auto, a GPU in bfloat16 when torch sees one)
+    hf-specvla bench-episodes --pipeline-dir policies/toy_dot --episodes 2 --no-compile --device cpu --dtype float32
 """
 
 
@@ -63,6 +67,7 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument("--repeats", type=POSITIVE, default=1, help="timed passes over the episodes")
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (default: torch's)")
+    add_device_arguments(parser)
     parser.add_argument("--seed", type=int, default=0, help="random seed (method order, untrained head)")
 
 
@@ -72,8 +77,9 @@ def _check_bin_tolerances(args, n_bins: int, parser) -> None:
     )
 
 
-def _policy_episodes(args, parser):
-    """(act, action_dim, episodes, target, draft_head, head_name) for ``--policy``: its greedy rollouts recorded."""
+def _policy_episodes(args, parser, placement):
+    """(act, action_dim, episodes, target, draft_head, head_name) for ``--policy``: its greedy rollouts recorded, the
+    policy and head on ``placement``."""
     import torch
 
     from ..benchmarks.speed import policy_actor
@@ -88,12 +94,13 @@ def _policy_episodes(args, parser):
         torch.manual_seed(args.seed)
         draft_head = DraftHead.from_target(policy.model, policy.action_tokenizer, policy.config.action_dim).eval()
         head_name = f"an untrained DraftHead (seed {args.seed})"
+    placement.place_policy(policy, draft_head)  # after the head's check: it compares the weights as saved
     seeds = [args.seed_start + i for i in range(args.episodes)]
     episodes = record_observations(policy, args.tasks, seeds, args.steps)
     return policy_actor(policy), policy.config.action_tokens, episodes, policy.model, draft_head, head_name
 
 
-def _toy_episodes(args, parser):
+def _toy_episodes(args, parser, placement):
     """The same for ``--pipeline-dir``: moving-dot episodes of a saved toy pipeline."""
     from ..benchmarks.speed import toy_actor, toy_episodes
     from ..benchmarks.toy import ACTION_DIM
@@ -102,6 +109,7 @@ def _toy_episodes(args, parser):
     _check_bin_tolerances(args, pipeline.action_tokenizer.n_bins, parser)
     draft_head = load_draft_head(args.draft_head, parser) if args.draft_head else pipeline.draft_head
     head_name = args.draft_head or f"{pipeline.output_dir}/draft_head"
+    placement.move(pipeline.target, pipeline.draft_head, draft_head)
     return toy_actor(pipeline), ACTION_DIM, toy_episodes(args.episodes), pipeline.target, draft_head, head_name
 
 
@@ -120,8 +128,9 @@ def run(args, parser) -> int:
     with usage_errors(parser, errors=(ValueError,)):
         tree = DraftTreeConfig(**tree_settings)
     check_draft_head_flag(args.draft_head, parser)
+    placement = resolve_placement(args, parser)  # before anything loads
     source = _policy_episodes if args.policy is not None else _toy_episodes
-    act, action_dim, episodes, target, draft_head, head_name = source(args, parser)
+    act, action_dim, episodes, target, draft_head, head_name = source(args, parser, placement)
     compiled_on = target.device.type if args.compile else None
     methods = episode_methods(draft_head, args.bin_tolerances, tree, args.chain_length or action_dim - 1, compiled_on)
     results = run_episode_benchmark(
@@ -130,8 +139,8 @@ def run(args, parser) -> int:
     steps = sum(len(e) for e in episodes)
     print(
         f"\n{len(episodes)} episodes, {steps} steps x {args.repeats} repeats, {action_dim} action tokens per action, "
-        f"{torch.get_num_threads()} CPU threads; draft head: {head_name}; tree: {tree}; methods interleaved in a "
-        f"fresh random order at every step:\n"
+        f"{torch.get_num_threads()} CPU threads, on {placement}; draft head: {head_name}; tree: {tree}; methods "
+        f"interleaved in a fresh random order at every step:\n"
     )
     print(format_episode_report(results))
     return 0

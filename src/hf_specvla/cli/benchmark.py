@@ -60,7 +60,11 @@ def time_pipeline(pipeline, args) -> tuple[list, str]:
 
     scenes = split_scenes()[1]  # never seen by the target's or the draft head's training
     step = max(1, len(scenes) // args.prompts)
-    prompts = [toy_inputs([s], pipeline.tokenizer) for s in scenes[step // 2 :: step][: args.prompts]]
+    device = pipeline.target.device  # demo --device
+    prompts = [
+        {name: value.to(device) for name, value in toy_inputs([s], pipeline.tokenizer).items()}
+        for s in scenes[step // 2 :: step][: args.prompts]
+    ]
     compiled_on = pipeline.target.device.type if args.compile else None
     # transformers' own assisted generation beside ours, with a 1-layer early exit of the target as its small model
     assistant = early_exit_assistant(pipeline.target)

@@ -44,6 +44,58 @@ def positive_number(text: str) -> float:
 positive_number.__name__ = "number > 0"
 
 
+def _device_flag(text: str) -> str:
+    """argparse ``type`` of ``--device``: its spelling (``policies.devices.check_device``; no torch), else a usage
+    error naming the value and the valid ones."""
+    from ..policies.devices import check_device
+
+    try:
+        return check_device(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def _dtype_flag(text: str) -> str:
+    """argparse ``type`` of ``--dtype``, as [`_device_flag`]."""
+    from ..policies.devices import check_dtype
+
+    try:
+        return check_dtype(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def add_device_arguments(parser: argparse.ArgumentParser) -> None:
+    """--device, --dtype: where the policy (and its draft head) runs and in what precision; shared by every command
+    that runs a policy. Their spelling is checked at parse time (no torch); whether the device is there, by
+    [`resolve_placement`] right before the policy loads."""
+    from ..policies.devices import DEFAULT_DEVICE, DEFAULT_DTYPE
+
+    parser.add_argument(
+        "--device",
+        type=_device_flag,
+        default=DEFAULT_DEVICE,
+        help="where the policy and its draft head run: auto (cuda when torch sees a GPU, else cpu), cpu, cuda, cuda:N",
+    )
+    parser.add_argument(
+        "--dtype",
+        type=_dtype_flag,
+        default=DEFAULT_DTYPE,
+        help="the weights' precision: auto (bfloat16 on a CUDA device, float32 on cpu), bfloat16, float16, float32 "
+        "(a draft head is checked against the policy as saved, then cast)",
+    )
+
+
+def resolve_placement(args, parser):
+    """``--device`` / ``--dtype`` resolved on this machine (a [`Placement`]); a usage error naming the device when
+    it is not here (``cuda`` without CUDA, ``cuda:3`` with one GPU). Imports torch: call it right before the policy
+    loads, after the cheap checks, before anything is written."""
+    from ..policies.devices import Placement
+
+    with usage_errors(parser, "--device", (ValueError,)):
+        return Placement.resolve(args.device, args.dtype)
+
+
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
     """Keeps the examples' line breaks and shows every option's default (but a flag's: ``--no-compile`` does not
     default to True; and an option whose help says its default itself, as one that depends on other options does,

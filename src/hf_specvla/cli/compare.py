@@ -10,13 +10,15 @@ from ..metaworld.comparison.methods import DRAFTER_CHOICES, METHOD_KEYS, PRESETS
 from .common import (
     NON_NEGATIVE,
     POSITIVE,
+    add_device_arguments,
     add_tree_arguments,
     check_draft_head_flag,
     check_output_dir_flag,
-    load_draft_head,
+    load_draft_head_for,
     load_policy,
     positive_number,
     read_policy_config,
+    resolve_placement,
     usage_errors,
 )
 
@@ -49,6 +51,10 @@ EXAMPLES = """
     hf-specvla compare --policy policies/mt10_vla3 --tasks reach --episodes 1 --methods greedy \\
         prior+jacobi:rho=0.1/0.1/0.1/0,dev=0.04/0.04/0.04/0,confirm=1 --motion-threshold 0.25 \\
         --output-dir runs/compare_motion_smoke
+    # On the CPU in float32 (default: auto, a GPU in bfloat16 when torch sees one; the folder records both, and a
+    # continued run on another device or dtype is refused)
+    hf-specvla compare --policy policies/mt10_vla --tasks reach --episodes 1 --methods greedy prior \\
+        --device cpu --dtype float32 --output-dir runs/compare_cpu
 """
 
 
@@ -83,6 +89,7 @@ def add_arguments(parser) -> None:
         help="processes the seeds are split between (timings compared within a worker)",
     )
     parser.add_argument("--threads", type=POSITIVE, default=CompareConfig.threads, help="torch CPU threads per worker")
+    add_device_arguments(parser)
     parser.add_argument("--seed", type=int, default=CompareConfig.order_seed, help="seeds the method order per seed")
     parser.add_argument(
         "--motion-threshold",
@@ -141,8 +148,10 @@ def run(args, parser) -> int:
     if not args.overwrite_output_dir:  # a folder timed otherwise is refused before anything loads
         with usage_errors(parser, errors=(FileExistsError,)):
             check_timing(args.output_dir, config, args.restart_timing)
+    placement = resolve_placement(args, parser)  # before the policy loads and the folder is claimed
     policy = load_policy(args.policy, parser)
-    draft_head = load_draft_head(args.draft_head, parser) if args.draft_head else None
+    draft_head = load_draft_head_for(policy, args.draft_head, parser) if args.draft_head else None
+    placement.place_policy(policy, draft_head)  # after the head's check: it compares the weights as saved
     try:
         with usage_errors(parser, errors=(FileExistsError, ValueError)):
             summary = run_comparison(

@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 
 from .benchmark import add_benchmark_arguments, time_pipeline
-from .common import NON_NEGATIVE, POSITIVE, check_output_dir_flag, usage_errors
+from .common import NON_NEGATIVE, POSITIVE, add_device_arguments, check_output_dir_flag, resolve_placement, usage_errors
 
 NAME = "demo"
 HELP = "benchmark the shipped toy VLA target + draft head (or train them on the spot: --train)"
@@ -26,6 +26,9 @@ EXAMPLES = """
 
     # A quick look: two episodes, one relaxed r, no compiled rows
     hf-specvla demo --episodes 2 --bin-tolerances 1 --no-compile
+
+    # On the CPU in float32 (default: auto, a GPU in bfloat16 when torch sees one), in a folder of its own
+    hf-specvla demo --episodes 2 --bin-tolerances 1 --no-compile --device cpu --dtype float32 --output-dir runs/demo_cpu
 
     # The whole pipeline: train the toy target and distil its draft head on the spot (~15 min on one CPU thread),
     # kept in runs/toy, then time them
@@ -98,6 +101,7 @@ def add_arguments(parser) -> None:
         "every drafter on the episodes, not only the verdict's rows (many more graphs to compile)",
     )
     add_benchmark_arguments(parser)
+    add_device_arguments(parser)
 
 
 #: the file in the run's folder that holds the demo's full tables
@@ -175,18 +179,20 @@ def training_settings(args, parser) -> dict:
 
 
 def load_or_train(args, parser):
-    """The pipeline to time: the shipped one (its report in ``--output-dir``, a folder of its own), or with
-    ``--train`` the one built and trained in ``--output-dir``."""
+    """The pipeline to time, on ``--device`` in ``--dtype``: the shipped one (its report in ``--output-dir``, a folder
+    of its own), or with ``--train`` the one built and trained in ``--output-dir`` (trained as ``build_toy_pipeline``
+    trains, then moved)."""
     from ..benchmarks.toy import ToyTargetSize, build_toy_pipeline, load_toy_pipeline, shipped_toy_dir
     from ..run_folder import RunRecord, claim_run_folder, fingerprint
 
     settings = training_settings(args, parser)
     args.output_dir = args.output_dir or OUTPUT_DIRS["train" if args.train else "shipped"]
     check_output_dir_flag(args.output_dir, parser)
+    placement = resolve_placement(args, parser)  # before anything is trained or written
     if args.train:
         with usage_errors(parser, errors=(FileExistsError,)):
             size = ToyTargetSize(**SIZES[settings["size"]])
-            return build_toy_pipeline(
+            pipeline = build_toy_pipeline(
                 args.output_dir,
                 size,
                 settings["target_steps"],
@@ -194,6 +200,8 @@ def load_or_train(args, parser):
                 seed=args.seed,
                 overwrite=args.overwrite_output_dir,
             )
+        placement.move(pipeline.target, pipeline.draft_head)
+        return pipeline
     shipped = shipped_toy_dir()
     if shipped is None:
         parser.error(
@@ -205,6 +213,7 @@ def load_or_train(args, parser):
     with usage_errors(parser, errors=(FileExistsError,)):  # the report's folder follows the folder rule
         with claim_run_folder(args.output_dir, record, args.overwrite_output_dir):
             pass
+    placement.move(pipeline.target, pipeline.draft_head)  # after the record: it names the weights as shipped
     return pipeline
 
 
@@ -213,8 +222,10 @@ def run(args, parser) -> int:
 
     from ..benchmarks.speed import format_verdict
     from ..benchmarks.toy import ACTION_DIM
+    from ..policies.devices import dtype_name
 
     pipeline = load_or_train(args, parser)
+    placement = f"{pipeline.target.device.type} in {dtype_name(pipeline.target.dtype)}"
     sections = []
     if args.all_tables or not args.episodes:  # the held-out scenes: the verdict's rows when there are no episodes
         results, scenes = time_pipeline(pipeline, args)
@@ -226,9 +237,9 @@ def run(args, parser) -> int:
         measured = f"{_count(len(results[0].latencies), 'action')} of {_count(args.episodes, 'moving-dot episode')}"
     verdict = format_verdict(results, ACTION_DIM)
     report = write_report(args.output_dir, sections, verdict, getattr(args, "argv", ["demo"]))
+    threads = _count(torch.get_num_threads(), "CPU thread")
     print(
-        f"\nVerdict ({measured}, {_count(torch.get_num_threads(), 'CPU thread')}; a toy target: the README has a "
-        f"real policy's figures):\n\n{verdict}\n\nThe full tables (every method, Jacobi guesses, accepted drafts "
-        f"by token position): {report}"
+        f"\nVerdict ({measured}, {threads}, on {placement}; a toy target: the README has a real policy's figures):"
+        f"\n\n{verdict}\n\nThe full tables (every method, Jacobi guesses, accepted drafts by token position): {report}"
     )
     return 0

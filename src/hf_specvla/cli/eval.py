@@ -11,6 +11,7 @@ from ..metaworld.seeds import EVAL_SEED_START
 from .common import (
     NON_NEGATIVE,
     POSITIVE,
+    add_device_arguments,
     check_bin_tolerances,
     check_draft_head_flag,
     check_output_dir_flag,
@@ -18,6 +19,7 @@ from .common import (
     load_draft_head_for,
     load_policy,
     read_policy_config,
+    resolve_placement,
     usage_errors,
 )
 
@@ -35,6 +37,10 @@ EXAMPLES = """
     hf-specvla eval --policy policies/mt10_vla --draft-head runs/draft --bin-tolerance 2 --output-dir runs/eval_spec
     hf-specvla eval --policy policies/mt10_vla --action-prior --bin-tolerance 2 --output-dir runs/eval_prior
     hf-specvla eval --policy policies/mt10_vla --tasks MT10 --episodes 2 --num-envs 10 --output-dir runs/eval_batched
+    # Where the policy runs and in what precision (default: auto, a GPU in bfloat16 when torch sees one); a folder
+    # records both, and continuing it on another device or dtype is refused
+    hf-specvla eval --policy policies/mt10_vla --tasks reach --episodes 1 --device cpu --dtype float32 \\
+        --output-dir runs/eval_cpu
 """
 
 
@@ -68,6 +74,7 @@ def add_arguments(parser) -> None:
         help="draft each action from the episode's previous actions (verified inside the prefill)",
     )
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads")
+    add_device_arguments(parser)
     parser.add_argument(
         "--num-envs",
         type=POSITIVE,
@@ -145,13 +152,15 @@ def run(args, parser) -> int:
         logger.info("--method %s = %s", args.method.strip(), method.name)
     with usage_errors(parser, errors=(ValueError,)):
         env_config = EnvConfig(policy_config.image_size, policy_config.camera, args.max_episode_steps)
-    from ..metaworld.evaluation import evaluate, format_summary  # imports the policy's torch: after the cheap checks
+    placement = resolve_placement(args, parser)  # imports torch: after the cheap checks, before the policy loads
+    from ..metaworld.evaluation import evaluate, format_summary
 
     policy = load_policy(args.policy, parser)
     _check_tolerances(policy, method, args, parser)
     if args.draft_head and not method.uses_draft_head:
         logger.warning("--method %s drafts without a head: --draft-head %s is not used", method.name, args.draft_head)
     draft_head = load_draft_head_for(policy, args.draft_head, parser) if method.uses_draft_head else None
+    placement.place_policy(policy, draft_head)  # after the head's check: it compares the weights as saved
     plan = method.plan(draft_head, policy.model.device.type, action_dim=policy.config.action_dim)
     if args.bin_tolerance is not None:  # as given (one r, or one per action dimension), as eval folders record it
         tolerance = args.bin_tolerance[0] if len(args.bin_tolerance) == 1 else args.bin_tolerance

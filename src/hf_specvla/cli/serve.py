@@ -13,10 +13,12 @@ import time
 
 from .common import (
     POSITIVE,
+    add_device_arguments,
     check_draft_head_flag,
     load_draft_head_for,
     positive_number,
     read_policy_config,
+    resolve_placement,
     usage_errors,
 )
 
@@ -42,6 +44,9 @@ EXAMPLES = """
     hf-specvla serve --policy policies/mt10_vla3 --method exact --buckets 1 2 4 --compile-cache runs/compile_cache
     # Ray Serve: 2 replicas on a local Ray cluster (or --ray-address auto for a running one)
     hf-specvla serve --policy policies/mt10_vla3 --method exact --ray --replicas 2
+    # On the CPU in float32 (default: auto, a GPU in bfloat16 when torch sees one; GET /info says which)
+    hf-specvla serve --policy policies/mt10_vla3 --method prior+jacobi --buckets 1 2 --device cpu --dtype float32 \\
+        --port 8005
 """
 
 
@@ -151,6 +156,7 @@ def add_arguments(parser) -> None:
         "a shutdown at most this long; at most 600)",
     )
     parser.add_argument("--threads", type=POSITIVE, default=None, help="torch CPU threads (per replica with --ray)")
+    add_device_arguments(parser)
     parser.add_argument("--ray", action="store_true", help="serve as a Ray Serve deployment")
     parser.add_argument("--replicas", type=POSITIVE, default=None, help="Ray Serve replicas, with --ray (unset: 1)")
     parser.add_argument(
@@ -184,6 +190,8 @@ def serve_config(args, parser):
             explore_every=args.explore_every,
             max_prompt_tokens=args.max_prompt_tokens,
             compile_cache=args.compile_cache and os.path.abspath(args.compile_cache),
+            device=args.device,
+            dtype=args.dtype,
         )
 
 
@@ -226,10 +234,11 @@ def run(args, parser) -> int:
         logger.info("--method %s = %s", given, names)
     if args.ray:
         return _run_ray(args, parser, config)
-    return _run_local(args, parser, config, methods)
+    placement = resolve_placement(args, parser)  # before the port is taken and the policy loads
+    return _run_local(args, parser, config, methods, placement)
 
 
-def _run_local(args, parser, config, methods) -> int:
+def _run_local(args, parser, config, methods, placement) -> int:
     from ..metaworld.comparison.runner import check_method_rule
     from ..serving.server import PolicyServer, bind
     from ..serving.service import PolicyService
@@ -244,10 +253,12 @@ def _run_local(args, parser, config, methods) -> int:
             check_method_rule(method, policy)
     uses_head = any(method.uses_draft_head for method in methods)
     draft_head = load_draft_head_for(policy, args.draft_head, parser) if uses_head else None
+    placement.place_policy(policy, draft_head)  # after the head's check: it compares the weights as saved
     logger.info(
-        "loaded %s%s in %.1f s",
+        "loaded %s%s onto %s in %.1f s",
         args.policy,
         f" and {args.draft_head}" if draft_head is not None else "",
+        placement,
         time.perf_counter() - started,
     )
     with usage_errors(parser, errors=(ValueError,)):  # e.g. --max-prompt-tokens shorter than any prompt
@@ -297,6 +308,20 @@ def _run_ray(args, parser, config) -> int:
             f"--replicas {replicas} x --threads {threads} need {replicas * threads} CPUs; this machine has "
             f"{os.cpu_count()}: fewer --replicas or --threads (or a --ray-address)"
         )
+    if local:  # the replicas run on this machine: its devices are theirs (auto resolved here, so GPUs are asked for)
+        from dataclasses import replace
+
+        from ..policies.devices import is_cuda
+
+        config = replace(config, device=resolve_placement(args, parser).device)
+        if is_cuda(config.device):
+            import torch
+
+            if replicas > torch.cuda.device_count():
+                parser.error(
+                    f"--replicas {replicas} on --device {args.device} ask one GPU each; this machine has "
+                    f"{torch.cuda.device_count()}: fewer --replicas, --device cpu (or a --ray-address)"
+                )
     with usage_errors(parser, errors=(ValueError,)):
         app_args = PolicyAppArgs(
             policy=str(Path(args.policy).resolve()),

@@ -24,6 +24,7 @@ import numpy as np
 
 from ..policies import VLAPolicy
 from ..policies.decoding_methods import DecodingPlan, check_decoding_plan
+from ..policies.devices import dtype_name
 from ..progress import progress_bar
 from ..run_folder import RunRecord, claim_run_folder, fingerprint, read_jsonl, write_json_atomic
 from ..speculative import ComposedDrafter, DraftHead, DraftHeadDrafter, PerRowDrafter, SpeculationStats
@@ -236,8 +237,9 @@ def evaluate(
 
     Writes ``output_dir/run.json`` (what produced the folder), ``output_dir/episodes.jsonl`` (one line per
     episode) and ``output_dir/summary.json``; returns the summary. ``video_path`` (``.gif`` or ``.mp4``) saves the
-    first episode's frames. A folder holding another evaluation (other policy weights, env settings, seeds or
-    decoding settings) is refused unless ``overwrite`` (which moves it aside); more tasks or episodes continue it.
+    first episode's frames. A folder holding another evaluation (other policy weights, env settings, seeds, decoding
+    settings, or the policy on another kind of device or in another dtype: their actions may differ) is refused unless
+    ``overwrite`` (which moves it aside); more tasks or episodes continue it.
     The decoding is ``decoding`` (a method's typed plan: ``DecodingMethod.plan``) with ``generate_kwargs`` beside
     it, or ``generate_kwargs`` alone; the folder records them as one set of ``generate`` options either way.
     """
@@ -254,9 +256,11 @@ def evaluate(
     output_dir = Path(output_dir)
     generate_kwargs = dict(generate_kwargs or {})
     settings = {
-        "policy": fingerprint(policy.model),
+        "policy": policy.weights_fingerprint(),  # the weights as loaded, whatever their cast
         "env": asdict(env_config),
         "seed_start": seed_start,
+        "device": policy.model.device.type,
+        "dtype": dtype_name(policy.model.dtype),
         "decoding": describe_decoding({**(decoding.predict_kwargs() if decoding else {}), **generate_kwargs}),
     }
     with claim_run_folder(output_dir, RunRecord("eval", settings), overwrite) as run:

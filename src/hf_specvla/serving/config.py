@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass
 
 from .._validation import check_ranges
+from ..policies.devices import DEFAULT_DEVICE, DEFAULT_DTYPE, check_device, check_dtype
 
 DEFAULT_BUCKETS = (1, 2, 4, 8, 16)
 #: the largest bucket (batch size) and batching window accepted: beyond them a setting is a typo, not a plan (a
@@ -53,6 +54,11 @@ class ServeConfig:
         compile_cache: a folder for torch's compile caches (``serving.compile_cache``): a start with the same
             policy, methods, buckets and versions as a previous one reuses its compile (None: torch's default
             folder, which a new machine or container starts without).
+        device: where the policy and its draft head run: ``auto`` (``cuda`` when torch sees a GPU, else ``cpu``),
+            ``cpu``, ``cuda``, ``cuda:N`` (``policies.devices``; whether it is there is asked when the policy loads).
+            On Ray Serve a CUDA device asks each replica's actor for one GPU (``ray_actor_options.num_gpus``).
+        dtype: the weights' precision: ``auto`` (``bfloat16`` on a CUDA device, ``float32`` on the CPU),
+            ``bfloat16``, ``float16``, ``float32``. A draft head is checked against the policy as saved, then cast.
     """
 
     method: str | tuple[str, ...] = "exact"
@@ -65,6 +71,8 @@ class ServeConfig:
     max_sessions: int = 10_000
     max_prompt_tokens: int | None = None
     compile_cache: str | None = None
+    device: str = DEFAULT_DEVICE
+    dtype: str = DEFAULT_DTYPE
 
     def __post_init__(self):
         if isinstance(self.method, list | tuple):
@@ -98,6 +106,11 @@ class ServeConfig:
                 f"ServeConfig.calibration_calls must be 0..{MAX_CALIBRATION_CALLS} (timed calls per "
                 f"bucket and mode at start-up), got {self.calibration_calls}"
             )
+        for name, check in (("device", check_device), ("dtype", check_dtype)):
+            try:
+                check(getattr(self, name))
+            except ValueError as error:
+                raise ValueError(f"ServeConfig.{name}: {error}") from None
         if self.compile_cache is not None and (not isinstance(self.compile_cache, str) or not self.compile_cache):
             raise ValueError(f"ServeConfig.compile_cache must be a folder (a path), got {self.compile_cache!r}")
         if self.max_prompt_tokens is not None:

@@ -69,6 +69,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from ..policies.devices import is_cuda
 from .config import API_KEY_VARIABLE, BODY_TIMEOUT_S, DEFAULT_MAX_REQUEST_BYTES, ServeConfig, check_body_timeout
 from .protocol import ActReply, ActRequest
 
@@ -121,7 +122,10 @@ class PolicyAppArgs:
         serve: the service's [`ServeConfig`]; its fields are arguments of their own (``method``, ``buckets``,
             ``max_wait_ms``, ``max_queue``, ``calibration_calls``, ``speculate_buckets``, ``explore_every``,
             ``max_sessions``, ``max_prompt_tokens``, ``compile_cache``: a folder every replica's node can write,
-            where a replica started later, or again, finds the graphs of the first: a warm start).
+            where a replica started later, or again, finds the graphs of the first: a warm start; ``device``,
+            ``dtype``: each replica's, resolved in the replica: ``cuda`` asks its actor for one GPU, which Ray makes
+            the replica's ``cuda:0``; ``auto`` asks for none, so it resolves to ``cpu`` unless a config file's
+            ``ray_actor_options`` gives the replica a GPU).
         draft_head: a draft head's folder, for methods that draft with one.
         api_key: every request but ``/health`` must carry it (None: ``HF_SPECVLA_API_KEY`` in the replica's
             environment, else an open server).
@@ -150,6 +154,11 @@ class PolicyAppArgs:
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         check_body_timeout(self.body_timeout_s)
+        if is_cuda(self.serve.device) and self.serve.device not in ("cuda", "cuda:0"):
+            raise ValueError(
+                f"device {self.serve.device!r}: a Ray replica sees only the GPU Ray gives it (its cuda:0); give "
+                f"device=cuda"
+            )
 
     @classmethod
     def from_args(cls, args: dict[str, Any]) -> PolicyAppArgs:
@@ -265,9 +274,9 @@ def _existing_folder(folder: str, name: str) -> str:
 def build_app(args: dict[str, Any]):
     """The application builder that ``serve run`` and a Serve config file call: the [`PolicyDeployment`] bound to
     its arguments ([`PolicyAppArgs.from_args`]), with its options set from them (``num_replicas``,
-    ``ray_actor_options.num_cpus = threads``, ``max_ongoing_requests`` = 2 x the largest bucket,
-    ``max_queued_requests`` = ``max_queue``, the health check's period and the overload's Retry-After); a config
-    file's ``deployments:`` entry overrides any of them.
+    ``ray_actor_options.num_cpus = threads`` and ``num_gpus = 1`` on a CUDA ``device``, ``max_ongoing_requests`` =
+    2 x the largest bucket, ``max_queued_requests`` = ``max_queue``, the health check's period and the overload's
+    Retry-After); a config file's ``deployments:`` entry overrides any of them.
 
     Raises:
         ValueError: a bad argument (see [`PolicyAppArgs.from_args`]), before any replica starts.
@@ -294,10 +303,11 @@ def policy_deployment(app_args: PolicyAppArgs):
     if app_args.num_replicas is not None:
         options["num_replicas"] = app_args.num_replicas
     config = app_args.serve
+    gpus = {"num_gpus": 1} if is_cuda(config.device) else {}  # the replica's cuda device, given by Ray
     return serve.deployment(
         PolicyDeployment,
         name=DEPLOYMENT_NAME,
-        ray_actor_options={"num_cpus": app_args.threads},
+        ray_actor_options={"num_cpus": app_args.threads, **gpus},
         max_ongoing_requests=max_ongoing_requests(config),
         max_queued_requests=config.max_queue,
         health_check_period_s=HEALTH_CHECK_PERIOD_S,

@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..policies.devices import dtype_name
 from .chooser import ModeChooser, format_calibration
 from .config import ServeConfig
 from .decoding import DecodedRow, DecodeStep
@@ -88,11 +89,20 @@ class PolicyService:
     def from_pretrained(
         cls, policy_folder, config: ServeConfig | None = None, draft_head_folder=None, threads: int | None = None
     ) -> PolicyService:
-        """Loads the policy (and draft head) from their folders."""
+        """Loads the policy (and draft head) from their folders onto ``config.device`` in ``config.dtype``; the draft
+        head is checked against the policy as both were saved, then cast.
+
+        Raises:
+            ValueError: ``config.device`` is not on this machine (``cuda`` without CUDA), naming it; a draft head
+                made for another policy.
+        """
         import torch
 
         from ..policies import VLAPolicy
+        from ..policies.devices import Placement
 
+        config = config or ServeConfig()
+        placement = Placement.resolve(config.device, config.dtype)  # a device not here: refused before loading
         if threads is not None:
             torch.set_num_threads(threads)
         policy = VLAPolicy.from_pretrained(policy_folder)
@@ -101,7 +111,8 @@ class PolicyService:
             from ..speculative import DraftHead
 
             draft_head = DraftHead.from_pretrained(draft_head_folder)
-            policy.check_draft_head(draft_head)
+            policy.check_draft_head(draft_head)  # as saved: before the cast
+        placement.place_policy(policy, draft_head)
         return cls(policy, config, draft_head)
 
     # ----------------------------------------------------------------------------- what the server says it is
@@ -112,9 +123,9 @@ class PolicyService:
         return " or ".join(method.name for method in self.step.methods) or self.method.name
 
     def info(self) -> dict:
-        """What ``GET /info`` returns: the policy, what a robot must send (the instruction's limits too), the method
-        (``methods``: every speculative method the server picks from per bucket; ``method``: the first), the buckets
-        and the calibration."""
+        """What ``GET /info`` returns: the policy (its device and dtype too), what a robot must send (the instruction's
+        limits too), the method (``methods``: every speculative method the server picks from per bucket; ``method``:
+        the first), the buckets and the calibration."""
         layout = self.policy.config
         return {
             "server": "hf_specvla",
@@ -126,6 +137,8 @@ class PolicyService:
             "use_state": layout.use_state,
             "action_dim": layout.action_dim,
             "chunk_length": layout.chunk_length,
+            "device": str(self.policy.model.device),
+            "dtype": dtype_name(self.policy.model.dtype),
             "method": self.method.name,
             "methods": [method.name for method in self.step.methods],
             "baseline": self.baseline.name,
@@ -324,6 +337,7 @@ class PolicyService:
             "buckets": list(self.config.buckets),
             "prompt_tiers": [list(tier) for tier in step.prompt_tiers],
             "device": self.policy.model.device.type,
+            "dtype": dtype_name(self.policy.model.dtype),
         }
         return CompileCache(self.config.compile_cache, record)
 

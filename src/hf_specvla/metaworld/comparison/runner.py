@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from ...policies import VLAPolicy
+from ...policies.devices import Placement, dtype_name
 from ...progress import progress_bar
 from ...run_folder import (
     FolderTiming,
@@ -243,9 +244,16 @@ def _exit_with_parent(poll_seconds: float = 1.0) -> None:
 
 
 def _worker_main(
-    policy_dir: str, draft_head_dir: str | None, config: dict, pairs: list, log_path: str, done: list
+    policy_dir: str,
+    draft_head_dir: str | None,
+    config: dict,
+    pairs: list,
+    log_path: str,
+    done: list,
+    placement: tuple[str, str] = ("cpu", "float32"),
 ) -> None:
-    """Entry point of a worker process (spawned: loads its own policy and head)."""
+    """Entry point of a worker process (spawned: loads its own policy and head onto ``placement``, the device and
+    dtype of the parent's policy)."""
     from transformers.utils import logging as transformers_logging
 
     _exit_with_parent()
@@ -256,6 +264,9 @@ def _worker_main(
     timing = timing_conditions(config.workers, config.threads, torch.get_num_threads())  # as this worker times
     policy = VLAPolicy.from_pretrained(policy_dir)
     draft_head = None if draft_head_dir is None else DraftHead.from_pretrained(draft_head_dir).eval()
+    if draft_head is not None:  # as saved, before the cast (the parent checked it too)
+        policy.check_draft_head(draft_head)
+    Placement.resolve(*placement).place_policy(policy, draft_head)
     _run_shard(policy, draft_head, config, [tuple(p) for p in pairs], Path(log_path), {tuple(d) for d in done}, timing)
 
 
@@ -339,10 +350,11 @@ def run_comparison(
 ) -> dict:
     """Runs (or resumes) a comparison into ``output_dir`` and writes its summary, table and plots.
 
-    ``workers > 1`` spawns processes that load the policy (and head) from ``policy_dir`` (``draft_head_dir``);
-    with one worker everything runs in this process on ``policy``. ``restart_timing``: continue a folder timed
-    under other conditions (workers, threads, machine), keeping its finished episodes; only episodes timed under
-    this run's conditions enter the speed figures.
+    ``workers > 1`` spawns processes that load the policy (and head) from ``policy_dir`` (``draft_head_dir``)
+    onto ``policy``'s device and dtype; with one worker everything runs in this process on ``policy``. The folder
+    records the policy's device type and dtype: continuing it on another (whose actions may differ) is refused.
+    ``restart_timing``: continue a folder timed under other conditions (workers, threads, machine), keeping its
+    finished episodes; only episodes timed under this run's conditions enter the speed figures.
 
     Raises:
         ValueError: a method needs a draft head and none was given, or the head was made for another policy.
@@ -371,6 +383,8 @@ def run_comparison(
         "seed_start": config.seed_start,
         "methods": sorted(config.methods),
         "order_seed": config.order_seed,
+        "device": policy.model.device.type,
+        "dtype": dtype_name(policy.model.dtype),
     }
     if any("tree" in m.drafters.split("+") for m in methods):
         settings["tree"] = asdict(config.tree_config())  # what the tree methods drafted with
@@ -400,7 +414,8 @@ def run_comparison(
             )
         else:
             try:
-                _run_in_workers(config, pairs, done, output_dir, policy_dir, draft_head_dir, bar)
+                placement = (str(policy.model.device), dtype_name(policy.model.dtype))
+                _run_in_workers(config, pairs, done, output_dir, policy_dir, draft_head_dir, bar, placement)
             except WorkerDiedError as error:
                 bar.close()
                 saved = len(
@@ -488,9 +503,10 @@ def _run_in_workers(
     policy_dir: str | None,
     draft_head_dir: str | None,
     bar,
+    placement: tuple[str, str] = ("cpu", "float32"),
 ) -> None:
-    """Splits ``pairs`` between ``config.workers`` spawned processes (a seed never spans two) and follows their
-    logs on ``bar``.
+    """Splits ``pairs`` between ``config.workers`` spawned processes (a seed never spans two), each loading the
+    policy onto ``placement`` (device, dtype), and follows their logs on ``bar``.
 
     Raises:
         WorkerDiedError: a worker process ended abruptly (naming its exit signal when known).
@@ -507,6 +523,7 @@ def _run_in_workers(
                 shard,
                 str(output_dir / f"episodes.worker-{i}.jsonl"),
                 sorted(done),
+                placement,
             )
             for i, shard in enumerate(shards)
             if shard
