@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 # every read of a cache's length inside a speculative call checks the host's count against the cache's own counter
@@ -151,6 +152,17 @@ def pytest_addoption(parser):
 def pytest_configure(config):
     for kind, text in SLOW_KINDS.items():
         config.addinivalue_line("markers", f"{kind}: a slow test that {text}")
+    # compiled graphs as files (speculative.graph_files) in one folder for the whole run, its workers included, so
+    # that a graph one test compiled is loaded by the next; never the user's own cache
+    if "HF_SPECVLA_GRAPH_CACHE" not in os.environ:
+        os.environ["HF_SPECVLA_GRAPH_CACHE"] = tempfile.mkdtemp(prefix="hf_specvla-test-graphs-")
+
+
+@pytest.fixture
+def graphs_in_memory(monkeypatch):
+    """Compiled graphs in memory (dynamo's own cache), not files, for a test that reads dynamo's state: its graph
+    counts, guards and recompile limits."""
+    monkeypatch.setenv("HF_SPECVLA_GRAPH_CACHE", "off")
 
 
 def runs_slow(config) -> bool:

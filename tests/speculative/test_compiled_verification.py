@@ -139,7 +139,7 @@ def test_the_compiled_head_drafts_the_eager_heads_trees_round_after_round(tree):
         assert torch.equal(compiled_tokens, eager_tokens)
 
 
-def test_no_recompilation_after_warm_up():
+def test_no_recompilation_after_warm_up(graphs_in_memory):
     """Other prompts' drafts, accepted lengths and tree shapes reuse the graphs compiled during the warm-up."""
     model = _model("llama")
     compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
@@ -173,7 +173,7 @@ def test_no_recompilation_after_warm_up():
     assert len(widths) > 1  # several buckets were met (the test is not vacuous)
 
 
-def test_only_the_widths_a_drafter_can_fill_are_compiled():
+def test_only_the_widths_a_drafter_can_fill_are_compiled(graphs_in_memory):
     """A drafter's largest tree bounds the widths compiled up front (and met): Jacobi tails of at most 3 nodes need
     widths 0, 2 and 4, and nothing else compiles."""
     model = _model("llama")
@@ -451,7 +451,7 @@ def test_compact_rows_moves_each_rows_valid_entries_to_the_front_in_order():
     assert static.layers[0].keys.data_ptr() == address
 
 
-def test_a_thread_that_did_not_compile_the_graphs_decodes_compiled_greedy_and_speculation():
+def test_a_thread_that_did_not_compile_the_graphs_decodes_compiled_greedy_and_speculation(graphs_in_memory):
     """dynamo's recompile limit is per thread: graphs compiled in one thread (more than the default limit of 8 on the
     model's forward) must not make another thread's next compile fail (a server's worker decoding what its main
     thread warmed up): compiled greedy and compiled verification there equal greedy."""
@@ -503,7 +503,7 @@ def test_the_compiled_path_is_chosen_by_device_with_cuda_graphs_on_cuda(monkeypa
     assert not compiles_verification(model, GenerationConfig(compile_config=on_cuda), None)  # no static cache
 
 
-def test_the_graph_budget_is_what_dynamo_holds_and_reset_forgets_every_verifier():
+def test_the_graph_budget_is_what_dynamo_holds_and_reset_forgets_every_verifier(graphs_in_memory):
     """The recompile limit is raised from dynamo's own count of a code object's graphs (every caller's, not a count of
     ours), and ``reset_compilation`` drops them and makes every model's verifier anew."""
     from hf_specvla.speculative.compiled import CompiledVerifier, allow_graphs_held, graphs_held
@@ -532,7 +532,7 @@ def test_the_graph_budget_is_what_dynamo_holds_and_reset_forgets_every_verifier(
     assert CompiledVerifier.for_model(model, config) is not verifier
 
 
-def test_every_compiled_round_of_a_width_is_fed_the_same_input_tensors(monkeypatch):
+def test_every_compiled_round_of_a_width_is_fed_the_same_input_tensors(monkeypatch, graphs_in_memory):
     """The engine's own input buffers per (batch size, width): every compiled verification of one shape, round after
     round and call after call, reads its ids, positions and mask from the same tensors (what a CUDA graph needs to
     copy nothing in), and the tokens stay greedy's."""

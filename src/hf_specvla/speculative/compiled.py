@@ -38,6 +38,7 @@ from transformers.cache_utils import Cache
 from .cache import cache_batch_size, cache_length, is_static_cache, preserved_entries, truncate_cache
 from .decoder import DECODER_ATTRIBUTE, SpeculativeDecoder
 from .fused import accepting_forward, full_guards_asked, round_guards
+from .graph_files import FileBackedFunction, GraphStore, architecture, environment, graph_folder
 from .tree import DraftTree, TreeBatch
 from .verify import CompiledVerification, InputBuffers, Pending, Verification
 
@@ -200,7 +201,14 @@ class CompiledVerifier:
     def __init__(self, model: PreTrainedModel, compile_config):
         self.compile_config = compile_config
         self.model_forward = type(model).forward  # the code dynamo compiles for ``call`` (its graphs: graphs_held)
-        self.call: Callable = model.get_compiled_call(compile_config)
+        folder = graph_folder()
+        #: where its graphs are files (None: compiled in memory, by dynamo, as transformers compiles)
+        self.store = GraphStore(folder) if folder is not None else None
+        #: what its graphs depend on besides their inputs (the versions, the model's architecture; no weights)
+        self.graph_key = {**environment(), "model": architecture(model)} if self.store is not None else None
+        #: the model call as a file-backed function (None: transformers' ``get_compiled_call``)
+        self.file_call = self._file_backed(model_call(model), None) if self.store is not None else None
+        self.call: Callable = self.model_call(model)
         self.widths_compiled: set[tuple] = set()  # (slots, hidden states, buckets, batch size)
         self.prefills_compiled: set[tuple] = set()  # (slots, hidden states, batch size)
         self.prefills_eager: set[tuple] = set()  # the same keys, whose forward over the prompt did not compile
@@ -226,9 +234,23 @@ class CompiledVerifier:
         if verifier is None:
             verifier = verifiers[settings] = cls(model, compile_config)
         else:  # its model call fetched again: a caller may have wrapped ``get_compiled_call`` (the benchmarks' clock)
-            verifier.call = model.get_compiled_call(compile_config)
+            verifier.call = verifier.model_call(model)
         verifier.reserve_graphs(2 * len(NODE_BUCKETS))  # every width, with / without hidden states
         return verifier
+
+    def model_call(self, model: PreTrainedModel) -> Callable:
+        """The compiled model call: its graphs as files ([`graph_files`]) wrapped by the model's clock when it has one
+        ([`CALL_WRAPPER_ATTRIBUTE`]), else transformers' ``get_compiled_call`` (which a clock wraps itself)."""
+        if self.file_call is None:
+            return model.get_compiled_call(self.compile_config)
+        wrap = model.__dict__.get(CALL_WRAPPER_ATTRIBUTE)
+        return self.file_call if wrap is None else wrap(self.file_call)
+
+    def _file_backed(self, function: Callable, guard_filter: Callable | None) -> FileBackedFunction:
+        """``function`` compiled with this verifier's settings, its graphs as files in its store."""
+        return FileBackedFunction(
+            function, self.compile_config.to_dict(), self.graph_key, self.store, guard_filter=guard_filter
+        )
 
     @classmethod
     def reset_compilation(cls) -> None:
@@ -270,6 +292,9 @@ class CompiledVerifier:
             settings = self.compile_config.to_dict()
             if fullgraph is not None:
                 settings["fullgraph"] = fullgraph
+            if self.store is not None and settings.get("fullgraph"):  # the file route saves whole graphs only
+                self.functions[function] = self._file_backed(function, guard_filter)
+                return self.functions[function]
             if guard_filter is not None:
                 settings = with_guard_filter(settings, guard_filter)
             self.functions[function] = torch.compile(function, **settings)
@@ -402,6 +427,16 @@ class CompiledVerifier:
             seconds,
         )
         return seconds
+
+
+def model_call(model: PreTrainedModel) -> Callable:
+    """``model(**inputs)`` as a plain function closing over ``model`` (what a graph file is compiled from: the model
+    is its external data, never saved in it)."""
+
+    def call_model(**inputs):
+        return model(**inputs)
+
+    return call_model
 
 
 def with_guard_filter(settings: dict, guard_filter: Callable) -> dict:

@@ -1,0 +1,517 @@
+"""Compiled graphs as files: a graph the engine compiled once is loaded by a later process without dynamo tracing.
+
+Every process used to trace and compile every graph again (a server's warm start: dynamo re-traces its graphs even
+when Inductor's cache holds their kernels). torch 2.13's ahead-of-time route saves dynamo's output, its guards and
+Inductor's artefacts in one file (``torch.compile(fn, fullgraph=True).aot_compile(...)``, loaded by
+``torch.compiler.load_compiled_function``); [`FileBackedFunction`] is a compiled function that takes that route:
+per input signature (every tensor's shape, dtype and device, the sizes marked dynamic left out, the cache's type and
+layers) it uses the graph it holds, else loads its file, else compiles and saves one.
+
+Where the files live: [`graph_folder`], the folder ``HF_SPECVLA_GRAPH_CACHE`` names (``on``: ``~/.cache/hf_specvla/
+graphs``, ``$XDG_CACHE_HOME`` respected). Unset, or ``off``, graphs are compiled in memory as before: the route is
+opt-in until it has run on a GPU (docs/usage.md).
+
+What keys a file ([`GraphKey`]), every part a miss when it changes (the log names the parts that differ from the
+nearest file of the same function):
+
+* the versions: torch, transformers, Python, the machine, and the code: this package's source and the source files of
+  the model's module classes (a policy's or a port's own modeling code);
+* the function (its name and bytecode) and its compile settings;
+* the model's architecture: its class, its configuration, its modules' classes, every parameter's and buffer's name,
+  shape and dtype, its device; the modules it closes over the same;
+* the input signature.
+
+**The weights are not part of the key**: they are inputs of the graph, read from the model at every call (checked:
+a graph compiled for one policy gives another policy of the same architecture that policy's own tokens), so a policy
+retrained or fine-tuned with the same architecture reuses its graphs.
+
+Guards: a file keeps the guards that can be saved ([`portable_guards`]: the inputs' and parameters' shapes, dtypes,
+strides and devices, grad mode, autocast and the other ambient state), checked at every call; a call that fails them
+compiles anew. What the dropped guards checked (a module's class, its ``forward``, its hooks, the identity of the
+model) the engine checks itself: the architecture in the key, and a model's graphs belong to its decoder (a copy gets
+its own).
+
+A file is written atomically (a temporary file in the same folder, then renamed: two processes compiling the same key
+both end with a whole file) and carries the SHA-256 of its content; a file that is truncated, damaged or unreadable is
+set aside (renamed ``<name>.damaged-<UTC time>``) with a warning and compiled again; a folder that cannot be written
+keeps its graphs in memory, with one warning.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import importlib
+import inspect
+import json
+import logging
+import os
+import pickle
+import platform
+import sys
+import tempfile
+import time
+import types
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+logger = logging.getLogger(__name__)
+
+#: the environment variable that moves the graph files' folder, or turns them off (``off``, ``0``, ``none``)
+FOLDER_ENV = "HF_SPECVLA_GRAPH_CACHE"
+_OFF = frozenset({"off", "0", "none", "false", "no"})
+_ON = frozenset({"on", "1", "default", "true", "yes"})
+#: a file's first line: this tag, a space, the SHA-256 of the rest
+_MAGIC = b"hf_specvla-graph-v1"
+#: a damaged file is renamed ``<name><DAMAGED><UTC time>`` beside it (never deleted)
+DAMAGED = ".damaged-"
+#: guard types torch cannot save in a file
+_UNSAVED_GUARDS = frozenset(
+    {"DICT_VERSION", "NN_MODULE", "ID_MATCH", "FUNCTION_MATCH", "CLASS_MATCH", "MODULE_MATCH", "CLOSURE_MATCH",
+     "WEAKREF_ALIVE"}
+)  # fmt: skip
+
+
+def graph_folder() -> Path | None:
+    """The folder of graph files: ``$HF_SPECVLA_GRAPH_CACHE`` when it names one; ``on`` (``1``, ``default``) for
+    ``$XDG_CACHE_HOME/hf_specvla/graphs`` (``~/.cache/hf_specvla/graphs``); None, graphs compiled in memory only, when
+    it is unset or ``off`` (``0``, ``none``). Its location is logged once."""
+    value = (os.environ.get(FOLDER_ENV) or "").strip()
+    if not value or value.lower() in _OFF:
+        return None
+    if value.lower() in _ON:
+        folder = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "hf_specvla" / "graphs"
+    else:
+        folder = Path(value).expanduser()
+    _log_folder(str(folder))
+    return folder
+
+
+@functools.cache
+def _log_folder(folder: str) -> None:
+    logger.info("compiled graphs are kept as files in %s (%s=off: in memory only)", folder, FOLDER_ENV)
+
+
+@functools.cache
+def _read_only_warning(folder: str, error: str) -> None:
+    logger.warning("cannot write compiled graphs to %s (%s): they are kept in memory only", folder, error)
+
+
+# --------------------------------------------------------------------------------------------------- the key
+@functools.cache
+def _source_digest(path: str) -> str:
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+    except OSError:
+        return "unreadable"
+
+
+@functools.cache
+def _engine_digest() -> str:
+    """A digest of this package's source files (the engine's functions are traced into the graphs)."""
+    digest = hashlib.sha256()
+    for path in sorted(Path(__file__).resolve().parent.rglob("*.py")):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def environment() -> dict:
+    """The versions every graph depends on."""
+    import transformers
+
+    return {
+        "torch": torch.__version__,
+        "transformers": transformers.__version__,
+        "python": ".".join(map(str, sys.version_info[:3])),
+        "machine": platform.machine(),
+        "engine": _engine_digest(),
+    }
+
+
+def architecture(module: torch.nn.Module) -> dict:
+    """What a module's graphs depend on besides its weights' values: its class and configuration, every submodule's
+    class and the source of its code, every parameter's and buffer's name, shape and dtype, its device."""
+    config = getattr(module, "config", None)
+    config_text = config.to_json_string(use_diff=False) if hasattr(config, "to_json_string") else repr(config)
+    config_text = json.dumps(
+        {k: v for k, v in json.loads(config_text).items() if k not in ("_name_or_path", "transformers_version")},
+        sort_keys=True,
+    ) if config_text.startswith("{") else config_text  # fmt: skip
+    classes = sorted({type(m) for m in module.modules()}, key=lambda c: (c.__module__, c.__qualname__))
+    code = {}
+    for cls in classes:
+        try:
+            code[f"{cls.__module__}.{cls.__qualname__}"] = _source_digest(inspect.getsourcefile(cls) or "")
+        except TypeError:  # a built-in class
+            code[f"{cls.__module__}.{cls.__qualname__}"] = "built-in"
+    tensors = hashlib.sha256()
+    for name, tensor in [*module.named_parameters(), *module.named_buffers()]:
+        tensors.update(f"{name}:{tuple(tensor.shape)}:{tensor.dtype}:{tensor.device};".encode())
+    tree = hashlib.sha256("\n".join(f"{n}:{type(m).__qualname__}" for n, m in module.named_modules()).encode())
+    return {
+        "class": f"{type(module).__module__}.{type(module).__qualname__}",
+        "config": hashlib.sha256(config_text.encode()).hexdigest()[:16],
+        "code": hashlib.sha256(json.dumps(code, sort_keys=True).encode()).hexdigest()[:16],
+        "modules": tree.hexdigest()[:16],
+        "tensors": tensors.hexdigest()[:16],
+    }
+
+
+def _dims(tensor: torch.Tensor) -> tuple:
+    dynamic = getattr(tensor, "_dynamo_dynamic_indices", ())
+    return tuple(-1 if i in dynamic else s for i, s in enumerate(tensor.shape))
+
+
+def signature(value) -> object:
+    """A hashable description of a call's inputs as far as its graph depends on them: tensors by shape (the sizes
+    marked dynamic as -1), dtype and device; mappings by their items in key order, sequences item by item; a cache by
+    its type and its layers' types and first keys' shape; other values by their type and value (by type alone when
+    unhashable)."""
+    if isinstance(value, torch.Tensor):
+        return ("T", _dims(value), value.dtype, value.device)
+    if isinstance(value, dict):
+        return tuple(sorted((str(k), signature(v)) for k, v in value.items()))
+    if isinstance(value, (list, tuple)):
+        return (type(value).__name__, *map(signature, value))
+    layers = getattr(value, "layers", None)
+    if isinstance(layers, list):  # a transformers Cache
+        keys = getattr(layers[0], "keys", None) if layers else None
+        shape = tuple(keys.shape) if isinstance(keys, torch.Tensor) else None
+        return ("cache", type(value).__name__, tuple(type(layer).__name__ for layer in layers), shape)
+    try:
+        hash(value)
+    except TypeError:
+        return ("object", type(value).__qualname__)
+    return ("value", type(value).__qualname__, value)
+
+
+def _text(value) -> str:
+    return repr(value).replace("torch.", "")
+
+
+# --------------------------------------------------------------------------------------------------- the guards
+def portable_guards(keep: Callable | None = None) -> Callable:
+    """A ``guard_filter_fn`` keeping the guards ``keep`` keeps (all when None) that torch can save in a file: none on
+    globals, none of the identity-type guards ([`_UNSAVED_GUARDS`])."""
+
+    def filter_guards(entries) -> list[bool]:
+        kept = keep(entries) if keep is not None else [True] * len(entries)
+        return [
+            bool(k)
+            and not entry.is_global
+            and entry.guard_type not in _UNSAVED_GUARDS
+            and not _UNSAVED_GUARDS.intersection(entry.derived_guard_types or ())
+            for k, entry in zip(kept, entries)
+        ]
+
+    return filter_guards
+
+
+# --------------------------------------------------------------------------------------------------- the files
+class GraphStore:
+    """Reads and writes graph files in one folder (see the module docstring): ``<function>-<key digest>.graph`` and
+    its record ``.json`` (the key's parts, to name what differs on a miss)."""
+
+    def __init__(self, folder: Path):
+        self.folder = Path(folder)
+        self.writable = True
+
+    def path(self, name: str, parts: dict) -> Path:
+        digest = hashlib.sha256(json.dumps(parts, sort_keys=True, default=_text).encode()).hexdigest()[:24]
+        return self.folder / f"{name}-{digest}.graph"
+
+    def read(self, path: Path) -> bytes | None:
+        """The content of ``path`` when it is whole (its SHA-256 matches), else None: missing (None, silently) or
+        damaged (set aside with a warning)."""
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            return None
+        except OSError as error:
+            logger.warning("cannot read compiled graph %s (%s): compiling it again", path, error)
+            return None
+        header, _, payload = data.partition(b"\n")
+        tag, _, digest = header.partition(b" ")
+        if tag != _MAGIC or hashlib.sha256(payload).hexdigest().encode() != digest:
+            self.set_aside(path, "truncated or damaged (its checksum does not match)")
+            return None
+        return payload
+
+    def set_aside(self, path: Path, why: str) -> None:
+        """Renames a damaged file ``<name>.damaged-<UTC time>`` (never deleted) and says so."""
+        aside = path.with_name(path.name + DAMAGED + time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()))
+        try:
+            os.replace(path, aside)
+        except OSError:
+            aside = None
+        logger.warning(
+            "compiled graph %s is %s: %s; compiling it again", path, why, f"set aside as {aside.name}" if aside else
+            "it could not be moved",
+        )  # fmt: skip
+
+    def write(self, path: Path, payload: bytes, parts: dict) -> None:
+        """Writes ``payload`` to ``path`` atomically (with its checksum) and its key's record beside it; a folder that
+        cannot be written is warned about once and the graph kept in memory."""
+        if not self.writable:
+            return
+        header = _MAGIC + b" " + hashlib.sha256(payload).hexdigest().encode() + b"\n"
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            for target, data in ((path.with_suffix(".json"), json.dumps(parts, indent=1, default=_text).encode()),
+                                 (path, header + payload)):  # fmt: skip
+                with tempfile.NamedTemporaryFile(dir=self.folder, prefix=".tmp-", delete=False) as file:
+                    file.write(data)
+                    file.flush()
+                    os.fsync(file.fileno())
+                os.replace(file.name, target)
+        except OSError as error:
+            self.writable = False
+            _read_only_warning(str(self.folder), f"{type(error).__name__}: {error.strerror or error}")
+
+    def nearest_difference(self, name: str, parts: dict) -> list[str]:
+        """The key parts that differ between ``parts`` and the nearest record of ``name``'s files (for a miss's log);
+        empty when there is none."""
+        best = None
+        for record in self.folder.glob(f"{name}-*.json"):
+            try:
+                other = json.loads(record.read_text())
+            except (OSError, ValueError):
+                continue
+            mine = json.loads(json.dumps(parts, default=_text))
+            differ = sorted(_differences(mine, other))
+            if best is None or len(differ) < len(best):
+                best = differ
+        return best or []
+
+
+def _differences(mine: dict, other: dict, prefix: str = "") -> set[str]:
+    found = set()
+    for key in set(mine) | set(other):
+        a, b = mine.get(key), other.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            found |= _differences(a, b, f"{prefix}{key}.")
+        elif a != b:
+            found.add(f"{prefix}{key}")
+    return found
+
+
+# --------------------------------------------------------------------------------------------------- the function
+class FileBackedFunction:
+    """``torch.compile(function, **settings)`` whose graphs are files (see the module docstring): one graph per input
+    signature, loaded from its file when there is one, else compiled ahead of time and saved.
+
+    Args:
+        function: a plain function (its closure's modules are the graph's external data: a file never holds a model).
+        settings: ``torch.compile``'s keyword arguments; ``fullgraph`` is forced (the route saves whole graphs only).
+        key: what the graphs depend on besides the inputs' signature (the versions, the architecture; see
+            [`GraphKey`]); ``name`` is the files' prefix.
+        store: where the files are.
+        guard_filter: the guards the graphs would keep in memory (None: all); only the portable ones are kept.
+    """
+
+    def __init__(
+        self,
+        function: Callable,
+        settings: dict,
+        key: dict,
+        store: GraphStore,
+        name: str | None = None,
+        guard_filter: Callable | None = None,
+    ):
+        from .compiled import with_guard_filter  # the inductor mode turned into options beside the guard filter
+
+        self.name = name or function.__code__.co_name
+        # the modules it closes over: the graph's external data, a file never holds them; a model whose class the
+        # engine mixed (``speculative_class``: made at run time, no name a file can hold) as a view of its own class
+        cells = function.__closure__ or ()
+        contents = [_plain_view(cell.cell_contents) for cell in cells]
+        self.function = types.FunctionType(
+            function.__code__, function.__globals__, function.__name__, function.__defaults__,
+            tuple(types.CellType(value) for value in contents) or None,
+        )  # fmt: skip
+        self.function.__kwdefaults__ = function.__kwdefaults__
+        self.external = {
+            var: value
+            for var, value in zip(function.__code__.co_freevars, contents)
+            if isinstance(value, torch.nn.Module)
+        }
+        #: torch.compile's settings in memory (the function's own guards), for a graph that cannot be saved
+        self.memory_settings = dict(settings) if guard_filter is None else with_guard_filter(settings, guard_filter)
+        self.original = function
+        #: None while no graph failed to save; else the function compiled in memory (dynamo's cache), used for every
+        #: input from then on
+        self.in_memory: Callable | None = None
+        settings = with_guard_filter({**settings, "fullgraph": True}, portable_guards(guard_filter))
+        self.settings = settings
+        self.key = {
+            **key,
+            "function": f"{function.__module__}.{self.name}",
+            "bytecode": hashlib.sha256(function.__code__.co_code).hexdigest()[:16],
+            "settings": {k: v for k, v in settings.items() if k != "options"}
+            | {"options": sorted(k for k in (settings.get("options") or {}) if k != "guard_filter_fn")},
+            "closure": {
+                var: architecture(cell.cell_contents) if var in self.external else _closure_value(cell.cell_contents)
+                for var, cell in zip(function.__code__.co_freevars, cells)
+            },
+        }
+        self.store = store
+        self.graphs: dict[object, Callable] = {}
+        self.compile_seconds = 0.0
+        self.loaded = 0
+        self.compiled = 0
+
+    def __deepcopy__(self, memo) -> FileBackedFunction:
+        """Itself: a deep copy of a model copies its decoder, which the copy replaces by its own at its first call
+        (``SpeculativeDecoder.of``); the graphs stay the original's (loaded graphs hold torch objects no copy takes)."""
+        return self
+
+    def __call__(self, *args, **kwargs):
+        if self.in_memory is not None:
+            return self.in_memory(*args, **kwargs)
+        key = signature((args, kwargs))
+        graph = self.graphs.get(key)
+        if graph is None:
+            graph = self.graphs[key] = self._load_or_compile(args, kwargs)
+            if graph is None:  # it cannot be saved: in memory from now on
+                return self.in_memory(*args, **kwargs)
+        _unmark_dynamic((args, kwargs))  # what a loaded graph's guards expect (see _compile)
+        if not graph.guard_check(*args, **kwargs):  # what the key leaves to the guards: e.g. a parameter swapped
+            logger.info("compiling %s again: a call failed its graph's guards", self.name)
+            graph = self.graphs[key] = self._compile(args, kwargs, self.store.path(self.name, self._parts(key)))
+            if graph is None:
+                return self.in_memory(*args, **kwargs)
+            _unmark_dynamic((args, kwargs))
+        return graph(*args, **kwargs)
+
+    def _parts(self, inputs) -> dict:
+        return {**self.key, "inputs": inputs}
+
+    def _load_or_compile(self, args: tuple, kwargs: dict):
+        """The graph for these inputs from its file, else compiled (and saved)."""
+        parts = self._parts(signature((args, kwargs)))
+        path = self.store.path(self.name, parts)
+        payload = self.store.read(path)
+        if payload is not None:
+            start = time.perf_counter()
+            graph = self._deserialize(payload, path)
+            if graph is not None:
+                self.loaded += 1
+                self.compile_seconds += time.perf_counter() - start
+                logger.info("loaded compiled graph %s in %.2f s", path.name, time.perf_counter() - start)
+                return graph
+        else:
+            differ = self.store.nearest_difference(self.name, parts)
+            logger.info(
+                "compiling %s: no graph file for its key%s",
+                self.name,
+                f" (the nearest file differs in {', '.join(differ)})" if differ else "",
+            )
+        return self._compile(args, kwargs, path)
+
+    def _compile(self, args: tuple, kwargs: dict, path: Path):
+        """Compiles the graph ahead of time, saves it, and returns it as loaded from what was saved (so that this
+        process runs what a later one will: a graph loaded from bytes checks its guards as a file's does; e.g. it
+        expects no dynamic-dimension marks on its inputs)."""
+        start = time.perf_counter()
+        settings = {**self.settings, "options": dict(self.settings["options"])}  # torch pops the guard filter from it
+        from torch._dynamo.exc import PackageError
+
+        try:
+            compiled = torch.compile(self.function, **settings).aot_compile((args, kwargs))
+        # what it reaches cannot be saved (an object torch cannot pickle in its guards' state: e.g. a model's forward
+        # replaced on the instance by a function closing over the model): compiled in memory, as without files
+        except (PackageError, pickle.PicklingError, TypeError) as error:
+            logger.warning(
+                "compiled graph %s cannot be saved as a file (%s: %s): compiled in memory",
+                self.name, type(error).__name__, str(error).splitlines()[0][:200] if str(error) else "",
+            )  # fmt: skip
+            self.in_memory = torch.compile(self.original, **self.memory_settings)
+            return None
+        self.compiled += 1
+        try:
+            payload = pickle.dumps(
+                {
+                    "graph": type(compiled).serialize(compiled, dict(self.external)).serialized_data,
+                    "modules": self._modules_referenced(compiled),
+                }  # fmt: skip
+            )
+        except Exception as error:  # noqa: BLE001 - torch refusing to save a graph: it is used from memory
+            logger.warning("compiled graph %s kept in memory only: torch cannot save it (%s)", self.name, error)
+            compiled.disable_guard_check()
+            self.compile_seconds += time.perf_counter() - start
+            return compiled
+        graph = self._deserialize(payload, None)
+        self.store.write(path, payload, self._parts(signature((args, kwargs))))
+        self.compile_seconds += time.perf_counter() - start
+        return graph
+
+    def _deserialize(self, payload: bytes, path: Path | None):
+        """A graph from a file's content; None (the file set aside) when it cannot be loaded."""
+        from torch._dynamo.aot_compile import AOTCompiledFunction
+
+        try:
+            content = pickle.loads(payload)
+            scope = {**self.function.__globals__}
+            scope.update({ref: importlib.import_module(name) for ref, name in content["modules"].items()})
+            graph = AOTCompiledFunction.deserialize(content["graph"], scope, dict(self.external))
+        except Exception as error:  # noqa: BLE001 - any failure to load is a damaged file: compiled again
+            if path is None:
+                raise
+            self.store.set_aside(path, f"unreadable ({type(error).__name__}: {str(error)[:200]})")
+            return None
+        graph.disable_guard_check()  # checked by __call__, once a call
+        return graph
+
+    def _modules_referenced(self, graph) -> dict[str, str]:
+        """The Python modules the graph's code reads under names dynamo made up while it traced (``___module_<name>
+        _<id>``: installed in the traced function's globals in this process, not saved by torch 2.13), by their
+        import names, so that a later process can provide them."""
+        refs = graph._artifacts.runtime_env.external_refs
+        scope = self.function.__globals__
+        return {
+            ref: scope[ref].__name__
+            for ref in refs
+            if ref.startswith("___module_") and inspect.ismodule(scope.get(ref))
+        }
+
+
+def _plain_view(value):
+    """``value``, or for a model whose class the engine mixed (``enable_speculation``) a view of it as its own class:
+    an object of the original class sharing the model's ``__dict__`` (its modules, parameters, buffers, hooks and
+    settings: any change to the model is the view's), so that a graph traced through it names an importable class."""
+    from .generation import SpeculativeGenerationMixin
+
+    if not isinstance(value, SpeculativeGenerationMixin):
+        return value
+    view = object.__new__(type(value).__mro__[2])
+    view.__dict__ = value.__dict__
+    return view
+
+
+def _closure_value(value) -> str:
+    """A value a compiled function closes over, as its key holds it (traced into the graph as a constant): by its
+    ``repr`` when that names no memory address, else by its type and, for a tensor, its shape, dtype and device."""
+    if isinstance(value, torch.Tensor):
+        return f"tensor{tuple(value.shape)}:{value.dtype}:{value.device}"
+    text = repr(value)
+    return f"<{type(value).__qualname__}>" if " at 0x" in text else text
+
+
+#: the attributes ``torch._dynamo.mark_dynamic`` sets on a tensor
+_MARKS = ("_dynamo_", "_has_dynamo_dim_marking", "_specialize_on")
+
+
+def _unmark_dynamic(value) -> None:
+    """Drops dynamo's dynamic-dimension marks from the tensors in ``value`` (nested in mappings and sequences): a
+    graph loaded from a file was traced from marked inputs but its guards expect none."""
+    if isinstance(value, torch.Tensor):
+        for mark in [name for name in vars(value) if name.startswith(_MARKS)]:
+            delattr(value, mark)
+    elif isinstance(value, dict):
+        for item in value.values():
+            _unmark_dynamic(item)
+    elif isinstance(value, (list, tuple)):
+        for item in value:
+            _unmark_dynamic(item)

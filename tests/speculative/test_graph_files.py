@@ -1,0 +1,242 @@
+"""Compiled graphs as files (``speculative.graph_files``): loaded by a fresh process without tracing, keyed by what
+they depend on (not the weights), never stale or damaged, written atomically, kept in memory where a folder cannot
+be written."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import torch
+
+from hf_specvla.speculative import graph_files
+from hf_specvla.speculative.graph_files import DAMAGED, FileBackedFunction, GraphStore, architecture, environment
+
+#: a fresh process: a tiny module (seeded by argv[2], width argv[3]) called through a file-backed function in the
+#: folder argv[1]; prints its result against the eager module's, and what it compiled and loaded
+FRESH_PROCESS = textwrap.dedent(
+    """
+    import json, sys, torch
+    from hf_specvla.speculative.graph_files import FileBackedFunction, GraphStore, architecture, environment
+    folder, seed, width = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+    torch.manual_seed(seed)
+    def closing_over(model):
+        def run_model(x):
+            return model(x).argmax(-1)
+        return run_model
+    model = torch.nn.Sequential(torch.nn.Linear(width, 16), torch.nn.GELU(), torch.nn.Linear(16, 3)).eval()
+    run_model = closing_over(model)
+    key = {**environment(), "model": architecture(model)}
+    function = FileBackedFunction(run_model, {"fullgraph": True}, key, GraphStore(folder))
+    x = torch.randn(64, width, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        got, want = function(x), model(x).argmax(-1)
+    print(json.dumps({"equal": bool(torch.equal(got, want)), "compiled": function.compiled, "loaded": function.loaded}))
+    """
+)
+
+
+def fresh_process(folder, seed: int = 0, width: int = 8) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    return subprocess.Popen(
+        [sys.executable, "-c", FRESH_PROCESS, str(folder), str(seed), str(width)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+
+
+def result(process: subprocess.Popen) -> dict:
+    out, err = process.communicate(timeout=600)
+    assert process.returncode == 0, err[-3000:]
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def graph_files_in(folder) -> list:
+    return sorted(p for p in folder.iterdir() if p.suffix == ".graph")
+
+
+def test_a_graph_is_loaded_by_a_fresh_process_and_reads_that_process_weights(tmp_path):
+    first = result(fresh_process(tmp_path, seed=0))
+    assert first == {"equal": True, "compiled": 1, "loaded": 0}
+    assert len(graph_files_in(tmp_path)) == 1
+    # another process, other weights of the same architecture: the file is used, and the weights are its own
+    second = result(fresh_process(tmp_path, seed=1))
+    assert second == {"equal": True, "compiled": 0, "loaded": 1}
+    # another architecture: a miss, a file of its own
+    third = result(fresh_process(tmp_path, seed=0, width=12))
+    assert third == {"equal": True, "compiled": 1, "loaded": 0}
+    assert len(graph_files_in(tmp_path)) == 2
+
+
+def test_two_processes_compiling_one_key_at_once_both_end_with_a_whole_file(tmp_path):
+    racing = [fresh_process(tmp_path, seed=s) for s in (0, 1)]
+    assert all(result(p)["equal"] for p in racing)
+    assert len(graph_files_in(tmp_path)) == 1
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp-")]
+    assert result(fresh_process(tmp_path, seed=2)) == {"equal": True, "compiled": 0, "loaded": 1}
+
+
+def small_model(width: int = 8, dtype=torch.float32):
+    torch.manual_seed(0)
+    return torch.nn.Sequential(torch.nn.Linear(width, 16), torch.nn.Tanh(), torch.nn.Linear(16, 3)).eval().to(dtype)
+
+
+def file_backed(model, folder, key_extra: dict | None = None) -> FileBackedFunction:
+    def run_small(x):
+        return model(x)
+
+    key = {**environment(), "model": architecture(model), **(key_extra or {})}
+    return FileBackedFunction(run_small, {"fullgraph": True}, key, GraphStore(folder))
+
+
+@pytest.mark.parametrize("damage", ["truncated", "one byte changed", "not a graph"])
+def test_a_damaged_file_is_set_aside_with_a_warning_and_compiled_again(tmp_path, caplog, damage):
+    model, x = small_model(), torch.randn(4, 8)
+    with torch.no_grad():
+        file_backed(model, tmp_path)(x)
+        (path,) = graph_files_in(tmp_path)
+        data = path.read_bytes()
+        if damage == "truncated":
+            path.write_bytes(data[: len(data) // 2])
+        elif damage == "one byte changed":
+            middle = len(data) // 2
+            path.write_bytes(data[:middle] + bytes([data[middle] ^ 0xFF]) + data[middle + 1 :])
+        else:
+            path.write_bytes(b"hello")
+        function = file_backed(model, tmp_path)
+        with caplog.at_level(logging.WARNING, logger="hf_specvla"):
+            out = function(x)
+        assert torch.allclose(out, model(x))
+    assert (function.compiled, function.loaded) == (1, 0)
+    assert any("set aside" in r.getMessage() and path.name in r.getMessage() for r in caplog.records)
+    assert [p.name for p in tmp_path.iterdir() if DAMAGED in p.name][0].startswith(path.name + DAMAGED)
+    assert file_backed(model, tmp_path)(x) is not None and len(graph_files_in(tmp_path)) == 1  # healed: whole again
+
+
+def test_a_folder_that_cannot_be_written_keeps_graphs_in_memory_with_one_warning(tmp_path, caplog):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    graph_files._read_only_warning.cache_clear()
+    model = small_model()
+    function = file_backed(model, blocker / "graphs")
+    with caplog.at_level(logging.WARNING, logger="hf_specvla"), torch.no_grad():
+        for rows in (2, 3, 2):
+            x = torch.randn(rows, 8)
+            assert torch.allclose(function(x), model(x), atol=1e-6)
+    warnings = [r for r in caplog.records if "kept in memory only" in r.getMessage()]
+    assert len(warnings) == 1 and str(blocker / "graphs") in warnings[0].getMessage()
+    assert function.compiled == 2  # one graph per shape, in memory
+
+
+def test_every_keyed_input_is_a_miss_named_in_the_log(tmp_path, caplog, monkeypatch):
+    model, x = small_model(), torch.randn(4, 8)
+    with torch.no_grad():
+        file_backed(model, tmp_path)(x)
+        cases = {
+            "torch": lambda: file_backed(model, tmp_path, {"torch": "0.0.0"})(x),
+            "model.tensors": lambda: file_backed(small_model(dtype=torch.float64), tmp_path)(x.double()),
+            "inputs": lambda: file_backed(model, tmp_path)(torch.randn(5, 8)),
+        }
+        for part, call in cases.items():
+            caplog.clear()
+            with caplog.at_level(logging.INFO, logger="hf_specvla"):
+                call()
+            misses = [r.getMessage() for r in caplog.records if "no graph file for its key" in r.getMessage()]
+            assert misses and part in misses[0], (part, misses)
+    # and the same key is a hit
+    again = file_backed(model, tmp_path)
+    with torch.no_grad():
+        again(x)
+    assert (again.compiled, again.loaded) == (0, 1)
+
+
+def test_the_folder_follows_the_environment_variable(monkeypatch, tmp_path):
+    monkeypatch.setenv(graph_files.FOLDER_ENV, "off")
+    assert graph_files.graph_folder() is None
+    monkeypatch.setenv(graph_files.FOLDER_ENV, str(tmp_path / "g"))
+    assert graph_files.graph_folder() == tmp_path / "g"
+    monkeypatch.setenv(graph_files.FOLDER_ENV, "on")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert graph_files.graph_folder() == tmp_path / "xdg" / "hf_specvla" / "graphs"
+    monkeypatch.delenv(graph_files.FOLDER_ENV)
+    assert graph_files.graph_folder() is None  # opt-in
+
+
+def test_a_call_that_fails_its_graph_guards_compiles_again(tmp_path, caplog):
+    """What the key leaves to the guards (here a parameter replaced by one of another shape between calls) is
+    checked at every call."""
+    model = small_model()
+    function = file_backed(model, tmp_path)
+    x = torch.randn(4, 8)
+    with torch.no_grad():
+        function(x)
+        model[2] = torch.nn.Linear(16, 5)
+        with caplog.at_level(logging.INFO, logger="hf_specvla"):
+            out = function(x)
+        assert out.shape == (4, 5) and torch.allclose(out, model(x))
+    assert any("failed its graph's guards" in r.getMessage() for r in caplog.records)
+
+
+def test_the_model_key_holds_no_weights():
+    a, b = small_model(), small_model()
+    with torch.no_grad():
+        b[0].weight.add_(1.0)
+    assert architecture(a) == architecture(b)
+    assert architecture(a) != architecture(small_model(width=9))
+    assert json.dumps(architecture(a))  # a JSON record
+
+
+#: a fresh process: a tiny Llama (weights seeded by argv[2]) decoding with Jacobi drafts through compiled rounds
+#: (inductor) whose graphs are files in argv[1]; prints whether it equals eager greedy, and what was loaded
+ENGINE_PROCESS = textwrap.dedent(
+    """
+    import json, logging, sys, torch
+    from transformers import LlamaConfig, LlamaForCausalLM
+    from hf_specvla import enable_speculation
+    from hf_specvla.speculative import JacobiDrafter, compiled_decoding_kwargs
+    logging.basicConfig(level=logging.WARNING)
+    records = []
+    class Keep(logging.Handler):
+        def emit(self, record):
+            records.append(record.getMessage())
+    logging.getLogger("hf_specvla").addHandler(Keep()); logging.getLogger("hf_specvla").setLevel(logging.INFO)
+    torch.manual_seed(int(sys.argv[2]))
+    config = LlamaConfig(vocab_size=96, hidden_size=32, intermediate_size=64, num_hidden_layers=2,
+                         num_attention_heads=4, num_key_value_heads=2, max_position_embeddings=256)
+    model = enable_speculation(LlamaForCausalLM(config).eval())
+    prompt = torch.randint(3, 96, (1, 9), generator=torch.Generator().manual_seed(0))
+    greedy = model.generate(input_ids=prompt, max_new_tokens=12, do_sample=False)
+    equal = []
+    for _ in range(2):
+        out = model.generate(input_ids=prompt, max_new_tokens=12, do_sample=False, assistant_model=JacobiDrafter(),
+                             **compiled_decoding_kwargs("cpu"))
+        equal.append(bool(torch.equal(out, greedy)))
+    print(json.dumps({"equal": equal, "loaded": sum("loaded compiled graph" in m for m in records),
+                      "compiled": sum("no graph file" in m for m in records)}))
+    """
+)
+
+
+@pytest.mark.slow
+def test_the_engine_loads_its_rounds_from_files_in_a_fresh_process_and_decodes_greedy_tokens(tmp_path):
+    """The compiled rounds (acceptance in the graph) and the prefill's model call, saved by one process, are loaded by
+    the next without compiling, for a model of other weights too, and both decode greedy's tokens."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), graph_files.FOLDER_ENV: str(tmp_path)}
+    runs = []
+    for seed in (0, 1):
+        done = subprocess.run(
+            [sys.executable, "-c", ENGINE_PROCESS, str(tmp_path), str(seed)],
+            capture_output=True, text=True, env=env, timeout=900,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr[-3000:]
+        runs.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    first, second = runs
+    assert first["equal"] == [True, True] and first["compiled"] >= 2 and first["loaded"] == 0
+    assert second["equal"] == [True, True] and second["compiled"] == 0 and second["loaded"] == first["compiled"]
