@@ -166,7 +166,10 @@ def test_the_folder_follows_the_environment_variable(monkeypatch, tmp_path):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     assert graph_files.graph_folder() == tmp_path / "xdg" / "hf_specvla" / "graphs"
     monkeypatch.delenv(graph_files.FOLDER_ENV)
-    assert graph_files.graph_folder() is None  # opt-in
+    assert graph_files.graph_folder("cpu") == tmp_path / "xdg" / "hf_specvla" / "graphs"  # on by default on the CPU
+    assert graph_files.graph_folder("cuda") is None  # not yet measured on a GPU
+    monkeypatch.setenv(graph_files.FOLDER_ENV, "on")
+    assert graph_files.graph_folder("cuda") == tmp_path / "xdg" / "hf_specvla" / "graphs"
 
 
 def test_a_call_that_fails_its_graph_guards_compiles_again(tmp_path, caplog):

@@ -201,7 +201,7 @@ class CompiledVerifier:
     def __init__(self, model: PreTrainedModel, compile_config):
         self.compile_config = compile_config
         self.model_forward = type(model).forward  # the code dynamo compiles for ``call`` (its graphs: graphs_held)
-        folder = graph_folder()
+        folder = graph_folder(model.device.type)
         #: where its graphs are files (None: compiled in memory, by dynamo, as transformers compiles)
         self.store = GraphStore(folder) if folder is not None else None
         #: what its graphs depend on besides their inputs (the versions, the model's architecture; no weights)

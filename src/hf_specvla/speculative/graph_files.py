@@ -7,9 +7,9 @@ Inductor's artefacts in one file (``torch.compile(fn, fullgraph=True).aot_compil
 per input signature (every tensor's shape, dtype and device, the sizes marked dynamic left out, the cache's type and
 layers) it uses the graph it holds, else loads its file, else compiles and saves one.
 
-Where the files live: [`graph_folder`], the folder ``HF_SPECVLA_GRAPH_CACHE`` names (``on``: ``~/.cache/hf_specvla/
-graphs``, ``$XDG_CACHE_HOME`` respected). Unset, or ``off``, graphs are compiled in memory as before: the route is
-opt-in until it has run on a GPU (docs/usage.md).
+Where the files live: [`graph_folder`], ``~/.cache/hf_specvla/graphs`` (``$XDG_CACHE_HOME`` respected) for a model on
+the CPU, or the folder ``HF_SPECVLA_GRAPH_CACHE`` names; ``off`` compiles in memory as before. A model on a GPU keeps
+its graphs in memory unless the variable is set (``on`` or a folder): the route has not run on a GPU yet.
 
 What keys a file ([`GraphKey`]), every part a miss when it changes (the log names the parts that differ from the
 nearest file of the same function):
@@ -74,14 +74,16 @@ _UNSAVED_GUARDS = frozenset(
 )  # fmt: skip
 
 
-def graph_folder() -> Path | None:
-    """The folder of graph files: ``$HF_SPECVLA_GRAPH_CACHE`` when it names one; ``on`` (``1``, ``default``) for
-    ``$XDG_CACHE_HOME/hf_specvla/graphs`` (``~/.cache/hf_specvla/graphs``); None, graphs compiled in memory only, when
-    it is unset or ``off`` (``0``, ``none``). Its location is logged once."""
+def graph_folder(device_type: str = "cpu") -> Path | None:
+    """The folder of graph files for models on ``device_type``: ``$HF_SPECVLA_GRAPH_CACHE`` when it names one; the
+    default folder (``$XDG_CACHE_HOME/hf_specvla/graphs``, ``~/.cache/hf_specvla/graphs``) when it is ``on`` (``1``,
+    ``default``), or unset and the model is on the CPU (the route is on by default where it is tested; a GPU's graphs
+    stay in memory until it is measured there); None, graphs compiled in memory only, when it is ``off`` (``0``,
+    ``none``) or unset for a model elsewhere. Its location is logged once."""
     value = (os.environ.get(FOLDER_ENV) or "").strip()
-    if not value or value.lower() in _OFF:
+    if value.lower() in _OFF or (not value and device_type != "cpu"):
         return None
-    if value.lower() in _ON:
+    if not value or value.lower() in _ON:
         folder = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "hf_specvla" / "graphs"
     else:
         folder = Path(value).expanduser()
