@@ -10,6 +10,7 @@ import pytest
 from hf_specvla import ActionLayout, ActionTokenizer, make_acceptance_rule
 from hf_specvla.metaworld.comparison import PRESETS, DecodingMethod, parse_methods, resolve_preset
 from hf_specvla.metaworld.comparison.methods import CompareConfig
+from hf_specvla.policies.devices import Placement
 
 FAST = {
     4: "prior+jacobi:r=4/4/4/0,gate=0.5,confirm=1:compile",  # x y z gripper
@@ -149,6 +150,7 @@ def test_the_compare_command_resolves_presets_to_the_policys_layout(tmp_path, mo
 
     monkeypatch.setattr(compare, "read_policy_config", lambda *a, **k: SimpleNamespace(action_dim=7))
     monkeypatch.setattr(compare, "load_policy", lambda *a, **k: None)
+    monkeypatch.setattr(Placement, "place_policy", lambda *a, **k: None)  # no policy loaded: nothing to place
     monkeypatch.setattr(comparison, "run_comparison", record)
     with pytest.raises(SystemExit):
         main(["compare", "--policy", "unused", "--tasks", "reach", "--methods", "fast", "--threads", "1",

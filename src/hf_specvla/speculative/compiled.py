@@ -38,7 +38,7 @@ from transformers.cache_utils import Cache
 from .cache import cache_batch_size, cache_length, is_static_cache, preserved_entries, truncate_cache
 from .decoder import DECODER_ATTRIBUTE, SpeculativeDecoder
 from .fused import accepting_forward, full_guards_asked, round_guards
-from .graph_files import FileBackedFunction, GraphStore, architecture, environment, graph_folder
+from .graph_files import FileBackedFunction, GraphStore, architecture, environment, graph_folder, with_guard_filter
 from .tree import DraftTree, TreeBatch
 from .verify import CompiledVerification, InputBuffers, Pending, Verification
 
@@ -437,24 +437,6 @@ def model_call(model: PreTrainedModel) -> Callable:
         return model(**inputs)
 
     return call_model
-
-
-def with_guard_filter(settings: dict, guard_filter: Callable) -> dict:
-    """``torch.compile`` settings (a ``CompileConfig``'s ``to_dict()``) with ``guard_filter`` as their
-    ``guard_filter_fn``: torch takes it among the backend's ``options``, which it refuses beside a ``mode``, so an
-    inductor mode is turned into its options (``torch._inductor.list_mode_options``); another backend's ``"default"``
-    mode is dropped. Another backend's other modes keep every guard (the settings unchanged)."""
-    settings = dict(settings)
-    mode, backend = settings.get("mode"), settings.get("backend", "inductor")
-    options = dict(settings.get("options") or {})
-    if mode not in (None, "default"):
-        if backend != "inductor":
-            return settings
-        from torch._inductor import list_mode_options
-
-        options = {**list_mode_options(mode), **options}
-    settings["mode"], settings["options"] = None, {**options, "guard_filter_fn": guard_filter}
-    return settings
 
 
 def graphs_held(function: Callable) -> int:

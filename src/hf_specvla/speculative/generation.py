@@ -17,6 +17,7 @@ from .compat import check_transformers_support
 from .compiled import allow_graphs_held
 from .config import SPECULATION_KWARGS, SpeculationConfig
 from .drafter import Drafter
+from .graph_files import MIXED_FROM
 from .loop import speculative_generate
 from .modeling_draft_head import DraftHead
 from .precision import EXACT_ATTRIBUTE, keep_greedy_exact
@@ -117,9 +118,8 @@ def speculative_class(model_class: type[PreTrainedModel]) -> type[PreTrainedMode
     for subclass in model_class.__subclasses__():
         if subclass.__bases__ == bases:
             return subclass
-    return type(
-        model_class.__name__, bases, {"__module__": model_class.__module__, "__qualname__": model_class.__qualname__}
-    )
+    namespace = {"__module__": model_class.__module__, "__qualname__": model_class.__qualname__}
+    return type(model_class.__name__, bases, {**namespace, MIXED_FROM: model_class})
 
 
 def enable_speculation(model: PreTrainedModel, exact_reduced_precision: bool = True) -> PreTrainedModel:

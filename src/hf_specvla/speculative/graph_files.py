@@ -65,6 +65,9 @@ _OFF = frozenset({"off", "0", "none", "false", "no"})
 _ON = frozenset({"on", "1", "default", "true", "yes"})
 #: a file's first line: this tag, a space, the SHA-256 of the rest
 _MAGIC = b"hf_specvla-graph-v1"
+#: the attribute of a class the engine made at run time (``generation.speculative_class``) that holds the class it was
+#: made from
+MIXED_FROM = "_hf_specvla_mixed_from"
 #: a damaged file is renamed ``<name><DAMAGED><UTC time>`` beside it (never deleted)
 DAMAGED = ".damaged-"
 #: guard types torch cannot save in a file
@@ -194,6 +197,24 @@ def _text(value) -> str:
 
 
 # --------------------------------------------------------------------------------------------------- the guards
+def with_guard_filter(settings: dict, guard_filter: Callable) -> dict:
+    """``torch.compile`` settings (a ``CompileConfig``'s ``to_dict()``) with ``guard_filter`` as their
+    ``guard_filter_fn``: torch takes it among the backend's ``options``, which it refuses beside a ``mode``, so an
+    inductor mode is turned into its options (``torch._inductor.list_mode_options``); another backend's ``"default"``
+    mode is dropped. Another backend's other modes keep every guard (the settings unchanged)."""
+    settings = dict(settings)
+    mode, backend = settings.get("mode"), settings.get("backend", "inductor")
+    options = dict(settings.get("options") or {})
+    if mode not in (None, "default"):
+        if backend != "inductor":
+            return settings
+        from torch._inductor import list_mode_options
+
+        options = {**list_mode_options(mode), **options}
+    settings["mode"], settings["options"] = None, {**options, "guard_filter_fn": guard_filter}
+    return settings
+
+
 def portable_guards(keep: Callable | None = None) -> Callable:
     """A ``guard_filter_fn`` keeping the guards ``keep`` keeps (all when None) that torch can save in a file: none on
     globals, none of the identity-type guards ([`_UNSAVED_GUARDS`])."""
@@ -322,8 +343,6 @@ class FileBackedFunction:
         name: str | None = None,
         guard_filter: Callable | None = None,
     ):
-        from .compiled import with_guard_filter  # the inductor mode turned into options beside the guard filter
-
         self.name = name or function.__code__.co_name
         # the modules it closes over: the graph's external data, a file never holds them; a model whose class the
         # engine mixed (``speculative_class``: made at run time, no name a file can hold) as a view of its own class
@@ -480,14 +499,14 @@ class FileBackedFunction:
 
 
 def _plain_view(value):
-    """``value``, or for a model whose class the engine mixed (``enable_speculation``) a view of it as its own class:
-    an object of the original class sharing the model's ``__dict__`` (its modules, parameters, buffers, hooks and
-    settings: any change to the model is the view's), so that a graph traced through it names an importable class."""
-    from .generation import SpeculativeGenerationMixin
-
-    if not isinstance(value, SpeculativeGenerationMixin):
+    """``value``, or for a model whose class the engine made (``enable_speculation``'s class, made at run time: no
+    module holds it, [`MIXED_FROM`] names the class it was made from) a view of it as that class: an object of the
+    original class sharing the model's ``__dict__`` (its modules, parameters, buffers, hooks and settings: any change
+    to the model is the view's), so that a graph traced through it names an importable class."""
+    original = type(value).__dict__.get(MIXED_FROM)
+    if original is None:
         return value
-    view = object.__new__(type(value).__mro__[2])
+    view = object.__new__(original)
     view.__dict__ = value.__dict__
     return view
 
