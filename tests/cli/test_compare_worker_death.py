@@ -27,11 +27,13 @@ def test_the_dead_worker_is_named_with_its_signal():
 def test_the_cli_logs_a_dead_worker_and_exits_1_without_a_traceback(tmp_path, monkeypatch, capsys):
     from hf_specvla.cli import compare, main
     from hf_specvla.metaworld import comparison
+    from hf_specvla.policies.devices import Placement
 
     def die(*args, **kwargs):
         raise WorkerDiedError("a compare worker process (pid 7) died: killed by signal SIGKILL. The other workers ...")
 
     monkeypatch.setattr(compare, "load_policy", lambda *a, **k: None)
+    monkeypatch.setattr(Placement, "place_policy", lambda *a, **k: None)  # no policy loaded: nothing to place
     monkeypatch.setattr(compare, "read_policy_config", lambda *a, **k: SimpleNamespace(action_dim=4))
     monkeypatch.setattr(comparison, "run_comparison", die)
     argv = ["compare", "--policy", "unused", "--tasks", "reach", "--methods", "prior", "--threads", "1",

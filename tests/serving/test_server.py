@@ -393,7 +393,9 @@ def test_a_request_cancelled_by_its_server_cancels_its_decode(policy):
 
 
 @pytest.mark.slow  # ~1 min: compiles every bucket's graphs (dynamo's eager backend)
-def test_every_decode_runs_on_the_services_thread_with_room_for_every_buckets_graphs(policy, monkeypatch):
+def test_every_decode_runs_on_the_services_thread_with_room_for_every_buckets_graphs(
+    policy, monkeypatch, graphs_in_memory
+):
     """torch's compiler settings are per thread: graphs compiled at warm-up must be served under a recompile limit
     that holds them (the engine raises it from what dynamo holds for the model, in the thread that decodes),
     whichever thread (the batcher's, a Ray replica's pool) asks for an action. Compiled with dynamo's eager backend
