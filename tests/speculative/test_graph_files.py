@@ -243,3 +243,55 @@ def test_the_engine_loads_its_rounds_from_files_in_a_fresh_process_and_decodes_g
     first, second = runs
     assert first["equal"] == [True, True] and first["compiled"] >= 2 and first["loaded"] == 0
     assert second["equal"] == [True, True] and second["compiled"] == 0 and second["loaded"] == first["compiled"]
+
+
+def test_a_signature_is_the_same_for_a_new_object_of_the_same_kind_in_every_call():
+    """A call's helpers made anew every call (a draft head's ``embed`` partial) give the same signature, so that
+    their graph is looked up, not compiled again; what differs in kind differs."""
+    import enum
+    import functools
+
+    from hf_specvla.speculative.graph_files import signature
+
+    class Mode(enum.Enum):
+        A = 1
+        B = 2
+
+    def first(x):
+        return x
+
+    def second(x):
+        return x
+
+    holder = type("Holder", (), {})
+    assert signature(functools.partial(first, holder())) == signature(functools.partial(first, holder()))
+    assert signature(functools.partial(first, holder())) != signature(functools.partial(second, holder()))
+    assert signature(Mode.A) != signature(Mode.B) and signature(3) != signature(4)
+    assert signature(torch.zeros(2, 3)) != signature(torch.zeros(2, 4)) != signature(torch.zeros(2, 4).double())
+
+
+def test_a_draft_heads_compiled_round_is_compiled_once_not_at_every_call(tmp_path, monkeypatch, caplog):
+    """Every call makes its own drafting helpers; the head's round graph is compiled at the first call only."""
+    from transformers import CompileConfig
+
+    from hf_specvla import DraftHead, DraftHeadDrafter, DraftTreeConfig
+
+    from .test_compiled_verification import _model, greedy
+
+    monkeypatch.setenv(graph_files.FOLDER_ENV, str(tmp_path))
+    model = _model("llama")
+    torch.manual_seed(1)
+    head = DraftHead.from_target(model, num_draft_tokens=3).eval()
+    config = CompileConfig(backend="eager", fullgraph=True, dynamic=False, mode="default")
+    config._compile_all_devices = True
+    input_ids = torch.randint(6, 64, (1, 7), generator=torch.Generator().manual_seed(0))
+    expected = greedy(model, input_ids)
+    compiles = []
+    for _ in range(3):
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="hf_specvla"):
+            tree = DraftHeadDrafter(head, tree=DraftTreeConfig(top_k=3, depth=4, total_tokens=12))
+            out = greedy(model, input_ids, assistant_model=tree, cache_implementation="static", compile_config=config)
+        assert torch.equal(out, expected)
+        compiles.append(sum("no graph file for its key" in r.getMessage() for r in caplog.records))
+    assert compiles[0] > 0 and compiles[1:] == [0, 0], compiles

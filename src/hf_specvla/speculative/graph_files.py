@@ -39,6 +39,7 @@ keeps its graphs in memory, with one warning.
 
 from __future__ import annotations
 
+import enum
 import functools
 import hashlib
 import importlib
@@ -169,27 +170,35 @@ def _dims(tensor: torch.Tensor) -> tuple:
     return tuple(-1 if i in dynamic else s for i, s in enumerate(tensor.shape))
 
 
+#: values a signature holds by value (anything else by what it is: its type, a function's name)
+_PLAIN = (bool, int, float, str, bytes, type(None), torch.dtype, torch.device, enum.Enum)
+
+
 def signature(value) -> object:
-    """A hashable description of a call's inputs as far as its graph depends on them: tensors by shape (the sizes
-    marked dynamic as -1), dtype and device; mappings by their items in key order, sequences item by item; a cache by
-    its type and its layers' types and first keys' shape; other values by their type and value (by type alone when
-    unhashable)."""
+    """A hashable description of a call's inputs as far as its graph depends on them, the same in every process:
+    tensors by shape (the sizes marked dynamic as -1), dtype and device; mappings by their items in key order,
+    sequences item by item; a cache by its type and its layers' types and first keys' shape; plain values (numbers,
+    strings, dtypes, devices, enum members) by value; a function by its qualified name, a ``functools.partial`` by its
+    function and arguments; any other object (a module, a helper holding tensors) by its type: what it holds is the
+    guards' (its tensors' shapes, its attributes' values), checked at every call."""
     if isinstance(value, torch.Tensor):
         return ("T", _dims(value), value.dtype, value.device)
     if isinstance(value, dict):
         return tuple(sorted((str(k), signature(v)) for k, v in value.items()))
     if isinstance(value, (list, tuple)):
         return (type(value).__name__, *map(signature, value))
+    if isinstance(value, _PLAIN):
+        return ("value", type(value).__qualname__, value)
+    if isinstance(value, functools.partial):
+        return ("partial", signature(value.func), signature(value.args), signature(value.keywords))
+    if isinstance(value, (types.FunctionType, types.BuiltinFunctionType, types.MethodType)):
+        return ("function", getattr(value, "__module__", None), value.__qualname__)
     layers = getattr(value, "layers", None)
     if isinstance(layers, list):  # a transformers Cache
         keys = getattr(layers[0], "keys", None) if layers else None
         shape = tuple(keys.shape) if isinstance(keys, torch.Tensor) else None
         return ("cache", type(value).__name__, tuple(type(layer).__name__ for layer in layers), shape)
-    try:
-        hash(value)
-    except TypeError:
-        return ("object", type(value).__qualname__)
-    return ("value", type(value).__qualname__, value)
+    return ("object", type(value).__module__, type(value).__qualname__)
 
 
 def _text(value) -> str:
