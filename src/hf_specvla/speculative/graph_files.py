@@ -305,13 +305,12 @@ class GraphStore:
     def nearest_difference(self, name: str, parts: dict) -> list[str]:
         """The key parts that differ between ``parts`` and the nearest record of ``name``'s files (for a miss's log);
         empty when there is none."""
-        best = None
+        best, mine = None, json.loads(json.dumps(parts, default=_text))
         for record in self.folder.glob(f"{name}-*.json"):
             try:
                 other = json.loads(record.read_text())
             except (OSError, ValueError):
                 continue
-            mine = json.loads(json.dumps(parts, default=_text))
             differ = sorted(_differences(mine, other))
             if best is None or len(differ) < len(best):
                 best = differ
@@ -403,13 +402,13 @@ class FileBackedFunction:
         key = signature((args, kwargs))
         graph = self.graphs.get(key)
         if graph is None:
-            graph = self.graphs[key] = self._load_or_compile(args, kwargs)
+            graph = self.graphs[key] = self._load_or_compile(args, kwargs, self._parts(key))
             if graph is None:  # it cannot be saved: in memory from now on
                 return self.in_memory(*args, **kwargs)
         _unmark_dynamic((args, kwargs))  # what a loaded graph's guards expect (see _compile)
         if not graph.guard_check(*args, **kwargs):  # what the key leaves to the guards: e.g. a parameter swapped
             logger.info("compiling %s again: a call failed its graph's guards", self.name)
-            graph = self.graphs[key] = self._compile(args, kwargs, self.store.path(self.name, self._parts(key)))
+            graph = self.graphs[key] = self._compile(args, kwargs, self._parts(key))
             if graph is None:
                 return self.in_memory(*args, **kwargs)
             _unmark_dynamic((args, kwargs))
@@ -418,9 +417,8 @@ class FileBackedFunction:
     def _parts(self, inputs) -> dict:
         return {**self.key, "inputs": inputs}
 
-    def _load_or_compile(self, args: tuple, kwargs: dict):
+    def _load_or_compile(self, args: tuple, kwargs: dict, parts: dict):
         """The graph for these inputs from its file, else compiled (and saved)."""
-        parts = self._parts(signature((args, kwargs)))
         path = self.store.path(self.name, parts)
         payload = self.store.read(path)
         if payload is not None:
@@ -438,9 +436,9 @@ class FileBackedFunction:
                 self.name,
                 f" (the nearest file differs in {', '.join(differ)})" if differ else "",
             )
-        return self._compile(args, kwargs, path)
+        return self._compile(args, kwargs, parts)
 
-    def _compile(self, args: tuple, kwargs: dict, path: Path):
+    def _compile(self, args: tuple, kwargs: dict, parts: dict):
         """Compiles the graph ahead of time, saves it, and returns it as loaded from what was saved (so that this
         process runs what a later one will: a graph loaded from bytes checks its guards as a file's does; e.g. it
         expects no dynamic-dimension marks on its inputs)."""
@@ -473,7 +471,7 @@ class FileBackedFunction:
             self.compile_seconds += time.perf_counter() - start
             return compiled
         graph = self._deserialize(payload, None)
-        self.store.write(path, payload, self._parts(signature((args, kwargs))))
+        self.store.write(self.store.path(self.name, parts), payload, parts)
         self.compile_seconds += time.perf_counter() - start
         return graph
 
