@@ -166,21 +166,42 @@ def check_output_dir_flag(output_dir: str, parser, flag: str = "--output-dir") -
         parser.error(f"{flag} {output_dir}: {existing} is not writable; give a folder you can write to")
 
 
-def read_policy_config(path: str, parser, flag: str = "--policy"):
-    """The [`VLAPolicyConfig`] of the saved policy ``flag`` names, read without loading the model (action layout,
-    image settings: what checks need before the slow load); the same usage error as [`load_policy`] when the
-    folder holds no policy."""
+def read_policy_config(path: str, parser, flag: str = "--policy", unnorm_key: str | None = None):
+    """What checks need before the slow load, read without loading the model: a Meta-World policy's
+    [`VLAPolicyConfig`] (action layout, image settings), or an OpenVLA checkpoint's [`OpenVLAPolicyLayout`] (its
+    action length, ``unnorm_key`` checked); the same usage error as [`load_policy`] when the folder holds no policy."""
     import json
 
     from ..policies.configuration_vla import POLICY_CONFIG_NAME, VLAPolicyConfig, check_policy_folder
 
+    if _is_openvla(path):
+        from ..policies.loading import read_policy_layout
+
+        with usage_errors(parser, "--unnorm-key" if unnorm_key else flag, (ValueError, OSError)):
+            return read_policy_layout(path, unnorm_key)
     with usage_errors(parser, flag, (FileNotFoundError,)):
         check_policy_folder(path)  # names the missing folder or file, as load_policy does
+    if unnorm_key is not None:
+        parser.error(
+            f"--unnorm-key {unnorm_key}: {flag} {path} is a Meta-World policy with one set of action statistics; "
+            f"--unnorm-key names an OpenVLA checkpoint's dataset"
+        )
     config_path = Path(path) / POLICY_CONFIG_NAME
     try:
         return VLAPolicyConfig(**json.loads(config_path.read_text()))
     except (ValueError, TypeError) as error:  # not JSON, unknown or bad fields
         parser.error(f"{flag} {path}: {config_path} is not a policy configuration: {error}")
+
+
+def _is_openvla(path: str) -> bool:
+    """Whether ``path`` names an OpenVLA checkpoint (a folder or a hub id; anything else is read as a Meta-World
+    policy folder, whose check names what is missing)."""
+    from ..policies.loading import policy_kind
+
+    try:
+        return policy_kind(path) == "openvla"
+    except (FileNotFoundError, ValueError):
+        return False
 
 
 def check_bin_tolerances(tolerances: list[int], n_bins: int, given: str, parser) -> None:
@@ -192,18 +213,24 @@ def check_bin_tolerances(tolerances: list[int], n_bins: int, given: str, parser)
         check_bin_tolerance_range(tolerances, n_bins, given)
 
 
-def load_policy(path: str, parser, flag: str = "--policy"):
-    """The saved policy ``flag`` names; a usage error when the folder holds none (checked before the policy's
-    imports: torch and transformers take seconds) or its weights file is damaged (one line naming the file)."""
+def load_policy(path: str, parser, flag: str = "--policy", unnorm_key: str | None = None, dtype=None):
+    """The saved policy ``flag`` names (a Meta-World policy folder, or an OpenVLA checkpoint: a folder or a hub id,
+    loaded in ``dtype`` when given, with ``unnorm_key`` its default dataset); a usage error when the folder holds none
+    (checked before the policy's imports: torch and transformers take seconds) or its weights file is damaged (one
+    line naming the file)."""
     from ..policies.configuration_vla import check_policy_folder
 
-    with usage_errors(parser, flag, (FileNotFoundError,)):
-        check_policy_folder(path)
-    from ..policies import VLAPolicy
+    openvla = _is_openvla(path)
+    if not openvla:
+        with usage_errors(parser, flag, (FileNotFoundError,)):
+            check_policy_folder(path)
+    from ..policies.loading import load_policy as load
     from ..speculative import DamagedWeightsError
 
-    with usage_errors(parser, flag, (DamagedWeightsError,)):
-        return VLAPolicy.from_pretrained(path)
+    with usage_errors(
+        parser, flag, (DamagedWeightsError, FileNotFoundError, ValueError) if openvla else (DamagedWeightsError,)
+    ):
+        return load(path, unnorm_key, **({"dtype": dtype} if openvla and dtype is not None else {}))
 
 
 def load_draft_head(path: str, parser, flag: str = "--draft-head"):

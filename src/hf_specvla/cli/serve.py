@@ -47,6 +47,9 @@ EXAMPLES = """
     # On the CPU in float32 (default: auto, a GPU in bfloat16 when torch sees one; GET /info says which)
     hf-specvla serve --policy policies/mt10_vla3 --method prior+jacobi --buckets 1 2 --device cpu --dtype float32 \\
         --port 8005
+    # An OpenVLA checkpoint (a folder or a hub id) on a GPU in bfloat16; OpenVLA's deploy.py client works unchanged
+    hf-specvla serve --policy openvla/openvla-7b --unnorm-key bridge_orig --method exact --buckets 1 4 --device cuda \\
+        --port 8006
 """
 
 
@@ -62,7 +65,19 @@ def add_arguments(parser) -> None:
     )
 
     defaults = ServeConfig()
-    parser.add_argument("--policy", required=True, help="a policy folder (train-vla output)")
+    parser.add_argument(
+        "--policy",
+        required=True,
+        help="a policy folder (train-vla output), or an OpenVLA checkpoint: a folder holding config.json, the "
+        "weights, preprocessor_config.json and the tokenizer files (as the hub's openvla/openvla-7b does), or a hub id",
+    )
+    parser.add_argument(
+        "--unnorm-key",
+        default=None,
+        metavar="DATASET",
+        help="an OpenVLA checkpoint's dataset whose statistics un-normalise the actions of a request that names none "
+        "(default: the checkpoint's only one; with several, each request names its own)",
+    )
     parser.add_argument(
         "--method",
         nargs="+",
@@ -192,6 +207,7 @@ def serve_config(args, parser):
             compile_cache=args.compile_cache and os.path.abspath(args.compile_cache),
             device=args.device,
             dtype=args.dtype,
+            unnorm_key=args.unnorm_key,
         )
 
 
@@ -214,7 +230,7 @@ def run(args, parser) -> int:
 
         check_output_dir_flag(args.compile_cache, parser, "--compile-cache")
     check_draft_head_flag(args.draft_head, parser)
-    policy_config = read_policy_config(args.policy, parser)  # cheap: no weights loaded yet
+    policy_config = read_policy_config(args.policy, parser, unnorm_key=args.unnorm_key)  # cheap: no weights loaded
     given = " ".join(text.strip() for text in args.method)
     with usage_errors(parser, "--method", (ValueError,)):
         methods = serving_methods(args.method, bool(args.draft_head), policy_config.action_dim)
@@ -247,7 +263,7 @@ def _run_local(args, parser, config, methods, placement) -> int:
     with usage_errors(parser, "--port", (OSError,)):
         sock = bind(args.host, args.port)  # a taken port is refused before the policy loads
     started = time.perf_counter()
-    policy = load_policy(args.policy, parser)
+    policy = load_policy(args.policy, parser, unnorm_key=args.unnorm_key, dtype=placement.dtype)
     with usage_errors(parser, "--method", (ValueError, TypeError)):
         for method in methods:
             check_method_rule(method, policy)
@@ -324,7 +340,7 @@ def _run_ray(args, parser, config) -> int:
                 )
     with usage_errors(parser, errors=(ValueError,)):
         app_args = PolicyAppArgs(
-            policy=str(Path(args.policy).resolve()),
+            policy=str(Path(args.policy).resolve()) if Path(args.policy).exists() else args.policy,
             serve=config,
             threads=threads,
             draft_head=str(Path(args.draft_head).resolve()) if args.draft_head else None,

@@ -6,7 +6,7 @@ from typing import Any
 
 from transformers import LlamaConfig, PretrainedConfig
 
-from .vision import vision_tower_spec
+from .vision import BUILTIN_VISION_TOWERS, VisionTowerSpec, vision_tower_spec
 
 #: The vision backbones of the official Prismatic/OpenVLA config and the timm ids and image sizes they imply
 #: (a config.json's own ``timm_model_ids`` / ``image_sizes`` override these, as in the official code).
@@ -97,6 +97,10 @@ class OpenVLAConfig(PretrainedConfig):
         timm_model_ids / image_sizes: the towers (override the backbone id's defaults, as config.json does).
         image_token_id: the placeholder id that marks the image's rows in a prompt prepared for generation;
             default: the last padded vocabulary row (``text_config.vocab_size - 1``), which no tokenizer produces.
+        vision_towers: ``{timm id: VisionTowerSpec fields}`` for towers this package does not know
+            (``BUILTIN_VISION_TOWERS``): a checkpoint carries them, so a fine-tune with other towers (or a small test
+            checkpoint) loads in any process without ``register_vision_tower``. Filled on its own for any such tower
+            that was registered, so ``save_pretrained`` writes them.
     """
 
     model_type = "openvla"
@@ -120,6 +124,7 @@ class OpenVLAConfig(PretrainedConfig):
         image_sizes: list[int] | None = None,
         timm_override_act_layers: list[str | None] | None = None,
         image_token_id: int | None = None,
+        vision_towers: dict[str, dict] | None = None,
         **kwargs,
     ):
         for name, value, expected, description, optional in (
@@ -136,6 +141,7 @@ class OpenVLAConfig(PretrainedConfig):
             ("pad_to_multiple_of", pad_to_multiple_of, int, "an int", False),
             ("output_projector_states", output_projector_states, bool, "true or false", False),
             ("image_token_id", image_token_id, int, "an int (a token id)", True),
+            ("vision_towers", vision_towers, dict, "a dict {timm id: VisionTowerSpec fields}", True),
         ):
             _check_type(name, value, expected, description, optional)
         _check_list("timm_model_ids", timm_model_ids, str, "timm model ids (strings)")
@@ -172,8 +178,13 @@ class OpenVLAConfig(PretrainedConfig):
             )
         self.timm_model_ids = list(timm_model_ids if timm_model_ids is not None else default_ids)
         self.image_sizes = list(image_sizes if image_sizes is not None else default_sizes)
-        for timm_model_id in self.timm_model_ids:
-            vision_tower_spec(timm_model_id)  # unsupported towers fail here, naming the id
+        carried = {name: VisionTowerSpec.from_dict(name, values) for name, values in (vision_towers or {}).items()}
+        #: the towers' specs beyond the built-in ones, as config.json carries them
+        self.vision_towers = {
+            name: vision_tower_spec(name, carried).to_dict()  # unsupported towers fail here, naming the id
+            for name in self.timm_model_ids
+            if name not in BUILTIN_VISION_TOWERS or name in carried
+        }
         if any(act is not None for act in timm_override_act_layers or []):
             raise ValueError(
                 f"timm_override_act_layers={timm_override_act_layers} is not supported by the OpenVLA port "
@@ -194,6 +205,10 @@ class OpenVLAConfig(PretrainedConfig):
             self.text_config = LlamaConfig(**{**LLAMA_DEFAULTS_OF_OFFICIAL_CONFIG, **text_config})
         self.image_token_id = self.text_config.vocab_size - 1 if image_token_id is None else image_token_id
         super().__init__(pad_token_id=pad_token_id, **kwargs)
+
+    def tower_specs(self) -> dict[str, VisionTowerSpec]:
+        """The towers' specs this config carries (``vision_towers``), by timm id."""
+        return {name: VisionTowerSpec(**values) for name, values in self.vision_towers.items()}
 
     @property
     def action_vocab_end(self) -> int:

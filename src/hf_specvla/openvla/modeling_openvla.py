@@ -150,7 +150,7 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
     def __init__(self, config: OpenVLAConfig):
         super().__init__(config)
         self.vision_backbone = OpenVLAVisionBackbone(
-            config.timm_model_ids, config.image_sizes, config.use_fused_vision_backbone
+            config.timm_model_ids, config.image_sizes, config.use_fused_vision_backbone, config.tower_specs()
         )
         self.projector = OpenVLAProjector(
             self.vision_backbone.embed_dim, config.text_config.hidden_size, config.use_fused_vision_backbone

@@ -18,7 +18,7 @@ tower kinds OpenVLA uses, and nothing more:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, fields
 
 import torch
 import torch.nn.functional as F
@@ -56,6 +56,36 @@ class VisionTowerSpec:
     def num_prefix_tokens(self) -> int:
         return int(self.class_token) + self.num_register_tokens
 
+    def to_dict(self) -> dict:
+        """The fields, as a checkpoint's ``config.json`` carries them (``OpenVLAConfig.vision_towers``)."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, timm_model_id: str, values) -> VisionTowerSpec:
+        """The spec a ``config.json`` carries for ``timm_model_id``.
+
+        Raises:
+            ValueError: not a dict, a field that is not a spec's, a missing size, or a value of the wrong type; each
+                named with the tower's id.
+        """
+        where = f"vision_towers[{timm_model_id!r}]"
+        if not isinstance(values, dict):
+            raise ValueError(f"{where} must be a dict of VisionTowerSpec fields, got {type(values).__name__}")
+        known = {f.name: f for f in fields(cls)}
+        unknown = sorted(set(values) - set(known))
+        if unknown:
+            raise ValueError(f"{where} has fields {unknown} that a vision tower does not; valid: {sorted(known)}")
+        missing = [name for name in ("embed_dim", "depth", "num_heads", "mlp_hidden_size") if name not in values]
+        if missing:
+            raise ValueError(f"{where} needs {missing} (the ViT's sizes)")
+        for name, value in values.items():
+            flag = known[name].type in ("bool", bool)
+            least = 0 if name == "num_register_tokens" else 1
+            if type(value) is not (bool if flag else int) or (not flag and value < least):
+                wanted = "true or false" if flag else f"an int >= {least}"
+                raise ValueError(f"{where}.{name} must be {wanted}, got {value!r}")
+        return cls(**values)
+
 
 def _dinov2_reg4(embed_dim: int, depth: int, num_heads: int) -> VisionTowerSpec:
     return VisionTowerSpec(
@@ -72,7 +102,8 @@ def _dinov2_reg4(embed_dim: int, depth: int, num_heads: int) -> VisionTowerSpec:
 
 _SIGLIP_SO400M = VisionTowerSpec(1152, 27, 16, 4304, attention_pool=True)
 
-#: timm ids OpenVLA checkpoints name in ``config.timm_model_ids``, and the towers they stand for.
+#: timm ids OpenVLA checkpoints name in ``config.timm_model_ids``, and the towers they stand for (a checkpoint with
+#: other towers carries their specs in its ``config.json``: ``OpenVLAConfig.vision_towers``).
 VISION_TOWERS: dict[str, VisionTowerSpec] = {
     "vit_large_patch14_reg4_dinov2.lvd142m": _dinov2_reg4(1024, 24, 16),
     "vit_base_patch14_reg4_dinov2.lvd142m": _dinov2_reg4(768, 12, 12),
@@ -80,6 +111,10 @@ VISION_TOWERS: dict[str, VisionTowerSpec] = {
     "vit_so400m_patch14_siglip_224": _SIGLIP_SO400M,
     "vit_so400m_patch14_siglip_384": _SIGLIP_SO400M,
 }
+
+
+#: the timm ids this package knows without being told (a checkpoint need not carry their specs)
+BUILTIN_VISION_TOWERS = frozenset(VISION_TOWERS)
 
 
 def register_vision_tower(timm_model_id: str, spec: VisionTowerSpec, exist_ok: bool = False) -> None:
@@ -96,16 +131,19 @@ def register_vision_tower(timm_model_id: str, spec: VisionTowerSpec, exist_ok: b
     VISION_TOWERS[timm_model_id] = spec
 
 
-def vision_tower_spec(timm_model_id: str) -> VisionTowerSpec:
-    """The spec of a registered timm id.
+def vision_tower_spec(timm_model_id: str, carried: dict[str, VisionTowerSpec] | None = None) -> VisionTowerSpec:
+    """The spec of a timm id: the one a checkpoint ``carried`` in its config, else the registered one.
 
     Raises:
         ValueError: naming the id and listing the supported ones.
     """
+    if carried and timm_model_id in carried:
+        return carried[timm_model_id]
     if timm_model_id not in VISION_TOWERS:
         raise ValueError(
             f"vision tower {timm_model_id!r} is not supported by the OpenVLA port; supported timm ids: "
-            f"{sorted(VISION_TOWERS)} (register another with hf_specvla.openvla.register_vision_tower)"
+            f"{sorted(VISION_TOWERS)} (register another with hf_specvla.openvla.register_vision_tower, or give its "
+            f"shapes in config.json's vision_towers)"
         )
     return VISION_TOWERS[timm_model_id]
 
@@ -266,7 +304,13 @@ class OpenVLAVisionBackbone(nn.Module):
     two token sequences on the feature axis (so both towers must give the same patch grid).
     """
 
-    def __init__(self, timm_model_ids: list[str], image_sizes: list[int], use_fused_vision_backbone: bool):
+    def __init__(
+        self,
+        timm_model_ids: list[str],
+        image_sizes: list[int],
+        use_fused_vision_backbone: bool,
+        carried: dict[str, VisionTowerSpec] | None = None,
+    ):
         super().__init__()
         num_towers = 2 if use_fused_vision_backbone else 1
         if len(timm_model_ids) < num_towers or len(image_sizes) < num_towers:
@@ -275,10 +319,10 @@ class OpenVLAVisionBackbone(nn.Module):
                 f"and image sizes, got timm_model_ids={timm_model_ids}, image_sizes={image_sizes}"
             )
         self.use_fused_vision_backbone = use_fused_vision_backbone
-        self.featurizer = VisionTransformer(vision_tower_spec(timm_model_ids[0]), image_sizes[0])
+        self.featurizer = VisionTransformer(vision_tower_spec(timm_model_ids[0], carried), image_sizes[0])
         self.fused_featurizer = None
         if use_fused_vision_backbone:
-            self.fused_featurizer = VisionTransformer(vision_tower_spec(timm_model_ids[1]), image_sizes[1])
+            self.fused_featurizer = VisionTransformer(vision_tower_spec(timm_model_ids[1], carried), image_sizes[1])
             if self.fused_featurizer.num_patches != self.featurizer.num_patches:
                 raise ValueError(
                     f"the fused towers give {self.featurizer.num_patches} and {self.fused_featurizer.num_patches} "

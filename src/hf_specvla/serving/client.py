@@ -67,10 +67,19 @@ class PolicyClient:
         return json.loads(self._request("GET", "/info"))
 
     def act(
-        self, image: np.ndarray, instruction: str, state=None, session: str | None = None, reset: bool = False
+        self,
+        image: np.ndarray,
+        instruction: str,
+        state=None,
+        session: str | None = None,
+        reset: bool = False,
+        unnorm_key: str | None = None,
     ) -> ActReply:
-        """One action: ``POST /act``. ``session`` names the robot (its drafts); ``reset`` starts its new episode."""
+        """One action: ``POST /act``. ``session`` names the robot (its drafts); ``reset`` starts its new episode;
+        ``unnorm_key``: an OpenVLA checkpoint's dataset (None: the server's default)."""
         payload: dict[str, Any] = {"image": np.asarray(image), "instruction": instruction}
+        if unnorm_key is not None:
+            payload["unnorm_key"] = unnorm_key
         if state is not None:
             payload["state"] = np.asarray(state, dtype=np.float64)
         if session is not None:

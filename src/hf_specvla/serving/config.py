@@ -59,6 +59,9 @@ class ServeConfig:
             On Ray Serve a CUDA device asks each replica's actor for one GPU (``ray_actor_options.num_gpus``).
         dtype: the weights' precision: ``auto`` (``bfloat16`` on a CUDA device, ``float32`` on the CPU),
             ``bfloat16``, ``float16``, ``float32``. A draft head is checked against the policy as saved, then cast.
+        unnorm_key: an OpenVLA checkpoint's dataset whose statistics un-normalise the actions of a request that
+            names none (a request's own ``unnorm_key`` wins). None: the checkpoint's only dataset; with several, each
+            request must name one. A Meta-World policy has one set of statistics and takes none.
     """
 
     method: str | tuple[str, ...] = "exact"
@@ -73,6 +76,7 @@ class ServeConfig:
     compile_cache: str | None = None
     device: str = DEFAULT_DEVICE
     dtype: str = DEFAULT_DTYPE
+    unnorm_key: str | None = None
 
     def __post_init__(self):
         if isinstance(self.method, list | tuple):
@@ -113,6 +117,8 @@ class ServeConfig:
                 raise ValueError(f"ServeConfig.{name}: {error}") from None
         if self.compile_cache is not None and (not isinstance(self.compile_cache, str) or not self.compile_cache):
             raise ValueError(f"ServeConfig.compile_cache must be a folder (a path), got {self.compile_cache!r}")
+        if self.unnorm_key is not None and (not isinstance(self.unnorm_key, str) or not self.unnorm_key.strip()):
+            raise ValueError(f"ServeConfig.unnorm_key must be a dataset's name (a string), got {self.unnorm_key!r}")
         if self.max_prompt_tokens is not None:
             check_ranges(self, at_least_one=("max_prompt_tokens",), integers=("max_prompt_tokens",))
         if self.speculate_buckets is not None:

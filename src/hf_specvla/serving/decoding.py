@@ -42,7 +42,7 @@ from .config import ServeConfig
 from .protocol import ActRequest
 
 if TYPE_CHECKING:
-    from ..policies import VLAPolicy
+    from ..policies import ActionPolicy
 
 logger = logging.getLogger(__name__)
 
@@ -97,7 +97,7 @@ class DecodeStep:
         ValueError: an unknown method; ``max_prompt_tokens`` shorter than this policy's shortest prompt.
     """
 
-    def __init__(self, policy: VLAPolicy, config: ServeConfig, draft_head=None):
+    def __init__(self, policy: ActionPolicy, config: ServeConfig, draft_head=None):
         self.policy, self.config = policy, config
         layout = policy.config
         methods = serving_methods(config.method, draft_head is not None, layout.action_dim)
@@ -152,7 +152,9 @@ class DecodeStep:
         padded = requests + [requests[0]] * (bucket - rows)  # idle rows: the first row's copies, its drafts too
         memories = [[list(a) for a in history] for history in histories]  # predict_action updates them in place
         memories += [[list(a) for a in histories[0]] for _ in range(bucket - rows)]
-        images = np.stack([r.image for r in padded])
+        shapes = {r.image.shape for r in padded}
+        images = np.stack([r.image for r in padded]) if len(shapes) == 1 else [r.image for r in padded]
+        keys = [r.unnorm_key for r in padded]  # each row's dataset (None: the policy's one set of statistics)
         states = np.stack([r.state for r in padded]) if self.policy.config.use_state else None
         instructions = [r.instruction for r in padded]
         plan, kwargs = (self._plans[mode], {}) if mode else self._greedy_plan(bucket, instructions, states)
@@ -163,7 +165,7 @@ class DecodeStep:
             def finished(row: int, new_tokens, stats) -> None:  # the engine's on_row_finished, in finishing order
                 if row < rows and len(early) < rows - 1:  # the last robot row comes back with the batch
                     early.add(row)
-                    action, action_ids = self.policy.actions_from_generated(new_tokens[None])
+                    action, action_ids = self.policy.actions_from_generated(new_tokens[None], [keys[row]])
                     history = [list(a) for a in histories[row]]
                     remember_actions(history, action_ids[0], self.policy.action_layout)
                     forwards = stats.num_target_forwards  # the batch's forwards so far: the row took part in each
@@ -171,6 +173,8 @@ class DecodeStep:
 
             kwargs = {**kwargs, "on_row_finished": finished}
         started = time.perf_counter()
+        if self.policy.unnorm_keys:
+            kwargs = {**kwargs, "unnorm_key": keys}
         actions, output = self.policy.predict_action(
             images, instructions, states, return_output=True, previous_action_ids=memories, decoding=plan, **kwargs
         )

@@ -9,16 +9,18 @@ request's arrays are decoded field by field, so an error names the field (``imag
 
 | field | type | |
 |---|---|---|
-| ``image`` | uint8 array ``[S, S, 3]`` (``GET /info`` names S) | required (OpenVLA's) |
+| ``image`` | uint8 array ``[S, S, 3]`` (``GET /info``'s S; null: any ``[H, W, 3]``) | required (OpenVLA's) |
 | ``instruction`` | string | required (OpenVLA's); at most 1000 characters and ``GET /info``'s ``max_prompt_tokens`` |
-| ``unnorm_key`` | string | accepted and ignored: a policy here has one set of action statistics (OpenVLA's) |
+| ``unnorm_key`` | string | an OpenVLA checkpoint's dataset (``GET /info``'s ``unnorm_keys``) (OpenVLA's) |
 | ``state`` | numbers ``[state_dim]`` (an array or a list) | required when the policy reads the proprio state |
 | ``session`` | string, at most 128 characters | the robot's id: the server keeps its previous actions as drafts |
 | ``reset`` | bool | a new episode: forget the session's previous actions |
 | ``draft_state`` | lists of ints | this robot's last reply's ``draft_state``, echoed: drafts whatever replica answers |
 | ``api_key`` | string | when the server was started with an API key (or send ``Authorization: Bearer <key>``) |
 
-or OpenVLA's double-encoded form ``{"encoded": "<json_numpy text of the object above>"}`` (its ``api_key`` inside). An
+``unnorm_key`` defaults to the server's (``GET /info``'s ``unnorm_key``: the checkpoint's only dataset, or
+``serve --unnorm-key``); a Meta-World policy has one set of statistics and ignores it. Or OpenVLA's double-encoded
+form ``{"encoded": "<json_numpy text of the object above>"}`` (its ``api_key`` inside). An
 ``instruction`` is words: special-token text in it (``<image>``, ``<pad>``) is tokenized as text, never as the token.
 
 The reply is the action array itself (float64 ``[action_dim]``, ``[chunk, action_dim]`` for a chunked policy), so an
@@ -50,6 +52,8 @@ MAX_SESSION_LENGTH = 128
 MAX_INSTRUCTION_LENGTH = 1000
 #: the most dimensions an array on the wire may have (a request's have at most 3)
 MAX_ARRAY_DIMS = 8
+#: the longest side of an image of a policy that takes any size (an OpenVLA checkpoint's processor resizes it)
+MAX_IMAGE_SIDE = 4096
 #: the largest token id ``draft_state`` may hold (token ids are int64 on the policy's side)
 MAX_TOKEN_ID = 2**63 - 1
 #: the fields of ``POST /act``
@@ -191,8 +195,10 @@ class ActRequest:
     """One robot's ``POST /act``, checked ([`parse`]).
 
     Attributes:
-        image: uint8 ``[S, S, 3]``.
+        image: uint8 ``[S, S, 3]`` (``[H, W, 3]`` for a policy that takes any size).
         instruction: the task in words.
+        unnorm_key: the dataset whose statistics un-normalise the action, as sent (the service resolves it: None for
+            a policy with one set of statistics).
         state: float64 ``[state_dim]``, or None.
         session: the robot's id (None: no memory between its requests).
         reset: a new episode (the session's previous actions are forgotten).
@@ -205,6 +211,7 @@ class ActRequest:
     image: np.ndarray
     instruction: str
     state: np.ndarray | None = None
+    unnorm_key: str | None = None
     session: str | None = None
     reset: bool = False
     draft_state: list[list[int]] | None = None
@@ -212,10 +219,10 @@ class ActRequest:
     received: float | None = None
 
     @classmethod
-    def parse(cls, payload: Any, image_size: int, state_dim: int, needs_state: bool) -> ActRequest:
+    def parse(cls, payload: Any, image_size: int | None, state_dim: int, needs_state: bool) -> ActRequest:
         """A decoded request body (``loads(body, arrays=False)``, or with its arrays decoded) -> an ActRequest, for a
-        policy that takes ``image_size``-pixel images and ``state_dim`` proprio numbers (``needs_state``: the state
-        is required).
+        policy that takes ``image_size``-pixel images (None: any ``[H, W, 3]`` up to ``MAX_IMAGE_SIDE``) and
+        ``state_dim`` proprio numbers (``needs_state``: the state is required).
 
         Raises:
             RequestError: naming the field at fault and what it must be.
@@ -227,14 +234,7 @@ class ActRequest:
                 None,
                 400,
             )
-        image = _field_array(payload.get("image"), "image")
-        expected = (image_size, image_size, 3)
-        if not isinstance(image, np.ndarray):
-            raise RequestError(f"image is required: a json_numpy uint8 array of shape {list(expected)}", "image")
-        if image.dtype != np.uint8 or image.shape != expected:
-            raise RequestError(
-                f"image must be uint8 of shape {list(expected)}, got {image.dtype} {list(image.shape)}", "image"
-            )
+        image = _image(_field_array(payload.get("image"), "image"), image_size)
         instruction = payload.get("instruction")
         if not isinstance(instruction, str) or not instruction.strip():
             raise RequestError("instruction is required: the task in words (a non-empty string)", "instruction")
@@ -252,11 +252,26 @@ class ActRequest:
             image,
             instruction,
             state,
+            unnorm_key,
             _session(payload.get("session")),
             _flag(payload.get("reset", False), "reset"),
             draft_state,
             double_encoded,
         )
+
+
+def _image(image, image_size: int | None) -> np.ndarray:
+    expected = "[H, W, 3]" if image_size is None else str([image_size, image_size, 3])
+    if not isinstance(image, np.ndarray):
+        raise RequestError(f"image is required: a json_numpy uint8 array of shape {expected}", "image")
+    if image_size is None:
+        fits = image.ndim == 3 and image.shape[2] == 3 and all(1 <= side <= MAX_IMAGE_SIDE for side in image.shape[:2])
+        expected += f" (sides 1..{MAX_IMAGE_SIDE})"
+    else:
+        fits = image.shape == (image_size, image_size, 3)
+    if image.dtype != np.uint8 or not fits:
+        raise RequestError(f"image must be uint8 of shape {expected}, got {image.dtype} {list(image.shape)}", "image")
+    return image
 
 
 def _state(value, state_dim: int, needs_state: bool) -> np.ndarray | None:

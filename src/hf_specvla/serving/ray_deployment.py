@@ -57,7 +57,6 @@ from __future__ import annotations
 import _thread
 import asyncio
 import dataclasses
-import json
 import logging
 import os
 import signal
@@ -194,15 +193,16 @@ class PolicyAppArgs:
         """The method is one this policy decodes with (and has its draft head if it drafts with one).
 
         Raises:
-            ValueError: the policy's folder holds no policy config; an unknown method; a head missing.
+            ValueError: the folder holds no policy (neither a Meta-World policy nor an OpenVLA checkpoint); an
+                ``unnorm_key`` it does not have; an unknown method; a head missing.
         """
-        from ..policies import POLICY_CONFIG_NAME, VLAPolicyConfig
         from ..policies.decoding_methods import serving_methods
+        from ..policies.loading import read_policy_layout
 
-        path = Path(self.policy) / POLICY_CONFIG_NAME
-        if not path.is_file():
-            raise ValueError(f"policy {self.policy!r} holds no {POLICY_CONFIG_NAME}: not a saved policy folder")
-        layout = VLAPolicyConfig(**json.loads(path.read_text()))
+        try:
+            layout = read_policy_layout(self.policy, self.serve.unnorm_key)
+        except FileNotFoundError as error:
+            raise ValueError(f"policy {self.policy!r}: {error}") from None
         for method in serving_methods(self.serve.method, self.draft_head is not None, layout.action_dim):
             if method.uses_draft_head and self.draft_head is None:
                 raise ValueError(f"method {method.name} drafts with the draft head: give draft_head=<its folder>")

@@ -48,7 +48,7 @@ from .protocol import MAX_INSTRUCTION_LENGTH, ActReply, ActRequest, RequestError
 from .sessions import Sessions
 
 if TYPE_CHECKING:
-    from ..policies import VLAPolicy
+    from ..policies import ActionPolicy
 
 logger = logging.getLogger(__name__)
 
@@ -68,7 +68,7 @@ class PolicyService:
         draft_head: for methods that draft with a head (``tree``, ``prior+tree``, ...).
     """
 
-    def __init__(self, policy: VLAPolicy, config: ServeConfig | None = None, draft_head=None):
+    def __init__(self, policy: ActionPolicy, config: ServeConfig | None = None, draft_head=None):
         self.policy, self.config = policy, config or ServeConfig()
         self.step, self.draft_head = DecodeStep(policy, self.config, draft_head), draft_head
         self.method, self.baseline = self.step.method, self.step.baseline
@@ -89,8 +89,9 @@ class PolicyService:
     def from_pretrained(
         cls, policy_folder, config: ServeConfig | None = None, draft_head_folder=None, threads: int | None = None
     ) -> PolicyService:
-        """Loads the policy (and draft head) from their folders onto ``config.device`` in ``config.dtype``; the draft
-        head is checked against the policy as both were saved, then cast.
+        """Loads the policy (a Meta-World policy folder, or an OpenVLA checkpoint folder or hub id: ``load_policy``)
+        and draft head onto ``config.device`` in ``config.dtype``; the draft head is checked against the policy as
+        both were saved, then cast.
 
         Raises:
             ValueError: ``config.device`` is not on this machine (``cuda`` without CUDA), naming it; a draft head
@@ -98,14 +99,16 @@ class PolicyService:
         """
         import torch
 
-        from ..policies import VLAPolicy
         from ..policies.devices import Placement
+        from ..policies.loading import load_policy, policy_kind
 
         config = config or ServeConfig()
         placement = Placement.resolve(config.device, config.dtype)  # a device not here: refused before loading
         if threads is not None:
             torch.set_num_threads(threads)
-        policy = VLAPolicy.from_pretrained(policy_folder)
+        # an OpenVLA checkpoint loads in the served dtype (a 7B model in float32 would need twice the memory)
+        cast = {"dtype": placement.dtype} if policy_kind(policy_folder) == "openvla" else {}
+        policy = load_policy(policy_folder, config.unnorm_key, **cast)
         draft_head = None
         if draft_head_folder is not None:
             from ..speculative import DraftHead
@@ -124,8 +127,9 @@ class PolicyService:
 
     def info(self) -> dict:
         """What ``GET /info`` returns: the policy (its device and dtype too), what a robot must send (the instruction's
-        limits too), the method (``methods``: every speculative method the server picks from per bucket; ``method``:
-        the first), the buckets and the calibration."""
+        limits too; an OpenVLA checkpoint's datasets, ``unnorm_keys``, and the default one, ``unnorm_key``), the
+        method (``methods``: every speculative method the server picks from per bucket; ``method``: the first), the
+        buckets and the calibration."""
         layout = self.policy.config
         return {
             "server": "hf_specvla",
@@ -137,6 +141,8 @@ class PolicyService:
             "use_state": layout.use_state,
             "action_dim": layout.action_dim,
             "chunk_length": layout.chunk_length,
+            "unnorm_keys": list(self.policy.unnorm_keys),
+            "unnorm_key": getattr(self.policy, "default_unnorm_key", None),
             "device": str(self.policy.model.device),
             "dtype": dtype_name(self.policy.model.dtype),
             "method": self.method.name,
@@ -166,6 +172,13 @@ class PolicyService:
         """
         layout = self.policy.config
         request = ActRequest.parse(payload, layout.image_size, layout.state_dim, layout.use_state)
+        if self.policy.unnorm_keys:  # an OpenVLA checkpoint's datasets: the request's, else the server's default
+            try:
+                request.unnorm_key = self.policy.check_unnorm_key(request.unnorm_key)
+            except ValueError as error:
+                raise RequestError(str(error), "unnorm_key") from None
+        else:  # one set of statistics: OpenVLA's clients send a key all the same (accepted and ignored)
+            request.unnorm_key = None
         if request.draft_state is not None:
             self._check_draft_state(request.draft_state)
         self._check_prompt(request)
