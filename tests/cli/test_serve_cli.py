@@ -163,3 +163,53 @@ def test_serve_on_ray_serve_answers_and_stops_on_ctrl_c_or_sigterm(stop):
         process.kill()
     with socket.socket() as probe:  # nothing answers there any more
         assert probe.connect_ex(("127.0.0.1", port)) != 0
+
+
+@pytest.fixture(scope="module")
+def openvla_checkpoint(tmp_path_factory) -> Path:
+    from tests.openvla.test_openvla import HUB_7B
+
+    if not HUB_7B.is_dir():
+        pytest.skip(f"{HUB_7B} (the shared OpenVLA reference: its tokenizer files) is absent")
+    from tests.openvla.tiny_checkpoint import write_tiny_checkpoint
+
+    return write_tiny_checkpoint(tmp_path_factory.mktemp("tiny-openvla"))
+
+
+def test_an_openvla_checkpoint_is_served_and_its_unnorm_key_checked_before_loading(openvla_checkpoint):
+    """``serve --policy <an OpenVLA checkpoint folder>`` in a fresh process (its towers built from the specs its
+    config.json carries): OpenVLA's request (an image of any size, its unnorm_key) gets the port's one-robot greedy
+    action; a bad ``--unnorm-key`` is a usage error naming the valid keys, before the weights load."""
+    from hf_specvla.policies import OpenVLAPolicy
+    from hf_specvla.serving import PolicyClient
+
+    folder = str(openvla_checkpoint)
+    bad = _run("--policy", folder, "--unnorm-key", "bridge_orig")
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr
+    assert "--unnorm-key: unnorm_key='bridge_orig' is not in this checkpoint's norm_stats; valid keys: " in bad.stderr
+    mine = _run("--policy", POLICY, "--unnorm-key", "bridge_orig")
+    assert mine.returncode == 2 and "is a Meta-World policy with one set of action statistics" in mine.stderr
+    command = [sys.executable, "-m", "hf_specvla.cli", "serve", "--policy", folder, "--method", "prior+jacobi",
+               "--buckets", "1", "2", "--calibration-calls", "0", "--unnorm-key", "tiny_dataset", "--device", "cpu",
+               "--port", "0"]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "OMP_NUM_THREADS": "1"})  # fmt: skip
+    try:
+        line = process.stdout.readline()
+        assert line.startswith("serving "), process.stderr.read()[-3000:]
+        url = line.split(" on ", 1)[1].split(": POST", 1)[0]
+        client = PolicyClient(url)
+        info = client.info()
+        assert info["unnorm_key"] == "tiny_dataset" and info["image_size"] is None and info["dtype"] == "float32"
+        image = np.random.default_rng(0).integers(0, 256, (120, 160, 3), dtype=np.uint8)
+        replies = [client.act(image, "pick up the cup", unnorm_key=key) for key in (None, "other_dataset")]
+        process.send_signal(signal.SIGTERM)
+        _, err = process.communicate(timeout=120)
+        assert process.returncode == 0, err[-3000:]
+    finally:
+        process.kill()
+    policy = OpenVLAPolicy.from_pretrained(folder)  # two datasets, no default
+    for reply, key in zip(replies, ("tiny_dataset", "other_dataset")):
+        expected = policy.model.predict_action(image=image, instruction="pick up the cup", processor=policy.processor,
+                                               unnorm_key=key)  # fmt: skip
+        np.testing.assert_array_equal(reply.action, expected)

@@ -54,6 +54,8 @@ logger = logging.getLogger(__name__)
 
 #: the instruction of the calibration's synthetic observations
 CALIBRATION_INSTRUCTION = "calibrate the policy server"
+#: the side of the warm-up's synthetic images for a policy that takes images of any size (OpenVLA's camera size)
+WARM_UP_IMAGE_SIZE = 224
 
 
 class PolicyService:
@@ -216,6 +218,12 @@ class PolicyService:
 
     def _zero_state(self) -> np.ndarray | None:
         return np.zeros(self.policy.config.state_dim) if self.policy.config.use_state else None
+
+    @property
+    def _warm_up_key(self) -> str | None:
+        """The dataset the warm-up's synthetic requests name (the default, else the first; None: one set)."""
+        keys = self.policy.unnorm_keys
+        return (getattr(self.policy, "default_unnorm_key", None) or keys[0]) if keys else None
 
     # ----------------------------------------------------------------------------- decoding
     def bucket_for(self, rows: int) -> int:
@@ -383,7 +391,7 @@ class PolicyService:
 
     def _warm_up(self, calibrate: bool, seed: int) -> list[dict]:
         rng = np.random.default_rng(seed)
-        size = self.policy.config.image_size
+        size = self.policy.config.image_size or WARM_UP_IMAGE_SIZE  # (a policy that takes any size resizes it)
         base = rng.integers(0, 256, (size, size, 3), dtype=np.uint8)
         table = []
         measure = calibrate and self.chooser.measured and self.config.calibration_calls > 0
@@ -431,7 +439,8 @@ class PolicyService:
         """One warm-up call of ``len(sessions)`` robots in the given mode (nothing counted); its ms."""
         state = np.zeros(self.policy.config.state_dim)
         requests = [
-            ActRequest(image, instruction, state, session, reset=first) for image, session in zip(images, sessions)
+            ActRequest(image, instruction, state, self._warm_up_key, session, reset=first)
+            for image, session in zip(images, sessions)
         ]
         started = time.perf_counter()
         self._decode(requests, [started] * len(requests), lambda i, reply: None, mode=mode)
