@@ -276,8 +276,12 @@ def test_gpu_openvla_benchmark_runs_on_the_cpu(tmp_path):
                          "1.0", "--budget-s", "3600", "--json", str(output), timeout=1800)  # fmt: skip
     assert "| method | B | ms / call | ms / action | target fwd / call |" in result.stdout
     rows = {row["method"]: row for row in json.loads(output.read_text())["rows"]}
-    assert set(rows) == {"greedy", "greedy:compile", "drafts p=0.5", "drafts p=1", "head chain"}
+    assert set(rows) == {"greedy", "greedy:compile", "none:compile", "drafts p=0.5", "drafts p=1", "head chain"}
     assert rows["drafts p=1"]["target_forwards_per_call"] == 1 and rows["greedy"]["target_forwards_per_call"] == 7
+    assert rows["none:compile"]["target_forwards_per_call"] == 7  # the engine's greedy: one token a forward
+    fastest = json.loads(output.read_text())["fastest_greedy"]["1"]
+    assert fastest in ("greedy", "greedy:compile", "none:compile")
+    assert f"the fastest greedy is {fastest}" in result.stdout
     assert all(row["syncs_per_round"] > 0 and math.isfinite(row["ms_per_forward"]) for row in rows.values())
     report = json.loads(output.read_text())
     assert report["complete"] and report["batches"] == [
@@ -297,7 +301,8 @@ def test_gpu_openvla_benchmark_keeps_to_its_budget(tmp_path):
     assert report["complete"] and [b["batch_size"] for b in report["batches"]] == [1, 2]
     assert all(b["skipped"] == ["drafts p=1", "head chain"] and b["rounds_run"] >= 1 for b in report["batches"])
     assert sorted((r["method"], r["batch_size"]) for r in report["rows"]) == [
-        ("greedy", 1), ("greedy", 2), ("greedy:compile", 1), ("greedy:compile", 2)]  # fmt: skip
+        ("greedy", 1), ("greedy", 2), ("greedy:compile", 1), ("greedy:compile", 2), ("none:compile", 1),
+        ("none:compile", 2)]  # fmt: skip
 
 
 @pytest.mark.slow

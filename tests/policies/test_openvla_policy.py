@@ -136,8 +136,14 @@ def test_vision_tower_specs_in_a_config_are_checked_naming_the_field():
     from hf_specvla.openvla import OpenVLAConfig
 
     towers = {"my-vit": {"embed_dim": 32, "depth": 2, "num_heads": 2, "mlp_hidden_size": 64, "patch_size": 14}}
-    config = OpenVLAConfig(timm_model_ids=["my-vit"], image_sizes=[28], vision_backbone_id="custom",
-                           use_fused_vision_backbone=False, arch_specifier="no-align+gelu-mlp", vision_towers=towers)  # fmt: skip
+    config = OpenVLAConfig(
+        timm_model_ids=["my-vit"],
+        image_sizes=[28],
+        vision_backbone_id="custom",
+        use_fused_vision_backbone=False,
+        arch_specifier="no-align+gelu-mlp",
+        vision_towers=towers,
+    )
     assert config.tower_specs()["my-vit"].embed_dim == 32
     assert OpenVLAConfig.from_dict(config.to_dict()).vision_towers == config.vision_towers  # round trip
     for bad, message in (
@@ -147,9 +153,19 @@ def test_vision_tower_specs_in_a_config_are_checked_naming_the_field():
         ({"my-vit": {**towers["my-vit"], "class_token": 1}}, r"class_token must be true or false, got 1"),
     ):
         with pytest.raises(ValueError, match=message):
-            OpenVLAConfig(timm_model_ids=["my-vit"], image_sizes=[28], vision_backbone_id="custom",
-                          use_fused_vision_backbone=False, arch_specifier="no-align+gelu-mlp", vision_towers=bad)  # fmt: skip
+            OpenVLAConfig(
+                timm_model_ids=["my-vit"],
+                image_sizes=[28],
+                vision_backbone_id="custom",
+                use_fused_vision_backbone=False,
+                arch_specifier="no-align+gelu-mlp",
+                vision_towers=bad,
+            )
     with pytest.raises(ValueError, match=r"vision tower 'my-vit' is not supported .* config.json's vision_towers"):
-        OpenVLAConfig(timm_model_ids=["my-vit"], image_sizes=[28], vision_backbone_id="custom",
-                      use_fused_vision_backbone=False, arch_specifier="no-align+gelu-mlp")  # fmt: skip
-
+        OpenVLAConfig(
+            timm_model_ids=["my-vit"],
+            image_sizes=[28],
+            vision_backbone_id="custom",
+            use_fused_vision_backbone=False,
+            arch_specifier="no-align+gelu-mlp",
+        )

@@ -46,8 +46,11 @@ def _service(policy, **settings) -> PolicyService:
 def _observation(seed: int) -> dict:
     rng = np.random.default_rng(seed)
     side = (224, 256, 180)[seed % 3]  # a robot's camera image, any size: the processor resizes it
-    return {"image": rng.integers(0, 256, (side, side, 3), dtype=np.uint8),
-            "instruction": INSTRUCTIONS[seed % len(INSTRUCTIONS)], "unnorm_key": KEYS[seed % 2]}  # fmt: skip
+    return {
+        "image": rng.integers(0, 256, (side, side, 3), dtype=np.uint8),
+        "instruction": INSTRUCTIONS[seed % len(INSTRUCTIONS)],
+        "unnorm_key": KEYS[seed % 2],
+    }
 
 
 def _greedy(policy, observation: dict) -> np.ndarray:
@@ -151,3 +154,22 @@ def _decode(body: dict) -> np.ndarray:
     from hf_specvla.serving.protocol import decode_array
 
     return decode_array(body, "action")
+
+
+def test_a_policy_that_takes_any_image_size_still_refuses_what_is_not_an_image():
+    from hf_specvla.serving.protocol import MAX_IMAGE_SIDE, ActRequest, RequestError
+
+    def parse(image) -> ActRequest:
+        return ActRequest.parse({"image": image, "instruction": "push", "unnorm_key": "bridge_orig"}, None, 0, False)
+
+    request = parse(np.zeros((120, 160, 3), np.uint8))
+    assert request.image.shape == (120, 160, 3) and request.unnorm_key == "bridge_orig"
+    for image in (
+        np.zeros((0, 5, 3), np.uint8),
+        np.zeros((MAX_IMAGE_SIDE + 1, 4, 3), np.uint8),
+        np.zeros((8, 8), np.uint8),
+        np.zeros((8, 8, 4), np.uint8),
+        np.zeros((8, 8, 3), np.float32),
+    ):
+        with pytest.raises(RequestError, match=r"image must be uint8 of shape \[H, W, 3\] \(sides 1\.\.4096\)"):
+            parse(image)

@@ -125,7 +125,8 @@ def test_without_ray_the_error_says_what_to_install(monkeypatch):
         ({"method": "prior+tree"}, "method prior+tree drafts with the draft head: give draft_head=<its folder>"),
         ({"method": ["prior+jacobi", "prior+tree"]}, "method prior+tree drafts with the draft head: give draft_head"),
         ({"policy": "no/such/policy"}, "argument policy: no folder 'no/such/policy' (looked in"),
-        ({"policy": str(ROOT / "examples")}, "holds no policy_config.json: not a saved policy folder"),
+        ({"policy": str(ROOT / "examples")}, "holds neither policy_config.json (a Meta-World policy"),
+        ({"unnorm_key": "bridge_orig"}, "is a Meta-World policy with one set of action statistics"),
     ],
 )
 def test_a_bad_argument_is_refused_naming_it_before_any_replica_starts(change, message):

@@ -310,6 +310,7 @@ def _run_ray(args, parser, config) -> int:
     import tempfile
     from pathlib import Path
 
+    from ..policies.loading import is_hub_id
     from ..serving.config import API_KEY_VARIABLE
     from ..serving.ray_deployment import PolicyAppArgs, require_ray, serve_config, serve_run
 
@@ -340,7 +341,7 @@ def _run_ray(args, parser, config) -> int:
                 )
     with usage_errors(parser, errors=(ValueError,)):
         app_args = PolicyAppArgs(
-            policy=str(Path(args.policy).resolve()) if Path(args.policy).exists() else args.policy,
+            policy=args.policy if is_hub_id(args.policy) else str(Path(args.policy).resolve()),
             serve=config,
             threads=threads,
             draft_head=str(Path(args.draft_head).resolve()) if args.draft_head else None,

@@ -14,6 +14,15 @@ from .configuration_vla import POLICY_CONFIG_NAME
 OPENVLA_MODEL_TYPES = ("openvla",)
 
 
+def is_hub_id(name_or_path: str | os.PathLike) -> bool:
+    """Whether ``name_or_path`` reads as a hub id (``owner/name``) rather than a local path: nothing there, one slash,
+    and no local folder of the owner's name (``policies/missing`` is a missing folder, not a hub id)."""
+    text = str(name_or_path)
+    owner, _, name = text.partition("/")
+    return (not Path(text).exists() and text.count("/") == 1 and bool(owner) and bool(name)
+            and not text.startswith((".", "~")) and not Path(owner).is_dir())  # fmt: skip
+
+
 def policy_kind(name_or_path: str | os.PathLike) -> str:
     """``"vla"`` for a folder holding ``policy_config.json``, ``"openvla"`` for an OpenVLA checkpoint (a folder whose
     ``config.json`` says ``model_type: openvla``, or a name that is not a local path: a hub id). Reads no weights.
@@ -22,12 +31,10 @@ def policy_kind(name_or_path: str | os.PathLike) -> str:
         FileNotFoundError: a local path that is not a folder, or a folder that is neither, naming what it lacks.
     """
     path = Path(name_or_path)
+    if is_hub_id(name_or_path):
+        return "openvla"
     if not path.exists():
-        text = str(name_or_path)
-        owner = text.partition("/")[0]
-        if text.count("/") == 1 and not text.startswith((".", "~")) and not Path(owner).is_dir():  # owner/name
-            return "openvla"
-        raise FileNotFoundError(f"policy {text!r}: no such folder (nor an owner/name hub id)")
+        raise FileNotFoundError(f"policy {str(name_or_path)!r}: no such folder (nor an owner/name hub id)")
     if not path.is_dir():
         raise FileNotFoundError(f"policy {str(path)!r} is a file; pass the policy's folder")
     if (path / POLICY_CONFIG_NAME).is_file():

@@ -170,6 +170,8 @@ class PolicyAppArgs:
             ValueError: an unknown argument, a value of the wrong kind or out of range, no ``policy``, a folder
                 without a policy, an unknown method, a method that needs a draft head without one.
         """
+        from ..policies.loading import is_hub_id
+
         known = {f.name for f in dataclasses.fields(cls) if f.name != "serve"}
         serve_fields = {f.name: f for f in dataclasses.fields(ServeConfig)}
         unknown = sorted(set(args) - known - set(serve_fields))
@@ -182,7 +184,8 @@ class PolicyAppArgs:
         if serve.compile_cache is not None:  # the replicas' working directory may not be this one
             serve.compile_cache = str(Path(serve.compile_cache).expanduser().resolve())
         kept = {k: v for k, v in values.items() if k in known}
-        kept["policy"] = _existing_folder(kept["policy"], "policy")
+        if not is_hub_id(kept["policy"]):  # an OpenVLA hub id is loaded by each replica as it is
+            kept["policy"] = _existing_folder(kept["policy"], "policy")
         if kept.get("draft_head") is not None:
             kept["draft_head"] = _existing_folder(kept["draft_head"], "draft_head")
         app_args = cls(serve=serve, **kept)
