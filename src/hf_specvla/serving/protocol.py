@@ -197,8 +197,6 @@ class ActRequest:
     Attributes:
         image: uint8 ``[S, S, 3]`` (``[H, W, 3]`` for a policy that takes any size).
         instruction: the task in words.
-        unnorm_key: the dataset whose statistics un-normalise the action, as sent (the service resolves it: None for
-            a policy with one set of statistics).
         state: float64 ``[state_dim]``, or None.
         session: the robot's id (None: no memory between its requests).
         reset: a new episode (the session's previous actions are forgotten).
@@ -206,17 +204,19 @@ class ActRequest:
             memory of the session).
         double_encoded: sent in OpenVLA's ``{"encoded": ...}`` form (answered the same way).
         received: ``time.perf_counter()`` once its body was read and checked (None: it did not come over HTTP).
+        unnorm_key: the dataset whose statistics un-normalise the action, as sent (the service resolves it: None for
+            a policy with one set of statistics).
     """
 
     image: np.ndarray
     instruction: str
     state: np.ndarray | None = None
-    unnorm_key: str | None = None
     session: str | None = None
     reset: bool = False
     draft_state: list[list[int]] | None = None
     double_encoded: bool = False
     received: float | None = None
+    unnorm_key: str | None = None
 
     @classmethod
     def parse(cls, payload: Any, image_size: int | None, state_dim: int, needs_state: bool) -> ActRequest:
@@ -252,11 +252,11 @@ class ActRequest:
             image,
             instruction,
             state,
-            unnorm_key,
             _session(payload.get("session")),
             _flag(payload.get("reset", False), "reset"),
             draft_state,
             double_encoded,
+            unnorm_key=unnorm_key,
         )
 
 

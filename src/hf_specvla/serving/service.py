@@ -439,7 +439,7 @@ class PolicyService:
         """One warm-up call of ``len(sessions)`` robots in the given mode (nothing counted); its ms."""
         state = np.zeros(self.policy.config.state_dim)
         requests = [
-            ActRequest(image, instruction, state, self._warm_up_key, session, reset=first)
+            ActRequest(image, instruction, state, session, reset=first, unnorm_key=self._warm_up_key)
             for image, session in zip(images, sessions)
         ]
         started = time.perf_counter()
