@@ -484,7 +484,10 @@ class OpenVLAForActionPrediction(SpeculativeGenerationMixin, OpenVLAPreTrainedMo
         if input_ids is None:
             raise ValueError("predict_action needs input_ids (with pixel_values) or image, instruction and processor")
         if input_ids.shape[0] != 1:
-            raise ValueError(f"predict_action predicts one action; got a batch of {input_ids.shape[0]} prompts")
+            raise ValueError(
+                f"predict_action predicts one action; got a batch of {input_ids.shape[0]} prompts (for a batch of "
+                f"robots: hf_specvla.policies.OpenVLAPolicy(model, processor).predict_action(images, instructions))"
+            )
         input_ids, mask = self.end_prompt(input_ids, kwargs.get("attention_mask"))
         if mask is not None:
             kwargs["attention_mask"] = mask
