@@ -85,7 +85,7 @@ def test_the_services_record_names_what_its_graphs_depend_on(tmp_path):
     cache = PolicyService(policy, ServeConfig(**settings)).compile_cache()
     record = cache.record
     assert record["policy"] == policy.weights_fingerprint() and record["draft_head"] is None
-    assert record["methods"] == ["greedy:compile", "prior+jacobi:compile"] and record["buckets"] == [1, 2, 4]
+    assert record["methods"] == ["none:compile", "prior+jacobi:compile"] and record["buckets"] == [1, 2, 4]
     assert {"torch", "transformers", "python", "hf_specvla", "device", "prompt_tiers"} <= set(record)
     other = PolicyService(policy, ServeConfig(**{**settings, "buckets": (1, 2)})).compile_cache()
     assert other.key != cache.key and other.folder.parent == cache.folder.parent == tmp_path

@@ -65,7 +65,7 @@ def test_robots_through_the_server_act_as_greedy_in_one_process(policy, expected
     served, summary = _served_episodes(policy, tmp_path, head, max_wait_ms=5.0, calibration_calls=2, **settings)
     check_served(served, summary, expected)
     methods = [m.name for m in PolicyService(policy, ServeConfig(settings["method"]), head).step.methods]
-    assert set(summary["methods"]) <= {*methods, "greedy", "greedy:compile"}
+    assert set(summary["methods"]) <= {*methods, "greedy", "greedy:compile", "none:compile"}
     assert summary["speculative_fraction"] > 0
     if head is not None:
         assert set(summary["methods"]) == {*methods, "greedy"}, summary["methods"]

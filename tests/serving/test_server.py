@@ -443,6 +443,43 @@ def test_every_decode_runs_on_the_services_thread_with_room_for_every_buckets_gr
     assert all(limit > held for _, limit, held in seen), seen
 
 
+@pytest.mark.parametrize(
+    ("method", "baseline"),
+    [("exact", "none:compile"), ("prior+jacobi:compile", "none:compile"), ("greedy:compile", "greedy:compile"),
+     ("prior+jacobi", "greedy"), ("greedy", "greedy")],
+)  # fmt: skip
+def test_the_greedy_mode_is_the_fastest_greedy_the_method_has(policy, method, baseline):
+    """A compiled speculative method's greedy mode is the engine's own compiled greedy (measured faster than
+    transformers' at every bucket, on the method's own graphs); a greedy-only server's is its method; an eager
+    method's, transformers' eager greedy. Nothing is compiled to say so."""
+    from hf_specvla.serving.decoding import DecodeStep
+
+    step = DecodeStep(policy, ServeConfig(method=method, buckets=(1, 2)))
+    assert step.baseline.name == baseline and step.name(0) == baseline
+
+
+@pytest.mark.slow  # ~60 s: compiles one bucket
+def test_the_greedy_mode_of_a_compiled_method_compiles_nothing_of_its_own(policy, caplog):
+    """Mode 0 of ``exact`` runs on the graphs the method's own call compiled (the prefill, the one-token round): a
+    greedy call after a speculative one compiles nothing, and gives greedy's actions."""
+    import logging
+
+    service = _service(policy, method="exact", buckets=(2,))
+    observations = [_observation(policy, seed) for seed in (1, 2)]
+    requests = [service.parse(o) for o in observations]
+    try:
+        service.step.run(requests, [[], []], 2, 1)  # the speculative method first: its graphs
+        service.step.run(requests, [[], []], 2, 1)  # (its one-token round too, now that drafts are kept)
+        with caplog.at_level(logging.INFO, logger="hf_specvla"):
+            greedy = service.step.run(requests, [[], []], 2, 0)
+    finally:
+        service.close()
+    compiled = [r.getMessage() for r in caplog.records if "compil" in r.getMessage().lower()]
+    assert compiled == [], compiled
+    for row, o in enumerate(observations):
+        np.testing.assert_array_equal(greedy.rows[row].action, _greedy(policy, o))
+
+
 @pytest.mark.slow  # ~55 s: compiles every bucket
 def test_compiled_greedy_keeps_one_graph_per_bucket_whatever_the_prompt_length(policy, monkeypatch):
     """The greedy baseline decodes on the service's own static cache per bucket: prompts of other lengths (other

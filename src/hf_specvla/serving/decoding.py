@@ -10,7 +10,14 @@ rows that fill a bucket copy the first row, its
 drafts included, so they never outlast the robots' rows. (A new request cannot take a finished row's place at the
 next round: the engine's call holds the rows it started with.)
 
-**The greedy baseline's cache.** transformers' compiled greedy decoding sizes its static cache to each call's prompt
+**The greedy baseline.** Mode 0 of a compiled speculative method is the engine's own compiled greedy decoding
+(``none:compile``: no drafts, one token a verification, through the same decoder session and compiled graphs as the
+method: its prefill and its width-0 round), the fastest greedy here (policy v3, one thread, in this step:
+1.21x / 1.10x / 1.08x transformers' compiled greedy at 1 / 4 / 8 rows, the same actions), with no graphs of its own
+to compile or load at start-up. A greedy-only server (``greedy:compile``) runs transformers' compiled greedy, on
+the cache below; an eager method's baseline is transformers' eager greedy.
+
+**A greedy-only server's cache.** transformers' compiled greedy decoding sizes its static cache to each call's prompt
 length plus the new tokens, so every new prompt length (another instruction, another batch's widest prompt) compiles
 a new graph mid-traffic. The step passes it the engine's reusable static cache per bucket and prompt tier instead
 (``speculative.reusable_static_cache``), with room for the tier's longest prompt (emptied before each call): one
@@ -37,7 +44,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..policies.decoding_methods import COMPILED_GREEDY, GREEDY, DecodingPlan, serving_methods
+from ..policies.decoding_methods import COMPILED_GREEDY, ENGINE_GREEDY, GREEDY, DecodingPlan, serving_methods
 from .config import ServeConfig
 from .protocol import ActRequest
 
@@ -104,13 +111,18 @@ class DecodeStep:
         device = policy.model.device.type
         #: the first method (the only one without a draft head, unless several were given)
         self.method = methods[0]
-        self.baseline = COMPILED_GREEDY if self.method.compiled else GREEDY
         #: whether the method speculates at all (``greedy`` / ``greedy:compile`` do not)
         self.speculates = self.method.drafters != "greedy"
+        #: mode 0: a compiled speculative method's is the engine's own compiled greedy (the fastest greedy, on the
+        #: method's own graphs); a greedy-only server's is its method; an eager method's, transformers' greedy
+        if self.method.compiled:
+            self.baseline = ENGINE_GREEDY if self.speculates else COMPILED_GREEDY
+        else:
+            self.baseline = GREEDY
         #: the speculative methods, modes 1, 2, ... (empty for a greedy-only server)
         self.methods = methods if self.speculates else ()
         #: mode -> its typed plan (what drafts, the acceptance, the compilation), made once, passed whole
-        self._plans: dict[int, DecodingPlan] = {0: self.baseline.plan(None, device)}
+        self._plans = {0: self.baseline.plan(None, device, action_dim=layout.action_dim)}
         for mode, method in enumerate(self.methods, 1):
             self._plans[mode] = method.plan(draft_head, device, action_dim=layout.action_dim)
         self.shortest_prompt = len(policy.prompt_ids("", self._zero_state()))  # image, state and the prompt's words
@@ -198,11 +210,11 @@ class DecodeStep:
 
     # ----------------------------------------------------------------------------- the greedy baseline's graphs
     def _greedy_plan(self, bucket: int, instructions: list[str], states) -> tuple[DecodingPlan, dict]:
-        """The baseline's plan and ``generate`` arguments beside it; for compiled greedy, an emptied static cache of
-        this bucket with room for the widest prompt (see the module docstring) in place of the plan's
-        ``cache_implementation``."""
+        """The baseline's plan and ``generate`` arguments beside it; for transformers' compiled greedy (a greedy-only
+        server's), an emptied static cache of this bucket with room for the widest prompt (see the module docstring)
+        in place of the plan's ``cache_implementation``."""
         plan = self._plans[0]
-        if plan.compile.get("cache_implementation") != "static":
+        if self.baseline != COMPILED_GREEDY:  # eager, or the engine's own greedy (its caches are the engine's)
             return plan, {}
         from ..speculative import CACHE_KEY, reusable_static_cache, rounded_slots
 
