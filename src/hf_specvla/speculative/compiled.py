@@ -39,6 +39,7 @@ from .cache import cache_batch_size, cache_length, is_static_cache, preserved_en
 from .decoder import DECODER_ATTRIBUTE, SpeculativeDecoder
 from .fused import accepting_forward, full_guards_asked, round_guards
 from .graph_files import FileBackedFunction, GraphStore, architecture, environment, graph_folder, with_guard_filter
+from .precision import exact_compile_config
 from .tree import DraftTree, TreeBatch
 from .verify import CompiledVerification, InputBuffers, Pending, Verification
 
@@ -199,7 +200,8 @@ class CompiledVerifier:
     [`reset_compilation`]."""
 
     def __init__(self, model: PreTrainedModel, compile_config):
-        self.compile_config = compile_config
+        #: the settings its graphs compile with (in bf16 / fp16, rounding as eager decoding does: precision.py)
+        self.compile_config = exact_compile_config(model, compile_config)
         self.model_forward = type(model).forward  # the code dynamo compiles for ``call`` (its graphs: graphs_held)
         folder = graph_folder(model.device.type)
         #: where its graphs are files (None: compiled in memory, by dynamo, as transformers compiles)

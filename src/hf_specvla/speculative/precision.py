@@ -12,13 +12,22 @@ generations, against 137 with sdpa).
 
 So a reduced-precision target whose generate is speculation-enabled runs ``eager`` attention, for greedy and
 speculative calls alike (both go through the mixin's ``generate``): logged once, turned off with
-``enable_speculation(model, exact_reduced_precision=False)``. Not covered: compiled forwards (inductor's fused kernels
-are compiled per width: ``:compile`` departs from eager greedy as transformers' own compiled greedy does), and GPU
-matmuls (cuBLAS may choose kernels by the number of rows; unmeasured here).
+``enable_speculation(model, exact_reduced_precision=False)``.
+
+**Compiled forwards.** Inductor fuses a chain of operations into one kernel and, by default, keeps its intermediate
+values in fp32 where eager decoding rounds each to bf16: which chains fuse depends on the graph, so the one-token
+graph and a verification's k-token graph round differently, and at near-ties compiled r=0 speculation parted from
+compiled greedy (a tiny random OpenVLA in bf16 on the CPU, 6 calls of 4 left-padded rows, drafts = compiled greedy's
+own tokens: 5 of 168 tokens unlike, 7 forwards for 6 calls, where compiled greedy itself parted from eager greedy in
+2). With inductor's ``emulate_precision_casts`` every graph rounds where eager decoding does, whatever its width:
+1 of 168 unlike, one forward a call ([`exact_compile_config`]: the engine's own graphs of a reduced-precision model,
+unless ``exact_reduced_precision=False``). GPU matmuls (cuBLAS may choose kernels by the number of rows) are not
+measured here.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 
 import torch
@@ -74,3 +83,27 @@ def keep_greedy_exact(model: PreTrainedModel) -> None:
         current,
         current,
     )
+
+
+def exact_compile_config(model: PreTrainedModel, compile_config):
+    """The ``CompileConfig`` the engine compiles ``model``'s graphs with: ``compile_config`` itself, or, for a model in
+    bf16 / fp16 whose owner kept ``exact_reduced_precision`` (the default), a copy whose inductor options add
+    ``emulate_precision_casts`` (its ``mode`` turned into the options it stands for: torch takes one or the other),
+    so that graphs of every width round as eager decoding does (the module docstring). Unchanged for another backend,
+    or a torch without the option."""
+    if compile_config is None or model.dtype not in REDUCED_PRECISION or not getattr(model, EXACT_ATTRIBUTE, True):
+        return compile_config
+    import torch._inductor.config as inductor_config
+
+    if getattr(compile_config, "backend", "inductor") != "inductor" or not hasattr(
+        inductor_config, "emulate_precision_casts"
+    ):
+        return compile_config
+    from torch._inductor import list_mode_options
+
+    options = dict(getattr(compile_config, "options", None) or {})
+    if compile_config.mode not in (None, "default"):
+        options = {**list_mode_options(compile_config.mode), **options}
+    adjusted = copy.copy(compile_config)
+    adjusted.mode, adjusted.options = None, {**options, "emulate_precision_casts": True}
+    return adjusted
