@@ -127,3 +127,66 @@ def test_fp32_keeps_its_attention(tiny_llama, random_draft):
 def test_bad_option_is_rejected():
     with pytest.raises(TypeError, match="exact_reduced_precision must be True or False, got 'yes'"):
         enable_speculation(LlamaForCausalLM(tiny_llama_config()), exact_reduced_precision="yes")
+
+
+# --- compiled graphs in reduced precision: inductor's emulate_precision_casts -----------------------------------------
+def test_the_engine_compiles_a_bf16_model_rounding_as_eager_decoding_does():
+    """A bf16 / fp16 model's graphs compile with ``emulate_precision_casts`` (the mode turned into its options, which
+    torch takes instead); an fp32 model, another backend or ``exact_reduced_precision=False`` keep the config as it
+    is."""
+    from transformers import CompileConfig
+
+    from hf_specvla.speculative.precision import exact_compile_config
+
+    model = LlamaForCausalLM(tiny_llama_config()).to(torch.bfloat16)
+    enable_speculation(model)
+    gpu = CompileConfig(fullgraph=True, dynamic=False)  # mode reduce-overhead: CUDA graphs
+    adjusted = exact_compile_config(model, gpu)
+    assert adjusted.mode is None and adjusted.options == {"triton.cudagraphs": True, "emulate_precision_casts": True}
+    assert gpu.mode == "reduce-overhead" and gpu.options is None  # the caller's config untouched
+    cpu = CompileConfig(fullgraph=True, dynamic=False, mode="default")
+    cpu._compile_all_devices = True
+    adjusted = exact_compile_config(model, cpu)
+    assert adjusted.options == {"emulate_precision_casts": True} and adjusted._compile_all_devices
+    assert exact_compile_config(model, CompileConfig(backend="eager")).backend == "eager"
+    assert exact_compile_config(model, CompileConfig(backend="eager")).options is None
+    assert exact_compile_config(model.float(), cpu) is cpu
+    disable_speculation(model)
+    enable_speculation(model.to(torch.bfloat16), exact_reduced_precision=False)
+    assert exact_compile_config(model, cpu) is cpu
+
+
+@pytest.mark.slow  # ~3 min: compiled greedy and compiled speculation, bf16, on the CPU
+def test_bf16_compiled_speculation_keeps_compiled_greedys_tokens_in_one_forward():
+    """Issue 85 item 3 on the CPU: a tiny random OpenVLA in bf16, 4 left-padded rows, drafts = transformers' compiled
+    greedy's own tokens: compiled r=0 speculation gives those tokens, each call in one forward (before the engine's
+    graphs emulated eager rounding: 5 of 168 tokens unlike, 7 forwards for 6 calls)."""
+    pytest.importorskip("PIL")
+    from hf_specvla.openvla import OpenVLAForActionPrediction
+    from hf_specvla.speculative import compiled_decoding_kwargs
+    from tests.openvla.test_openvla import PROMPT, tiny_config
+
+    torch.manual_seed(0)
+    model = OpenVLAForActionPrediction(tiny_config()).to(torch.bfloat16).eval()
+    with torch.no_grad():
+        model.get_output_embeddings().weight[31744:32000] *= 4
+    enable_speculation(model)
+    common = dict(max_new_tokens=7, min_new_tokens=7, do_sample=False, return_dict_in_generate=True, pad_token_id=32000)
+    compiled = compiled_decoding_kwargs("cpu")
+    unlike = forwards = 0
+    for seed in range(4):
+        generator = torch.Generator().manual_seed(seed)
+        extra = [torch.randint(1000, 20000, (k,), generator=generator).tolist() for k in (0, 3, 7, 1)]
+        image = [model.config.image_token_id] * model.num_patches  # each row: BOS, the image's rows, the words
+        prompts = [PROMPT[:1] + image + PROMPT[1:] + words + [29871] for words in extra]
+        width = max(map(len, prompts))
+        ids = torch.tensor([[32000] * (width - len(p)) + p for p in prompts])
+        mask = torch.tensor([[0] * (width - len(p)) + [1] * len(p) for p in prompts])
+        pixels = torch.randn(4, 6, 28, 28, generator=generator).to(torch.bfloat16)
+        inputs = dict(input_ids=ids, attention_mask=mask, pixel_values=pixels)
+        with torch.no_grad():
+            greedy = model.generate(**inputs, **common, **compiled).sequences[:, ids.shape[1] :]
+            output = model.generate(**inputs, **common, **compiled, draft_ids=greedy[:, :-1])
+        unlike += int((output.sequences[:, ids.shape[1] :] != greedy).sum())
+        forwards += output.speculation.num_batch_forwards
+    assert unlike == 0 and forwards == 4
