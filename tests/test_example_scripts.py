@@ -391,3 +391,21 @@ def test_start_time_benchmark_tiny_mode(tmp_path):
     assert rows["files, later start"]["warm_up_s"] < rows["files, first start"]["warm_up_s"]
     refused = run_example("benchmarks/start_time.py", "--tiny", "--json", str(output), timeout=120, check=False)
     assert refused.returncode == 2 and "exists" in refused.stderr
+
+
+def test_openvla_serving_benchmark_serves_the_port_to_robots(tmp_path):
+    """Its eager mode (no compile): a tiny random OpenVLA with the real tokenizer behind two servers, K = 1 and 2
+    robots; every served action equal to the greedy server's, the table and the JSON written."""
+    from tests.openvla.test_openvla import HUB_7B
+
+    if not HUB_7B.is_dir():
+        pytest.skip(f"{HUB_7B} (the shared OpenVLA reference: its tokenizer files) is absent")
+    output = tmp_path / "serving.json"
+    flags = ["--method", "prior+jacobi", "--robots", "1", "2", "--repeats", "1", "--steps", "3", "--threads", "1"]
+    result = run_example("benchmarks/openvla_serving.py", *flags, "--output", str(output), timeout=600)
+    assert "| K | server | actions/s [min-max] | vs greedy |" in result.stdout
+    report = json.loads(output.read_text())
+    assert [(row["robots"], row["server"]) for row in report["table"]] == [
+        (1, "greedy"), (1, "speculative"), (2, "greedy"), (2, "speculative")]  # fmt: skip
+    assert all(row["unlike_greedy"] == 0 and row["actions_per_s"] > 0 for row in report["table"])
+    assert {run["forwards_per_call"] for run in report["runs"] if run["server"] == "greedy"} == {7}

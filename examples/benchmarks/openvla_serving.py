@@ -7,11 +7,12 @@ openvla/openvla-7b's shapes, for a GPU) with the real openvla-7b tokenizer and p
 (``--processor-files``, default the shared reference's ``hub-openvla-7b``; ``--shapes tiny`` resizes to 28 pixels).
 Two embedded servers over the one policy (graphs compiled once each, warm-up timed): the speculative method
 (``--method``, default ``exact``, speculating at every batch size) and ``greedy:compile`` (transformers' compiled
-greedy: what a plain server does). For each K in ``--robots`` and each repeat, both are driven in turn (order
-rotated per repeat) by K robot threads with OpenVLA's client fields (an image, an instruction, an ``unnorm_key``;
-a session, so each robot drafts from its own previous actions), each sending ``--steps`` observations of its own
-slowly moving synthetic scene (the random weights' actions follow the image: how often a robot's previous action is
-right depends on this scene, not on a task; with a real checkpoint send real observations for real figures).
+greedy: what a plain server does; ``greedy`` for an eager method). For each K in ``--robots`` and each repeat, both
+are driven in turn (order rotated per repeat) by K robot threads with OpenVLA's client fields (an image, an
+instruction, an ``unnorm_key``; a session, so each robot drafts from its own previous actions), each sending
+``--steps`` observations of its own slowly moving synthetic scene (the random weights' actions follow the image: how
+often a robot's previous action is right depends on this scene, not on a task; with a real checkpoint send real
+observations for real figures).
 
 Reported per K and server (medians over repeats, ``[min-max]`` for actions/s, the speculative server's ratio to the
 same repeat's greedy run): actions per second (all robots' actions / wall time), ms per action at the client,
@@ -19,6 +20,8 @@ the batch's decode ms, target forwards per call, batch sizes formed, and the tok
 greedy server's for the same observation (at r = 0 none may differ: the script fails if one does in float32).
 
     python examples/benchmarks/openvla_serving.py --shapes tiny --robots 1 4 --output runs/openvla_serving.json
+    python examples/benchmarks/openvla_serving.py --method prior+jacobi --robots 1 2 --repeats 1 --steps 3 \\
+        --output /tmp/openvla_serving.json       # eager, no compile: a minute (what CI runs)
     python examples/benchmarks/openvla_serving.py --shapes 7b --device cuda --robots 1 4 --output gpu_serving.json
     python examples/benchmarks/openvla_serving.py --checkpoint ~/openvla-7b --unnorm-key bridge_orig --device cuda \\
         --output runs/openvla_7b_serving.json
@@ -166,7 +169,11 @@ def main(argv=None) -> int:
     buckets = tuple(args.buckets or [b for b in (1, 2, 4, 8, 16, 32) if b < max(args.robots)] + [max(args.robots)])
     settings = dict(buckets=buckets, calibration_calls=0, max_wait_ms=args.max_wait_ms, device=placement.device)
     servers, warm_up_s = {}, {}
-    for name, method in (("speculative", args.method), ("greedy", "greedy:compile")):
+    from hf_specvla.policies.decoding_methods import serving_methods
+
+    compiled = serving_methods(args.method, False, policy.config.action_dim)[0].compiled
+    greedy_method = "greedy:compile" if compiled else "greedy"  # the plain server an eager method is measured against
+    for name, method in (("speculative", args.method), ("greedy", greedy_method)):
         speculate = buckets if name == "speculative" else ()
         service = PolicyService(policy, ServeConfig(method=method, speculate_buckets=speculate, **settings))
         start = time.perf_counter()
