@@ -129,3 +129,76 @@ def test_a_deep_copied_model_with_another_generation_config_decodes_its_own(mode
     other.generation_config.suppress_tokens = [int(greedy(model, input_ids)[0, input_ids.shape[1]])]
     session = DecoderSession.of(other, max_new_tokens=NEW_TOKENS, do_sample=False)
     assert torch.equal(session.generate(input_ids, assistant_model=JacobiDrafter()), greedy(other, input_ids))
+
+
+# engine v6 item 2: one builder of a call's set-up (prepare_call) for generate and sessions; what a session reuses is
+# decided by the settings (PER_CALL_SETTINGS), not by an allow-list of processor types
+
+
+class BanTokenProcessor:
+    """A caller's own logits processor (no transformers type): bans one token, the same in every call."""
+
+    def __init__(self, token: int):
+        self.token = token
+
+    def __call__(self, input_ids, scores):
+        return scores.index_fill(-1, torch.tensor([self.token]), float("-inf"))
+
+
+def test_a_callers_own_processor_is_reused_as_generate_reuses_it(model):
+    first = prompt(4)
+    banned = int(greedy(model, first)[0, first.shape[1]])  # greedy's first token
+    processors = [BanTokenProcessor(banned)]
+    session = DecoderSession(model, max_new_tokens=NEW_TOKENS, do_sample=False, logits_processor=processors)
+    for seed in (4, 5, 6):
+        input_ids = prompt(seed)
+        expected = greedy(model, input_ids, logits_processor=processors)
+        assert banned not in expected[0, input_ids.shape[1] :].tolist()
+        assert torch.equal(session.generate(input_ids, assistant_model=JacobiDrafter()), expected), seed
+    assert session.calls_through_generate == 1 and session.direct_calls == 2  # set up once, reused
+
+
+def test_a_processor_that_holds_the_prompt_is_made_for_each_call(model):
+    """``encoder_repetition_penalty``'s processor holds the call's prompt: a kept one would penalise the previous
+    prompt's tokens. Every call of the session is set up anew and equals generate."""
+    session = DecoderSession(model, max_new_tokens=NEW_TOKENS, do_sample=False, encoder_repetition_penalty=4.0)
+    for seed in (7, 8, 9):
+        input_ids = prompt(seed)
+        expected = greedy(model, input_ids, encoder_repetition_penalty=4.0)
+        assert not torch.equal(expected, greedy(model, input_ids))  # the setting changes the tokens
+        assert torch.equal(session.generate(input_ids, assistant_model=JacobiDrafter()), expected), seed
+    assert session.direct_calls == 0 and list(session.prepared.values()) == [None]
+
+
+def test_per_call_settings_are_read_from_the_generation_config():
+    from hf_specvla.speculative.session import PER_CALL_SETTINGS, per_call_settings
+
+    assert per_call_settings(GenerationConfig()) == []
+    assert per_call_settings(GenerationConfig(encoder_repetition_penalty=1.0, guidance_scale=1.0)) == []
+    turned_on = GenerationConfig(max_time=3.0, encoder_repetition_penalty=1.2, encoder_no_repeat_ngram_size=2)
+    assert per_call_settings(turned_on) == ["max_time", "encoder_repetition_penalty", "encoder_no_repeat_ngram_size"]
+    assert all(name in vars(GenerationConfig()) for name in PER_CALL_SETTINGS)  # each a generation setting
+
+
+def test_generate_and_a_session_set_calls_up_through_one_builder(model, monkeypatch):
+    """The mixin's ``generate`` and a session's first call of a shape both run ``prepare_call``; a kept shape's
+    call runs the same engine on the kept set-up."""
+    from hf_specvla.speculative import generation
+    from hf_specvla.speculative import session as session_module
+
+    built = []
+    original = generation.prepare_call
+
+    def counting(*args, **kwargs):
+        built.append(args[0])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(generation, "prepare_call", counting)
+    monkeypatch.setattr(session_module, "prepare_call", counting)
+    input_ids = prompt(10)
+    expected = model.generate(input_ids=input_ids, max_new_tokens=NEW_TOKENS, assistant_model=JacobiDrafter())
+    assert len(built) == 1
+    session = DecoderSession(model, max_new_tokens=NEW_TOKENS)
+    for _ in range(3):
+        assert torch.equal(session.generate(input_ids, assistant_model=JacobiDrafter()), expected)
+    assert len(built) == 2 and session.direct_calls == 2

@@ -67,9 +67,11 @@ from .drafters import (
 from .drafters.draft_head import embed_tokens, head_cache_slots
 from .drafters.eagle_tree import num_head_entries
 from .generation import (
+    PreparedCall,
     SpeculativeGenerationMixin,
     disable_speculation,
     enable_speculation,
+    prepare_call,
     with_generation_config,
 )
 from .loop import speculative_generate
@@ -151,6 +153,8 @@ __all__ = [
     "SpeculationStats",
     "SpeculativeDecoderOnlyOutput",
     "SpeculativeGenerationMixin",
+    "PreparedCall",
+    "prepare_call",
     "StrictTailConfirmed",
     "accept_tree",
     "accept_trees",

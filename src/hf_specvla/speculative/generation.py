@@ -10,8 +10,11 @@ forwarded to a callable), or ``draft_ids`` (drafts known up front, with or witho
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
+from dataclasses import dataclass
 
-from transformers import GenerationConfig, PreTrainedModel
+import torch
+from transformers import GenerationConfig, LogitsProcessorList, PreTrainedModel, StoppingCriteriaList
 
 from .compat import check_transformers_support
 from .compiled import allow_graphs_held
@@ -48,21 +51,18 @@ class SpeculativeGenerationMixin:
 
     ``generate(..., speculation=SpeculationConfig(drafter=..., bin_tolerance=r), draft_ids=...)``, or the same as
     loose keywords (``assistant_model=draft_head_or_drafter, bin_tolerance=r``, folded into one [`SpeculationConfig`]
-    here, once), runs speculative decoding (see [`speculative_generate`]); every other call behaves exactly as the
-    base class's ``generate``. In
-    bf16 / fp16 every call first makes sure the model runs eager attention (``speculative.precision``), which keeps
-    r=0 speculative calls with greedy ones at near-ties. A compiled speculative call of a VLM encodes its images
-    with a compiled encoder too (``speculative.vision``).
+    here, once), runs speculative decoding (see [`speculative_generate`]): [`prepare_call`] sets the call up (the one
+    builder a [`DecoderSession`] uses too), [`PreparedCall.run`] decodes it. Every other call behaves exactly as the
+    base class's ``generate``. In bf16 / fp16 every call first makes sure the model runs eager attention
+    (``speculative.precision``), which keeps r=0 speculative calls with greedy ones at near-ties. A compiled
+    speculative call of a VLM encodes its images with a compiled encoder too (``speculative.vision``).
     """
 
     def generate(self, *args, assistant_model=None, draft_ids=None, speculation=None, **kwargs):
-        keep_greedy_exact(self)
-        if kwargs.get("compile_config") is not None:  # this thread may not have compiled the graphs it meets
-            allow_graphs_held(self)
         ours = isinstance(assistant_model, (DraftHead, Drafter))
         if ours or draft_ids is not None or speculation is not None:
-            kwargs = speculative_call_kwargs(self, assistant_model, draft_ids, speculation, kwargs)
-            return super().generate(*args, custom_generate=speculative_generate, **kwargs)
+            return prepare_call(self, args, assistant_model, draft_ids, speculation, kwargs).run(self)
+        ready_model(self, kwargs)
         if assistant_model is not None and not isinstance(assistant_model, PreTrainedModel):
             raise TypeError(
                 f"assistant_model must be a hf_specvla DraftHead or Drafter (DraftHeadDrafter, ActionPriorDrafter, "
@@ -77,6 +77,77 @@ class SpeculativeGenerationMixin:
                 f"or drop them"
             )
         return super().generate(*args, assistant_model=assistant_model, **kwargs)
+
+
+def ready_model(model: PreTrainedModel, settings: dict) -> None:
+    """What every ``generate`` call of a speculation-enabled model does to it first (its own ``generate`` and a
+    [`DecoderSession`]'s calls alike): its precision ([`keep_greedy_exact`]) and, for a compiled call
+    (``settings``' ``compile_config``), this thread's leave to run the graphs the model holds."""
+    keep_greedy_exact(model)
+    if settings.get("compile_config") is not None:  # this thread may not have compiled the graphs it meets
+        allow_graphs_held(model)
+
+
+@dataclass
+class PreparedCall:
+    """One speculative call set up (by [`prepare_call`]), ready for the engine: what transformers' ``generate`` hands
+    a ``custom_generate`` callable (its public hook), and the call's speculation.
+
+    Attributes:
+        input_ids: ``[B, S]`` the prompts, left-padded.
+        logits_processor / stopping_criteria: the lists ``generate`` built from the generation settings.
+        generation_config: ``generate``'s copy of the settings, special tokens and lengths resolved.
+        model_kwargs: the model's keyword arguments (the cache, ``attention_mask`` ``[B, S]`` or None when nothing is
+            padded, position ids, the images encoded...).
+        speculation: the call's [`SpeculationConfig`], whole (its drafter the call's).
+        draft_ids: ``[B, k]`` / ``[B, C, k]`` drafts known up front, or None.
+        on_row_finished: the call's per-row callback, or None.
+    """
+
+    input_ids: torch.Tensor
+    logits_processor: LogitsProcessorList
+    stopping_criteria: StoppingCriteriaList
+    generation_config: GenerationConfig
+    model_kwargs: dict
+    speculation: SpeculationConfig
+    draft_ids: torch.Tensor | None = None
+    on_row_finished: Callable | None = None
+
+    @torch.no_grad()
+    def run(self, model: PreTrainedModel):
+        """Decodes the call ([`speculative_generate`]); returns what ``model.generate`` returns."""
+        return speculative_generate(
+            model,
+            self.input_ids,
+            self.logits_processor,
+            self.stopping_criteria,
+            self.generation_config,
+            self.speculation,
+            self.draft_ids,
+            self.on_row_finished,
+            **self.model_kwargs,
+        )
+
+
+def prepare_call(
+    model: PreTrainedModel, args: tuple, assistant_model, draft_ids, speculation, kwargs: dict
+) -> PreparedCall:
+    """The one builder of a speculative call's set-up, for ``model.generate`` and a [`DecoderSession`] alike: the
+    model made ready ([`ready_model`]), the call checked and its settings folded into one [`SpeculationConfig`]
+    ([`speculative_call_kwargs`]), then transformers' own ``generate`` set-up (generation config, special tokens,
+    lengths, logits processors, stopping criteria, cache, position ids, images encoded) through its public
+    ``custom_generate`` hook, which returns the prepared call instead of decoding it.
+
+    Args:
+        args / kwargs: ``generate``'s positional and keyword arguments (inputs and generation settings).
+        assistant_model / draft_ids / speculation: the call's drafter, up-front drafts and settings (see the mixin).
+
+    Raises:
+        ValueError / TypeError: as [`speculative_call_kwargs`], and whatever ``generate`` refuses.
+    """
+    ready_model(model, kwargs)
+    kwargs = speculative_call_kwargs(model, assistant_model, draft_ids, speculation, kwargs)
+    return super(SpeculativeGenerationMixin, model).generate(*args, custom_generate=_set_up, **kwargs)
 
 
 def speculative_call_kwargs(model: PreTrainedModel, assistant_model, draft_ids, speculation, kwargs: dict) -> dict:
@@ -106,6 +177,32 @@ def speculative_call_kwargs(model: PreTrainedModel, assistant_model, draft_ids, 
     speculation = SpeculationConfig.fold(speculation, loose)
     kwargs = with_compiled_image_features(model, kwargs)  # a compiled call's images: a compiled encoder
     return {**kwargs, "speculation": speculation, "draft_ids": draft_ids}
+
+
+def _set_up(
+    model,
+    input_ids,
+    logits_processor,
+    stopping_criteria,
+    generation_config,
+    speculation=None,
+    draft_ids=None,
+    on_row_finished=None,
+    **model_kwargs,
+) -> PreparedCall:
+    """The ``custom_generate`` callable of [`prepare_call`]: what ``generate`` prepared, as a [`PreparedCall`]
+    (``generate`` returns its callable's result as it is). Its parameters beside ``_sample``'s are what ``generate``
+    routes to it."""
+    return PreparedCall(
+        input_ids,
+        logits_processor,
+        stopping_criteria,
+        generation_config,
+        model_kwargs,
+        speculation,
+        draft_ids,
+        on_row_finished,
+    )
 
 
 def speculative_class(model_class: type[PreTrainedModel]) -> type[PreTrainedModel]:

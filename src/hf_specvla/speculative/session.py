@@ -1,81 +1,79 @@
 """A decoder session: one model's repeated speculative calls with one set of settings (a robot's 150-500 calls an
 episode, a server's decode step), without ``generate``'s set-up at every call.
 
-Before the engine runs, transformers' ``generate`` prepares the call: the generation config (copied, validated), the
-logits processors and stopping criteria, the model's keyword arguments (the cache, position ids, the images encoded).
-For calls of one shape and one set of settings all of it is the same but the images and the prompt's ids. A
-[`DecoderSession`] sends the first call of each shape through ``generate`` and keeps what ``generate`` prepared
-([`PreparedShape`]); a later call of that shape goes straight to the engine ([`speculative_generate`]) with it, only
-the prompt, its mask, the images and the drafter made anew. The tokens are ``generate``'s (tests compare them): what
-a session keeps is only what ``generate`` would make again, the same.
+A speculative call is set up by one builder, [`prepare_call`] (the model's ``generate`` uses it too): the checks,
+the settings folded, then transformers' ``generate`` set-up through its public ``custom_generate`` hook (generation
+config, special tokens, lengths, logits processors, stopping criteria, cache, position ids, images encoded). For calls
+of one shape and one set of settings all of it is the same but the prompt, its mask, the images and the drafter. A
+[`DecoderSession`] keeps a shape's set-up ([`PreparedShape`]) keyed by everything that decides tokens (the shape,
+the model's generation config and the session's own by content, dtype, device), so that any change makes a new one;
+a later call of that shape is the kept set-up with the call's inputs made as ``generate`` makes them.
 
-Kept only when it is a function of the shape alone: transformers' length and EOS stopping criteria, the logits
-processors of [`SHAPE_ONLY_PROCESSORS`], position ids from the prompt's mask, a static cache ``generate`` made (the
-engine empties it) or a dynamic one (made anew each call). Anything else (``max_time``, a processor of the caller's,
-multi-component positions) sends every call of that shape through ``generate``, as correct and as slow as before.
+What is made for one call is never kept: settings whose processors or criteria belong to one call
+([`PER_CALL_SETTINGS`]: a clock, a watermark's state, the prompt held by a processor) set every call up anew, and
+so does a cache the engine cannot empty or make anew, or position ids that are not the prompt's mask's.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
+from types import MappingProxyType
 
 import torch
 from transformers import CompileConfig, GenerationConfig, LogitsProcessorList, PreTrainedModel, StoppingCriteriaList
 from transformers.cache_utils import Cache, DynamicCache, StaticCache
-from transformers.generation import logits_process
-from transformers.generation.stopping_criteria import EosTokenCriteria, MaxLengthCriteria
 
 from .cache import holds_buffers
 from .compat import CACHE_KEY
-from .compiled import allow_graphs_held, compile_settings
+from .compiled import compile_settings
 from .config import SPECULATION_KWARGS, SpeculationConfig
 from .decoder import SpeculativeDecoder
 from .drafter import Drafter, NoDrafter
-from .generation import SpeculativeGenerationMixin, speculative_call_kwargs
-from .loop import speculative_generate
+from .generation import PreparedCall, SpeculativeGenerationMixin, prepare_call, ready_model
 from .modeling_draft_head import DraftHead
-from .precision import keep_greedy_exact
 from .vision import ENCODED_INPUTS, takes_encoded_images, with_compiled_image_features, with_encoded_images
 
 logger = logging.getLogger(__name__)
 
-#: what ``generate`` hands [`speculative_generate`] beside the model's keyword arguments (the engine's, not kept)
-CALL_SETTINGS = ("speculation", "draft_ids", "on_row_finished")
 #: a call's own arguments of [`DecoderSession.generate`], never a session's settings
 CALL_ARGUMENTS = ("input_ids", "attention_mask", "assistant_model", "draft_ids", "on_row_finished")
 #: what a session never holds: a call's arguments, a cache (every session call starts from a fresh one) and what
 #: decodes another way
 NOT_SETTINGS = (*CALL_ARGUMENTS, "past_key_values", "cache", "streamer", "custom_generate", "inputs")
 
-#: logits processors whose effect is a function of (the shape's prompt length, the ids, the scores) alone: kept
-SHAPE_ONLY_PROCESSORS = tuple(
-    getattr(logits_process, name)
-    for name in (
-        "MinLengthLogitsProcessor",
-        "MinNewTokensLengthLogitsProcessor",
-        "TemperatureLogitsWarper",
-        "TopKLogitsWarper",
-        "TopPLogitsWarper",
-        "MinPLogitsWarper",
-        "RepetitionPenaltyLogitsProcessor",
-        "SuppressTokensLogitsProcessor",
-    )
-    if hasattr(logits_process, name)
+#: generation settings whose logits processors or stopping criteria are made for one call, and why: a session whose
+#: generation config turns one on sets every call up anew, as ``generate`` does
+PER_CALL_SETTINGS = MappingProxyType(
+    {
+        "max_time": "its stopping criterion's clock starts when the call is set up",
+        "guidance_scale": "classifier-free guidance keeps the negative prompt's cache through a call",
+        "watermarking_config": "a watermark's processor keeps state through a call",
+        "encoder_repetition_penalty": "its processor holds the call's prompt",
+        "encoder_no_repeat_ngram_size": "its processor holds the call's prompt",
+    }
 )
-_SHAPE_ONLY_CRITERIA = (MaxLengthCriteria, EosTokenCriteria)
+#: the values that leave a [`PER_CALL_SETTINGS`] entry off (``generate`` makes nothing of it)
+_OFF = MappingProxyType({"guidance_scale": (None, 1, 1.0), "encoder_repetition_penalty": (None, 1, 1.0)})
+
+
+def per_call_settings(generation_config: GenerationConfig) -> list[str]:
+    """The [`PER_CALL_SETTINGS`] that ``generation_config`` turns on."""
+    return [
+        name for name in PER_CALL_SETTINGS if getattr(generation_config, name, None) not in _OFF.get(name, (None, 0))
+    ]
 
 
 @dataclass
 class PreparedShape:
-    """What ``generate`` prepared for calls of one shape, kept by a [`DecoderSession`].
+    """A shape's set-up ([`prepare_call`]'s) as a later call of that shape reuses it, kept by a [`DecoderSession`].
 
     Attributes:
         generation_config: ``generate``'s copy of the settings, special tokens and lengths resolved.
-        logits_processor / stopping_criteria: the lists it built (all [`SHAPE_ONLY_PROCESSORS`] / length and EOS).
+        logits_processor / stopping_criteria: the lists it built from the settings (a caller's own processors among
+            them, reused as ``generate`` reuses them).
         shared: the model keyword arguments every call of the shape gets as they are (``logits_to_keep``,
             ``use_cache``, position ids of an unpadded prompt, ...).
         cache: ``generate``'s static cache (emptied before each call), or None: a dynamic cache made anew each call.
@@ -90,6 +88,94 @@ class PreparedShape:
     cache: StaticCache | None
     positions_from_mask: bool
     encodes_images: bool
+
+    @classmethod
+    def reusable(cls, prepared: PreparedCall, attention_mask, inputs: dict) -> PreparedShape | None:
+        """What of ``prepared`` (a shape's first call, [`prepare_call`]'s) a later call of the shape reuses; None
+        when some of it is made for one call ([`PER_CALL_SETTINGS`], a cache that is neither ``generate``'s static
+        one nor a plain dynamic one, position ids that are not the mask's): that shape's calls are each set up anew
+        (logged)."""
+        why = [f"{name} ({PER_CALL_SETTINGS[name]})" for name in per_call_settings(prepared.generation_config)]
+        model_kwargs = dict(prepared.model_kwargs)
+        cache = model_kwargs.pop(CACHE_KEY, None)
+        if type(cache) is StaticCache:
+            kept_cache = cache
+        elif type(cache) is DynamicCache and not getattr(cache, "offloading", False):
+            kept_cache = None
+        else:
+            kept_cache = why.append(f"a {type(cache).__name__} (made for one call)")
+        positions = model_kwargs.pop("position_ids", None)
+        padded = attention_mask is not None and not bool(attention_mask.all())
+        if positions is not None and padded:  # made from each call's mask
+            if not torch.equal(positions, _positions_from_mask(attention_mask)):
+                why.append("position ids that are not the prompt mask's")
+        elif positions is not None:  # an unpadded prompt's: the same every call of the shape
+            if not torch.equal(positions, torch.arange(positions.shape[-1], device=positions.device)[None]):
+                why.append("position ids that are not the prompt's")
+            model_kwargs["position_ids"] = positions
+        if why:
+            logger.info(
+                "DecoderSession: calls of shape %s are each set up anew: %s",
+                tuple(prepared.input_ids.shape),
+                "; ".join(why),
+            )
+            return None
+        encodes_images = model_kwargs.pop(ENCODED_INPUTS, None) is not None
+        for name in ("attention_mask", *inputs):
+            model_kwargs.pop(name, None)  # a call's own
+        return cls(
+            prepared.generation_config,
+            prepared.logits_processor,
+            prepared.stopping_criteria,
+            model_kwargs,
+            kept_cache,
+            positions is not None and padded,
+            encodes_images,
+        )
+
+    def for_call(
+        self,
+        model: PreTrainedModel,
+        input_ids: torch.Tensor,
+        attention_mask: torch.Tensor | None,
+        inputs: dict,
+        speculation: SpeculationConfig,
+        generate_settings: dict,
+        assistant_model=None,
+        draft_ids: torch.Tensor | None = None,
+        on_row_finished: Callable | None = None,
+    ) -> PreparedCall:
+        """A later call of this shape set up: the kept set-up with the call's own inputs made as ``generate`` makes
+        them (``attention_mask`` ``[B, S]``, None when nothing is padded; position ids from it; the images encoded;
+        a fresh cache) and its drafter folded into ``speculation``."""
+        model_kwargs = dict(self.shared)
+        encoded = with_compiled_image_features(model, {**inputs, **generate_settings})
+        if self.encodes_images and takes_encoded_images(model, encoded):
+            encoded = with_encoded_images(model, encoded)
+        model_kwargs.update({name: value for name, value in encoded.items() if name not in generate_settings})
+        model_kwargs["attention_mask"] = attention_mask
+        if self.positions_from_mask:
+            model_kwargs["position_ids"] = _positions_from_mask(attention_mask)
+        model_kwargs[CACHE_KEY] = self._fresh_cache(model)
+        drafter = {} if assistant_model is None else {"drafter": assistant_model}
+        return PreparedCall(
+            input_ids,
+            self.logits_processor,
+            self.stopping_criteria,
+            self.generation_config,
+            model_kwargs,
+            SpeculationConfig.fold(speculation, drafter),
+            draft_ids,
+            on_row_finished,
+        )
+
+    def _fresh_cache(self, model: PreTrainedModel) -> Cache:
+        """``generate``'s static cache emptied (as its next call would), or a new dynamic cache (as it makes one)."""
+        if self.cache is None:
+            return DynamicCache(config=model.config.get_text_config(decoder=True))
+        if holds_buffers(self.cache):
+            self.cache.reset()
+        return self.cache
 
 
 class DecoderSession:
@@ -200,11 +286,7 @@ class DecoderSession:
             self._decisions(),
         )
         call = dict(assistant_model=assistant_model, draft_ids=draft_ids, on_row_finished=on_row_finished)
-        prepared = None if self.wraps_generate else self.prepared.get(key, ...)
-        if prepared is ...:  # this shape's first call: through generate, keeping what it prepared
-            output, self.prepared[key] = self._through_generate(input_ids, attention_mask, inputs, call)
-            return output
-        if prepared is None:
+        if self.wraps_generate:  # the class's own generate runs first, every call
             self.calls_through_generate += 1
             return self.model.generate(
                 input_ids=input_ids,
@@ -214,8 +296,31 @@ class DecoderSession:
                 speculation=self.speculation,
                 **self.generate_settings,
             )
+        kept = self.prepared.get(key, ...)
+        if kept is ... or kept is None:  # set up by the builder; a shape's first call keeps what it may
+            self.calls_through_generate += 1
+            prepared = prepare_call(
+                self.model,
+                (),
+                call["assistant_model"],
+                call["draft_ids"],
+                self.speculation,
+                dict(
+                    input_ids=input_ids,
+                    attention_mask=attention_mask,
+                    **inputs,
+                    **self.generate_settings,
+                    on_row_finished=on_row_finished,
+                ),
+            )
+            if kept is ...:
+                self.prepared[key] = PreparedShape.reusable(prepared, attention_mask, inputs)
+            return prepared.run(self.model)
         self.direct_calls += 1
-        return self._direct(prepared, input_ids, attention_mask if padded else None, inputs, call)
+        ready_model(self.model, self.settings)
+        mask = attention_mask if padded else None
+        prepared = kept.for_call(self.model, input_ids, mask, inputs, self.speculation, self.generate_settings, **call)
+        return prepared.run(self.model)
 
     def _decisions(self) -> tuple:
         """Everything besides the shape that decides what ``generate`` prepares, read at every call: the model's
@@ -251,132 +356,6 @@ class DecoderSession:
                 f"its settings are fixed when it is made (this one's: {held}). Make a DecoderSession with "
                 f"{', '.join(settings)} for calls that want them"
             )
-
-    def _through_generate(self, input_ids, attention_mask, inputs: dict, call: dict) -> tuple:
-        """A call through ``model.generate``: (its output, what it prepared when a later call of the shape can reuse
-        it, else None)."""
-        self.calls_through_generate += 1
-        kept: dict = {}
-
-        @functools.wraps(speculative_generate)  # generate reads the engine's keywords from its signature
-        def recording_generate(model, input_ids, logits_processor, stopping_criteria, generation_config, **kwargs):
-            kept.update(
-                logits_processor=logits_processor,
-                stopping_criteria=stopping_criteria,
-                generation_config=generation_config,
-                model_kwargs=dict(kwargs),
-            )
-            return speculative_generate(
-                model, input_ids, logits_processor, stopping_criteria, generation_config, **kwargs
-            )
-
-        model = self.model
-        kwargs = self._mixin_steps(dict(input_ids=input_ids, attention_mask=attention_mask, **inputs), call)
-        output = super(SpeculativeGenerationMixin, model).generate(custom_generate=recording_generate, **kwargs)
-        prepared = self._keepable(kept, attention_mask, inputs)
-        if prepared is None:
-            logger.info(
-                "DecoderSession: calls of shape %s go through generate every time (it prepared what a later "
-                "call cannot reuse)",
-                tuple(input_ids.shape),
-            )
-        return output, prepared
-
-    def _mixin_steps(self, kwargs: dict, call: dict) -> dict:
-        """What the speculative ``generate`` of the model's mixin does before transformers' (its precision, the
-        thread's graph limit, the checks, a compiled call's images encoded)."""
-        self._ready_model()
-        call_kwargs = {name: value for name, value in call.items() if name not in ("assistant_model", "draft_ids")}
-        return speculative_call_kwargs(
-            self.model,
-            call["assistant_model"],
-            call["draft_ids"],
-            self.speculation,
-            {**kwargs, **call_kwargs, **self.generate_settings},
-        )
-
-    def _ready_model(self) -> None:
-        """What the mixin's ``generate`` does to the model before every call: its precision, and this thread's
-        graph limit for a compiled call."""
-        keep_greedy_exact(self.model)
-        if self.settings.get("compile_config") is not None:
-            allow_graphs_held(self.model)
-
-    def _keepable(self, kept: dict, attention_mask, inputs: dict) -> PreparedShape | None:
-        """What ``generate`` prepared, as a later call of the shape can reuse it; None when some of it depends on
-        more than the shape."""
-        if not kept:
-            return None
-        processors, criteria = kept["logits_processor"], kept["stopping_criteria"]
-        if not all(type(p) in SHAPE_ONLY_PROCESSORS for p in processors):
-            return None
-        if not all(type(c) in _SHAPE_ONLY_CRITERIA for c in criteria):
-            return None
-        model_kwargs = {name: value for name, value in kept["model_kwargs"].items() if name not in CALL_SETTINGS}
-        cache = model_kwargs.pop(CACHE_KEY, None)
-        if type(cache) is StaticCache:
-            kept_cache = cache
-        elif type(cache) is DynamicCache and not getattr(cache, "offloading", False):
-            kept_cache = None
-        else:
-            return None
-        positions = model_kwargs.pop("position_ids", None)
-        padded = attention_mask is not None and not bool(attention_mask.all())
-        if positions is not None and padded:  # made from each call's mask
-            if not torch.equal(positions, _positions_from_mask(attention_mask)):
-                return None
-        elif positions is not None:  # an unpadded prompt's: the same every call of the shape
-            if not torch.equal(positions, torch.arange(positions.shape[-1], device=positions.device)[None]):
-                return None
-            model_kwargs["position_ids"] = positions
-        encodes_images = model_kwargs.pop(ENCODED_INPUTS, None) is not None
-        for name in ("attention_mask", *inputs):
-            model_kwargs.pop(name, None)  # a call's own
-        return PreparedShape(
-            kept["generation_config"],
-            processors,
-            criteria,
-            model_kwargs,
-            kept_cache,
-            positions is not None and padded,
-            encodes_images,
-        )
-
-    def _direct(self, prepared: PreparedShape, input_ids, attention_mask, inputs: dict, call: dict):
-        """A call of a kept shape: the engine on what ``generate`` prepared, the call's inputs made as it makes
-        them."""
-        model = self.model
-        self._ready_model()
-        model_kwargs = dict(prepared.shared)
-        encoded = with_compiled_image_features(model, {**inputs, **self.generate_settings})
-        if prepared.encodes_images and takes_encoded_images(model, encoded):
-            encoded = with_encoded_images(model, encoded)
-        model_kwargs.update({name: value for name, value in encoded.items() if name not in self.generate_settings})
-        model_kwargs["attention_mask"] = attention_mask
-        if prepared.positions_from_mask:
-            model_kwargs["position_ids"] = _positions_from_mask(attention_mask)
-        model_kwargs[CACHE_KEY] = self._fresh_cache(prepared)
-        drafter = call["assistant_model"]
-        speculation = SpeculationConfig.fold(self.speculation, {} if drafter is None else {"drafter": drafter})
-        return speculative_generate(
-            model,
-            input_ids,
-            prepared.logits_processor,
-            prepared.stopping_criteria,
-            prepared.generation_config,
-            speculation,
-            call["draft_ids"],
-            call["on_row_finished"],
-            **model_kwargs,
-        )
-
-    def _fresh_cache(self, prepared: PreparedShape) -> Cache:
-        """``generate``'s static cache emptied (as its next call would), or a new dynamic cache (as it makes one)."""
-        if prepared.cache is None:
-            return DynamicCache(config=self.model.config.get_text_config(decoder=True))
-        if holds_buffers(prepared.cache):
-            prepared.cache.reset()
-        return prepared.cache
 
 
 def _frozen(value):
