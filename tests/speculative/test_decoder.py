@@ -17,7 +17,7 @@ from transformers import LlamaForCausalLM
 
 from hf_specvla import DraftHead, DraftHeadDrafter, JacobiDrafter, disable_speculation, enable_speculation
 from hf_specvla.speculative import SpeculativeDecoder, reusable_static_cache
-from hf_specvla.speculative.compiled import CompiledVerifier, reset_compilation
+from hf_specvla.speculative.compiled import CompiledGraphs, reset_compilation
 from hf_specvla.speculative.decoder import DECODER_ATTRIBUTE
 from hf_specvla.speculative.generation import SpeculativeGenerationMixin
 
@@ -57,7 +57,7 @@ def test_two_models_alternating_compiled_calls_each_get_their_own_greedy():
                     assert torch.equal(out, expected[m, p]), (round_, p, m, type(assistant).__name__)
     decoders = [SpeculativeDecoder.of(model) for model in models]
     assert decoders[0] is not decoders[1] and all(d.model_ref() is m for d, m in zip(decoders, models))
-    assert all(len(d.verifiers) == 1 and d.static_caches for d in decoders)
+    assert all(len(d.compiled_graphs) == 1 and d.static_caches for d in decoders)
     assert all(any(key[0] == "draft head" for key in d.static_caches) for d in decoders)  # the heads' too
     caches = [{id(c) for c in d.static_caches.values()} for d in decoders]
     assert not caches[0] & caches[1]  # each model's static caches are its own
@@ -72,13 +72,13 @@ def test_reset_compilation_makes_every_decoder_forget_what_it_compiled():
     prompt = torch.randint(6, 64, (1, 6), generator=torch.Generator().manual_seed(6))
     for model in models:
         greedy(model, prompt, assistant_model=JacobiDrafter(), **compiled())
-    verifiers = [CompiledVerifier.for_model(model, eager_compile_config()) for model in models]
+    verifiers = [CompiledGraphs.for_model(model, eager_compile_config()) for model in models]
     SpeculativeDecoder.reset_compilation()  # one decoder's method, every decoder's effect: dynamo's graphs are gone
     for model, verifier in zip(models, verifiers):
-        assert SpeculativeDecoder.of(model).verifiers == {}
+        assert SpeculativeDecoder.of(model).compiled_graphs == {}
         out = greedy(model, prompt, assistant_model=JacobiDrafter(), **compiled())
         assert torch.equal(out, greedy(model, prompt))
-        assert CompiledVerifier.for_model(model, eager_compile_config()) is not verifier
+        assert CompiledGraphs.for_model(model, eager_compile_config()) is not verifier
 
 
 def test_a_deep_copy_gets_a_decoder_of_its_own():

@@ -28,7 +28,7 @@ from .cache import (
     with_draft_slots,
 )
 from .compat import CACHE_KEY
-from .compiled import CompiledVerifier, buckets_up_to, compiles_verification, verification_slots
+from .compiled import CompiledGraphs, buckets_up_to, compiles_verification, verification_slots
 from .config import SpeculationConfig
 from .decoder import SpeculativeDecoder
 from .drafter import (
@@ -42,7 +42,7 @@ from .fused import GraphAcceptance, accepts_in_graph, eos_hiding
 from .outputs import SpeculativeDecoderOnlyOutput
 from .state import DecodeState, RoundPlan, RowState, SpeculativeCall, Stopwatch
 from .stats import SpeculationStats
-from .verify import CompiledVerification, EagerVerification, FusedVerification, prefill_inputs
+from .verify import CallVerifier, CompiledVerification, EagerVerification, FusedVerification, prefill_inputs
 from .vision import prompt_input_embeddings
 
 logger = logging.getLogger(__name__)
@@ -401,9 +401,9 @@ def prepare(
         check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length)
     prompt_positions, position_offsets = _prompt_positions(model_inputs, prompt_ids, prompt_padding, past_length)
     cache = model_inputs[CACHE_KEY]
-    verifier = None  # the compiled verification of every round after the prefill (fixed widths), or eager
+    graphs = None  # the model's compiled graphs the call's rounds run (fixed widths), or None: eager
     if compiles_verification(model, generation_config, cache):
-        verifier = CompiledVerifier.for_model(model, generation_config.compile_config)
+        graphs = CompiledGraphs.for_model(model, generation_config.compile_config)
     cached_tokens = input_ids.shape[1] - num_new  # the rows' first tokens the cache held before the call
     prompt_embeddings = None
     if drafter.needs_prompt_embeddings:  # a head drafting before the prefill from the encoded images
@@ -415,7 +415,7 @@ def prepare(
         eos_ids,
         None if prompt_padding is None else prompt_padding[:, -num_new:],
         generation_config.max_length,
-        generation_config.compile_config if verifier is not None else None,
+        generation_config.compile_config if graphs is not None else None,
         cached_tokens,
         prompt_embeddings,
     )
@@ -431,8 +431,8 @@ def prepare(
         None if prompt_padding is None else prompt_padding.bool(),
         cache,
     )
-    plan, prefill_key = _round_plan(
-        model, checked, verifier, model_inputs, prompt_ids, position_offsets, past_length, input_ids.shape[1]
+    plan = _round_plan(
+        model, checked, graphs, model_inputs, prompt_ids, position_offsets, past_length, input_ids.shape[1]
     )
     pad_token_id = generation_config.pad_token_id
     return SpeculativeCall(
@@ -443,7 +443,6 @@ def prepare(
         stopwatch=Stopwatch(stats, input_ids.device, settings.profile_speculation),
         model_inputs=model_inputs,
         prompt=(prompt_ids, prompt_positions),
-        prefill_key=prefill_key,
         past_length=past_length,
         cached_tokens=cached_tokens,
         pad_token_id=pad_token_id if pad_token_id is not None else (eos_ids[0] if eos_ids else None),
@@ -455,14 +454,15 @@ def prepare(
 def _round_plan(
     model,
     checked: CheckedCall,
-    verifier: CompiledVerifier | None,
+    graphs: CompiledGraphs | None,
     model_inputs: dict,
     prompt_ids: torch.Tensor,
     position_offsets,
     past_length: int,
     input_length: int,
-) -> tuple[RoundPlan, tuple | None]:
-    """What every round reads ([`RoundPlan`]), and the compiled prefill graph this call can use (None: eager).
+) -> RoundPlan:
+    """What every round reads ([`RoundPlan`]), its [`CallVerifier`] chosen here: the prefill's and the rounds'
+    verifications (``graphs``: the model's compiled graphs under the call's ``CompileConfig``, or None: eager).
 
     Args:
         prompt_ids: ``[B, P]`` the tokens the prefill feeds; ``input_length``: the rows' length before the call
@@ -477,24 +477,24 @@ def _round_plan(
     # the model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies a chain.
     prefix_attention = model_inputs.get("token_type_ids") is not None
     prefill_key = None
-    if verifier is not None and not prefix_attention and position_offsets is None and not past_length:
-        prefill_key = verifier.prefill_key(capacity, output_hidden, num_new, batch_size)
+    if graphs is not None and not prefix_attention and position_offsets is None and not past_length:
+        prefill_key = graphs.prefill_key(capacity, output_hidden, num_new, batch_size)
     return_dict = generation_config.return_dict_in_generate
     keep_scores = bool(return_dict and generation_config.output_scores)
     keep_logits = bool(return_dict and generation_config.output_logits)
     sampling = bool(generation_config.do_sample)
     window = sliding_window(cache)
     verification = prefill_verification = EagerVerification(output_hidden, window, capacity)
-    if verifier is not None:  # rounds at fixed widths through the compiled call, the acceptance in its graph if it can
+    if graphs is not None:  # rounds at fixed widths through the compiled call, the acceptance in its graph if it can
         eos = None
         if accepts_in_graph(checked.rule, sampling, keep_scores, keep_logits, position_offsets):
             eos = eos_hiding(checked.logits_processor, prompt_ids.device)
         if eos is not None:
-            acceptance = GraphAcceptance(verifier.accepting_call(model, output_hidden), *eos)
-            verification = FusedVerification(acceptance, output_hidden, window, capacity, verifier, model.dtype)
+            acceptance = GraphAcceptance(graphs.accepting_call(model, output_hidden), *eos)
+            verification = FusedVerification(acceptance, output_hidden, window, capacity, graphs, model.dtype)
         else:
-            verification = CompiledVerification(verifier.call, output_hidden, window, capacity, verifier, model.dtype)
-        prefill_call = None if prefill_key is None else verifier.prefill_call(prefill_key)
+            verification = CompiledVerification(graphs.call, output_hidden, window, capacity, graphs, model.dtype)
+        prefill_call = None if prefill_key is None else graphs.prefill_call(prefill_key)
         if prefill_call is not None:  # its graph compiled by an earlier call
             prefill_verification = CompiledVerification(prefill_call, output_hidden, window, capacity)
     plan = RoundPlan(
@@ -504,11 +504,14 @@ def _round_plan(
         output_hidden=output_hidden,
         window=window,
         capacity=capacity,
-        verification=verification,
-        prefill_verification=prefill_verification,
-        verifier=verifier,
-        # the deepest a round after the prefill can draft: max_new_tokens - 1 (the bonus token takes the last slot)
-        buckets=buckets_up_to(_widest_tree(drafter, generation_config.max_length - input_length - 1, settings)),
+        verifier=CallVerifier(
+            verification,
+            prefill_verification,
+            graphs,
+            prefill_key,
+            # the deepest a round after the prefill can draft: max_new_tokens - 1 (the bonus token takes the last slot)
+            buckets_up_to(_widest_tree(drafter, generation_config.max_length - input_length - 1, settings)),
+        ),
         prefix_attention=prefix_attention,
         max_drafts=settings.max_drafts_per_row,
         keep_scores=keep_scores,
@@ -516,7 +519,7 @@ def _round_plan(
         sampling=sampling,
         tree_structures=SpeculativeDecoder.of(model).tree_structures,
     )
-    return plan, prefill_key
+    return plan
 
 
 def finish(call: SpeculativeCall, generation_config) -> SpeculativeDecoderOnlyOutput | torch.LongTensor:

@@ -181,7 +181,7 @@ class PrefillCall:
         return outputs
 
 
-class CompiledVerifier:
+class CompiledGraphs:
     """Everything hf_specvla compiles for one model under one ``CompileConfig``: transformers' compiled model call
     (shared with its compiled greedy decoding) and what was compiled up front for it, by what the graphs depend on
     (cache slots, hidden states returned, buckets, batch size): every verification width, the prefill's graph, the
@@ -196,7 +196,7 @@ class CompiledVerifier:
     It also owns the graph budget: dynamo's recompile limit (a per-thread setting, counted per code object across
     every caller) is raised from the graphs dynamo itself holds for the model's forward and the drafters' functions
     ([`graphs_held`]) plus the ones about to be compiled, never from a count of our own. The model's
-    [`SpeculativeDecoder`] holds its verifiers (one per ``CompileConfig``) and forgets them at
+    [`SpeculativeDecoder`] holds them (one per ``CompileConfig``) and forgets them at
     [`reset_compilation`]."""
 
     def __init__(self, model: PreTrainedModel, compile_config):
@@ -223,18 +223,17 @@ class CompiledVerifier:
         self.accepting: dict[tuple[int, ...] | None, Callable] = {}
 
     @classmethod
-    def for_model(cls, model: PreTrainedModel, compile_config) -> CompiledVerifier:
-        """``model``'s verifier for ``compile_config``, kept by its [`SpeculativeDecoder`] (made at its first use),
-        dynamo's recompile limit raised to hold one graph per bucket (past the limit dynamo would silently run
-        eagerly). A model
-        copied with ``copy.deepcopy`` (its compiled rounds close over the original) gets its own, and transformers'
-        compiled call copied with it is dropped, so that the copy's graphs read the copy's weights. Changes to the
-        model itself fail the guards its rounds keep ([`round_guards`]) and recompile."""
-        verifiers = SpeculativeDecoder.of(model).verifiers
+    def for_model(cls, model: PreTrainedModel, compile_config) -> CompiledGraphs:
+        """``model``'s compiled graphs for ``compile_config``, kept by its [`SpeculativeDecoder`] (made at its first
+        use), dynamo's recompile limit raised to hold one graph per bucket (past the limit dynamo would silently run
+        eagerly). A model copied with ``copy.deepcopy`` (its compiled rounds close over the original) gets its own,
+        and transformers' compiled call copied with it is dropped, so that the copy's graphs read the copy's weights.
+        Changes to the model itself fail the guards its rounds keep ([`round_guards`]) and recompile."""
+        held = SpeculativeDecoder.of(model).compiled_graphs
         settings = compile_settings(compile_config)
-        verifier = verifiers.get(settings)
+        verifier = held.get(settings)
         if verifier is None:
-            verifier = verifiers[settings] = cls(model, compile_config)
+            verifier = held[settings] = cls(model, compile_config)
         else:  # its model call fetched again: a caller may have wrapped ``get_compiled_call`` (the benchmarks' clock)
             verifier.call = verifier.model_call(model)
         verifier.reserve_graphs(2 * len(NODE_BUCKETS))  # every width, with / without hidden states
@@ -460,7 +459,7 @@ def graphs_held(function: Callable) -> int:
 
 def allow_graphs_held(model: PreTrainedModel) -> None:
     """Raises this thread's recompile limit to hold every graph dynamo holds for ``model``'s forward and for its
-    verifiers' drafter functions ([`graphs_held`]), and transformers' own beside them: dynamo's settings are per
+    compiled graphs' drafter functions ([`graphs_held`]), and transformers' own beside them: dynamo's settings are per
     thread (a ``ContextVar``), so a model compiled in one thread and decoding in another (a server's worker) would
     meet the default limit there, with more graphs than it allows, and fail at its next compile
     (``FailOnRecompileLimitHit`` under ``fullgraph=True``)."""

@@ -4,7 +4,7 @@ One decoder a model, made at its first speculative call and held by the model it
 ([`DECODER_ATTRIBUTE`]), as transformers keeps its compiled call on the model; nothing else is written onto the
 model. It owns:
 
-- the compiled verifications ([`CompiledVerifier`], one per ``CompileConfig``: the target's compiled call, every
+- the compiled verifications ([`CompiledGraphs`], one per ``CompileConfig``: the target's compiled call, every
   width and prefill compiled up front, the drafters' graphs, the rounds' input buffers);
 - the static caches the calls reuse, the target's and its draft heads' ([`static_cache`]: emptied and handed out
   again, so that compiled graphs and CUDA graphs keep reading the same buffers);
@@ -43,19 +43,19 @@ class SpeculativeDecoder:
     """The engine's state for one target model (see the module docstring).
 
     Attributes:
-        verifiers: ``compile_settings(compile_config)`` -> its [`CompiledVerifier`] (``CompiledVerifier.for_model``
+        compiled_graphs: ``compile_settings(compile_config)`` -> its [`CompiledGraphs`] (``CompiledGraphs.for_model``
             makes them; this module imports nothing of the engine).
         static_caches: (slots, offloading, dtype written, device, batch size) -> a reusable ``StaticCache`` of the
             target's; ("draft head", its architecture, slots, dtype, device) -> a draft head's.
-        epoch: the compilation epoch this decoder's verifiers were made in ([`reset_compilation`]).
+        epoch: the compilation epoch this decoder's compiled graphs were made in ([`reset_compilation`]).
     """
 
-    #: moved by [`reset_compilation`]; a decoder of an older epoch forgets its verifiers at its next use
+    #: moved by [`reset_compilation`]; a decoder of an older epoch forgets its compiled graphs at its next use
     _epoch = 0
 
     def __init__(self, model):
         self.model_ref = weakref.ref(model)
-        self.verifiers: dict = {}  # compile settings -> CompiledVerifier (no import of compiled: it imports this)
+        self.compiled_graphs: dict = {}  # compile settings -> CompiledGraphs (no import of compiled: it imports this)
         self.static_caches: dict[tuple, StaticCache] = {}
         self._batch_decoded: weakref.WeakSet = weakref.WeakSet()
         #: draft trees' structure tensors by shape ([`TreeBatch`]'s ``structures``)
@@ -78,18 +78,18 @@ class SpeculativeDecoder:
                 _forget_copied_compiled_call(model)
             decoder = model.__dict__[DECODER_ATTRIBUTE] = cls(model)
         if decoder.epoch != SpeculativeDecoder._epoch:  # reset_compilation since: what it compiled is gone
-            decoder.verifiers.clear()
+            decoder.compiled_graphs.clear()
             decoder.epoch = SpeculativeDecoder._epoch
         return decoder
 
     # ----------------------------------------------------------------- compiled verification
     def compiled_functions(self) -> list:
         """The drafters' functions every verifier compiled (their graphs count against dynamo's limit)."""
-        return [function for verifier in self.verifiers.values() for function in verifier.functions]
+        return [function for verifier in self.compiled_graphs.values() for function in verifier.functions]
 
     @classmethod
     def reset_compilation(cls) -> None:
-        """``torch._dynamo.reset()``, and every model's decoder forgets what it compiled (its verifiers, made anew
+        """``torch._dynamo.reset()``, and every model's decoder forgets what it compiled (its compiled graphs, made anew
         at their next use: the target's widths and prefills and its drafters' graphs)."""
         torch._dynamo.reset()
         cls._epoch += 1

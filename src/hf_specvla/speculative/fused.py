@@ -40,7 +40,7 @@ _EXACT = ExactMatch()
 
 
 def accepting_forward(model, output_hidden: tuple[int, ...] | None, name: str = "verify_and_accept") -> Callable:
-    """The function compiled into one graph per (batch size, width) (uncompiled here: the [`CompiledVerifier`]
+    """The function compiled into one graph per (batch size, width) (uncompiled here: the [`CompiledGraphs`]
     compiles it with the model's ``CompileConfig`` and keeps it per ``output_hidden``), named ``name`` (for logs and
     profiles: its code object is its own whatever its name).
 
@@ -120,7 +120,7 @@ def round_guards(entries) -> list[bool]:
     are a fraction of what dynamo checks a round (docs/design.md, "Guards"). A module
     swapped, wrapped or resized, a parameter of another dtype or shape, a hook, autocast: each fails a kept guard, so
     the round recompiles (a new graph, counted in the recompile budget) instead of running a stale one. The model
-    object itself is the [`CompiledVerifier`]'s check (a deep copy gets its own verifier)."""
+    object itself is the [`CompiledGraphs`]'s check (a deep copy gets its own verifier)."""
     return [
         not entry.name
         or (root := _GUARD_ROOT.match(entry.name).group(1)) in ROUND_ARGUMENTS
@@ -140,7 +140,7 @@ class GraphAcceptance:
     """One call's accepting verification: the compiled [`accepting_forward`] and the constants it reads.
 
     Attributes:
-        call: the compiled function (a clock may wrap it, see [`CompiledVerifier.accepting_call`]); its guards are
+        call: the compiled function (a clock may wrap it, see [`CompiledGraphs.accepting_call`]); its guards are
             [`round_guards`]'.
         eos_ids: ``[EOS_SLOTS]`` long, the EOS ids the processors hide (padded by repeating the first).
         eos_below: 0-dim long, the prefix length below which they hide them (0: never).

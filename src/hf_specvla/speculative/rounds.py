@@ -26,7 +26,7 @@ from .drafter import Commit, DraftRound
 from .state import DecodeState, RoundPlan, RowState, SpeculativeCall, in_cache_batch
 from .stats import SpeculationStats
 from .tree import DraftTree, TreeBatch
-from .verify import CompiledVerification, Pending, TargetOutput, target_greedy_ids
+from .verify import Pending, TargetOutput, target_greedy_ids
 
 
 def commit_paths(
@@ -283,12 +283,13 @@ def fit_trees(trees: list[DraftTree], state: DecodeState, plan: RoundPlan, stats
     if plan.capacity is not None:
         free = _free_slots(state, plan)
         widest = max(tree.num_nodes for tree in trees)
-        wanted = verification_width(widest, plan.buckets[-1], plan.buckets) if plan.verifier is not None else widest
+        buckets = plan.verifier.buckets
+        wanted = verification_width(widest, buckets[-1], buckets) if plan.verifier.compiled else widest
         if free < wanted and state.key_valid is not None:
             _compact(state)
             free = _free_slots(state, plan)
-        if plan.verifier is not None:  # one width per bucket: padded, or cut to fit
-            free = width = verification_width(widest, free, plan.buckets)
+        if plan.verifier.compiled:  # one width per bucket: padded, or cut to fit
+            free = width = verification_width(widest, free, buckets)
             stats.compiled_widths.append(width)
         trees = [tree.truncate_nodes(free) for tree in trees]
     return TreeBatch(trees, min_nodes=width, structures=plan.tree_structures)
@@ -331,12 +332,12 @@ def verify(model: PreTrainedModel, state: DecodeState, plan: RoundPlan, trees: T
             rows[b] = tree
         trees = TreeBatch(rows, min_nodes=trees.num_nodes, structures=plan.tree_structures)
     lengths = None  # the rows' sequence lengths, for an acceptance in the graph (it hides EOS by them)
-    if plan.verification.reads_lengths:
+    if plan.verifier.fused:
         lengths = in_cache_batch(
             state, torch.tensor([[row.sequence.shape[1]] for row in state.rows], device=pending_ids.device), 0
         )
     pending = Pending({CACHE_KEY: state.target_cache}, pending_ids, positions, key_valid, offsets, lengths)
-    output = plan.verification.verify(model, pending, trees)
+    output = plan.verifier.round(model, pending, trees)
     if state.cache_rows is None:
         return output
     return TargetOutput(*(None if value is None else value[state.cache_rows] for value in output))
@@ -438,10 +439,10 @@ def prefill(model, call: SpeculativeCall, logits_processor, stopping_criteria) -
         prompt = Pending(
             call.model_inputs, state.pending_ids, state.pending_positions, state.key_valid, state.position_offsets
         )
-        output = plan.prefill_verification.verify(model, prompt, trees)
-    stats.compiled_prefills += isinstance(plan.prefill_verification, CompiledVerification)
+        output = plan.verifier.prefill(model, prompt, trees)
+    stats.compiled_prefills += plan.verifier.compiled_prefill
     settle(call, trees, output, logits_processor, stopping_criteria)
-    if plan.verifier is not None:  # every width compiled now, and the next call's prefill graph
+    if plan.verifier.compiled:  # every width compiled now, and the next call's prefill graph
         following = Pending(
             {CACHE_KEY: state.target_cache},
             state.pending_ids,
@@ -449,11 +450,9 @@ def prefill(model, call: SpeculativeCall, logits_processor, stopping_criteria) -
             state.key_valid,
             state.position_offsets,
         )
-        stats.compile_seconds = plan.verifier.compile_widths(model, plan.verification, following, plan.buckets)
-        if call.prefill_key is not None and not isinstance(plan.prefill_verification, CompiledVerification):
-            stats.compile_seconds += plan.verifier.compile_prefill(
-                model, call.prefill_key, plan.verification, Pending(call.model_inputs, *call.prompt), trees
-            )
+        stats.compile_seconds = plan.verifier.compile_ahead(
+            model, following, Pending(call.model_inputs, *call.prompt), trees
+        )
     drop_finished_rows(call.state, fixed_batch=plan.capacity is not None)
 
 

@@ -14,11 +14,10 @@ from transformers.cache_utils import Cache
 from ..actions.tokenizer import ActionLayout
 from .acceptance import AcceptanceRule
 from .cache import cache_batch_size
-from .compiled import CompiledVerifier
 from .decoder import SpeculativeDecoder
 from .drafter import DraftSession
 from .stats import SpeculationStats
-from .verify import Verification
+from .verify import CallVerifier
 
 
 @dataclass
@@ -97,13 +96,9 @@ class RoundPlan:
     output_hidden: tuple[int, ...] | None  # the target's hidden states the drafters read (their layers), or None
     window: int | None  # the target cache's smallest sliding window
     capacity: int | None  # a static cache's slots: trees fit in the free ones
-    #: how the rounds after the prefill verify: eagerly, through the compiled model call at fixed widths, or with
-    #: the acceptance inside the compiled graph (``verify``'s strategies)
-    verification: Verification
-    #: how the prefill verifies: eagerly, or through the compiled prefill graph an earlier call compiled
-    prefill_verification: Verification
-    verifier: CompiledVerifier | None  # what the model compiled under the call's CompileConfig, or None (eager)
-    buckets: tuple[int, ...]  # the widths a compiled verification is padded to (up to the drafter's largest tree)
+    #: the call's target forwards: its prefill's and its rounds' (eager, compiled at fixed widths, or with the
+    #: acceptance in the graph), the compiled graphs they run on and what it compiles ahead
+    verifier: CallVerifier
     prefix_attention: bool  # a prefix-LM prompt: the prefill verifies one chain
     max_drafts: int | None  # each row's tree is cut to its first this many nodes (``max_drafts_per_row``), or None
     keep_scores: bool
@@ -125,7 +120,6 @@ class SpeculativeCall:
     stopwatch: Stopwatch
     model_inputs: dict  # the prefill's prepared inputs (images, cache, ...)
     prompt: tuple[torch.Tensor, torch.Tensor]  # the prefill's pending ids and positions
-    prefill_key: tuple | None  # the compiled prefill graph this call can use, or None (an eager prefill)
     past_length: int  # entries the cache held before the call
     cached_tokens: int  # the rows' first tokens the cache held before the call
     pad_token_id: int | None

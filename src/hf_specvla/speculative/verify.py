@@ -56,7 +56,7 @@ class TargetOutput(NamedTuple):
 class InputBuffers:
     """A compiled verification's inputs for one shape (batch size, query tokens, cache slots), written in place
     round after round, so that the compiled graph (and on CUDA its CUDA graph, which then copies nothing in) is fed
-    the same tensors every time. Owned by the [`CompiledVerifier`] (``input_buffers``).
+    the same tensors every time. Owned by the [`CompiledGraphs`] (``input_buffers``).
 
     Attributes:
         input_ids: ``[B, P + N]`` long, the pending tokens then the tree's nodes.
@@ -223,7 +223,7 @@ class CompiledVerification(Verification):
     Args:
         call: the compiled model call (transformers' ``get_compiled_call``), or the compiled prefill's
             [`PrefillCall`].
-        verifier: the [`CompiledVerifier`] whose input buffers the forwards write into (2D positions only), or None:
+        verifier: the [`CompiledGraphs`] whose input buffers the forwards write into (2D positions only), or None:
             new tensors each forward (the prefill's dynamic graph).
         dtype: the target's (the buffers' mask dtype).
     """
@@ -284,6 +284,68 @@ class FusedVerification(CompiledVerification):
         accepted, hidden = self.acceptance(inputs, trees, pending.lengths)
         note_appended(pending.cache, pending.ids.shape[1] + trees.num_nodes)
         return TargetOutput(None, None if hidden is None else hidden.clone(), accepted.clone())
+
+
+class CallVerifier:
+    """One call's target forwards, chosen once before its prefill: how its prefill verifies and how every round after
+    it verifies (each a [`Verification`]: eager, compiled at fixed widths, or fused with the acceptance), the model's
+    [`CompiledGraphs`] they run on, and what a compiled call compiles once its prefill has run
+    ([`compile_ahead`]: the one place a call triggers compiling its target's graphs).
+
+    Args:
+        rounds: how every round after the prefill verifies.
+        prefill_verification: how the prefill verifies: eagerly, or through the compiled prefill graph an earlier
+            call compiled.
+        graphs: the model's compiled graphs under the call's ``CompileConfig``, or None (an eager call).
+        prefill_key: the compiled prefill graph this call can run or compiles ahead, or None (its prefill stays
+            eager).
+        buckets: the widths a compiled round is padded to (up to the drafter's widest tree).
+    """
+
+    def __init__(
+        self,
+        rounds: Verification,
+        prefill_verification: Verification,
+        graphs=None,
+        prefill_key: tuple | None = None,
+        buckets: tuple[int, ...] = (),
+    ):
+        self.rounds, self.prefill_verification, self.graphs = rounds, prefill_verification, graphs
+        self.prefill_key, self.buckets = prefill_key, buckets
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the rounds run compiled graphs at fixed widths (the trees padded to a bucket)."""
+        return self.graphs is not None
+
+    @property
+    def fused(self) -> bool:
+        """Whether a round's acceptance runs inside its graph (the verification reads the rows' lengths)."""
+        return self.rounds.reads_lengths
+
+    @property
+    def compiled_prefill(self) -> bool:
+        """Whether the prefill runs the compiled prefill graph."""
+        return isinstance(self.prefill_verification, CompiledVerification)
+
+    def prefill(self, model: PreTrainedModel, prompt: Pending, trees: TreeBatch) -> TargetOutput:
+        """The prefill's forward: the prompt and the drafts known up front."""
+        return self.prefill_verification.verify(model, prompt, trees)
+
+    def round(self, model: PreTrainedModel, pending: Pending, trees: TreeBatch) -> TargetOutput:
+        """A round's forward: the pending token and the rows' trees."""
+        return self.rounds.verify(model, pending, trees)
+
+    def compile_ahead(self, model: PreTrainedModel, following: Pending, prompt: Pending, trees: TreeBatch) -> float:
+        """After the prefill of a compiled call: every round width compiled (``following``: the next round's pending
+        tokens, as it feeds them) and the next call's prefill graph (``prompt`` and ``trees``: this call's prefill,
+        fed once more), so that no graph compiles mid-episode. Returns the seconds it took (0: eager, or all held)."""
+        if self.graphs is None:
+            return 0.0
+        seconds = self.graphs.compile_widths(model, self.rounds, following, self.buckets)
+        if self.prefill_key is not None and not self.compiled_prefill:
+            seconds += self.graphs.compile_prefill(model, self.prefill_key, self.rounds, prompt, trees)
+        return seconds
 
 
 def apply_processors(logits_processor: LogitsProcessorList, input_ids: torch.Tensor, scores: torch.Tensor):

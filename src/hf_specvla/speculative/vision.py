@@ -6,7 +6,7 @@ and hands the result to the model's forward as ``mm_encoder_outputs``; it runs t
 host time, which compiling it cuts (docs/benchmarks.md, "The call's own work"). A compiled
 speculative call (``assistant_model=`` / ``draft_ids=`` with a static cache and a ``compile_config``: the calls whose
 verifications the engine compiles) encodes its images with the base model's ``get_image_features`` compiled by the
-model's [`CompiledVerifier`] (one graph per batch size; transformers' output-capturing wrappers do not trace into one
+model's [`CompiledGraphs`] (one graph per batch size; transformers' output-capturing wrappers do not trace into one
 graph, so graph breaks are allowed), and passes them to ``generate`` as ``mm_encoder_outputs``, which transformers
 forwards to the model unchanged: the same tensors its own encoding would give, up to the float rounding of compiled
 kernels (as the compiled language forwards round). Greedy calls are left to transformers.
@@ -20,7 +20,7 @@ from functools import cache
 from transformers import PreTrainedModel
 
 from .cache import is_static_cache
-from .compiled import CompiledVerifier, compile_allowed
+from .compiled import CompiledGraphs, compile_allowed
 
 #: the name transformers reads a VLM's pre-encoded images from (``generate`` kwargs and the model's forward)
 ENCODED_INPUTS = "mm_encoder_outputs"
@@ -72,7 +72,7 @@ def with_compiled_image_features(model: PreTrainedModel, kwargs: dict) -> dict:
     compile_config = compiled_call_config(model, kwargs)
     if compile_config is None:
         return kwargs
-    verifier = CompiledVerifier.for_model(model, compile_config)
+    verifier = CompiledGraphs.for_model(model, compile_config)
     return with_encoded_images(model, kwargs, verifier.image_encoder(model, kwargs["pixel_values"].shape[0]))
 
 

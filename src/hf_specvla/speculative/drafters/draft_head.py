@@ -54,7 +54,7 @@ import torch
 from transformers.cache_utils import DynamicCache, StaticCache
 
 from ..cache import set_static_length, truncate_cache
-from ..compiled import CompiledVerifier, compile_settings, rounded_slots
+from ..compiled import CompiledGraphs, compile_settings, rounded_slots
 from ..decoder import SpeculativeDecoder
 from ..drafter import Commit, DraftContext, Drafter, DraftRound, DraftSession
 from ..masks import causal_allowed, sequence_key_padding, to_additive_mask
@@ -239,7 +239,7 @@ class _DraftHeadSession(DraftSession):
             self.key_length = head_cache_slots(context.max_length, self.config)
             self.cache = drafter.static_cache(context.model, self.key_length)
             # the target's compiled state owns the head's graphs too (one owner per model and compile settings)
-            self.compiled = CompiledVerifier.for_model(context.model, self.compile_config)
+            self.compiled = CompiledGraphs.for_model(context.model, self.compile_config)
             self.compiled_round = self.compiled.compiled_function(catch_up_and_expand, graphs=1)
         self.graph_depth: int | None = None  # the depth this call's compiled rounds expand to (its first round's)
         self.cache_length = 0  # committed entries in self.cache
