@@ -187,9 +187,11 @@ def test_only_the_widths_a_drafter_can_fill_are_compiled(graphs_in_memory):
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 3 + 1  # and the prefill's
 
 
-def test_one_compiled_prefill_serves_every_prompt_length_and_draft_count():
+def test_one_compiled_prefill_serves_every_prompt_length_and_draft_count(graphs_in_memory):
     """A call site's first prefill runs eagerly and compiles the prefill graph; every later prefill (other prompt
-    lengths, with or without drafts verified inside it) runs through that one graph and gives greedy's tokens."""
+    lengths, with or without drafts verified inside it) runs through that one graph and gives greedy's tokens.
+    (Dynamo's graph count is read: graphs in memory, as graph files an earlier test saved would be loaded uncounted
+    in the warm-up.)"""
     model = _model("llama")
     compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
 
