@@ -19,8 +19,14 @@ def is_hub_id(name_or_path: str | os.PathLike) -> bool:
     and no local folder of the owner's name (``policies/missing`` is a missing folder, not a hub id)."""
     text = str(name_or_path)
     owner, _, name = text.partition("/")
-    return (not Path(text).exists() and text.count("/") == 1 and bool(owner) and bool(name)
-            and not text.startswith((".", "~")) and not Path(owner).is_dir())  # fmt: skip
+    return (
+        not Path(text).exists()
+        and text.count("/") == 1
+        and bool(owner)
+        and bool(name)
+        and not text.startswith((".", "~"))
+        and not Path(owner).is_dir()
+    )
 
 
 def policy_kind(name_or_path: str | os.PathLike) -> str:

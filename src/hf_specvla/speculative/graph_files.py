@@ -73,9 +73,17 @@ MIXED_FROM = "_hf_specvla_mixed_from"
 DAMAGED = ".damaged-"
 #: guard types torch cannot save in a file
 _UNSAVED_GUARDS = frozenset(
-    {"DICT_VERSION", "NN_MODULE", "ID_MATCH", "FUNCTION_MATCH", "CLASS_MATCH", "MODULE_MATCH", "CLOSURE_MATCH",
-     "WEAKREF_ALIVE"}
-)  # fmt: skip
+    {
+        "DICT_VERSION",
+        "NN_MODULE",
+        "ID_MATCH",
+        "FUNCTION_MATCH",
+        "CLASS_MATCH",
+        "MODULE_MATCH",
+        "CLOSURE_MATCH",
+        "WEAKREF_ALIVE",
+    }
+)
 
 
 def graph_folder(device_type: str = "cpu") -> Path | None:
@@ -141,10 +149,14 @@ def architecture(module: torch.nn.Module) -> dict:
     class and the source of its code, every parameter's and buffer's name, shape and dtype, its device."""
     config = getattr(module, "config", None)
     config_text = config.to_json_string(use_diff=False) if hasattr(config, "to_json_string") else repr(config)
-    config_text = json.dumps(
-        {k: v for k, v in json.loads(config_text).items() if k not in ("_name_or_path", "transformers_version")},
-        sort_keys=True,
-    ) if config_text.startswith("{") else config_text  # fmt: skip
+    config_text = (
+        json.dumps(
+            {k: v for k, v in json.loads(config_text).items() if k not in ("_name_or_path", "transformers_version")},
+            sort_keys=True,
+        )
+        if config_text.startswith("{")
+        else config_text
+    )
     classes = sorted({type(m) for m in module.modules()}, key=lambda c: (c.__module__, c.__qualname__))
     code = {}
     for cls in classes:
@@ -279,9 +291,11 @@ class GraphStore:
         except OSError:
             aside = None
         logger.warning(
-            "compiled graph %s is %s: %s; compiling it again", path, why, f"set aside as {aside.name}" if aside else
-            "it could not be moved",
-        )  # fmt: skip
+            "compiled graph %s is %s: %s; compiling it again",
+            path,
+            why,
+            f"set aside as {aside.name}" if aside else "it could not be moved",
+        )
 
     def write(self, path: Path, payload: bytes, parts: dict) -> None:
         """Writes ``payload`` to ``path`` atomically (with its checksum) and its key's record beside it; a folder that
@@ -291,8 +305,10 @@ class GraphStore:
         header = _MAGIC + b" " + hashlib.sha256(payload).hexdigest().encode() + b"\n"
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
-            for target, data in ((path.with_suffix(".json"), json.dumps(parts, indent=1, default=_text).encode()),
-                                 (path, header + payload)):  # fmt: skip
+            for target, data in (
+                (path.with_suffix(".json"), json.dumps(parts, indent=1, default=_text).encode()),
+                (path, header + payload),
+            ):
                 with tempfile.NamedTemporaryFile(dir=self.folder, prefix=".tmp-", delete=False) as file:
                     file.write(data)
                     file.flush()
@@ -357,9 +373,12 @@ class FileBackedFunction:
         cells = function.__closure__ or ()
         contents = [_plain_view(cell.cell_contents) for cell in cells]
         self.function = types.FunctionType(
-            function.__code__, function.__globals__, function.__name__, function.__defaults__,
+            function.__code__,
+            function.__globals__,
+            function.__name__,
+            function.__defaults__,
             tuple(types.CellType(value) for value in contents) or None,
-        )  # fmt: skip
+        )
         self.function.__kwdefaults__ = function.__kwdefaults__
         self.external = {
             var: value
@@ -453,8 +472,10 @@ class FileBackedFunction:
         except (PackageError, pickle.PicklingError, TypeError) as error:
             logger.warning(
                 "compiled graph %s cannot be saved as a file (%s: %s): compiled in memory",
-                self.name, type(error).__name__, str(error).splitlines()[0][:200] if str(error) else "",
-            )  # fmt: skip
+                self.name,
+                type(error).__name__,
+                str(error).splitlines()[0][:200] if str(error) else "",
+            )
             self.in_memory = torch.compile(self.original, **self.memory_settings)
             return None
         self.compiled += 1
@@ -463,7 +484,7 @@ class FileBackedFunction:
                 {
                     "graph": type(compiled).serialize(compiled, dict(self.external)).serialized_data,
                     "modules": self._modules_referenced(compiled),
-                }  # fmt: skip
+                }
             )
         except Exception as error:  # noqa: BLE001 - torch refusing to save a graph: it is used from memory
             logger.warning("compiled graph %s kept in memory only: torch cannot save it (%s)", self.name, error)
