@@ -54,6 +54,11 @@ def tiny_llama():
 
 @pytest.fixture(scope="session")
 def tiny_llava():
+    return build_tiny_llava()
+
+
+def build_tiny_llava():
+    """The ``tiny_llava`` fixture's model, built anew (seeded): a 1-layer CLIP tower, 4 image tokens, a tiny Llama."""
     torch.manual_seed(1)
     vision = CLIPVisionConfig(
         hidden_size=32,

@@ -381,14 +381,16 @@ def test_session_path_benchmark_tiny_mode(tmp_path):
 @pytest.mark.slow
 def test_start_time_benchmark_tiny_mode(tmp_path):
     """Its tiny mode: three fresh server processes (graphs in memory, files first, files again), every served action
-    equal to the policy's greedy one; the later start loads its graphs (no slower than the first start's warm-up)."""
+    equal to the policy's greedy one; the later start loads every graph, the image encoder's included: dynamo traces
+    none (and it is no slower than the first start's warm-up)."""
     output = tmp_path / "start.json"
     result = run_example("benchmarks/start_time.py", "--tiny", "--json", str(output), timeout=900)
-    assert "| start | ready from launch | warm-up | actions unlike greedy |" in result.stdout
+    assert "| start | ready from launch | warm-up | graphs traced | actions unlike greedy |" in result.stdout
     rows = {row["start"]: row for row in json.loads(output.read_text())["rows"]}
     assert set(rows) == {"in memory", "files, first start", "files, later start"}
     assert all(row["actions_unlike_greedy"] == 0 and row["actions"] == 1 for row in rows.values())
     assert rows["files, later start"]["warm_up_s"] < rows["files, first start"]["warm_up_s"]
+    assert rows["in memory"]["graphs_traced"] > 0 and rows["files, later start"]["graphs_traced"] == 0, rows
     refused = run_example("benchmarks/start_time.py", "--tiny", "--json", str(output), timeout=120, check=False)
     assert refused.returncode == 2 and "exists" in refused.stderr
 

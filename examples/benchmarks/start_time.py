@@ -7,7 +7,8 @@ start three times, each in a process of its own, one after the other:
 
 Each start builds a ``PolicyService`` (``--method`` on ``--buckets``, no calibration) and times its warm-up, which
 compiles every bucket's graphs for every mode, then decodes one observation per bucket row and compares its actions
-with the policy's own greedy ``predict_action`` (eager). Prints the table; ``--json`` writes its rows.
+with the policy's own greedy ``predict_action`` (eager), and counts the graphs dynamo traced in the process (a later
+start loads every graph from its file: none). Prints the table; ``--json`` writes its rows.
 
     python examples/benchmarks/start_time.py --policy policies/mt10_vla3 --buckets 1 2 4 --json runs/start.json
     python examples/benchmarks/start_time.py --tiny      # a random tiny policy, bucket 1: what CI runs
@@ -94,8 +95,12 @@ def one_start(args: argparse.Namespace) -> dict:
             unlike += not np.allclose(np.asarray(reply.action), np.asarray(greedy))
             total += 1
     service.close()
+    from torch._dynamo.utils import counters
+
     seconds = {"import_and_load_s": loaded - start, "warm_up_s": warm - loaded, "ready_from_launch_s": warm - start}
-    return {**{k: round(v, 1) for k, v in seconds.items()}, "actions": total, "actions_unlike_greedy": unlike}
+    traced = counters["stats"]["unique_graphs"]  # graphs dynamo traced in this process (a loaded file: none)
+    return {**{k: round(v, 1) for k, v in seconds.items()}, "actions": total, "actions_unlike_greedy": unlike,
+            "graphs_traced": traced}  # fmt: skip
 
 
 def main(argv=None) -> list[dict]:
@@ -117,11 +122,11 @@ def main(argv=None) -> list[dict]:
             if done.returncode != 0:
                 sys.exit(f"the {name!r} start failed:\n{done.stderr[-3000:]}")
             rows.append({"start": name, "buckets": args.buckets, **json.loads(done.stdout.strip().splitlines()[-1])})
-    print("| start | ready from launch | warm-up | actions unlike greedy |")
-    print("|---|---:|---:|---:|")
+    print("| start | ready from launch | warm-up | graphs traced | actions unlike greedy |")
+    print("|---|---:|---:|---:|---:|")
     for row in rows:
         print(f"| {row['start']} | {row['ready_from_launch_s']:.1f} s | {row['warm_up_s']:.1f} s | "
-              f"{row['actions_unlike_greedy']}/{row['actions']} |")  # fmt: skip
+              f"{row['graphs_traced']} | {row['actions_unlike_greedy']}/{row['actions']} |")  # fmt: skip
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"rows": rows}, indent=1))

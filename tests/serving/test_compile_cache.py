@@ -91,6 +91,34 @@ def test_the_services_record_names_what_its_graphs_depend_on(tmp_path):
     assert other.key != cache.key and other.folder.parent == cache.folder.parent == tmp_path
 
 
+def test_a_compiled_services_graph_files_live_in_its_compile_cache(tmp_path, monkeypatch):
+    """The warm-up of a service given ``compile_cache=DIR`` keeps the engine's graph files in ``DIR/graphs`` (the one
+    folder a warm start needs, Inductor's caches beside them), whatever ``HF_SPECVLA_GRAPH_CACHE`` names; after it the
+    folder is the variable's again."""
+    from hf_specvla.policies import VLAPolicy
+    from hf_specvla.serving.compile_cache import GRAPHS_FOLDER
+    from hf_specvla.speculative import graph_files
+
+    monkeypatch.setenv(graph_files.FOLDER_ENV, str(tmp_path / "elsewhere"))
+    policy = VLAPolicy.from_pretrained(POLICY)
+    service = PolicyService(policy, ServeConfig(method="exact", buckets=(1,), calibration_calls=0,
+                                                compile_cache=str(tmp_path / "cache")))  # fmt: skip
+    seen = []
+
+    def warm_up(calibrate, seed):  # where the warm-up's graphs would go, without compiling them (fast)
+        seen.append(graph_files.graph_folder(policy.model.device.type))
+        service.startup.update(compile_s=0.0, calibrate_s=0.0)
+        return []
+
+    monkeypatch.setattr(service, "_warm_up", warm_up)
+    try:
+        service.warm_up()
+    finally:
+        service.close()
+    assert seen == [tmp_path / "cache" / GRAPHS_FOLDER]
+    assert graph_files.graph_folder("cpu") == tmp_path / "elsewhere"
+
+
 def test_an_eager_method_compiles_nothing_and_says_the_cache_is_not_used(tmp_path, caplog):
     from hf_specvla.policies import VLAPolicy
 

@@ -488,21 +488,42 @@ def test_the_compiled_path_is_chosen_by_device_with_cuda_graphs_on_cuda(monkeypa
     """A target on CUDA verifies through the compiled call when a static cache and a CompileConfig are given, as
     transformers' compiled greedy does, with CUDA graphs (``mode="reduce-overhead"``); on the CPU only when told
     (``_compile_all_devices``, inductor's default mode). The capture itself needs a GPU (gpu_openvla.py)."""
-    from transformers import GenerationConfig
-
-    from hf_specvla.speculative import compiled_decoding_kwargs
-    from hf_specvla.speculative.compiled import compiles_verification
+    from hf_specvla.speculative import call_compile_config, compiled_decoding_kwargs
 
     model = _model("llama")
-    cache = StaticCache(config=model.config, max_cache_len=64)
     on_cuda = compiled_decoding_kwargs("cuda")["compile_config"]
     on_cpu = compiled_decoding_kwargs("cpu")["compile_config"]
     assert on_cuda.mode == "reduce-overhead" and on_cpu.mode == "default"
-    assert not compiles_verification(model, GenerationConfig(compile_config=on_cuda), cache)  # a CPU model, not told
-    assert compiles_verification(model, GenerationConfig(compile_config=on_cpu), cache)
+    assert call_compile_config(model, on_cuda, False, True) is None  # a CPU model, not told
+    assert call_compile_config(model, on_cpu, False, True) is on_cpu
+    assert call_compile_config(model, on_cpu, True, True) is None  # disable_compile
     monkeypatch.setattr(type(model), "device", property(lambda self: torch.device("cuda")))
-    assert compiles_verification(model, GenerationConfig(compile_config=on_cuda), cache)
-    assert not compiles_verification(model, GenerationConfig(compile_config=on_cuda), None)  # no static cache
+    assert call_compile_config(model, on_cuda, False, True) is on_cuda
+    assert call_compile_config(model, on_cuda, False, False) is None  # no static cache
+
+
+def test_one_decision_compiles_a_gpu_call_without_a_compile_config_as_transformers_does(monkeypatch):
+    """On a GPU transformers compiles a static-cache call without a ``compile_config`` (its model's default one):
+    so does the engine, with that config (it once took None and crashed making the graphs' key), and the same
+    decision is read from ``generate``'s keyword arguments (the image encoder, the thread's graph allowance) as from
+    the prepared call (the rounds); offloaded layers and ``disable_compile`` keep it eager."""
+    from transformers import GenerationConfig
+
+    from hf_specvla.speculative import call_compile_config
+    from hf_specvla.speculative.compiled import compile_settings, compiled_call_config
+
+    model = _model("llama")
+    monkeypatch.setattr(type(model), "device", property(lambda self: torch.device("cuda")))
+    config = call_compile_config(model, None, False, True)
+    assert config is not None and compile_settings(config) == compile_settings(model._default_compile_config())
+    cache = StaticCache(config=model.config, max_cache_len=64)
+    for kwargs in ({"cache_implementation": "static"}, {"past_key_values": cache},
+                   {"generation_config": GenerationConfig(cache_implementation="static")}):  # fmt: skip
+        assert compile_settings(compiled_call_config(model, kwargs)) == compile_settings(config), kwargs
+    assert compiled_call_config(model, {}) is None  # a dynamic cache
+    assert compiled_call_config(model, {"cache_implementation": "static", "disable_compile": True}) is None
+    model.hf_device_map = {"model.layers.0": 0, "model.layers.1": "cpu"}  # a layer offloaded to the CPU
+    assert call_compile_config(model, None, False, True) is None
 
 
 def test_the_graph_budget_is_what_dynamo_holds_and_reset_forgets_every_verifier(graphs_in_memory):
@@ -567,11 +588,20 @@ def test_every_compiled_round_of_a_width_is_fed_the_same_input_tensors(monkeypat
     assert set().union(*fed.values()) <= owned  # the verifier's own buffers
 
 
-def test_a_compiled_speculative_call_encodes_its_images_with_the_compiled_encoder(tiny_llava, monkeypatch):
+@pytest.mark.parametrize("graphs", ["files", "in memory"])
+def test_a_compiled_speculative_call_encodes_its_images_with_the_compiled_encoder(tiny_llava, monkeypatch, graphs):
     """A compiled speculative call of a VLM hands ``generate`` its images encoded by the verifier's compiled
-    ``get_image_features`` (one graph per batch size), with greedy's tokens; greedy calls and eager speculative calls
-    leave the encoding to transformers (its eager ``get_image_features``, counted here)."""
+    ``get_image_features`` (one graph per batch size: with graph files exported whole and saved, in memory traced by
+    dynamo with its breaks), with greedy's tokens; greedy calls and eager speculative calls leave the encoding to
+    transformers (its eager ``get_image_features``, counted here)."""
     from transformers.models.llava.modeling_llava import LlavaModel
+
+    from hf_specvla.speculative import graph_files
+    from hf_specvla.speculative.compiled import reset_compilation
+
+    if graphs == "in memory":
+        monkeypatch.setenv(graph_files.FOLDER_ENV, "off")
+    reset_compilation()  # the model's graphs made anew, where ``graphs`` says
 
     from ..conftest import llava_prompt
 
@@ -603,8 +633,12 @@ def test_a_compiled_speculative_call_encodes_its_images_with_the_compiled_encode
         assert len(eager_encodings) == 2
         eager_encodings.clear()
     verifier = CompiledGraphs.for_model(tiny_llava, config)
-    assert verifier.image_batch_sizes == {1, 2}
-    assert graphs_held(tiny_llava.base_model.get_image_features) >= 1
+    assert verifier.image_batch_sizes == {1, 2} and (verifier.store is None) == (graphs == "in memory")
+    if graphs == "files":  # exported as one graph per batch size, compiled as a file
+        assert len(verifier.image_encoders) == 2 and None not in verifier.image_encoders.values()
+    else:  # dynamo's graphs of get_image_features, with breaks
+        assert verifier.image_encoders == {} and graphs_held(tiny_llava.base_model.get_image_features) >= 1
+    reset_compilation()  # (the next test's graphs: by the folder it sets)
 
 
 @pytest.mark.slow  # ~16 s: a timing utility, not a lossless guard

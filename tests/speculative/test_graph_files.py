@@ -172,6 +172,21 @@ def test_the_folder_follows_the_environment_variable(monkeypatch, tmp_path):
     assert graph_files.graph_folder("cuda") == tmp_path / "xdg" / "hf_specvla" / "graphs"
 
 
+def test_a_servers_compile_cache_moves_the_folder_not_the_switch(monkeypatch, tmp_path):
+    """Inside ``graphs_kept_in`` (``serve --compile-cache DIR``: ``DIR/graphs``) graph files go to its folder instead
+    of the variable's or the default one; ``off`` and a GPU's default (in memory) still hold, and the block's end
+    restores the folder."""
+    served = tmp_path / "served" / "graphs"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    for value, device, inside in [("", "cpu", served), (str(tmp_path / "g"), "cpu", served), ("on", "cuda", served),
+                                  ("off", "cpu", None), ("", "cuda", None)]:  # fmt: skip
+        monkeypatch.setenv(graph_files.FOLDER_ENV, value)
+        before = graph_files.graph_folder(device)
+        with graph_files.graphs_kept_in(served):
+            assert graph_files.graph_folder(device) == inside, (value, device)
+        assert graph_files.graph_folder(device) == before
+
+
 def test_a_call_that_fails_its_graph_guards_compiles_again(tmp_path, caplog):
     """What the key leaves to the guards (here a parameter replaced by one of another shape between calls) is
     checked at every call."""

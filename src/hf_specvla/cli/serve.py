@@ -156,9 +156,9 @@ def add_arguments(parser) -> None:
         "--compile-cache",
         default=None,
         metavar="DIR",
-        help="keep torch's compile caches in this folder: a start with the same policy, methods, "
-        "buckets and versions reuses the previous one's compile (a warm start; with --ray, a "
-        "folder every replica's node can write)",
+        help="keep the compiled graphs in this folder (the engine's graph files in DIR/graphs, torch's "
+        "Inductor caches beside them): a later start loads them instead of compiling (a warm start; "
+        "with --ray, a folder every replica's node can write)",
     )
     parser.add_argument(
         "--max-request-bytes", type=POSITIVE, default=DEFAULT_MAX_REQUEST_BYTES, help="the largest request body"

@@ -18,9 +18,12 @@ warning naming it and its first damaged file, and the start compiles cold into a
 after the list is written (a later compile's) are not damage. Should a start that reuses a folder's files still fail
 while it compiles, the folder is set aside the same way and the error says so: the next start compiles cold.
 
-What a warm start still pays: dynamo traces every graph again (torch 2.13 keeps no cache of its own traced bytecode
-outside the experimental ``TORCH_CACHING_PRECOMPILE``) and builds its guards; Inductor's compile and the C++ compile
-of its kernels are what the folder saves (docs/serving.md, "Warm starts", has the figures).
+The engine's own graphs (the rounds, the prefill, the image encoder: ``speculative.graph_files``) are files in
+``DIR/graphs`` ([`GRAPHS_FOLDER`]), which a later start loads without dynamo tracing them; Inductor's folder keeps
+the compile of whatever stays in memory (transformers' own compiled greedy of a greedy-only server). On a GPU, where
+graph files are off unless ``HF_SPECVLA_GRAPH_CACHE`` turns them on, dynamo traces every graph again and Inductor's
+compile and the C++ compile of its kernels are what the folder saves (docs/serving.md, "Warm starts", has the
+figures).
 
 The cache folder is set for the warm-up only (torch's ``temporary_cache_dir``): a compile in another thread meanwhile
 writes its (content-keyed) artefacts there too, which costs nothing and changes no result.
@@ -42,6 +45,9 @@ from pathlib import Path
 
 logger = logging.getLogger(__name__)
 
+#: the engine's own graph files (``speculative.graph_files``) in the folder given: ``DIR/graphs``, one for every key
+#: (each file keyed by what its graph depends on), what a warm start loads without dynamo tracing
+GRAPHS_FOLDER = "graphs"
 #: a warm-up's record in its key's folder: written once the warm-up is done (a folder without it is cold)
 RECORD_FILE = "record.json"
 #: Inductor's cache folder inside a key's folder

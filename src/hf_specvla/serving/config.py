@@ -51,8 +51,9 @@ class ServeConfig:
             call then runs on the longest prompt's cache).
             ``GET /info`` states the limit in force; a longer request is refused (422, field ``instruction``) before
             any forward. An eager method has no such limit.
-        compile_cache: a folder for torch's compile caches (``serving.compile_cache``): a start with the same
-            policy, methods, buckets and versions as a previous one reuses its compile (None: torch's default
+        compile_cache: a folder for the compiled graphs (``serving.compile_cache``): the engine's graph files in
+            ``DIR/graphs`` and torch's Inductor caches beside them; a later start loads them instead of compiling
+            (None: the graph folder of ``HF_SPECVLA_GRAPH_CACHE`` or its default, and torch's default Inductor
             folder, which a new machine or container starts without).
         device: where the policy and its draft head run: ``auto`` (``cuda`` when torch sees a GPU, else ``cpu``),
             ``cpu``, ``cuda``, ``cuda:N`` (``policies.devices``; whether it is there is asked when the policy loads).

@@ -370,7 +370,12 @@ class PolicyService:
             logger.warning(
                 "compile cache %s not used: %s compiles nothing", self.config.compile_cache, self.methods_name
             )
-        with cache.compiling() if cache is not None else contextlib.nullcontext() as warm:
+        from ..speculative.graph_files import graphs_kept_in
+        from .compile_cache import GRAPHS_FOLDER
+
+        # the engine's graph files beside Inductor's caches: DIR/graphs, shared by every settings' key (their own keys)
+        graphs = contextlib.nullcontext() if cache is None else graphs_kept_in(cache.root / GRAPHS_FOLDER)
+        with cache.compiling() if cache is not None else contextlib.nullcontext() as warm, graphs:
             self.startup = (
                 {"compile_cache": None}
                 if cache is None

@@ -22,13 +22,14 @@ from .cache import (
     cache_length,
     check_rollback_cache,
     holds_buffers,
+    is_static_cache,
     sliding_window,
     static_capacity,
     truncate_cache,
     with_draft_slots,
 )
 from .compat import CACHE_KEY
-from .compiled import CompiledGraphs, buckets_up_to, compiles_verification, verification_slots
+from .compiled import CompiledGraphs, buckets_up_to, call_compile_config, verification_slots
 from .config import SpeculationConfig
 from .decoder import SpeculativeDecoder
 from .drafter import (
@@ -110,7 +111,7 @@ def _draft_contexts(
     eos_ids: list[int],
     prompt_padding,
     max_length: int,
-    compile_config,
+    graphs,
     cached_tokens: int = 0,
     prompt_embeddings=None,
 ) -> list[DraftContext]:
@@ -126,7 +127,7 @@ def _draft_contexts(
             padding,
             row=b,
             max_length=max_length,
-            compile_config=compile_config,
+            graphs=graphs,
             cached_tokens=cached_tokens,
             prompt_embeddings=None if prompt_embeddings is None else prompt_embeddings[b : b + 1],
         )
@@ -401,9 +402,11 @@ def prepare(
         check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length)
     prompt_positions, position_offsets = _prompt_positions(model_inputs, prompt_ids, prompt_padding, past_length)
     cache = model_inputs[CACHE_KEY]
-    graphs = None  # the model's compiled graphs the call's rounds run (fixed widths), or None: eager
-    if compiles_verification(model, generation_config, cache):
-        graphs = CompiledGraphs.for_model(model, generation_config.compile_config)
+    compile_config = call_compile_config(
+        model, generation_config.compile_config, generation_config.disable_compile, is_static_cache(cache)
+    )
+    # the model's compiled graphs the call's rounds run (fixed widths), or None: eager
+    graphs = None if compile_config is None else CompiledGraphs.for_model(model, compile_config)
     cached_tokens = input_ids.shape[1] - num_new  # the rows' first tokens the cache held before the call
     prompt_embeddings = None
     if drafter.needs_prompt_embeddings:  # a head drafting before the prefill from the encoded images
@@ -415,7 +418,7 @@ def prepare(
         eos_ids,
         None if prompt_padding is None else prompt_padding[:, -num_new:],
         generation_config.max_length,
-        generation_config.compile_config if graphs is not None else None,
+        graphs,
         cached_tokens,
         prompt_embeddings,
     )

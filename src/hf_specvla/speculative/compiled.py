@@ -32,13 +32,21 @@ from functools import cache
 from types import MappingProxyType
 
 import torch
-from transformers import GenerationConfig, PreTrainedModel
-from transformers.cache_utils import Cache
+from transformers import PreTrainedModel
 
 from .cache import cache_batch_size, cache_length, is_static_cache, preserved_entries, truncate_cache
 from .decoder import DECODER_ATTRIBUTE, SpeculativeDecoder
+from .exported import export_call
 from .fused import accepting_forward, full_guards_asked, round_guards
-from .graph_files import FileBackedFunction, GraphStore, architecture, environment, graph_folder, with_guard_filter
+from .graph_files import (
+    FileBackedFunction,
+    GraphStore,
+    architecture,
+    environment,
+    graph_folder,
+    signature,
+    with_guard_filter,
+)
 from .precision import exact_compile_config
 from .tree import DraftTree, TreeBatch
 from .verify import CompiledVerification, InputBuffers, Pending, Verification
@@ -95,30 +103,44 @@ def compiled_decoding_kwargs(device_type: str = "cpu") -> dict:
     return dict(cache_implementation="static", compile_config=config)
 
 
-def compiles_verification(model: PreTrainedModel, generation_config: GenerationConfig, cache: Cache | None) -> bool:
-    """Whether verifications run through the compiled model call: transformers' criteria for its compiled greedy
-    decoding (a cache whose layers are all static; a CUDA / XPU device or ``compile_config._compile_all_devices``;
-    ``disable_compile`` unset; no quantization that refuses compilation)."""
-    if not is_static_cache(cache):
-        return False
-    return compile_allowed(
-        model, getattr(generation_config, "compile_config", None), getattr(generation_config, "disable_compile", False)
-    )
+def call_compile_config(model: PreTrainedModel, compile_config, disable_compile: bool | None, static_cache: bool):
+    """The one decision whether a speculative call compiles, and with what: the ``CompileConfig`` its graphs (the
+    verification widths, the prefill, the image encoder, a draft head's rounds) are compiled with, or None (eager).
 
-
-def compile_allowed(model: PreTrainedModel, compile_config, disable_compile: bool | None) -> bool:
-    """transformers' criteria for compiling ``model``'s forwards, the cache aside: ``disable_compile`` unset; a CUDA /
-    XPU device, or ``compile_config._compile_all_devices`` (a warning once per device type where a ``compile_config``
-    is ignored); no quantizer that refuses compilation."""
-    if disable_compile:
-        return False
+    transformers' criteria for its compiled greedy decoding: a cache whose layers are all static (``static_cache``);
+    ``disable_compile`` unset; a CUDA / XPU / Neuron / TPU device, or ``compile_config._compile_all_devices`` (a
+    warning once per device type where a ``compile_config`` is ignored); no quantizer that refuses compilation; no
+    layer offloaded to the CPU or the disk. Where it compiles without a ``compile_config`` (a GPU), the model's
+    default one (``_default_compile_config``), as transformers' ``get_compiled_call`` does.
+    """
+    if not static_cache or disable_compile:
+        return None
     all_devices = compile_config is not None and bool(getattr(compile_config, "_compile_all_devices", False))
     if model.device.type not in _DEVICES_COMPILED_BY_DEFAULT and not all_devices:
         if compile_config is not None:
             _warn_eager_device(model.device.type)
-        return False
+        return None
     quantizer = getattr(model, "hf_quantizer", None)
-    return quantizer is None or bool(getattr(quantizer, "is_compileable", False))
+    if quantizer is not None and not getattr(quantizer, "is_compileable", False):
+        return None
+    devices = set(getattr(model, "hf_device_map", {}).values())
+    if "disk" in devices or ("cpu" in devices and len(devices) > 1):
+        return None
+    return compile_config or model._default_compile_config()
+
+
+def compiled_call_config(model: PreTrainedModel, kwargs: dict):
+    """[`call_compile_config`] for ``generate(**kwargs)`` before it runs: each setting as ``generate`` resolves it (the
+    call's keyword, else its ``generation_config``'s, else the model's), the cache the call is given or names."""
+
+    def setting(name: str):
+        if name in kwargs:
+            return kwargs[name]
+        return getattr(kwargs.get("generation_config") or model.generation_config, name, None)
+
+    cache = kwargs.get("past_key_values")
+    static = setting("cache_implementation") == "static" if cache is None else is_static_cache(cache)
+    return call_compile_config(model, setting("compile_config"), setting("disable_compile"), static)
 
 
 @cache
@@ -216,6 +238,8 @@ class CompiledGraphs:
         self.prefills_eager: set[tuple] = set()  # the same keys, whose forward over the prompt did not compile
         self.functions: dict[Callable, Callable] = {}  # drafters' functions, compiled ([`compiled_function`])
         self.image_batch_sizes: set[int] = set()  # the batch sizes the image encoder met ([`image_encoder`])
+        #: the image encoder's inputs' signature -> it exported and compiled as a file, or None: export refused it
+        self.image_encoders: dict[object, Callable | None] = {}
         #: (batch size, query tokens, slots, dtype, device) -> the rounds' input tensors ([`input_buffers`])
         self.buffers: dict[tuple, InputBuffers] = {}
         self.drafting_compiled: set[tuple] = set()  # drafters' work compiled up front ([`compile_once`])
@@ -301,16 +325,48 @@ class CompiledGraphs:
             self.functions[function] = torch.compile(function, **settings)
         return self.functions[function]
 
-    def image_encoder(self, model: PreTrainedModel, batch_size: int) -> Callable:
-        """``model.base_model.get_image_features`` compiled (``speculative.vision``): one graph per batch size, graph
-        breaks allowed (transformers' output-capturing wrappers do not trace into one graph), the recompile limit
-        raised at each new batch size; wrapped by the model's clock when it has one ([`ENCODER_WRAPPER_ATTRIBUTE`])."""
+    def image_encoder(self, model: PreTrainedModel, inputs: dict) -> Callable:
+        """``model.base_model.get_image_features`` compiled for ``inputs`` (the tensors it takes, see
+        ``speculative.vision``), wrapped by the model's clock when it has one ([`ENCODER_WRAPPER_ATTRIBUTE`]). With
+        graph files ([`graph_files`]): exported as one graph per input signature ([`export_call`]: transformers'
+        output-capturing wrappers do not trace into one dynamo graph) and compiled as a file, so that a later process
+        loads it; without them, or where export refuses the code, compiled by dynamo in memory with graph breaks
+        allowed, one graph per batch size."""
+        wrap = model.__dict__.get(ENCODER_WRAPPER_ATTRIBUTE) or (lambda encoder: encoder)
+        if self.store is not None:
+            key = signature(inputs)
+            if key not in self.image_encoders:
+                self.image_encoders[key] = self._exported_encoder(model, inputs)
+            if self.image_encoders[key] is not None:
+                return wrap(self.image_encoders[key])
         function = model.base_model.get_image_features
+        batch_size = inputs["pixel_values"].shape[0]
         if function not in self.functions or batch_size not in self.image_batch_sizes:
             self.image_batch_sizes.add(batch_size)
             self.compiled_function(function, len(self.image_batch_sizes), fullgraph=False)
-        wrap = model.__dict__.get(ENCODER_WRAPPER_ATTRIBUTE)
-        return self.functions[function] if wrap is None else wrap(self.functions[function])
+        return wrap(self.functions[function])
+
+    def _exported_encoder(self, model: PreTrainedModel, inputs: dict) -> Callable | None:
+        """The image encoder exported for ``inputs``' signature and compiled as a graph file (keyed by the exported
+        code's digest besides the model and the inputs), as a callable of ``get_image_features``' arguments; None
+        where export refuses it."""
+        exported = export_call(model.base_model, "get_image_features", inputs, {"return_dict": True})
+        if exported is None:
+            return None
+
+        def encode_images(**tensors):
+            return exported(**tensors)
+
+        self.image_batch_sizes.add(inputs["pixel_values"].shape[0])
+        self.reserve_graphs(len(self.image_encoders) + 1, encode_images)
+        compiled = FileBackedFunction(
+            encode_images, self.compile_config.to_dict(), {**self.graph_key, "exported": exported.digest}, self.store
+        )
+
+        def encoder(return_dict: bool = True, **tensors):
+            return exported.unflatten(compiled(**{name: tensors[name] for name in exported.input_names}))
+
+        return encoder
 
     def accepting_call(self, model: PreTrainedModel, output_hidden: tuple[int, ...] | None) -> Callable:
         """The compiled round whose graph holds the forward and the acceptance ([`accepting_forward`]; one function

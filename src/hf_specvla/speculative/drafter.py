@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import torch
 from transformers import CompileConfig, PreTrainedModel
@@ -29,6 +30,9 @@ from ..actions.tokenizer import ActionLayout
 from .compat import NOT_ENABLED_HINT
 from .stats import SpeculationStats
 from .tree import DraftTree
+
+if TYPE_CHECKING:
+    from .compiled import CompiledGraphs
 
 
 @dataclass
@@ -42,8 +46,10 @@ class DraftContext:
         prompt_padding: ``[1, S]`` 2D attention mask of the row's prompt (0 = padding), or None when there is none.
         row: the batch row the session drafts for (0 .. B-1).
         max_length: the longest sequence the call can reach (prompt + ``max_new_tokens``), or None when unknown.
-        compile_config: the target's ``CompileConfig`` when its verifications run compiled (a static cache, batch
-            1): a drafter may then compile its own work with the same settings; None when the target runs eagerly.
+        graphs: the call's compiled graphs (``speculative.compiled.CompiledGraphs``) when its verifications run
+            compiled, else None (eager): a drafter then compiles its own work through them (its functions, its
+            up-front compiles, their graph files), under their ``CompileConfig`` ([`compile_config`]), instead of
+            looking the model's graphs up or deciding to compile itself.
         cached_tokens: the row's first tokens the target cache already held when the call began (a continued
             conversation or episode on one cache): the prefill feeds only the tokens after them, so no hidden states
             exist for them and a drafter's own cache starts empty there (``prompt_padding`` covers the fed ones).
@@ -58,13 +64,18 @@ class DraftContext:
     prompt_padding: torch.Tensor | None
     row: int = 0
     max_length: int | None = None
-    compile_config: CompileConfig | None = None
+    graphs: CompiledGraphs | None = None
     cached_tokens: int = 0
     prompt_embeddings: torch.Tensor | None = None
 
     def __post_init__(self):
-        if self.compile_config is not None and self.max_length is None:
-            raise ValueError("DraftContext.compile_config needs max_length (a compiled drafter sizes its cache by it)")
+        if self.graphs is not None and self.max_length is None:
+            raise ValueError("DraftContext.graphs needs max_length (a compiled drafter sizes its cache by it)")
+
+    @property
+    def compile_config(self) -> CompileConfig | None:
+        """The ``CompileConfig`` the call compiles with (its [`graphs`]'), None when it runs eagerly."""
+        return None if self.graphs is None else self.graphs.compile_config
 
 
 @dataclass

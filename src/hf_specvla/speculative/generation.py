@@ -17,7 +17,7 @@ import torch
 from transformers import GenerationConfig, LogitsProcessorList, PreTrainedModel, StoppingCriteriaList
 
 from .compat import check_transformers_support
-from .compiled import allow_graphs_held
+from .compiled import allow_graphs_held, compiled_call_config
 from .config import SPECULATION_KWARGS, SpeculationConfig
 from .drafter import Drafter
 from .graph_files import MIXED_FROM
@@ -82,9 +82,9 @@ class SpeculativeGenerationMixin:
 def ready_model(model: PreTrainedModel, settings: dict) -> None:
     """What every ``generate`` call of a speculation-enabled model does to it first (its own ``generate`` and a
     [`DecoderSession`]'s calls alike): its precision ([`keep_greedy_exact`]) and, for a compiled call
-    (``settings``' ``compile_config``), this thread's leave to run the graphs the model holds."""
+    ([`compiled_call_config`]), this thread's leave to run the graphs the model holds."""
     keep_greedy_exact(model)
-    if settings.get("compile_config") is not None:  # this thread may not have compiled the graphs it meets
+    if compiled_call_config(model, settings) is not None:  # this thread may not have compiled the graphs it meets
         allow_graphs_held(model)
 
 

@@ -9,7 +9,8 @@ layers) it uses the graph it holds, else loads its file, else compiles and saves
 
 Where the files live: [`graph_folder`], ``~/.cache/hf_specvla/graphs`` (``$XDG_CACHE_HOME`` respected) for a model on
 the CPU, or the folder ``HF_SPECVLA_GRAPH_CACHE`` names; ``off`` compiles in memory as before. A model on a GPU keeps
-its graphs in memory unless the variable is set (``on`` or a folder): the route has not run on a GPU yet.
+its graphs in memory unless the variable is set (``on`` or a folder): the route has not run on a GPU yet. A server
+given ``--compile-cache DIR`` keeps them in ``DIR/graphs`` ([`graphs_kept_in`]).
 
 What keys a file ([`GraphKey`]), every part a miss when it changes (the log names the parts that differ from the
 nearest file of the same function):
@@ -53,7 +54,9 @@ import sys
 import tempfile
 import time
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 
 import torch
@@ -91,16 +94,35 @@ def graph_folder(device_type: str = "cpu") -> Path | None:
     default folder (``$XDG_CACHE_HOME/hf_specvla/graphs``, ``~/.cache/hf_specvla/graphs``) when it is ``on`` (``1``,
     ``default``), or unset and the model is on the CPU (the route is on by default where it is tested; a GPU's graphs
     stay in memory until it is measured there); None, graphs compiled in memory only, when it is ``off`` (``0``,
-    ``none``) or unset for a model elsewhere. Its location is logged once."""
+    ``none``) or unset for a model elsewhere. Inside [`graphs_kept_in`] its folder replaces the variable's or the
+    default one (on and off stay the variable's and the device's). Its location is logged once."""
     value = (os.environ.get(FOLDER_ENV) or "").strip()
     if value.lower() in _OFF or (not value and device_type != "cpu"):
         return None
-    if not value or value.lower() in _ON:
+    if _FOLDER_OVERRIDE.get() is not None:
+        folder = _FOLDER_OVERRIDE.get()
+    elif not value or value.lower() in _ON:
         folder = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "hf_specvla" / "graphs"
     else:
         folder = Path(value).expanduser()
     _log_folder(str(folder))
     return folder
+
+
+#: the folder [`graphs_kept_in`] sets for the code it runs (this thread's, this context's), else None
+_FOLDER_OVERRIDE: ContextVar[Path | None] = ContextVar("hf_specvla_graph_folder", default=None)
+
+
+@contextmanager
+def graphs_kept_in(folder: str | os.PathLike) -> Iterator[Path]:
+    """The graph files of the models first compiled inside the block go to ``folder`` instead of
+    ``$HF_SPECVLA_GRAPH_CACHE``'s or the default one (``hf-specvla serve --compile-cache DIR``: ``DIR/graphs``),
+    where graph files are on ([`graph_folder`]). A model's graphs keep the folder they were first made in."""
+    token = _FOLDER_OVERRIDE.set(Path(folder).expanduser())
+    try:
+        yield _FOLDER_OVERRIDE.get()
+    finally:
+        _FOLDER_OVERRIDE.reset(token)
 
 
 @functools.cache

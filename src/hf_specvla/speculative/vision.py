@@ -19,8 +19,7 @@ from functools import cache
 
 from transformers import PreTrainedModel
 
-from .cache import is_static_cache
-from .compiled import CompiledGraphs, compile_allowed
+from .compiled import CompiledGraphs, compiled_call_config
 
 #: the name transformers reads a VLM's pre-encoded images from (``generate`` kwargs and the model's forward)
 ENCODED_INPUTS = "mm_encoder_outputs"
@@ -41,26 +40,6 @@ def _encoder_inputs(encoder, kwargs: dict) -> dict:
     return {name: kwargs[name] for name in _encoder_parameters(encoder.__func__) if name in kwargs}
 
 
-def _setting(model: PreTrainedModel, kwargs: dict, name: str):
-    """A generation setting as ``generate`` resolves it: the call's keyword, else its ``generation_config``'s, else the
-    model's."""
-    if name in kwargs:
-        return kwargs[name]
-    config = kwargs.get("generation_config") or model.generation_config
-    return getattr(config, name, None)
-
-
-def compiled_call_config(model: PreTrainedModel, kwargs: dict):
-    """The ``CompileConfig`` under which ``generate(**kwargs)`` compiles the engine's verifications (a static cache,
-    named or passed; a ``compile_config``; the device / quantizer criteria of [`compile_allowed`]), else None."""
-    compile_config = _setting(model, kwargs, "compile_config")
-    if compile_config is None or not compile_allowed(model, compile_config, _setting(model, kwargs, "disable_compile")):
-        return None
-    cache = kwargs.get("past_key_values")
-    static = _setting(model, kwargs, "cache_implementation") == "static" if cache is None else is_static_cache(cache)
-    return compile_config if static else None
-
-
 def with_compiled_image_features(model: PreTrainedModel, kwargs: dict) -> dict:
     """``generate``'s keyword arguments for a speculative call, the images encoded by the compiled encoder when the
     call compiles its verifications ([`compiled_call_config`]) and the model takes pre-encoded images (its forward
@@ -73,7 +52,8 @@ def with_compiled_image_features(model: PreTrainedModel, kwargs: dict) -> dict:
     if compile_config is None:
         return kwargs
     verifier = CompiledGraphs.for_model(model, compile_config)
-    return with_encoded_images(model, kwargs, verifier.image_encoder(model, kwargs["pixel_values"].shape[0]))
+    encoder = verifier.image_encoder(model, _encoder_inputs(model.base_model.get_image_features, kwargs))
+    return with_encoded_images(model, kwargs, encoder)
 
 
 def takes_encoded_images(model: PreTrainedModel, kwargs: dict) -> bool:

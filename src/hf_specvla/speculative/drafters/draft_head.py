@@ -24,7 +24,7 @@ defaults are ``total_tokens=24, depth=6, top_k=4``: ``depth`` 6 covers the 6 tok
 the prefill (the loop caps every tree at the tokens still to come, so a 4-token action drafts at most 2 levels
 after the prefill), and a smaller budget because on a CPU each verified token costs measurable time.
 
-Compiled drafting: when the target verifies through its compiled call (``DraftContext.compile_config``: a static
+Compiled drafting: when the target verifies through its compiled call (``DraftContext.graphs``: a static
 cache, batch 1), the head gets a static cache of its own (the call's ``max_length`` + the tree's entries, rounded up
 to ``SLOT_MULTIPLE`` slots) and each round runs as one compiled graph (``torch.compile`` with the target's
 ``CompileConfig``), compiled before the call's first compiled round: one graph, expanded to that round's depth (the
@@ -54,7 +54,7 @@ import torch
 from transformers.cache_utils import DynamicCache, StaticCache
 
 from ..cache import set_static_length, truncate_cache
-from ..compiled import CompiledGraphs, compile_settings, rounded_slots
+from ..compiled import compile_settings, rounded_slots
 from ..decoder import SpeculativeDecoder
 from ..drafter import Commit, DraftContext, Drafter, DraftRound, DraftSession
 from ..masks import causal_allowed, sequence_key_padding, to_additive_mask
@@ -238,8 +238,8 @@ class _DraftHeadSession(DraftSession):
         else:
             self.key_length = head_cache_slots(context.max_length, self.config)
             self.cache = drafter.static_cache(context.model, self.key_length)
-            # the target's compiled state owns the head's graphs too (one owner per model and compile settings)
-            self.compiled = CompiledGraphs.for_model(context.model, self.compile_config)
+            # the call's compiled graphs own the head's graphs too (one owner per model and compile settings)
+            self.compiled = context.graphs
             self.compiled_round = self.compiled.compiled_function(catch_up_and_expand, graphs=1)
         self.graph_depth: int | None = None  # the depth this call's compiled rounds expand to (its first round's)
         self.cache_length = 0  # committed entries in self.cache
