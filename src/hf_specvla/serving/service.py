@@ -370,7 +370,7 @@ class PolicyService:
             logger.warning(
                 "compile cache %s not used: %s compiles nothing", self.config.compile_cache, self.methods_name
             )
-        from ..speculative.graph_files import graphs_kept_in
+        from ..speculative import graphs_kept_in
         from .compile_cache import GRAPHS_FOLDER
 
         # the engine's graph files beside Inductor's caches: DIR/graphs, shared by every settings' key (their own keys)

@@ -74,6 +74,7 @@ from .generation import (
     prepare_call,
     with_generation_config,
 )
+from .graph_files import graphs_kept_in
 from .loop import speculative_generate
 from .masks import causal_mask, to_additive_mask
 from .modeling_draft_head import DraftHead, TargetHandles, check_draft_head_folder, is_local_path, softcap_logits
@@ -99,6 +100,7 @@ __all__ = [
     "SLOT_MULTIPLE",
     "compiled_decoding_kwargs",
     "call_compile_config",
+    "graphs_kept_in",
     "verification_width",
     "cache_of",
     "reusable_static_cache",

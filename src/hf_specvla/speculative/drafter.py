@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
 from transformers import CompileConfig, PreTrainedModel
@@ -30,9 +30,6 @@ from ..actions.tokenizer import ActionLayout
 from .compat import NOT_ENABLED_HINT
 from .stats import SpeculationStats
 from .tree import DraftTree
-
-if TYPE_CHECKING:
-    from .compiled import CompiledGraphs
 
 
 @dataclass
@@ -64,7 +61,7 @@ class DraftContext:
     prompt_padding: torch.Tensor | None
     row: int = 0
     max_length: int | None = None
-    graphs: CompiledGraphs | None = None
+    graphs: Any = None  # a CompiledGraphs (not imported: compiled.py imports this module's importers)
     cached_tokens: int = 0
     prompt_embeddings: torch.Tensor | None = None
 
