@@ -4,6 +4,7 @@ import importlib.util
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -411,3 +412,26 @@ def test_openvla_serving_benchmark_serves_the_port_to_robots(tmp_path):
         (1, "greedy"), (1, "speculative"), (2, "greedy"), (2, "speculative")]  # fmt: skip
     assert all(row["unlike_greedy"] == 0 and row["actions_per_s"] > 0 for row in report["table"])
     assert {run["forwards_per_call"] for run in report["runs"] if run["server"] == "greedy"} == {7}
+
+
+@pytest.mark.slow  # ~150 s: a cold and a warm process of gpu_openvla.py --tiny
+def test_gpu_checks_script_refuses_a_bad_part_and_runs_its_start_part_on_a_tiny_model(tmp_path):
+    """The device checks' script (issues 84 and 85), in its CPU mode: a part or a count it does not know is a usage
+    error (exit 2) before anything runs; ``start 1`` twice on one graph folder is a cold process, then a warm one that
+    finds every graph file the first saved (none added), each writing its JSON."""
+    script = ROOT / "examples" / "benchmarks" / "gpu_checks.sh"
+    env = {**os.environ, "GPU_CHECKS_TINY": "1", "PYTHON": sys.executable, "OUT": str(tmp_path / "out"),
+           "GPU_CHECKS_GRAPHS": str(tmp_path / "graphs"), "OMP_NUM_THREADS": "1"}  # fmt: skip
+    for bad in (["compile", "1"], ["start", "zero"], []):
+        refused = subprocess.run(["bash", str(script), *bad], capture_output=True, text=True, env=env, timeout=60)
+        assert refused.returncode == 2 and "usage:" in refused.stderr, (bad, refused.stderr)
+    assert not (tmp_path / "out").exists()
+    lines = []
+    for _ in range(2):
+        done = subprocess.run(["bash", str(script), "start", "1"], capture_output=True, text=True, env=env, timeout=900)
+        assert done.returncode == 0, done.stderr[-3000:] + done.stdout[-3000:]
+        lines.append(done.stdout.strip().splitlines()[-1])
+    (cold, cold_files), (warm, warm_files) = [re.match(r"(\w+) process: \d+ s .*\((\d+) graph files\)", line).groups()
+                                              for line in lines]  # fmt: skip
+    assert (cold, warm) == ("cold", "warm") and int(cold_files) > 0 and warm_files == cold_files, lines
+    assert {p.name for p in (tmp_path / "out").iterdir()} >= {"gpu_openvla_cold.json", "gpu_openvla_warm.json"}
