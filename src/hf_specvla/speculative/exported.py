@@ -118,11 +118,11 @@ def export_call(root: torch.nn.Module, method: str, inputs: dict, settings: dict
     except Exception as error:  # noqa: BLE001 - any refusal keeps the caller's route
         _refused(type(root).__name__, method, f"{type(error).__name__}: {str(error).splitlines()[0][:200]}")
         return None
-    sources, constants, input_names = [], [], []
+    sources, constants, user_inputs = [], [], 0
     for spec in program.graph_signature.input_specs:
         kind = spec.kind.name
         if kind == "USER_INPUT":
-            input_names.append(spec.arg.name)
+            user_inputs += 1
         elif kind in ("PARAMETER", "BUFFER"):
             sources.append((kind.lower(), spec.target.removeprefix("root.")))
         elif kind == "CONSTANT_TENSOR":
@@ -133,14 +133,13 @@ def export_call(root: torch.nn.Module, method: str, inputs: dict, settings: dict
             return None
     # the user inputs' placeholders, in order, are the call's keyword tensors as the program flattens them
     flat, in_spec = pytree.tree_flatten(((), tensors))
-    if in_spec != program.call_spec.in_spec or len(flat) != len(input_names):
+    if in_spec != program.call_spec.in_spec or len(flat) != user_inputs:
         _refused(type(root).__name__, method, "inputs it flattens otherwise")
         return None
-    names = tuple(tensors)
     code = program.graph_module.graph.python_code(root_module="self")
     digest = hashlib.sha256(code.src.encode()).hexdigest()
     graph = _importable_function(code, digest)
-    return ExportedCall(root, graph, tuple(sources), constants, names, program.call_spec.out_spec, digest)
+    return ExportedCall(root, graph, tuple(sources), constants, tuple(tensors), program.call_spec.out_spec, digest)
 
 
 def _importable_function(code, digest: str) -> Callable:
