@@ -521,12 +521,16 @@ class FileBackedFunction:
     def _deserialize(self, payload: bytes, path: Path | None):
         """A graph from a file's content; None (the file set aside) when it cannot be loaded."""
         from torch._dynamo.aot_compile import AOTCompiledFunction
+        from torch._guards import TracingContext, tracing
 
         try:
             content = pickle.loads(payload)
             scope = {**self.function.__globals__}
             scope.update({ref: importlib.import_module(name) for ref, name in content["modules"].items()})
-            graph = AOTCompiledFunction.deserialize(content["graph"], scope, dict(self.external))
+            # (torch 2.13 unpickles a nested compile region's guards, see ``regions``, with sources that install a
+            # guard as they are made, which needs a tracing context: an empty one, dropped after)
+            with tracing(TracingContext(None)):
+                graph = AOTCompiledFunction.deserialize(content["graph"], scope, dict(self.external))
         except Exception as error:  # noqa: BLE001 - any failure to load is a damaged file: compiled again
             if path is None:
                 raise
