@@ -16,6 +16,7 @@ import torch
 
 from hf_specvla.speculative import graph_files
 from hf_specvla.speculative.graph_files import DAMAGED, FileBackedFunction, GraphStore, architecture, environment
+from hf_specvla.speculative.regions import LAYER_REGIONS_ENV
 
 #: a fresh process: a tiny module (seeded by argv[2], width argv[3]) called through a file-backed function in the
 #: folder argv[1]; prints its result against the eager module's, and what it compiled and loaded
@@ -243,10 +244,13 @@ ENGINE_PROCESS = textwrap.dedent(
 
 
 @pytest.mark.slow
-def test_the_engine_loads_its_rounds_from_files_in_a_fresh_process_and_decodes_greedy_tokens(tmp_path):
+@pytest.mark.parametrize("layer_regions", ["off", "on"])
+def test_the_engine_loads_its_rounds_from_files_in_a_fresh_process_and_decodes_greedy_tokens(tmp_path, layer_regions):
     """The compiled rounds (acceptance in the graph) and the prefill's model call, saved by one process, are loaded by
-    the next without compiling, for a model of other weights too, and both decode greedy's tokens."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), graph_files.FOLDER_ENV: str(tmp_path)}
+    the next without compiling, for a model of other weights too, and both decode greedy's tokens; also with the
+    decoder layers compiled once (``regions``: a nested compile region in every graph)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), graph_files.FOLDER_ENV: str(tmp_path),
+           LAYER_REGIONS_ENV: layer_regions}  # fmt: skip
     runs = []
     for seed in (0, 1):
         done = subprocess.run(

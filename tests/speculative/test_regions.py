@@ -12,7 +12,13 @@ from transformers import CompileConfig, LlamaForCausalLM
 
 from hf_specvla.speculative import graph_files
 from hf_specvla.speculative.compiled import CompiledGraphs
-from hf_specvla.speculative.regions import ROUTED_ATTRIBUTE, compile_layers_once, repeated_layers
+from hf_specvla.speculative.regions import (
+    LAYER_REGIONS_ENV,
+    ROUTED_ATTRIBUTE,
+    compile_layers_once,
+    layer_regions_asked,
+    repeated_layers,
+)
 
 from ..conftest import tiny_llama_config
 
@@ -94,9 +100,18 @@ def test_a_copy_of_a_routed_model_routes_its_layers_to_its_own():
 
 
 def test_the_graphs_key_records_the_routed_layers(monkeypatch, tmp_path):
-    """Where graphs are files the model's layers are routed and their count is in the graphs' key (a file compiled
-    without regions is never taken for one with them); in memory the model is left as it is."""
+    """Where graphs are files and ``HF_SPECVLA_LAYER_REGIONS`` asks for it the model's layers are routed and their
+    count is in the graphs' key (a file compiled without regions is never taken for one with them); in memory, or
+    not asked for, the model is left as it is; a value the variable does not take is refused, naming it."""
     monkeypatch.setenv(graph_files.FOLDER_ENV, str(tmp_path))
+    monkeypatch.delenv(LAYER_REGIONS_ENV, raising=False)
+    unasked = _model()
+    assert CompiledGraphs(unasked, CompileConfig(fullgraph=True, dynamic=False)).layer_regions == 0
+    assert "forward" not in vars(unasked.model.layers[0])
+    monkeypatch.setenv(LAYER_REGIONS_ENV, "maybe")
+    with pytest.raises(ValueError, match="HF_SPECVLA_LAYER_REGIONS='maybe': expected one of 1, on"):
+        layer_regions_asked()
+    monkeypatch.setenv(LAYER_REGIONS_ENV, "on")
     model = _model()
     graphs = CompiledGraphs(model, CompileConfig(fullgraph=True, dynamic=False))
     assert graphs.layer_regions == 3 and graphs.graph_key["layer_regions"] == 3

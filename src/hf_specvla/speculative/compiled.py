@@ -48,7 +48,7 @@ from .graph_files import (
     with_guard_filter,
 )
 from .precision import exact_compile_config
-from .regions import compile_layers_once
+from .regions import compile_layers_once, layer_regions_asked
 from .tree import DraftTree, TreeBatch
 from .verify import CompiledVerification, InputBuffers, Pending, Verification
 
@@ -229,8 +229,8 @@ class CompiledGraphs:
         folder = graph_folder(model.device.type)
         #: where its graphs are files (None: compiled in memory, by dynamo, as transformers compiles)
         self.store = GraphStore(folder) if folder is not None else None
-        #: the decoder layers compiled once for all (``regions``: where graphs are files, whose compile time it cuts)
-        self.layer_regions = compile_layers_once(model) if self.store is not None else 0
+        #: the decoder layers compiled once for all (``regions``: where graphs are files and the user asks for it)
+        self.layer_regions = compile_layers_once(model) if self.store is not None and layer_regions_asked() else 0
         #: what its graphs depend on besides their inputs (the versions, the model's architecture; no weights)
         self.graph_key = (
             {**environment(), "model": architecture(model), "layer_regions": self.layer_regions}
