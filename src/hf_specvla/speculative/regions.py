@@ -4,7 +4,7 @@ A compiled forward of a 16-layer decoder is 16 copies of one layer's code to tra
 code generation and the C++ compile are most of a graph's compile time on a CPU). ``torch.compiler.
 nested_compile_region`` marks a function whose traced graph dynamo and Inductor reuse at every call with inputs of
 the same kind: the language model's layers, each routed through one such function, are compiled once per graph
-instead of once per layer (policy v3: ~32 s -> ~20 s a graph; the steady state the same within noise). The layers'
+instead of once per layer (policy v3: ~32 s -> ~20 s a graph). The layers'
 weights stay inputs of the region, so every layer computes with its own.
 
 [`compile_layers_once`] routes a model's decoder layers through the region by setting each layer's ``forward`` on the
@@ -18,13 +18,10 @@ first start's compile time that a user makes, not the engine.
 from __future__ import annotations
 
 import functools
-import logging
 import os
 
 import torch
 from torch import nn
-
-logger = logging.getLogger(__name__)
 
 #: the attribute a routed layer's ``forward`` carries (its region's marker: routing twice changes nothing)
 ROUTED_ATTRIBUTE = "_hf_specvla_region"
