@@ -46,9 +46,9 @@ def _call_work_switch():
     acceptance of host-drafted trees on the host (``acceptance.exact_paths_on_host``, off: the device search) for the
     calls that follow."""
     import hf_specvla.speculative.acceptance as acceptance
-    import hf_specvla.speculative.generation as generation
+    from hf_specvla.speculative.decoder import SpeculativeDecoder
 
-    encoder, on_host = generation.with_compiled_image_features, acceptance.exact_paths_on_host
+    encoder, on_host = SpeculativeDecoder.encode_images, acceptance.exact_paths_on_host
 
     def device_search(trees, target_ids):
         packed = acceptance.search_paths(trees.token_ids, trees.ancestor_or_self, trees.parents, trees.depths,
@@ -57,7 +57,7 @@ def _call_work_switch():
         return acceptance.read_paths(packed.tolist(), trees)
 
     def switch(vision: bool, host: bool) -> None:
-        generation.with_compiled_image_features = encoder if vision else (lambda model, kwargs: kwargs)
+        SpeculativeDecoder.encode_images = encoder if vision else (lambda decoder, kwargs: kwargs)
         acceptance.exact_paths_on_host = on_host if host else device_search
 
     return switch

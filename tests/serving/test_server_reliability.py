@@ -100,6 +100,7 @@ def test_every_prompt_of_a_tier_decodes_on_the_slot_count_the_engine_gives_its_l
 
     from hf_specvla.speculative import verification_slots
     from hf_specvla.speculative.cache import with_draft_slots
+    from hf_specvla.speculative.decoder import SpeculativeDecoder
 
     service = _service(policy, method="exact")
     service.close()
@@ -108,7 +109,7 @@ def test_every_prompt_of_a_tier_decodes_on_the_slot_count_the_engine_gives_its_l
 
     def engines(length: int) -> int:
         generates = StaticCache(config=text_config, max_cache_len=length + policy.config.action_tokens - 1)
-        cache = with_draft_slots(policy.model, generates, verification_slots)
+        cache = with_draft_slots(SpeculativeDecoder.of(policy.model), generates, verification_slots)
         return max(layer.max_cache_len for layer in cache.layers)
 
     assert len({engines(length) for length in range(first, last + 1)}) == 1, "a tier decodes on one slot count"

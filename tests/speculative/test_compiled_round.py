@@ -13,7 +13,8 @@ import pytest
 import torch
 
 from hf_specvla import DraftHead, DraftHeadDrafter, DraftTreeConfig, JacobiDrafter
-from hf_specvla.speculative.compiled import CompiledGraphs, graphs_held, reset_compilation
+from hf_specvla.speculative.compiled import graphs_held, reset_compilation
+from hf_specvla.speculative.decoder import SpeculativeDecoder
 from hf_specvla.speculative.graph_files import graph_folder
 
 from .test_compiled_verification import _model, eager_compile_config, greedy
@@ -47,7 +48,7 @@ def test_every_drafter_and_batch_accepts_inside_the_graph_with_greedys_tokens():
         expected = greedy(model, batch, attention_mask=mask, pad_token_id=0)
         out = greedy(model, batch, attention_mask=mask, pad_token_id=0, **compiled(), **kwargs)
         assert torch.equal(out, expected), kwargs
-    verifier = CompiledGraphs.for_model(model, eager_compile_config())
+    verifier = SpeculativeDecoder.of(model).graphs(eager_compile_config())
     assert len(verifier.accepting) == 2  # without hidden states (Jacobi), with them (the head)
     if graph_folder(model.device.type) is not None:  # files (tests/conftest.py; off in tf520, tflatest)
         rounds = [verifier.functions[f] for f in verifier.accepting.values()]
@@ -69,7 +70,7 @@ def test_eos_is_hidden_inside_the_graph_as_min_new_tokens_hides_it():
         for kwargs in (dict(assistant_model=JacobiDrafter()), dict(draft_ids=free[:, 6:12])):
             out = greedy(model, input_ids, **settings, **compiled(), **kwargs)
             assert torch.equal(out, expected), (min_new_tokens, kwargs)
-    assert CompiledGraphs.for_model(model, eager_compile_config()).accepting  # the rounds accepted in the graph
+    assert SpeculativeDecoder.of(model).graphs(eager_compile_config()).accepting  # the rounds accepted in the graph
 
 
 def test_rounds_that_keep_scores_accept_after_the_forward_with_greedys_scores():
@@ -80,7 +81,7 @@ def test_rounds_that_keep_scores_accept_after_the_forward_with_greedys_scores():
                  **compiled())  # fmt: skip
     assert torch.equal(out.sequences, expected.sequences) and out.speculation.compiled_widths
     assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(out.scores, expected.scores))
-    assert not CompiledGraphs.for_model(model, eager_compile_config()).accepting  # nothing compiled for it
+    assert not SpeculativeDecoder.of(model).graphs(eager_compile_config()).accepting  # nothing compiled for it
 
 
 def _swap_and_check(model, input_ids, change, calls=None):
@@ -207,7 +208,7 @@ def test_a_sliding_window_cache_follows_its_length():
 def _round_guard_text(model) -> str:
     from torch._dynamo.eval_frame import _debug_get_cache_entry_list
 
-    verifier = CompiledGraphs.for_model(model, eager_compile_config())
+    verifier = SpeculativeDecoder.of(model).graphs(eager_compile_config())
     function = verifier.accepting[None]
     entries = _debug_get_cache_entry_list(function.__code__)
     assert entries

@@ -22,12 +22,12 @@ from hf_specvla.policies import VLAPolicy, VLAPolicyConfig
 from hf_specvla.speculative import CACHE_KEY, NODE_BUCKETS, cache_of, verification_width
 from hf_specvla.speculative.compiled import (
     SLOT_MULTIPLE,
-    CompiledGraphs,
     buckets_up_to,
     check_buckets,
     graphs_held,
     reset_compilation,
 )
+from hf_specvla.speculative.decoder import SpeculativeDecoder
 from hf_specvla.speculative.drafter import Drafter, DraftSession
 
 from ..conftest import tiny_llama_config
@@ -529,7 +529,8 @@ def test_one_decision_compiles_a_gpu_call_without_a_compile_config_as_transforme
 def test_the_graph_budget_is_what_dynamo_holds_and_reset_forgets_every_verifier(graphs_in_memory):
     """The recompile limit is raised from dynamo's own count of a code object's graphs (every caller's, not a count of
     ours), and ``reset_compilation`` drops them and makes every model's verifier anew."""
-    from hf_specvla.speculative.compiled import CompiledGraphs, allow_graphs_held, graphs_held
+    from hf_specvla.speculative.compiled import graphs_held
+    from hf_specvla.speculative.decoder import allow_graphs_held
 
     def double(x):
         return 2 * x
@@ -540,8 +541,8 @@ def test_the_graph_budget_is_what_dynamo_holds_and_reset_forgets_every_verifier(
     assert graphs_held(double) == 3
     model = _model("llama")
     config = eager_compile_config()
-    verifier = CompiledGraphs.for_model(model, config)
-    assert CompiledGraphs.for_model(model, config) is verifier
+    verifier = SpeculativeDecoder.of(model).graphs(config)
+    assert SpeculativeDecoder.of(model).graphs(config) is verifier
     greedy(model, torch.randint(6, 64, (1, 6)), cache_implementation="static", compile_config=config,
            draft_ids=torch.randint(6, 64, (1, 3)))  # fmt: skip
     held = graphs_held(type(model).forward)
@@ -552,14 +553,14 @@ def test_the_graph_budget_is_what_dynamo_holds_and_reset_forgets_every_verifier(
         assert torch._dynamo.config.recompile_limit >= max(held, graphs_held(accepting)) + 8
     reset_compilation()
     assert graphs_held(double) == 0 and graphs_held(type(model).forward) == 0 and graphs_held(accepting) == 0
-    assert CompiledGraphs.for_model(model, config) is not verifier
+    assert SpeculativeDecoder.of(model).graphs(config) is not verifier
 
 
 def test_every_compiled_round_of_a_width_is_fed_the_same_input_tensors(monkeypatch, graphs_in_memory):
     """The engine's own input buffers per (batch size, width): every compiled verification of one shape, round after
     round and call after call, reads its ids, positions and mask from the same tensors (what a CUDA graph needs to
     copy nothing in), and the tokens stay greedy's."""
-    from hf_specvla.speculative.compiled import CALL_WRAPPER_ATTRIBUTE, CompiledGraphs
+    from hf_specvla.speculative.compiled import CALL_WRAPPER_ATTRIBUTE
 
     model = _model("llama")
     config = eager_compile_config()
@@ -583,7 +584,7 @@ def test_every_compiled_round_of_a_width_is_fed_the_same_input_tensors(monkeypat
         assert torch.equal(out.sequences, expected)
         rounds.append(len(out.speculation.compiled_widths))
     assert sum(rounds) >= 6 and max(len(v) for v in fed.values()) == 1, fed  # not vacuous: many rounds, one set each
-    verifier = CompiledGraphs.for_model(model, config)
+    verifier = SpeculativeDecoder.of(model).graphs(config)
     owned = {tuple(t.data_ptr() for t in b.tensors()) for b in verifier.buffers.values()}
     assert set().union(*fed.values()) <= owned  # the verifier's own buffers
 
@@ -632,7 +633,7 @@ def test_a_compiled_speculative_call_encodes_its_images_with_the_compiled_encode
         assert torch.equal(greedy(tiny_llava, **prompt, draft_ids=drafts), expected)  # eager speculation: the same
         assert len(eager_encodings) == 2
         eager_encodings.clear()
-    verifier = CompiledGraphs.for_model(tiny_llava, config)
+    verifier = SpeculativeDecoder.of(tiny_llava).graphs(config)
     assert verifier.image_batch_sizes == {1, 2} and (verifier.store is None) == (graphs == "in memory")
     if graphs == "files":  # exported as one graph per batch size, compiled as a file
         assert len(verifier.image_encoders) == 2 and None not in verifier.image_encoders.values()

@@ -17,7 +17,7 @@ from transformers import LlamaForCausalLM
 
 from hf_specvla import DraftHead, DraftHeadDrafter, JacobiDrafter, disable_speculation, enable_speculation
 from hf_specvla.speculative import SpeculativeDecoder, reusable_static_cache
-from hf_specvla.speculative.compiled import CompiledGraphs, reset_compilation
+from hf_specvla.speculative.compiled import reset_compilation
 from hf_specvla.speculative.decoder import DECODER_ATTRIBUTE
 from hf_specvla.speculative.generation import SpeculativeGenerationMixin
 
@@ -72,13 +72,13 @@ def test_reset_compilation_makes_every_decoder_forget_what_it_compiled():
     prompt = torch.randint(6, 64, (1, 6), generator=torch.Generator().manual_seed(6))
     for model in models:
         greedy(model, prompt, assistant_model=JacobiDrafter(), **compiled())
-    verifiers = [CompiledGraphs.for_model(model, eager_compile_config()) for model in models]
+    verifiers = [SpeculativeDecoder.of(model).graphs(eager_compile_config()) for model in models]
     SpeculativeDecoder.reset_compilation()  # one decoder's method, every decoder's effect: dynamo's graphs are gone
     for model, verifier in zip(models, verifiers):
         assert SpeculativeDecoder.of(model).compiled_graphs == {}
         out = greedy(model, prompt, assistant_model=JacobiDrafter(), **compiled())
         assert torch.equal(out, greedy(model, prompt))
-        assert CompiledGraphs.for_model(model, eager_compile_config()) is not verifier
+        assert SpeculativeDecoder.of(model).graphs(eager_compile_config()) is not verifier
 
 
 def test_a_deep_copy_gets_a_decoder_of_its_own():
@@ -107,9 +107,10 @@ def test_a_draft_heads_static_cache_is_the_target_models_decoders():
     model, other = _llama(0), _llama(1)
     head = DraftHead.from_target(model, num_draft_tokens=3).eval()
     first, second = DraftHeadDrafter(head), DraftHeadDrafter(head, num_draft_tokens=2)
-    cache = first.static_cache(model, 64)
-    assert second.static_cache(model, 64) is cache  # handed out again, emptied
-    assert first.static_cache(model, 128) is not cache and first.static_cache(other, 64) is not cache
+    decoder, other_decoder = SpeculativeDecoder.of(model), SpeculativeDecoder.of(other)  # handed to the drafters
+    cache = first.static_cache(decoder, 64)
+    assert second.static_cache(decoder, 64) is cache  # handed out again, emptied
+    assert first.static_cache(decoder, 128) is not cache and first.static_cache(other_decoder, 64) is not cache
     assert cache in SpeculativeDecoder.of(model).static_caches.values()
     assert not any(isinstance(value, dict) for value in vars(first).values())
     assert cache in SpeculativeDecoder.of(model).static_caches.values()
@@ -174,3 +175,66 @@ def test_nothing_is_written_on_transformers_cache_objects(tiny_llama, monkeypatc
     assert len(seen) >= 2 and all(names == [] for names in seen), seen
     monkeypatch.undo()
     assert torch.equal(out, tiny_llama.generate(input_ids, **settings))
+
+
+def test_a_compiled_call_compiles_only_in_its_decoders_warm_up(monkeypatch):
+    """The one place a call triggers compiling: every graph of the target (its widths, the next call's prefill) and
+    of a draft head (its round; a v3 head's block before the prefill, which runs eagerly at its shape's first call)
+    is compiled by ``SpeculativeDecoder.warm_up``, after the prefill and before the first round; no round compiles;
+    a second call compiles nothing; both decode greedy's tokens."""
+    import hf_specvla.speculative.decoder as decoder_module
+    from hf_specvla import DraftTreeConfig
+    from hf_specvla.speculative.compiled import CompiledGraphs
+
+    from .test_draft_head_v3 import _v3_head
+
+    torch.manual_seed(0)
+    target = enable_speculation(LlamaForCausalLM(tiny_llama_config(num_hidden_layers=3)).eval())
+    phase, compiled_in = ["before the prefill"], []
+
+    def recording(name, original):
+        def compile_then_record(self, *args, **kwargs):
+            seconds = original(self, *args, **kwargs)
+            if seconds:  # 0: held already
+                compiled_in.append((name, phase[0]))
+            return seconds
+
+        return compile_then_record
+
+    def in_phase(name, original):
+        def run(*args, **kwargs):
+            phase[0] = name
+            return original(*args, **kwargs)
+
+        return run
+
+    for name in ("compile_once", "compile_widths", "compile_prefill"):
+        monkeypatch.setattr(CompiledGraphs, name, recording(name, getattr(CompiledGraphs, name)))
+    monkeypatch.setattr(decoder_module, "prefill", in_phase("prefill", decoder_module.prefill))
+    monkeypatch.setattr(decoder_module, "decode_round", in_phase("round", decoder_module.decode_round))
+    monkeypatch.setattr(SpeculativeDecoder, "warm_up", in_phase("warm_up", SpeculativeDecoder.warm_up))
+    tree = DraftTreeConfig(top_k=3, depth=4, total_tokens=12)
+    heads = {
+        "tree": (DraftHeadDrafter(DraftHead.from_target(target, num_draft_tokens=3).eval(), tree=tree), 1),
+        "v3 chain, block before the prefill": (
+            DraftHeadDrafter(_v3_head(target, draft_mode="chain", prefill_drafts=True)),
+            2,
+        ),
+    }
+    prompt = torch.randint(6, 64, (1, 7), generator=torch.Generator().manual_seed(0))
+    expected = greedy(target, prompt)
+    for name, (drafter, head_graphs) in heads.items():
+        reset_compilation()
+        for call in range(2):
+            compiled_in.clear()
+            out = greedy(target, prompt, assistant_model=drafter, return_dict_in_generate=True, **compiled())
+            assert torch.equal(out.sequences, expected), (name, call)
+            assert phase[0] == "round"  # the call ran rounds after its warm-up
+            if call == 0:
+                assert sorted(compiled_in) == sorted(
+                    [("compile_widths", "warm_up"), ("compile_prefill", "warm_up")]
+                    + [("compile_once", "warm_up")] * head_graphs
+                ), name
+                assert out.speculation.compile_seconds > 0
+            else:
+                assert compiled_in == [], name

@@ -16,8 +16,8 @@ from transformers.cache_utils import DynamicCache
 
 from hf_specvla import ActionTokenizer, DraftHead, DraftHeadDrafter, DraftTreeConfig
 from hf_specvla.speculative import with_action_prior
-from hf_specvla.speculative.compiled import CompiledGraphs
 from hf_specvla.speculative.configuration_draft_head import DraftHeadConfig
+from hf_specvla.speculative.decoder import SpeculativeDecoder
 from hf_specvla.speculative.drafters import draft_head as draft_head_module
 from hf_specvla.speculative.drafters.draft_head import embed_tokens
 from hf_specvla.speculative.drafters.head_block import block_round
@@ -116,7 +116,7 @@ def test_an_image_reading_head_decodes_exactly_as_greedy(tiny_llava, image_head,
         out = _greedy(tiny_llava, **prompt, assistant_model=drafter, **settings)
         assert torch.equal(out, expected), name
     if cache == "compiled":  # the block before the prefill ran compiled, its graph made once per prompt length
-        compiled = CompiledGraphs.for_model(tiny_llava, settings["compile_config"])
+        compiled = SpeculativeDecoder.of(tiny_llava).graphs(settings["compile_config"])
         assert block_round in compiled.functions
         again = tiny_llava.generate(**prompt, max_new_tokens=NEW_TOKENS, min_new_tokens=NEW_TOKENS, do_sample=False,
                                     assistant_model=chain, return_dict_in_generate=True, **settings)  # fmt: skip

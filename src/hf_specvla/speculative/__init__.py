@@ -17,7 +17,6 @@ from .acceptance import (
     make_acceptance_rule,
 )
 from .assistant import as_drafter
-from .cache import reusable_static_cache
 from .compat import (
     CACHE_KEY,
     NEWEST_TESTED_TRANSFORMERS,
@@ -39,7 +38,7 @@ from .compiled import (
 )
 from .config import RULE_ARGUMENTS, SPECULATION_KWARGS, SpeculationConfig, hashable
 from .configuration_draft_head import DraftHeadConfig
-from .decoder import SpeculativeDecoder
+from .decoder import SpeculativeDecoder, reusable_static_cache
 from .drafter import (
     CandidateDrafter,
     Commit,

@@ -41,8 +41,6 @@ from transformers.cache_utils import (
     StaticSlidingWindowLayer,
 )
 
-from .decoder import SpeculativeDecoder
-
 #: preallocated layers written at a counter (exact types)
 STATIC_LAYER_TYPES = (StaticLayer, StaticSlidingWindowLayer)
 #: the layer types whose entries can be rolled back (exact types: subclasses change how entries are stored)
@@ -111,18 +109,21 @@ def check_rollback_cache(cache: Cache, max_length: int) -> None:
                 )
 
 
-def with_draft_slots(model, cache: Cache | None, slots_for: Callable[[int], int], batch_size: int = 1) -> Cache | None:
-    """``generate``'s own static cache (``cache_implementation="static"``) replaced by one of ``slots_for(its slots)``
-    slots, so that a draft tree fits beside the tokens greedy decoding would store (``generate`` sizes it for those
-    alone; ``compiled.verification_slots``: room for the widest verification, rounded up). The
-    larger cache is kept per model and size and reused, emptied, by later calls (its buffers keep their addresses, as
-    compiled graphs want); a new one is allocated lazily, at the prefill, like the one it replaces. A cache the user
-    passed, a cache already holding entries, or any other cache is returned as it is (a user's static cache: trees
-    are cut to its free slots). With sliding-window layers (which hold at most their window) it grows only up to the
-    window, so that every layer keeps the same number of slots (one explicit mask serves them all).
+def with_draft_slots(
+    decoder, cache: Cache | None, slots_for: Callable[[int], int], batch_size: int = 1
+) -> Cache | None:
+    """``generate``'s own static cache (``cache_implementation="static"``) replaced by one of ``slots_for(its
+    slots)`` slots, so that a draft tree fits beside the tokens greedy decoding would store (``generate`` sizes it
+    for those alone; ``compiled.verification_slots``: room for the widest verification, rounded up). The larger
+    cache is kept per model and size by its ``decoder`` (``SpeculativeDecoder.target_cache``) and reused, emptied,
+    by later calls (its buffers keep their addresses, as compiled graphs want); a new one is allocated lazily, at
+    the prefill, like the one it replaces. A cache the user passed, a cache already holding entries, or any other
+    cache is returned as it is (a user's static cache: trees are cut to its free slots). With sliding-window layers
+    (which hold at most their window) it grows only up to the window, so that every layer keeps the same number of
+    slots (one explicit mask serves them all).
 
     Args:
-        model: the target (its decoder's text config is read, as ``generate`` does; its dtype and device key reuse).
+        decoder: the target's ``SpeculativeDecoder`` (what keeps the reusable caches).
         slots_for: ``generate``'s slot count -> the slot count wanted (rounded: compiled graphs hold the cache's
             shape, so prompts of different lengths then share one graph per width).
         batch_size: the call's rows (a cache is reused only by calls of the same batch size: its layers take their
@@ -142,27 +143,7 @@ def with_draft_slots(model, cache: Cache | None, slots_for: Callable[[int], int]
         if slots <= 0 or any(w != capacity for w in windows):
             return cache
     offloading = bool(getattr(cache, "offloading", False))
-    return reusable_static_cache(model, capacity + slots, batch_size, offloading, like=cache)
-
-
-def reusable_static_cache(
-    model, slots: int, batch_size: int, offloading: bool = False, like: StaticCache | None = None
-) -> StaticCache:
-    """An empty ``StaticCache`` of ``slots`` slots for ``batch_size`` rows of ``model``, made once per (slots,
-    offloading, dtype, device, batch size) and kept by the model's [`SpeculativeDecoder`], then emptied and handed out
-    again: its buffers keep their
-    addresses, so compiled graphs (which hold the cache's shape) and CUDA graphs (its buffers) are reused. What
-    [`with_draft_slots`] puts in place of ``generate``'s own cache, and what a caller passes as ``past_key_values``
-    for transformers' compiled greedy decoding to keep one graph per shape (a server's greedy baseline).
-
-    Args:
-        like: a cache whose layer types the reused one must have (a sliding-window model's); None: any.
-    """
-    key = (slots, offloading, written_dtype(model), model.device, batch_size)
-    text_config = model.config.get_text_config(decoder=True)
-    return SpeculativeDecoder.of(model).static_cache(
-        key, lambda: StaticCache(config=text_config, max_cache_len=slots, offloading=offloading), like
-    )
+    return decoder.target_cache(capacity + slots, batch_size, offloading, like=cache)
 
 
 def written_dtype(model) -> torch.dtype:

@@ -31,7 +31,6 @@ from .cache import (
 from .compat import CACHE_KEY
 from .compiled import CompiledGraphs, buckets_up_to, call_compile_config, verification_slots
 from .config import SpeculationConfig
-from .decoder import SpeculativeDecoder
 from .drafter import (
     CandidateDrafter,
     ComposedDrafter,
@@ -105,7 +104,7 @@ def _call_drafter(
 
 
 def _draft_contexts(
-    model,
+    decoder,
     batch_size: int,
     layout,
     eos_ids: list[int],
@@ -121,13 +120,14 @@ def _draft_contexts(
     rows = [None if prompt_padding is None else prompt_padding[b : b + 1] for b in range(batch_size)]
     return [
         DraftContext(
-            model,
+            decoder.model,
             layout,
             eos_ids,
             padding,
             row=b,
             max_length=max_length,
             graphs=graphs,
+            decoder=decoder,
             cached_tokens=cached_tokens,
             prompt_embeddings=None if prompt_embeddings is None else prompt_embeddings[b : b + 1],
         )
@@ -135,7 +135,7 @@ def _draft_contexts(
     ]
 
 
-def check_continued_cache(decoder: SpeculativeDecoder, cache: Cache, batch_size: int) -> None:
+def check_continued_cache(decoder, cache: Cache, batch_size: int) -> None:
     """Refuses, before any forward, a cache this call cannot continue exactly: one holding entries a batched
     speculative call left, or one whose layers already hold another number of rows than ``input_ids`` (a static
     cache keeps its rows when emptied).
@@ -163,7 +163,7 @@ def check_continued_cache(decoder: SpeculativeDecoder, cache: Cache, batch_size:
         )
 
 
-def _leave_cache_as_greedy(decoder: SpeculativeDecoder, cache: Cache, rows: list[RowState], offset: int) -> None:
+def _leave_cache_as_greedy(decoder, cache: Cache, rows: list[RowState], offset: int) -> None:
     """Leaves a one-row cache as greedy decoding would: the entries of its sequence but the last token (a path the
     stopping criteria cut keeps no entries past the cut), so that a later call continues it exactly. ``offset``: the
     entries before the row's sequence (a continued cache given only the new tokens). A batch's cache is marked on the
@@ -372,13 +372,14 @@ def _checked_call(model, input_ids, logits_processor, generation_config, setting
 
 
 def prepare(
-    model, input_ids, logits_processor, generation_config, settings: SpeculationConfig, draft_ids, model_kwargs
+    decoder, input_ids, logits_processor, generation_config, settings: SpeculationConfig, draft_ids, model_kwargs
 ) -> SpeculativeCall:
     """1. The call checked and set up: the prefill's inputs on a cache with room for the trees, each row's drafter
-    session, the round plan (compiled or eager, widths, rule)."""
+    session, the round plan (compiled or eager, widths, rule). ``decoder``: the target's ``SpeculativeDecoder``
+    (the model, and what its calls reuse: caches, compiled graphs, tree structures), handed to what needs it."""
+    model = decoder.model
     checked = _checked_call(model, input_ids, logits_processor, generation_config, settings, draft_ids)
     drafter, layout = checked.drafter, checked.layout
-    decoder = SpeculativeDecoder.of(model)  # what the engine keeps for this model between calls (after the checks)
     batch_size = input_ids.shape[0]
     eos_ids = generation_config.eos_token_id
     eos_ids = [] if eos_ids is None else ([eos_ids] if isinstance(eos_ids, int) else list(eos_ids))
@@ -393,7 +394,7 @@ def prepare(
     stats = SpeculationStats()
     total_start = time.perf_counter()
     # generate's own static cache holds the tokens greedy decoding stores; a tree needs slots beside them
-    model_kwargs[CACHE_KEY] = with_draft_slots(model, model_kwargs.get(CACHE_KEY), verification_slots, batch_size)
+    model_kwargs[CACHE_KEY] = with_draft_slots(decoder, model_kwargs.get(CACHE_KEY), verification_slots, batch_size)
     given_cache = model_kwargs.get(CACHE_KEY)
     if given_cache is not None:
         check_rollback_cache(given_cache, generation_config.max_length)
@@ -406,13 +407,13 @@ def prepare(
         model, generation_config.compile_config, generation_config.disable_compile, is_static_cache(cache)
     )
     # the model's compiled graphs the call's rounds run (fixed widths), or None: eager
-    graphs = None if compile_config is None else CompiledGraphs.for_model(model, compile_config)
+    graphs = None if compile_config is None else decoder.graphs(compile_config)
     cached_tokens = input_ids.shape[1] - num_new  # the rows' first tokens the cache held before the call
     prompt_embeddings = None
     if drafter.needs_prompt_embeddings:  # a head drafting before the prefill from the encoded images
         prompt_embeddings = prompt_input_embeddings(model, input_ids, model_kwargs, start=cached_tokens)
     contexts = _draft_contexts(
-        model,
+        decoder,
         batch_size,
         layout,
         eos_ids,
@@ -435,7 +436,15 @@ def prepare(
         cache,
     )
     plan = _round_plan(
-        model, checked, graphs, model_inputs, prompt_ids, position_offsets, past_length, input_ids.shape[1]
+        model,
+        checked,
+        graphs,
+        decoder.tree_structures,
+        model_inputs,
+        prompt_ids,
+        position_offsets,
+        past_length,
+        input_ids.shape[1],
     )
     pad_token_id = generation_config.pad_token_id
     return SpeculativeCall(
@@ -458,6 +467,7 @@ def _round_plan(
     model,
     checked: CheckedCall,
     graphs: CompiledGraphs | None,
+    tree_structures: dict,
     model_inputs: dict,
     prompt_ids: torch.Tensor,
     position_offsets,
@@ -465,7 +475,8 @@ def _round_plan(
     input_length: int,
 ) -> RoundPlan:
     """What every round reads ([`RoundPlan`]), its [`CallVerifier`] chosen here: the prefill's and the rounds'
-    verifications (``graphs``: the model's compiled graphs under the call's ``CompileConfig``, or None: eager).
+    verifications (``graphs``: the model's compiled graphs under the call's ``CompileConfig``, or None: eager;
+    ``tree_structures``: the decoder's, by shape).
 
     Args:
         prompt_ids: ``[B, P]`` the tokens the prefill feeds; ``input_length``: the rows' length before the call
@@ -520,7 +531,7 @@ def _round_plan(
         keep_scores=keep_scores,
         keep_logits=keep_logits,
         sampling=sampling,
-        tree_structures=SpeculativeDecoder.of(model).tree_structures,
+        tree_structures=tree_structures,
     )
     return plan
 

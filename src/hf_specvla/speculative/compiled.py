@@ -35,7 +35,6 @@ import torch
 from transformers import PreTrainedModel
 
 from .cache import cache_batch_size, cache_length, is_static_cache, preserved_entries, truncate_cache
-from .decoder import DECODER_ATTRIBUTE, SpeculativeDecoder
 from .exported import export_call
 from .fused import accepting_forward, full_guards_asked, round_guards
 from .graph_files import (
@@ -161,9 +160,10 @@ def compile_settings(compile_config) -> str:
 
 def reset_compilation() -> None:
     """``torch._dynamo.reset()`` and every model's decoder forgets what it compiled up front (the next call compiles
-    every width, prefill and draft-head graph again, before its first compiled round):
-    [`SpeculativeDecoder.reset_compilation`]."""
-    SpeculativeDecoder.reset_compilation()
+    every width, prefill and draft-head graph again, before its first compiled round): the compilation epoch that
+    every ``SpeculativeDecoder`` compares to ([`CompiledGraphs.epoch`]) moves."""
+    torch._dynamo.reset()
+    CompiledGraphs.epoch += 1
 
 
 #: the model inputs with a sequence dimension in a prefill, and that dimension, from the end ([`mark_length_dynamic`])
@@ -209,8 +209,9 @@ class CompiledGraphs:
     (shared with its compiled greedy decoding) and what was compiled up front for it, by what the graphs depend on
     (cache slots, hidden states returned, buckets, batch size): every verification width, the prefill's graph, the
     prefills that stay eager; and its drafters' graphs (a draft head's compiled round, [`compiled_function`],
-    [`compile_once`]). Kept on the model, as transformers keeps its compiled call ([`for_model`]); a call compiles
-    what it needs right after its first prefill, outside the round loop ([`compile_widths`], [`compile_prefill`]).
+    [`compile_once`]). Kept by the model's ``SpeculativeDecoder`` (``graphs``), as transformers keeps its compiled call
+    on the model; the decoder has a call compile what it needs right after its first prefill, outside the round loop
+    (``SpeculativeDecoder.warm_up``: [`compile_widths`], [`compile_prefill`]).
 
     On a CUDA device transformers' ``CompileConfig`` compiles with ``mode="reduce-overhead"``: each (batch size,
     width) graph is captured as a CUDA graph, its inputs copied into static buffers at each replay (the outputs, which
@@ -219,8 +220,11 @@ class CompiledGraphs:
     It also owns the graph budget: dynamo's recompile limit (a per-thread setting, counted per code object across
     every caller) is raised from the graphs dynamo itself holds for the model's forward and the drafters' functions
     ([`graphs_held`]) plus the ones about to be compiled, never from a count of our own. The model's
-    [`SpeculativeDecoder`] holds them (one per ``CompileConfig``) and forgets them at
-    [`reset_compilation`]."""
+    ``SpeculativeDecoder`` holds them (one per ``CompileConfig``) and forgets them at [`reset_compilation`]
+    (which moves [`epoch`])."""
+
+    #: the compilation epoch: moved by [`reset_compilation`]; a decoder of an older one forgets its compiled graphs
+    epoch = 0
 
     def __init__(self, model: PreTrainedModel, compile_config):
         #: the settings its graphs compile with (in bf16 / fp16, rounding as eager decoding does: precision.py)
@@ -253,23 +257,6 @@ class CompiledGraphs:
         #: hidden states returned -> the round's forward and acceptance as one function ([`accepting_call`])
         self.accepting: dict[tuple[int, ...] | None, Callable] = {}
 
-    @classmethod
-    def for_model(cls, model: PreTrainedModel, compile_config) -> CompiledGraphs:
-        """``model``'s compiled graphs for ``compile_config``, kept by its [`SpeculativeDecoder`] (made at its first
-        use), dynamo's recompile limit raised to hold one graph per bucket (past the limit dynamo would silently run
-        eagerly). A model copied with ``copy.deepcopy`` (its compiled rounds close over the original) gets its own,
-        and transformers' compiled call copied with it is dropped, so that the copy's graphs read the copy's weights.
-        Changes to the model itself fail the guards its rounds keep ([`round_guards`]) and recompile."""
-        held = SpeculativeDecoder.of(model).compiled_graphs
-        settings = compile_settings(compile_config)
-        verifier = held.get(settings)
-        if verifier is None:
-            verifier = held[settings] = cls(model, compile_config)
-        else:  # its model call fetched again: a caller may have wrapped ``get_compiled_call`` (the benchmarks' clock)
-            verifier.call = verifier.model_call(model)
-        verifier.reserve_graphs(2 * len(NODE_BUCKETS))  # every width, with / without hidden states
-        return verifier
-
     def model_call(self, model: PreTrainedModel) -> Callable:
         """The compiled model call: its graphs as files ([`graph_files`]) wrapped by the model's clock when it has one
         ([`CALL_WRAPPER_ATTRIBUTE`]), else transformers' ``get_compiled_call`` (which a clock wraps itself)."""
@@ -286,8 +273,8 @@ class CompiledGraphs:
 
     @classmethod
     def reset_compilation(cls) -> None:
-        """[`SpeculativeDecoder.reset_compilation`]."""
-        SpeculativeDecoder.reset_compilation()
+        """[`reset_compilation`]."""
+        reset_compilation()
 
     # ----------------------------------------------------------------- the graph budget
     def reserve_graphs(self, count: int, function: Callable | None = None) -> None:
@@ -520,15 +507,11 @@ def graphs_held(function: Callable) -> int:
     return held
 
 
-def allow_graphs_held(model: PreTrainedModel) -> None:
-    """Raises this thread's recompile limit to hold every graph dynamo holds for ``model``'s forward and for its
-    compiled graphs' drafter functions ([`graphs_held`]), and transformers' own beside them: dynamo's settings are per
-    thread (a ``ContextVar``), so a model compiled in one thread and decoding in another (a server's worker) would
-    meet the default limit there, with more graphs than it allows, and fail at its next compile
-    (``FailOnRecompileLimitHit`` under ``fullgraph=True``)."""
-    decoder = model.__dict__.get(DECODER_ATTRIBUTE)
-    functions = decoder.compiled_functions() if decoder is not None else []
-    allow_graphs(max(graphs_held(f) for f in [type(model).forward, *functions]) + _GRAPHS_BESIDE_OURS)
+def allow_graphs_beside(functions: Sequence[Callable]) -> None:
+    """Raises this thread's recompile limit to hold every graph dynamo holds for any of ``functions`` (a model's
+    forward, its drafters' compiled functions: [`graphs_held`]) and transformers' own beside them (dynamo's settings
+    are per thread: a thread that did not compile the graphs it meets needs this)."""
+    allow_graphs(max(graphs_held(f) for f in functions) + _GRAPHS_BESIDE_OURS)
 
 
 def allow_graphs(count: int) -> None:

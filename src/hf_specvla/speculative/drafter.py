@@ -47,6 +47,8 @@ class DraftContext:
             compiled, else None (eager): a drafter then compiles its own work through them (its functions, its
             up-front compiles, their graph files), under their ``CompileConfig`` ([`compile_config`]), instead of
             looking the model's graphs up or deciding to compile itself.
+        decoder: the target's ``SpeculativeDecoder`` when ``graphs`` are given (the static caches a compiled
+            drafter reuses across calls: ``static_cache``), else None.
         cached_tokens: the row's first tokens the target cache already held when the call began (a continued
             conversation or episode on one cache): the prefill feeds only the tokens after them, so no hidden states
             exist for them and a drafter's own cache starts empty there (``prompt_padding`` covers the fed ones).
@@ -62,12 +64,15 @@ class DraftContext:
     row: int = 0
     max_length: int | None = None
     graphs: Any = None  # a CompiledGraphs (not imported: compiled.py imports this module's importers)
+    decoder: Any = None  # the target's SpeculativeDecoder (not imported, as graphs), given with graphs
     cached_tokens: int = 0
     prompt_embeddings: torch.Tensor | None = None
 
     def __post_init__(self):
         if self.graphs is not None and self.max_length is None:
             raise ValueError("DraftContext.graphs needs max_length (a compiled drafter sizes its cache by it)")
+        if self.graphs is not None and self.decoder is None:
+            raise ValueError("DraftContext.graphs needs decoder (a compiled drafter's static cache is kept by it)")
 
     @property
     def compile_config(self) -> CompileConfig | None:
@@ -155,6 +160,12 @@ class DraftSession:
 
     def observe(self, commit: Commit) -> None:
         """Told what the verification kept. Default: nothing to update."""
+
+    def warm_up(self, draft_round: DraftRound) -> None:
+        """Compiles, now, every graph this session's later rounds run (a compiled call's drafter, through the
+        call's ``DraftContext.graphs``): called once by the target's ``SpeculativeDecoder.warm_up`` right after the
+        prefill was observed, with the round that comes next (``draft_round``, as [`propose`] will get it), so that
+        nothing compiles mid-call. Default: nothing to compile."""
 
     def report(self, stats: SpeculationStats, sequence: torch.Tensor) -> None:
         """Adds what the session alone knows to the row's statistics, once the call has ended (``sequence``
@@ -336,6 +347,10 @@ class _ComposedSession(DraftSession):
     def observe(self, commit: Commit) -> None:
         for session in self.sessions:
             session.observe(commit)
+
+    def warm_up(self, draft_round: DraftRound) -> None:
+        for session in self.sessions:
+            session.warm_up(draft_round)
 
     def report(self, stats: SpeculationStats, sequence: torch.Tensor) -> None:
         for session in self.sessions:

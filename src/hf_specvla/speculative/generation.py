@@ -17,14 +17,14 @@ import torch
 from transformers import GenerationConfig, LogitsProcessorList, PreTrainedModel, StoppingCriteriaList
 
 from .compat import check_transformers_support
-from .compiled import allow_graphs_held, compiled_call_config
+from .compiled import compiled_call_config
 from .config import SPECULATION_KWARGS, SpeculationConfig
+from .decoder import SpeculativeDecoder, allow_graphs_held
 from .drafter import Drafter
 from .graph_files import MIXED_FROM
 from .loop import speculative_generate
 from .modeling_draft_head import DraftHead
 from .precision import EXACT_ATTRIBUTE, keep_greedy_exact
-from .vision import with_compiled_image_features
 
 
 def with_generation_config(generation_config: GenerationConfig, settings: dict) -> dict:
@@ -175,7 +175,7 @@ def speculative_call_kwargs(model: PreTrainedModel, assistant_model, draft_ids, 
     if assistant_model is not None:
         loose["drafter"] = assistant_model
     speculation = SpeculationConfig.fold(speculation, loose)
-    kwargs = with_compiled_image_features(model, kwargs)  # a compiled call's images: a compiled encoder
+    kwargs = SpeculativeDecoder.of(model).encode_images(kwargs)  # a compiled call's images: a compiled encoder
     return {**kwargs, "speculation": speculation, "draft_ids": draft_ids}
 
 

@@ -1,9 +1,11 @@
 """The speculative decode loop: drafters propose trees, the target verifies each in one forward.
 
-One call reads as four steps (gpt-fast style), [`speculative_generate`]:
+[`speculative_generate`] folds a call's loose settings into one [`SpeculationConfig`] and hands the call to the
+model's ``SpeculativeDecoder`` (``decoder.py``), which runs it as five steps (gpt-fast style):
 
-    prepare (every argument checked, the rows' drafter sessions, the [`RoundPlan`]) -> prefill -> decode_round until
-    every row has stopped -> finish (the cache left as greedy leaves it, statistics, the output)
+    prepare (every argument checked, the rows' drafter sessions, the [`RoundPlan`]) -> prefill -> warm up (a compiled
+    call's graphs compiled, the one place that triggers it) -> decode_round until every row has stopped -> finish
+    (the cache left as greedy leaves it, statistics, the output)
 
 ``call.py`` holds the call's set-up and end (validation, ``prepare``, ``finish``), ``rounds.py`` the rounds,
 ``state.py`` the state they share. The prefill and every round run the same ladder, each step a short function of
@@ -15,7 +17,7 @@ One call reads as four steps (gpt-fast style), [`speculative_generate`]:
 
 What every round reads is decided once, before the prefill ([`RoundPlan`]: the acceptance rule, the static cache's
 slots, the compiled model call when ``compile_config`` asks for one); the compiled widths are compiled right after the
-prefill, outside the round loop.
+prefill, outside the round loop (``SpeculativeDecoder.warm_up``).
 
 Invariants kept between rounds, per batch row (each row has its own drafter session, tree, accepted path):
 
@@ -41,22 +43,17 @@ import os
 import sys
 import warnings
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import torch
 from transformers import GenerationConfig, LogitsProcessorList, PreTrainedModel, StoppingCriteriaList
 
-from .cache import host_length, open_sliding_windows
-from .call import finish, prepare
 from .compat import check_transformers_support
 from .config import SPECULATION_KWARGS, SpeculationConfig
+from .decoder import SpeculativeDecoder
 from .outputs import SpeculativeDecoderOnlyOutput
-from .rounds import CallStopping, decode_round, emit_tokens, prefill
+from .rounds import emit_tokens
 from .state import RowState
 from .stats import SpeculationStats
-
-if TYPE_CHECKING:
-    pass
 
 #: the loop's parts that tests and benchmarks reach through it
 __all__ = ["speculative_generate", "RowState", "emit_tokens"]
@@ -109,15 +106,17 @@ def speculative_generate(
             f"None, got {type(on_row_finished).__name__}"
         )
     speculation = SpeculationConfig.fold(speculation, _loose_settings(model_kwargs))
-    call = prepare(model, input_ids, logits_processor, generation_config, speculation, draft_ids, model_kwargs)
-    call.on_row_finished = on_row_finished
-    cache = call.state.target_cache
-    with open_sliding_windows(cache), host_length(cache):  # exact: the generation fits the window (checked)
-        stopping = CallStopping(stopping_criteria)  # answered on the host where it can be, read once
-        prefill(model, call, logits_processor, stopping)
-        while call.state.rows:
-            decode_round(model, call, logits_processor, stopping)
-    return finish(call, generation_config)
+    decoder = SpeculativeDecoder.of(model)
+    return decoder.decode(
+        input_ids,
+        logits_processor,
+        stopping_criteria,
+        generation_config,
+        speculation,
+        draft_ids,
+        model_kwargs,
+        on_row_finished,
+    )
 
 
 def _loose_settings(model_kwargs: dict) -> dict:

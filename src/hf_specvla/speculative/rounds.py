@@ -244,15 +244,22 @@ def propose(state: DecodeState, plan: RoundPlan) -> list[DraftTree]:
     no path drafts past ``max_length`` (the bonus token takes the last slot)."""
     trees = []
     for b, row in enumerate(state.rows):
-        draft_round = DraftRound(
-            sequence=row.sequence,
-            num_generated=row.num_generated,
-            max_depth=max(0, plan.max_length - row.sequence.shape[1] - 1),
-            at_prefill=row.num_generated == 0,  # the prefill emits at least its bonus token
-            root_position=state.pending_positions[b : b + 1, -1:],
-        )
-        trees.append(row.session.propose(draft_round).truncate_depth(draft_round.max_depth))
+        round_ = next_draft_round(state, plan, b)
+        trees.append(row.session.propose(round_).truncate_depth(round_.max_depth))
     return trees
+
+
+def next_draft_round(state: DecodeState, plan: RoundPlan, b: int) -> DraftRound:
+    """What row ``b``'s drafter sees in the round that comes next ([`DraftRound`]): its tokens, the deepest path that
+    fits ``max_length``, its root's position."""
+    row = state.rows[b]
+    return DraftRound(
+        sequence=row.sequence,
+        num_generated=row.num_generated,
+        max_depth=max(0, plan.max_length - row.sequence.shape[1] - 1),
+        at_prefill=row.num_generated == 0,  # the prefill emits at least its bonus token
+        root_position=state.pending_positions[b : b + 1, -1:],
+    )
 
 
 def fit_prefill_trees(trees: list[DraftTree], state: DecodeState, plan: RoundPlan) -> TreeBatch:
@@ -427,10 +434,14 @@ def settle(call: SpeculativeCall, trees: TreeBatch, output: TargetOutput, logits
         observe(state, commits)
 
 
-def prefill(model, call: SpeculativeCall, logits_processor, stopping_criteria) -> None:
+def prefill(model, call: SpeculativeCall, logits_processor, stopping_criteria) -> TreeBatch:
     """2. The prompt and the drafts known up front, verified in one forward (the model's prepared inputs, images
-    included; compiled when an earlier call compiled its graph); then, for a compiled call, every verification width
-    compiled (and the next call's prefill graph), before any compiled round."""
+    included; compiled when an earlier call compiled its graph). Finished rows stay in the batch (a compiled call's
+    graphs are compiled next, for the whole batch: ``SpeculativeDecoder.warm_up``); the caller drops them.
+
+    Returns:
+        the prefill's trees (what a compiled call feeds once more to compile the next call's prefill graph).
+    """
     state, plan, stats = call.state, call.plan, call.stats
     with call.stopwatch.section("draft_seconds"):
         proposed = propose(state, plan)
@@ -442,18 +453,7 @@ def prefill(model, call: SpeculativeCall, logits_processor, stopping_criteria) -
         output = plan.verifier.prefill(model, prompt, trees)
     stats.compiled_prefills += plan.verifier.compiled_prefill
     settle(call, trees, output, logits_processor, stopping_criteria)
-    if plan.verifier.compiled:  # every width compiled now, and the next call's prefill graph
-        following = Pending(
-            {CACHE_KEY: state.target_cache},
-            state.pending_ids,
-            state.pending_positions,
-            state.key_valid,
-            state.position_offsets,
-        )
-        stats.compile_seconds = plan.verifier.compile_ahead(
-            model, following, Pending(call.model_inputs, *call.prompt), trees
-        )
-    drop_finished_rows(call.state, fixed_batch=plan.capacity is not None)
+    return trees
 
 
 def decode_round(model, call: SpeculativeCall, logits_processor, stopping_criteria) -> None:

@@ -34,7 +34,7 @@ from .decoder import SpeculativeDecoder
 from .drafter import Drafter, NoDrafter
 from .generation import PreparedCall, SpeculativeGenerationMixin, prepare_call, ready_model
 from .modeling_draft_head import DraftHead
-from .vision import ENCODED_INPUTS, takes_encoded_images, with_compiled_image_features, with_encoded_images
+from .vision import ENCODED_INPUTS, takes_encoded_images, with_encoded_images
 
 logger = logging.getLogger(__name__)
 
@@ -149,7 +149,7 @@ class PreparedShape:
         them (``attention_mask`` ``[B, S]``, None when nothing is padded; position ids from it; the images encoded;
         a fresh cache) and its drafter folded into ``speculation``."""
         model_kwargs = dict(self.shared)
-        encoded = with_compiled_image_features(model, {**inputs, **generate_settings})
+        encoded = SpeculativeDecoder.of(model).encode_images({**inputs, **generate_settings})
         if self.encodes_images and takes_encoded_images(model, encoded):
             encoded = with_encoded_images(model, encoded)
         model_kwargs.update({name: value for name, value in encoded.items() if name not in generate_settings})

@@ -7,6 +7,7 @@ import time
 from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from transformers.cache_utils import Cache
@@ -14,7 +15,6 @@ from transformers.cache_utils import Cache
 from ..actions.tokenizer import ActionLayout
 from .acceptance import AcceptanceRule
 from .cache import cache_batch_size
-from .decoder import SpeculativeDecoder
 from .drafter import DraftSession
 from .stats import SpeculationStats
 from .verify import CallVerifier
@@ -126,4 +126,4 @@ class SpeculativeCall:
     total_start: float
     #: ``(row, new_tokens [n], row stats)`` -> None, called as each row stops (``speculative_generate``'s argument)
     on_row_finished: Callable[[int, torch.Tensor, SpeculationStats], None] | None = None
-    decoder: SpeculativeDecoder | None = None  # the model's: what the engine keeps between calls
+    decoder: Any = None  # the model's SpeculativeDecoder (not imported: it imports this), what it keeps between calls

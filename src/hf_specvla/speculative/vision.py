@@ -5,9 +5,9 @@ and hands the result to the model's forward as ``mm_encoder_outputs``; it runs t
 ``CompileConfig``, which compiles the language model's forward only. On a small policy the eager encoder is mostly
 host time, which compiling it cuts (docs/benchmarks.md, "The call's own work"). A compiled
 speculative call (``assistant_model=`` / ``draft_ids=`` with a static cache and a ``compile_config``: the calls whose
-verifications the engine compiles) encodes its images with the base model's ``get_image_features`` compiled by the
-model's [`CompiledGraphs`] (one graph per batch size; transformers' output-capturing wrappers do not trace into one
-graph, so graph breaks are allowed), and passes them to ``generate`` as ``mm_encoder_outputs``, which transformers
+verifications the engine compiles) encodes its images (``SpeculativeDecoder.encode_images``, with this module's
+[`with_encoded_images`]) with the base model's ``get_image_features`` compiled by the model's ``CompiledGraphs``
+(``CompiledGraphs.image_encoder``), and passes them to ``generate`` as ``mm_encoder_outputs``, which transformers
 forwards to the model unchanged: the same tensors its own encoding would give, up to the float rounding of compiled
 kernels (as the compiled language forwards round). Greedy calls are left to transformers.
 """
@@ -18,8 +18,6 @@ import inspect
 from functools import cache
 
 from transformers import PreTrainedModel
-
-from .compiled import CompiledGraphs, compiled_call_config
 
 #: the name transformers reads a VLM's pre-encoded images from (``generate`` kwargs and the model's forward)
 ENCODED_INPUTS = "mm_encoder_outputs"
@@ -35,25 +33,9 @@ def _encoder_parameters(encoder_function) -> tuple[str, ...]:
     return tuple(name for name in inspect.signature(encoder_function).parameters if name not in ("self", "kwargs"))
 
 
-def _encoder_inputs(encoder, kwargs: dict) -> dict:
+def encoder_inputs(encoder, kwargs: dict) -> dict:
     """The entries of ``kwargs`` the base model's ``get_image_features`` (``encoder``, bound) takes."""
     return {name: kwargs[name] for name in _encoder_parameters(encoder.__func__) if name in kwargs}
-
-
-def with_compiled_image_features(model: PreTrainedModel, kwargs: dict) -> dict:
-    """``generate``'s keyword arguments for a speculative call, the images encoded by the compiled encoder when the
-    call compiles its verifications ([`compiled_call_config`]) and the model takes pre-encoded images (its forward
-    has ``mm_encoder_outputs``, its base model ``get_image_features``); else ``kwargs`` unchanged. The encoder's
-    inputs (``pixel_values`` and whatever else ``get_image_features`` takes from the call) leave the keyword
-    arguments, as transformers' own encoding removes them."""
-    if not takes_encoded_images(model, kwargs):
-        return kwargs
-    compile_config = compiled_call_config(model, kwargs)
-    if compile_config is None:
-        return kwargs
-    verifier = CompiledGraphs.for_model(model, compile_config)
-    encoder = verifier.image_encoder(model, _encoder_inputs(model.base_model.get_image_features, kwargs))
-    return with_encoded_images(model, kwargs, encoder)
 
 
 def takes_encoded_images(model: PreTrainedModel, kwargs: dict) -> bool:
@@ -69,7 +51,7 @@ def takes_encoded_images(model: PreTrainedModel, kwargs: dict) -> bool:
 def with_encoded_images(model: PreTrainedModel, kwargs: dict, encoder=None) -> dict:
     """``kwargs`` with their images encoded as ``generate`` encodes them (by ``encoder``, a compiled
     ``get_image_features``, or the base model's own), under ``mm_encoder_outputs``; the encoder's inputs removed."""
-    inputs = _encoder_inputs(model.base_model.get_image_features, kwargs)
+    inputs = encoder_inputs(model.base_model.get_image_features, kwargs)
     rest = {name: value for name, value in kwargs.items() if name not in inputs}
     encoded = (encoder or model.base_model.get_image_features)(**inputs, return_dict=True)
     return {**rest, ENCODED_INPUTS: {"image": encoded}}
@@ -103,7 +85,7 @@ def encode_images(model: PreTrainedModel, inputs: dict):
             f"{type(model).__name__} has no base_model.get_image_features: its images cannot be encoded "
             f"before its forward"
         )
-    return encoder(**_encoder_inputs(encoder, inputs), return_dict=True)
+    return encoder(**encoder_inputs(encoder, inputs), return_dict=True)
 
 
 def prompt_input_embeddings(model: PreTrainedModel, input_ids, model_kwargs: dict, start: int = 0):

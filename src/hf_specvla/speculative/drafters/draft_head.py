@@ -55,7 +55,6 @@ from transformers.cache_utils import DynamicCache, StaticCache
 
 from ..cache import set_static_length, truncate_cache
 from ..compiled import compile_settings, rounded_slots
-from ..decoder import SpeculativeDecoder
 from ..drafter import Commit, DraftContext, Drafter, DraftRound, DraftSession
 from ..masks import causal_allowed, sequence_key_padding, to_additive_mask
 from ..modeling_draft_head import DraftHead, DraftScorer, TargetHandles
@@ -168,16 +167,14 @@ class DraftHeadDrafter(Drafter):
         conditioned.previous_bins = self.draft_head.previous_action_bins(previous_action, self.draft_head.device)
         return conditioned
 
-    def static_cache(self, model, key_length: int) -> StaticCache:
-        """The head's static cache of ``key_length`` slots, emptied: kept by the target ``model``'s
-        [`SpeculativeDecoder`] (one per head architecture, size, dtype and device), reused by every later compiled
+    def static_cache(self, decoder, key_length: int) -> StaticCache:
+        """The head's static cache of ``key_length`` slots, emptied: kept by the target's ``decoder`` (its
+        ``SpeculativeDecoder``; one per head architecture, size, dtype and device), reused by every later compiled
         call (as ``generate`` reuses its own; its buffers keep their addresses for compiled graphs)."""
         weights = self.draft_head.fuse.weight
         key = ("draft head", self._architecture_json(), key_length, weights.dtype, weights.device)
         config = self.draft_head.config  # as transformers' caches read it, once per cache made
-        return SpeculativeDecoder.of(model).static_cache(
-            key, lambda: StaticCache(config=config.to_llama_config(), max_cache_len=key_length)
-        )
+        return decoder.static_cache(key, lambda: StaticCache(config=config.to_llama_config(), max_cache_len=key_length))
 
     def _architecture_json(self) -> str:
         """The head's config as JSON: what its caches and compiled round depend on (made once)."""
@@ -222,8 +219,9 @@ class DraftHeadDrafter(Drafter):
 
 class _DraftHeadSession(DraftSession):
     """One row's drafting with the head. On a compiled target (``context.compile_config``, batch 1, no padding) the
-    head's cache is static and each round (catch-up + expansion) runs as one compiled graph, compiled at the call's
-    first compiled round; otherwise the same expansion runs eagerly on a ``DynamicCache``."""
+    head's cache is static and each round (catch-up + expansion) runs as one compiled graph, compiled right after the
+    call's prefill ([`warm_up`]), as is a block drafted before the prefill (which runs eagerly at its shape's first
+    call, as the target's prefill does); otherwise the same expansion runs eagerly on a ``DynamicCache``."""
 
     def __init__(self, drafter: DraftHeadDrafter, handles: TargetHandles, scorer: DraftScorer, context: DraftContext):
         self.drafter = drafter
@@ -237,11 +235,15 @@ class _DraftHeadSession(DraftSession):
             self.cache = DynamicCache()
         else:
             self.key_length = head_cache_slots(context.max_length, self.config)
-            self.cache = drafter.static_cache(context.model, self.key_length)
+            self.cache = drafter.static_cache(context.decoder, self.key_length)
             # the call's compiled graphs own the head's graphs too (one owner per model and compile settings)
             self.compiled = context.graphs
             self.compiled_round = self.compiled.compiled_function(catch_up_and_expand, graphs=1)
         self.graph_depth: int | None = None  # the depth this call's compiled rounds expand to (its first round's)
+        #: the first round's padded pairs and committed entries, made by [`warm_up`] (which compiled on them)
+        self.first_round_inputs: tuple | None = None
+        #: a block drafted eagerly before the prefill, to compile at [`warm_up`]: (graph key, its arguments)
+        self.block_to_compile: tuple | None = None
         self.cache_length = 0  # committed entries in self.cache
         self.cached_tokens = context.cached_tokens  # the row's tokens the target held before the call (not fed here)
         self.unfed: list[Commit] = []  # commits whose (token, hidden) pairs the head has not seen yet
@@ -303,11 +305,11 @@ class _DraftHeadSession(DraftSession):
             return DraftTree.empty(draft_round.sequence.device)
         if self.head.config.draft_mode == "block":
             return self._block(depth) if self.unfed else DraftTree.empty(draft_round.sequence.device)
-        root_position = draft_round.root_position.reshape(1, 1).clone(memory_format=torch.contiguous_format)
-        if self.key_length is not None and self.unfed:
-            # the deepest round of the call: after a prefill that emitted one token (whatever the prefill accepted)
-            deepest = draft_round.max_depth + draft_round.num_generated - 1
-            token_ids, parents = self._compiled_round(depth, deepest, root_position)
+        root_position = _root_position(draft_round)
+        if self.key_length is not None and self.graph_depth is None and self.unfed:
+            self.warm_up(draft_round)  # a wrapping session that did not pass the call's warm-up on: compiled now
+        if self.key_length is not None and (self.unfed or self.first_round_inputs is not None):
+            token_ids, parents = self._compiled_round(depth, root_position)
         else:
             if self.unfed:
                 tokens, hidden, positions, committed = self._take_unfed()
@@ -357,19 +359,15 @@ class _DraftHeadSession(DraftSession):
             self.config.top_k,
         )  # no cache: the block's entries are never kept
         settings = dict(key_valid=key_valid, previous=self.previous, pair_embeddings=pair_embeddings)
-        if self.compile_config is None:
-            table = block_round(*arguments, **settings)
-        else:  # one graph per prompt length and depth, compiled at its first call (a throw-away block)
+        key = None  # one graph per prompt length and depth
+        if self.compile_config is not None:
             key = ("draft-head prefill block", self.drafter.round_graph_key(self.compile_config, num_pairs, depth))
-            seconds = self.compiled.compile_once(
-                key, lambda: self.compiled.compiled_function(block_round, graphs=1)(*arguments, **settings)
-            )
-            if seconds:
-                self.compile_seconds += seconds
-                logger.info(
-                    "compiled the draft head's block before the prefill (%d pairs) in %.1f s", num_pairs, seconds
-                )
+        if key is not None and key in self.compiled.drafting_compiled:
             table = self.compiled.functions[block_round](*arguments, **settings)
+        else:  # eager; a compiled call's graph compiled on the same inputs right after the prefill ([`warm_up`])
+            table = block_round(*arguments, **settings)
+            if key is not None:
+                self.block_to_compile = (key, arguments, settings)
         self.num_forwards += 1
         return self._block_tree(table, depth)
 
@@ -447,15 +445,51 @@ class _DraftHeadSession(DraftSession):
         finally:
             truncate_cache(self.cache, self.cache_length)
 
-    def _compiled_round(
-        self, depth: int, max_depth: int, root_position: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Catch-up and expansion in one compiled graph ([`catch_up_and_expand`]): the unfed pairs padded to
-        ``num_padded_pairs`` (more, the prompt's after the prefill: all but the last ones fed eagerly first).
+    def warm_up(self, draft_round: DraftRound) -> None:
+        """Right after a compiled call's prefill: the block drafted eagerly before it compiled on the same inputs
+        (one graph per prompt length), and the call's round graph compiled on the first round's inputs (the pairs
+        the prefill committed: padded, any beyond the padding fed eagerly first, as that round would), kept for it.
 
-        One graph per call: expanded to the deepest any of its rounds can go (``max_depth``: after a prefill that
-        emitted one token; so the same for every call of a prompt length, whatever the prefill accepted), a shallower
-        round passes its depth as data (``depth_limit``) and gets the shallower expansion's tree."""
+        One round graph a call: expanded to the deepest any of its rounds can go (after a prefill that emitted one
+        token, whatever the prefill accepted: the same for every call of a prompt length); a shallower round passes
+        its depth as data ([`_compiled_round`])."""
+        if self.key_length is None:  # an eager head
+            return
+        if self.block_to_compile is not None:
+            key, arguments, settings = self.block_to_compile
+            self.block_to_compile = None
+            self._compile(
+                key,
+                lambda: self.compiled.compiled_function(block_round, graphs=1)(*arguments, **settings),
+                "block before the prefill",
+            )
+        depth = min(self.config.depth, draft_round.max_depth)
+        if self.head.config.draft_mode == "block" or depth < 1 or not self.unfed or self.graph_depth is not None:
+            return
+        self.first_round_inputs = self._round_inputs()
+        if self.first_round_inputs is None:  # nothing left for the graph (a one-token prompt): eager rounds
+            return
+        self.graph_depth = min(self.config.depth, draft_round.max_depth + draft_round.num_generated - 1)
+        key = self.drafter.round_graph_key(self.compile_config, self.key_length, self.graph_depth)
+        pairs = self.first_round_inputs[0]
+        self._compile(
+            key,
+            partial(self._run_round, pairs, _root_position(draft_round), self.graph_depth),
+            f"round (depth {self.graph_depth})",
+        )
+
+    def _compile(self, key: tuple, compile_all, what: str) -> None:
+        """``compile_all`` run once for ``key`` by the call's graphs (``CompiledGraphs.compile_once``), its seconds
+        booked as this session's compile time."""
+        seconds = self.compiled.compile_once(key, compile_all)
+        if seconds:
+            self.compile_seconds += seconds
+            logger.info("compiled the draft head's %s in %.1f s", what, seconds)
+
+    def _round_inputs(self) -> tuple[tuple, int] | None:
+        """The unfed pairs as a compiled round takes them (padded to ``num_padded_pairs``: any beyond fed eagerly
+        first, as is a never-written static cache's first entry, which allocates its buffers) and the committed
+        entries once they are fed; None when nothing is left for the graph (a one-token prompt: an eager round)."""
         tokens, hidden, positions, committed = self._take_unfed()
         padded = self.num_padded_pairs
         # an unwritten static cache allocates its buffers at its first write: never inside a graph
@@ -463,43 +497,59 @@ class _DraftHeadSession(DraftSession):
         split = max(tokens.shape[1] - padded, 0 if initialized else 1)
         if split:
             self._feed(tokens[:, :split], hidden[:, :split], positions[:, :split])
-            if split == tokens.shape[1]:  # nothing left for the graph (a one-token prompt): an eager round
-                return self._expand(depth, root_position)
+            if split == tokens.shape[1]:
+                return None
             tokens, hidden, positions = tokens[:, split:], hidden[:, split:], positions[:, split:]
         truncate_cache(self.cache, self.cache_length)
         num_new, pad = tokens.shape[1], padded - tokens.shape[1]
-        device = tokens.device
         pairs = (
             torch.cat([tokens, tokens.new_zeros(1, pad)], dim=1),
             torch.cat([hidden, hidden.new_zeros(1, pad, hidden.shape[-1])], dim=1),
             torch.cat([positions, positions[:, -1:].expand(1, pad)], dim=1),
-            torch.tensor(num_new, device=device),
+            torch.tensor(num_new, device=tokens.device),
         )
+        return pairs, committed
 
-        def run(depth_limit: int) -> tuple[torch.Tensor, torch.Tensor]:
-            try:
-                return self.compiled_round(
-                    self.head,
-                    self.embed,
-                    self.scorer,
-                    *pairs,
-                    root_position,
-                    self.cache,
-                    self.cache.layers[0].cumulative_length.clone(),
-                    self.key_length,
-                    self.config.top_k,
-                    self.graph_depth,
-                    self.config.total_tokens,
-                    torch.tensor(depth_limit, device=device),
-                    self.previous,
-                )
-            finally:
-                truncate_cache(self.cache, self.cache_length)
+    def _run_round(self, pairs: tuple, root_position: torch.Tensor, depth_limit: int):
+        """The compiled round (catch-up of ``pairs``, expansion to ``graph_depth``, trees limited to
+        ``depth_limit``); the head's cache keeps only its committed entries afterwards."""
+        try:
+            return self.compiled_round(
+                self.head,
+                self.embed,
+                self.scorer,
+                *pairs,
+                root_position,
+                self.cache,
+                self.cache.layers[0].cumulative_length.clone(),
+                self.key_length,
+                self.config.top_k,
+                self.graph_depth,
+                self.config.total_tokens,
+                torch.tensor(depth_limit, device=root_position.device),
+                self.previous,
+            )
+        finally:
+            truncate_cache(self.cache, self.cache_length)
 
-        if self.graph_depth is None:  # the call's first compiled round
-            self.graph_depth = min(self.config.depth, max_depth)
-            self._compile_round(run)
-        token_ids, parents = run(depth)
+    def _compiled_round(self, depth: int, root_position: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Catch-up and expansion in the call's compiled graph ([`catch_up_and_expand`], compiled by [`warm_up`]):
+        the unfed pairs padded (the first round's made by [`warm_up`]); a round shallower than ``graph_depth`` passes
+        its depth as data (``depth_limit``) and gets the shallower expansion's tree.
+
+        Raises:
+            RuntimeError: the call's round graph was not compiled ([`warm_up`] not run after the prefill).
+        """
+        inputs, self.first_round_inputs = self.first_round_inputs or self._round_inputs(), None
+        if inputs is None:  # nothing left for the graph (a one-token prompt): an eager round
+            return self._expand(depth, root_position)
+        if self.graph_depth is None:
+            raise RuntimeError(
+                "a compiled draft-head round before its graph was compiled: the target's SpeculativeDecoder.warm_up "
+                "compiles it right after the prefill"
+            )
+        pairs, committed = inputs
+        token_ids, parents = self._run_round(pairs, root_position, depth)
         self.num_forwards += self.graph_depth
         self.cache_length, self.root_feature = committed, None
         set_static_length(self.cache, committed)  # the real pairs' entries, written by the round, are kept
@@ -511,11 +561,7 @@ class _DraftHeadSession(DraftSession):
             token_ids, parents = tree.token_ids, tree.parents
         return token_ids, parents
 
-    def _compile_round(self, run) -> None:
-        """Compiles this call's round graph (``graph_depth``) before its first compiled round, so that nothing compiles
-        mid-call (a throw-away round on the real inputs; the cache keeps its entries)."""
-        key = self.drafter.round_graph_key(self.compile_config, self.key_length, self.graph_depth)
-        seconds = self.compiled.compile_once(key, partial(run, self.graph_depth))
-        if seconds:
-            self.compile_seconds += seconds
-            logger.info("compiled the draft head's round (depth %d) in %.1f s", self.graph_depth, seconds)
+
+def _root_position(draft_round: DraftRound) -> torch.Tensor:
+    """``[1, 1]`` the round's root position, contiguous (a compiled round's input)."""
+    return draft_round.root_position.reshape(1, 1).clone(memory_format=torch.contiguous_format)
