@@ -120,7 +120,16 @@ class SpeculativeDecoder:
         """One speculative call of the model, on what ``generate`` prepared (``speculative_generate``'s arguments,
         the settings whole): prepare (every argument checked, the rows' drafter sessions, the [`RoundPlan`]) ->
         prefill -> [`warm_up`] -> a round until every row has stopped -> finish (the cache left as greedy leaves it,
-        statistics, the output)."""
+        statistics, the output).
+
+        Raises:
+            TypeError: ``on_row_finished`` is neither callable nor None (and whatever [`prepare`] refuses).
+        """
+        if on_row_finished is not None and not callable(on_row_finished):
+            raise TypeError(
+                f"on_row_finished must be a callable (row: int, new_tokens: Tensor, stats: SpeculationStats) -> None "
+                f"or None, got {type(on_row_finished).__name__}"
+            )
         model = self.model
         call = prepare(self, input_ids, logits_processor, generation_config, speculation, draft_ids, model_kwargs)
         call.on_row_finished = on_row_finished

@@ -22,7 +22,6 @@ from .config import SPECULATION_KWARGS, SpeculationConfig
 from .decoder import SpeculativeDecoder, allow_graphs_held
 from .drafter import Drafter
 from .graph_files import MIXED_FROM
-from .loop import speculative_generate
 from .modeling_draft_head import DraftHead
 from .precision import EXACT_ATTRIBUTE, keep_greedy_exact
 
@@ -115,17 +114,17 @@ class PreparedCall:
 
     @torch.no_grad()
     def run(self, model: PreTrainedModel):
-        """Decodes the call ([`speculative_generate`]); returns what ``model.generate`` returns."""
-        return speculative_generate(
-            model,
+        """Decodes the call (the model's ``SpeculativeDecoder.decode``, what [`speculative_generate`] runs: the
+        settings are whole already); returns what ``model.generate`` returns."""
+        return SpeculativeDecoder.of(model).decode(
             self.input_ids,
             self.logits_processor,
             self.stopping_criteria,
             self.generation_config,
             self.speculation,
             self.draft_ids,
+            dict(self.model_kwargs),
             self.on_row_finished,
-            **self.model_kwargs,
         )
 
 

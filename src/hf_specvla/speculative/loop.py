@@ -100,14 +100,8 @@ def speculative_generate(
         [`SpeculationStats`] (summed over rows; ``.rows`` per row when B > 1).
     """
     check_transformers_support()
-    if on_row_finished is not None and not callable(on_row_finished):
-        raise TypeError(
-            f"on_row_finished must be a callable (row: int, new_tokens: Tensor, stats: SpeculationStats) -> None or "
-            f"None, got {type(on_row_finished).__name__}"
-        )
     speculation = SpeculationConfig.fold(speculation, _loose_settings(model_kwargs))
-    decoder = SpeculativeDecoder.of(model)
-    return decoder.decode(
+    return SpeculativeDecoder.of(model).decode(
         input_ids,
         logits_processor,
         stopping_criteria,
