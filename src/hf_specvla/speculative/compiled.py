@@ -271,11 +271,6 @@ class CompiledGraphs:
             function, self.compile_config.to_dict(), self.graph_key, self.store, guard_filter=guard_filter
         )
 
-    @classmethod
-    def reset_compilation(cls) -> None:
-        """[`reset_compilation`]."""
-        reset_compilation()
-
     # ----------------------------------------------------------------- the graph budget
     def reserve_graphs(self, count: int, function: Callable | None = None) -> None:
         """Raises this thread's recompile limit so that ``count`` more graphs of ``function`` (default: the model's

@@ -535,19 +535,10 @@ class _DraftHeadSession(DraftSession):
     def _compiled_round(self, depth: int, root_position: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Catch-up and expansion in the call's compiled graph ([`catch_up_and_expand`], compiled by [`warm_up`]):
         the unfed pairs padded (the first round's made by [`warm_up`]); a round shallower than ``graph_depth`` passes
-        its depth as data (``depth_limit``) and gets the shallower expansion's tree.
-
-        Raises:
-            RuntimeError: the call's round graph was not compiled ([`warm_up`] not run after the prefill).
-        """
+        its depth as data (``depth_limit``) and gets the shallower expansion's tree."""
         inputs, self.first_round_inputs = self.first_round_inputs or self._round_inputs(), None
         if inputs is None:  # nothing left for the graph (a one-token prompt): an eager round
             return self._expand(depth, root_position)
-        if self.graph_depth is None:
-            raise RuntimeError(
-                "a compiled draft-head round before its graph was compiled: the target's SpeculativeDecoder.warm_up "
-                "compiles it right after the prefill"
-            )
         pairs, committed = inputs
         token_ids, parents = self._run_round(pairs, root_position, depth)
         self.num_forwards += self.graph_depth
