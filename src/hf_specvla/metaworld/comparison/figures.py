@@ -69,12 +69,15 @@ RUNS = {
 RUNS_CPU = "AMD EPYC"
 #: (preset, seed range, what the row says) -> runs timed on another CPU or engine: rows of their own, since a
 #: speed-up holds for the machine it was measured on (on an Intel Xeon compiled greedy gains more over eager greedy
-#: than on the AMD EPYC of ``RUNS``: 1.47-1.51x against 1.17-1.24x); engine v5's on another EPYC (1.42x there)
+#: than on the AMD EPYC of ``RUNS``: 1.47-1.51x against 1.17-1.24x); engines v5's and v6's on other EPYCs (1.42x and
+#: 1.47x there)
 OTHER_RUNS = {
     ("exact", "100000+", "Intel Xeon, engine v4"): ("compare_v3_exact_engine_v4_100k_summary.json",),
     ("exact", "100000+", "AMD EPYC, engine v5: the policy's decoder session"): (
         "compare_v3_exact_engine_v5_session_100k_summary.json",
     ),
+    # run back to back with engine v5's code (c9a0673: 1.79x [1.75, 1.83], compare_v3_exact_engine_v5_c9a0673_...)
+    ("exact", "100000+", "AMD EPYC, engine v6: the decoder decodes"): ("compare_v3_exact_engine_v6_100k_summary.json",),
 }
 SERVING = "serving_load_v3_serving_v2.json"
 #: policy v2's relaxed rules (issue 35): ``fast`` before ``confirm=1`` was added on policy v3
