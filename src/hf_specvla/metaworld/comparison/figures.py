@@ -76,7 +76,7 @@ OTHER_RUNS = {
     ("exact", "100000+", "AMD EPYC, engine v5: the policy's decoder session"): (
         "compare_v3_exact_engine_v5_session_100k_summary.json",
     ),
-    # run back to back with engine v5's code (c9a0673: 1.79x [1.75, 1.83], compare_v3_exact_engine_v5_c9a0673_...)
+    # run back to back with engine v5's code (c9a0673): docs/benchmarks.md, session 37
     ("exact", "100000+", "AMD EPYC, engine v6: the decoder decodes"): ("compare_v3_exact_engine_v6_100k_summary.json",),
 }
 SERVING = "serving_load_v3_serving_v2.json"
