@@ -10,6 +10,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import types
 
 import pytest
 import torch
@@ -212,6 +213,54 @@ def test_the_model_key_holds_no_weights():
     assert json.dumps(architecture(a))  # a JSON record
 
 
+def _function_layer(function):
+    """A layer made from a function inside a function, as the ``kernels`` package makes its hub function layers
+    (``_create_func_module.<locals>.Func``, on every Llama-family model from transformers 5.25)."""
+
+    class Func(torch.nn.Module):
+        def forward(self, *args, **kwargs):
+            return function(*args, **kwargs)
+
+    return Func
+
+
+def _scaled(x, factor=2.0):
+    return x * factor
+
+
+class WithFunctionLayer(torch.nn.Module):
+    """A model calling a function layer it holds outside its submodules (``kernels``' ``use_kernelized_func``)."""
+
+    def __init__(self, seed: int):
+        super().__init__()
+        torch.manual_seed(seed)
+        self.linear = torch.nn.Linear(8, 3)
+        self.__dict__["_kernel_funcs"] = {"scaled": _function_layer(_scaled)()}
+
+    def forward(self, x):
+        return self._kernel_funcs["scaled"](self.linear(x))
+
+
+def test_a_model_calling_a_layer_whose_class_was_made_in_a_function_is_saved_and_loaded(tmp_path, caplog):
+    """torch cannot save a guard on a class made inside a function (no file can name it): those guards are left to
+    the key (the versions and the model's code), and the graph is a file that a later function loads."""
+    x = torch.randn(4, 8)
+    with torch.no_grad(), caplog.at_level(logging.WARNING, logger="hf_specvla"):
+        first = file_backed(WithFunctionLayer(seed=0), tmp_path)
+        out = first(x)
+        assert first.compiled == 1 and first.in_memory is None, [r.getMessage() for r in caplog.records]
+        assert torch.equal(out, WithFunctionLayer(seed=0)(x))
+        other = WithFunctionLayer(seed=1)  # other weights, one architecture: the file, its own weights
+        second = file_backed(other, tmp_path)
+        assert torch.equal(second(x), other(x)) and second.loaded == 1 and second.compiled == 0
+    assert not caplog.records
+    # what the dropped guards checked is the key's: a function layer's forward replaced (``kernels.kernelize``)
+    kernelized = WithFunctionLayer(seed=0)
+    layer = kernelized._kernel_funcs["scaled"]
+    layer.forward = types.MethodType(lambda self, x: x, layer)
+    assert architecture(kernelized) != architecture(WithFunctionLayer(seed=1)) == architecture(WithFunctionLayer(0))
+
+
 #: a fresh process: a tiny Llama (weights seeded by argv[2]) decoding with Jacobi drafts through compiled rounds
 #: (inductor) whose graphs are files in argv[1]; prints whether it equals eager greedy, and what was loaded
 ENGINE_PROCESS = textwrap.dedent(
@@ -314,3 +363,40 @@ def test_a_draft_heads_compiled_round_is_compiled_once_not_at_every_call(tmp_pat
         assert torch.equal(out, expected)
         compiles.append(sum("no graph file for its key" in r.getMessage() for r in caplog.records))
     assert compiles[0] > 0 and compiles[1:] == [0, 0], compiles
+
+
+def test_a_transformers_models_compiled_rounds_are_files_that_a_model_of_its_architecture_loads(
+    tmp_path, monkeypatch, caplog
+):
+    """Whatever the installed transformers hangs on its models (from 5.25 the ``kernels`` package's function layers,
+    classes made in a function), a Llama's compiled rounds and prefill are saved as files, none kept in memory for want
+    of a file, and another model of its architecture loads them all and decodes its own greedy tokens. The release
+    tests (tf520, tflatest) run this one with graph files on, so that a new release cannot drop the route unseen."""
+    from hf_specvla import JacobiDrafter
+    from hf_specvla.speculative.compiled import reset_compilation
+
+    from .test_compiled_verification import _model, eager_compile_config, greedy
+
+    monkeypatch.setenv(graph_files.FOLDER_ENV, str(tmp_path))
+    input_ids = torch.randint(6, 64, (1, 7), generator=torch.Generator().manual_seed(0))
+    compiled, loaded = [], []
+    for seed in (0, 1):
+        reset_compilation()
+        model = _model("llama")
+        if seed:
+            with torch.no_grad():
+                for parameter in model.parameters():
+                    parameter.add_(0.01 * torch.randn_like(parameter))
+        expected = greedy(model, input_ids)
+        caplog.clear()
+        with caplog.at_level(logging.INFO, logger="hf_specvla"):
+            out = greedy(model, input_ids, assistant_model=JacobiDrafter(), cache_implementation="static",
+                         compile_config=eager_compile_config())  # fmt: skip
+        assert torch.equal(out, expected), seed
+        messages = [r.getMessage() for r in caplog.records]
+        assert not [m for m in messages if "cannot be saved" in m or "kept in memory" in m], messages
+        compiled.append(sum("no graph file for its key" in m for m in messages))
+        loaded.append(sum("loaded compiled graph" in m for m in messages))
+    reset_compilation()
+    assert compiled[0] >= 2 and loaded[0] == 0, (compiled, loaded)
+    assert compiled[1] == 0 and loaded[1] == compiled[0], (compiled, loaded)

@@ -15,8 +15,8 @@ given ``--compile-cache DIR`` keeps them in ``DIR/graphs`` ([`graphs_kept_in`]).
 What keys a file ([`GraphKey`]), every part a miss when it changes (the log names the parts that differ from the
 nearest file of the same function):
 
-* the versions: torch, transformers, Python, the machine, and the code: this package's source and the source files of
-  the model's module classes (a policy's or a port's own modeling code);
+* the versions: torch, transformers, ``kernels`` (where installed), Python, the machine, and the code: this package's
+  source and the source files of the model's module classes (a policy's or a port's own modeling code);
 * the function (its name and bytecode) and its compile settings;
 * the model's architecture: its class, its configuration, its modules' classes, every parameter's and buffer's name,
   shape and dtype, its device; the modules it closes over the same;
@@ -29,8 +29,10 @@ retrained or fine-tuned with the same architecture reuses its graphs.
 Guards: a file keeps the guards that can be saved ([`portable_guards`]: the inputs' and parameters' shapes, dtypes,
 strides and devices, grad mode, autocast and the other ambient state), checked at every call; a call that fails them
 compiles anew. What the dropped guards checked (a module's class, its ``forward``, its hooks, the identity of the
-model) the engine checks itself: the architecture in the key, and a model's graphs belong to its decoder (a copy gets
-its own).
+model; any guard reaching into a class made inside a function, which no file can name: the ``kernels`` package's
+function layers on transformers >= 5.25's Llama-family models) the engine checks itself: the versions and the
+architecture in the key (a layer's ``forward`` replaced by ``kernels.kernelize`` included), and a model's graphs
+belong to its decoder (a copy gets its own).
 
 A file is written atomically (a temporary file in the same folder, then renamed: two processes compiling the same key
 both end with a whole file) and carries the SHA-256 of its content; a file that is truncated, damaged or unreadable is
@@ -44,6 +46,7 @@ import enum
 import functools
 import hashlib
 import importlib
+import importlib.metadata
 import inspect
 import json
 import logging
@@ -87,6 +90,18 @@ _UNSAVED_GUARDS = frozenset(
         "WEAKREF_ALIVE",
     }
 )
+
+
+#: guards on a value's type
+_TYPE_GUARDS = frozenset({"TYPE_MATCH", "BUILTIN_MATCH", "FAKE_SCRIPT_TYPE_MATCH"})
+
+
+def _of_local_class(value) -> bool:
+    """Whether ``value`` is a class made inside a function, or an object of one (``<locals>`` in the class's qualified
+    name: no module holds it, so no file can name it), e.g. the ``kernels`` package's function layers
+    (``_create_func_module.<locals>.Func``), which transformers >= 5.25 hangs on Llama-family models."""
+    cls = value if isinstance(value, type) else type(value)
+    return "<locals>" in cls.__qualname__
 
 
 def graph_folder(device_type: str = "cpu") -> Path | None:
@@ -153,6 +168,13 @@ def _engine_digest() -> str:
     return digest.hexdigest()[:16]
 
 
+def _version_of(distribution: str) -> str | None:
+    try:
+        return importlib.metadata.version(distribution)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
 def environment() -> dict:
     """The versions every graph depends on."""
     import transformers
@@ -160,6 +182,8 @@ def environment() -> dict:
     return {
         "torch": torch.__version__,
         "transformers": transformers.__version__,
+        # the hub-kernel layers transformers >= 5.25 hangs on its models: their code is traced into the graphs
+        "kernels": _version_of("kernels"),
         "python": ".".join(map(str, sys.version_info[:3])),
         "machine": platform.machine(),
         "engine": _engine_digest(),
@@ -168,7 +192,8 @@ def environment() -> dict:
 
 def architecture(module: torch.nn.Module) -> dict:
     """What a module's graphs depend on besides its weights' values: its class and configuration, every submodule's
-    class and the source of its code, every parameter's and buffer's name, shape and dtype, its device."""
+    class and the source of its code (and of the layers held outside submodules, [`_layers`]), a ``forward`` set on
+    one of them, every parameter's and buffer's name, shape and dtype, its device."""
     config = getattr(module, "config", None)
     config_text = config.to_json_string(use_diff=False) if hasattr(config, "to_json_string") else repr(config)
     config_text = (
@@ -179,7 +204,8 @@ def architecture(module: torch.nn.Module) -> dict:
         if config_text.startswith("{")
         else config_text
     )
-    classes = sorted({type(m) for m in module.modules()}, key=lambda c: (c.__module__, c.__qualname__))
+    layers = dict(_layers(module))
+    classes = sorted({type(m) for m in layers.values()}, key=lambda c: (c.__module__, c.__qualname__))
     code = {}
     for cls in classes:
         try:
@@ -189,7 +215,7 @@ def architecture(module: torch.nn.Module) -> dict:
     tensors = hashlib.sha256()
     for name, tensor in [*module.named_parameters(), *module.named_buffers()]:
         tensors.update(f"{name}:{tuple(tensor.shape)}:{tensor.dtype}:{tensor.device};".encode())
-    tree = hashlib.sha256("\n".join(f"{n}:{type(m).__qualname__}" for n, m in module.named_modules()).encode())
+    tree = hashlib.sha256("\n".join(f"{n}:{type(m).__qualname__}{_forward_of(m)}" for n, m in layers.items()).encode())
     return {
         "class": f"{type(module).__module__}.{type(module).__qualname__}",
         "config": hashlib.sha256(config_text.encode()).hexdigest()[:16],
@@ -197,6 +223,29 @@ def architecture(module: torch.nn.Module) -> dict:
         "modules": tree.hexdigest()[:16],
         "tensors": tensors.hexdigest()[:16],
     }
+
+
+def _layers(module: torch.nn.Module) -> Iterator[tuple[str, torch.nn.Module]]:
+    """``module.named_modules()`` and the layers its modules hold outside their submodules, in a dictionary
+    attribute (the ``kernels`` package's function layers, ``_kernel_funcs``, on Llama-family models from
+    transformers 5.25: ``kernelize`` replaces their ``forward``), named ``<module>.<attribute>.<key>``."""
+    for name, child in module.named_modules():
+        yield name, child
+        for attribute, value in vars(child).items():
+            if attribute != "_modules" and isinstance(value, dict):
+                for key, layer in value.items():
+                    if isinstance(layer, torch.nn.Module):
+                        yield f"{name}.{attribute}.{key}", layer
+
+
+def _forward_of(layer: torch.nn.Module) -> str:
+    """The ``forward`` set on ``layer`` itself (``kernels.kernelize``, a hook library), as ``:<module>.<name>``;
+    empty when it is its class's."""
+    forward = vars(layer).get("forward")
+    if forward is None:
+        return ""
+    function = getattr(forward, "__func__", forward)
+    return f":{getattr(function, '__module__', '?')}.{getattr(function, '__qualname__', type(function).__qualname__)}"
 
 
 def _dims(tensor: torch.Tensor) -> tuple:
@@ -264,11 +313,15 @@ def portable_guards(keep: Callable | None = None) -> Callable:
 
     def filter_guards(entries) -> list[bool]:
         kept = keep(entries) if keep is not None else [True] * len(entries)
+        local = [entry.name for entry in entries if entry.has_value and _of_local_class(entry.value)]
         return [
             bool(k)
             and not entry.is_global
             and entry.guard_type not in _UNSAVED_GUARDS
             and not _UNSAVED_GUARDS.intersection(entry.derived_guard_types or ())
+            # a class made in a function: neither its type nor what is read through its type (its methods' code)
+            and not (entry.guard_type in _TYPE_GUARDS and entry.name in local)
+            and not any(f"type({name})" in entry.name for name in local)
             for k, entry in zip(kept, entries)
         ]
 
