@@ -1,8 +1,8 @@
 """Runs a command only when the installed transformers is newer than the pinned release (tox's ``tflatest``).
 
-    python .ci/on_newer_transformers.py 5.24.0 pytest tests/speculative
+    python .ci/on_newer_transformers.py 5.25.0 pytest tests/speculative
 
-When the newest release is the pinned one, ``tf524`` has just run the same tests on it: this prints why it skips
+When the newest release is the pinned one, ``tf525`` has just run the same tests on it: this prints why it skips
 and exits 0. Otherwise it runs the command and exits with its status. Reads the version from the installed
 package's metadata (transformers itself is not imported).
 """
@@ -27,7 +27,7 @@ def main(argv: list[str]) -> int:
               "newest release failed", file=sys.stderr)  # fmt: skip
         return 1
     if installed == pinned:
-        print(f"tflatest: skipped: the newest transformers release is {installed}, the pinned one, which tf524 tests")
+        print(f"tflatest: skipped: the newest transformers release is {installed}, the pinned one, which tf525 tests")
         return 0
     print(f"tflatest: transformers {installed} (newer than the pinned {pinned}): {' '.join(command)}", flush=True)
     return subprocess.run(command).returncode

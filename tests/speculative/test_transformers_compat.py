@@ -132,7 +132,7 @@ def test_ci_runs_the_readme_test_command_with_the_newest_release_env():
     envs = command.split(",")
     assert "tflatest" in envs and any(env.startswith("tf5") for env in envs)
     # then the slow tier (docs/testing.md), after the fast one: a fast failure is reported first
-    slow = "python3 -m tox -e tf524 -- -m slow --runslow\n"
+    slow = "python3 -m tox -e tf525 -- -m slow --runslow\n"
     assert slow in ci and ci.index(slow) > ci.index(f"tox -e {command}")
     assert re.search(r"transformers>=[\d.]+,<6", _tox()["testenv:tflatest"]["deps"])
     # tflatest skips while the newest release is the pinned one: the release its check compares with is that pin

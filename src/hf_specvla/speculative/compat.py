@@ -27,10 +27,10 @@ from transformers.modeling_outputs import CausalLMOutputWithPast
 
 logger = logging.getLogger(__name__)
 
-#: the oldest and the newest transformers release the test matrix runs (tox: tf520 pins the oldest, tf524 the
+#: the oldest and the newest transformers release the test matrix runs (tox: tf520 pins the oldest, tf525 the
 #: newest, which the demo also pins; tflatest installs whatever is newest when it runs)
 OLDEST_TESTED_TRANSFORMERS = "5.20.0"
-NEWEST_TESTED_TRANSFORMERS = "5.24.0"
+NEWEST_TESTED_TRANSFORMERS = "5.25.0"
 #: what ``pyproject.toml`` admits
 SUPPORTED_TRANSFORMERS = f">={OLDEST_TESTED_TRANSFORMERS},<6"
 
