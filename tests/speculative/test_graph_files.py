@@ -20,7 +20,8 @@ from hf_specvla.speculative.graph_files import DAMAGED, FileBackedFunction, Grap
 from hf_specvla.speculative.regions import LAYER_REGIONS_ENV
 
 #: a fresh process: a tiny module (seeded by argv[2], width argv[3]) called through a file-backed function in the
-#: folder argv[1]; prints its result against the eager module's, and what it compiled and loaded
+#: folder argv[1]; prints its result against the eager module's, and what it compiled and loaded. dynamo's ``eager``
+#: backend: the file holds what it traced and its guards, as with inductor (whose files the engine's tests load)
 FRESH_PROCESS = textwrap.dedent(
     """
     import json, sys, torch
@@ -34,7 +35,7 @@ FRESH_PROCESS = textwrap.dedent(
     model = torch.nn.Sequential(torch.nn.Linear(width, 16), torch.nn.GELU(), torch.nn.Linear(16, 3)).eval()
     run_model = closing_over(model)
     key = {**environment(), "model": architecture(model)}
-    function = FileBackedFunction(run_model, {"fullgraph": True}, key, GraphStore(folder))
+    function = FileBackedFunction(run_model, {"fullgraph": True, "backend": "eager"}, key, GraphStore(folder))
     x = torch.randn(64, width, generator=torch.Generator().manual_seed(1))
     with torch.no_grad():
         got, want = function(x), model(x).argmax(-1)
@@ -95,7 +96,7 @@ def file_backed(model, folder, key_extra: dict | None = None) -> FileBackedFunct
         return model(x)
 
     key = {**environment(), "model": architecture(model), **(key_extra or {})}
-    return FileBackedFunction(run_small, {"fullgraph": True}, key, GraphStore(folder))
+    return FileBackedFunction(run_small, {"fullgraph": True, "backend": "eager"}, key, GraphStore(folder))
 
 
 @pytest.mark.parametrize("damage", ["truncated", "one byte changed", "not a graph"])
