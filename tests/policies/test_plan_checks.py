@@ -72,9 +72,13 @@ def policy():
 
 
 @pytest.mark.parametrize("method", ["exact", "none"])
-def test_predict_action_through_its_session_follows_suppressed_tokens_set_between_calls(policy, method):
+def test_predict_action_through_its_session_follows_suppressed_tokens_set_between_calls(policy, method, monkeypatch):
     """``model.generation_config.suppress_tokens`` set between two calls of an episode: the policy's decoder session
-    (its default) returns the action plain greedy decoding returns after the change, not the old one."""
+    (its default) returns the action plain greedy decoding returns after the change, not the old one. Compiled with
+    dynamo's ``eager`` backend (the session's logic is this test's; inductor's graphs of a policy are test_policy's)."""
+    from ..cli.test_cli import eager_backend_compiled_kwargs
+
+    monkeypatch.setattr("hf_specvla.speculative.compiled_decoding_kwargs", eager_backend_compiled_kwargs)
     rng = np.random.default_rng(0)
     image, state = rng.integers(0, 256, (32, 32, 3), dtype=np.uint8), np.array([0.0, 0.6, 0.2, 1.0])
     plan = DecodingMethod.parse(method, action_dim=4).plan(None, action_dim=4)
