@@ -154,13 +154,26 @@ def pytest_addoption(parser):
     )
 
 
+#: a folder of compiled graphs the tests keep from run to run (tox's tf525: ``{env_dir}/test-graphs``)
+TEST_GRAPHS_ENV = "HF_SPECVLA_TEST_GRAPHS"
+
+
 def pytest_configure(config):
     for kind, text in SLOW_KINDS.items():
         config.addinivalue_line("markers", f"{kind}: a slow test that {text}")
     # compiled graphs as files (speculative.graph_files) in one folder for the whole run, its workers included, so
-    # that a graph one test compiled is loaded by the next; never the user's own cache
+    # that a graph one test compiled is loaded by the next; never the user's own cache. HF_SPECVLA_TEST_GRAPHS (tox
+    # sets it) names a folder the tests keep from run to run, so that a later run loads what an earlier one compiled
+    # (the key makes a change of code or versions a miss); the controller clears it of what no run of this code can
+    # load, or what no run used for a week. Else a fresh folder per run.
     if "HF_SPECVLA_GRAPH_CACHE" not in os.environ:
-        os.environ["HF_SPECVLA_GRAPH_CACHE"] = tempfile.mkdtemp(prefix="hf_specvla-test-graphs-")
+        kept = os.environ.get(TEST_GRAPHS_ENV)
+        if kept and not hasattr(config, "workerinput"):
+            from hf_specvla.speculative.graph_files import remove_stale
+
+            Path(kept).mkdir(parents=True, exist_ok=True)
+            remove_stale(kept, unused_days=7)
+        os.environ["HF_SPECVLA_GRAPH_CACHE"] = kept or tempfile.mkdtemp(prefix="hf_specvla-test-graphs-")
 
 
 @pytest.fixture

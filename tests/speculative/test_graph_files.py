@@ -10,6 +10,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
 import types
 
 import pytest
@@ -212,6 +213,31 @@ def test_the_model_key_holds_no_weights():
     assert architecture(a) == architecture(b)
     assert architecture(a) != architecture(small_model(width=9))
     assert json.dumps(architecture(a))  # a JSON record
+
+
+def test_stale_graphs_are_removed_and_a_loaded_one_counts_as_used(tmp_path):
+    """``remove_stale``: a graph of another engine's code goes (no process of this code can load it), and so does a
+    record without its graph; with ``unused_days``, a graph neither written nor loaded for longer goes, while one
+    loaded since (its time refreshed) stays."""
+    records = {}
+    with torch.no_grad():
+        for width in (8, 9, 10):
+            before = set(tmp_path.glob("*.json"))
+            file_backed(small_model(width), tmp_path)(torch.randn(4, width))
+            (records[width],) = set(tmp_path.glob("*.json")) - before
+    records[8].write_text(json.dumps({**json.loads(records[8].read_text()), "engine": "another engine's code"}))
+    (tmp_path / "orphan-0.json").write_text("{}")
+    assert graph_files.remove_stale(tmp_path) == 2  # another engine's graph, the orphan record
+    assert {p.stem for p in graph_files_in(tmp_path)} == {records[9].stem, records[10].stem}
+    eight_days_ago = time.time() - 8 * 86400
+    for width in (9, 10):
+        os.utime(records[width].with_suffix(".graph"), (eight_days_ago, eight_days_ago))
+    loader = file_backed(small_model(9), tmp_path)
+    with torch.no_grad():
+        loader(torch.randn(4, 9))
+    assert loader.loaded == 1 and loader.compiled == 0
+    assert graph_files.remove_stale(tmp_path, unused_days=7) == 1  # width 10's; width 9's was just loaded
+    assert [p.stem for p in graph_files_in(tmp_path)] == [records[9].stem]
 
 
 def _function_layer(function):

@@ -356,6 +356,10 @@ class GraphStore:
         if tag != _MAGIC or hashlib.sha256(payload).hexdigest().encode() != digest:
             self.set_aside(path, "truncated or damaged (its checksum does not match)")
             return None
+        try:  # a file's modification time: when it was last written or loaded ([`remove_stale`] reads it)
+            os.utime(path)
+        except OSError:
+            pass
         return payload
 
     def set_aside(self, path: Path, why: str) -> None:
@@ -406,6 +410,32 @@ class GraphStore:
             if best is None or len(differ) < len(best):
                 best = differ
         return best or []
+
+
+def remove_stale(folder: str | os.PathLike, unused_days: float | None = None) -> int:
+    """Removes from ``folder`` the graph files no process of this environment can load: those whose versions or engine
+    code ([`environment`]: torch, transformers, ``kernels``, Python, the machine, this package's engine source) differ
+    from this process's, and, when ``unused_days`` is given, those neither written nor loaded for that many days.
+    Returns how many graphs it removed. For a folder one environment owns (the tests' under tox): a folder that
+    environments share keeps the others' graphs, which this would remove."""
+    folder, current = Path(folder), json.loads(json.dumps(environment(), default=_text))
+    oldest = time.time() - unused_days * 86400 if unused_days is not None else None
+    removed = 0
+    for record in folder.glob("*.json"):
+        graph = record.with_suffix(".graph")
+        try:
+            parts = json.loads(record.read_text())
+            stale = any(parts.get(name) != value for name, value in current.items())
+            stale = stale or (oldest is not None and graph.stat().st_mtime < oldest)
+        except (OSError, ValueError):
+            stale = not graph.exists()  # a record without its graph
+        if stale:
+            for path in (graph, record):
+                path.unlink(missing_ok=True)
+            removed += 1
+    if removed:
+        logger.info("removed %d stale compiled graph(s) from %s", removed, folder)
+    return removed
 
 
 def _differences(mine: dict, other: dict, prefix: str = "") -> set[str]:
