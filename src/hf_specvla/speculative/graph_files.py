@@ -313,15 +313,16 @@ def portable_guards(keep: Callable | None = None) -> Callable:
 
     def filter_guards(entries) -> list[bool]:
         kept = keep(entries) if keep is not None else [True] * len(entries)
-        local = [entry.name for entry in entries if entry.has_value and _of_local_class(entry.value)]
+        # an object of a class made in a function: neither its type nor what is read through it (its methods' code)
+        local = {entry.name for entry in entries if entry.has_value and _of_local_class(entry.value)}
+        through_local = [f"type({name})" for name in local]
         return [
             bool(k)
             and not entry.is_global
             and entry.guard_type not in _UNSAVED_GUARDS
             and not _UNSAVED_GUARDS.intersection(entry.derived_guard_types or ())
-            # a class made in a function: neither its type nor what is read through its type (its methods' code)
             and not (entry.guard_type in _TYPE_GUARDS and entry.name in local)
-            and not any(f"type({name})" in entry.name for name in local)
+            and not any(text in entry.name for text in through_local)
             for k, entry in zip(kept, entries)
         ]
 
