@@ -84,6 +84,26 @@ def test_session_encodes_images_as_generate_does(tiny_llava, random_llava_draft,
     assert session.direct_calls == 5
 
 
+def test_generate_with_gradients_on_and_a_session_meet_the_same_compiled_graphs(tiny_llava, caplog):
+    """``model.generate(assistant_model=...)`` called with gradients on (outside ``torch.no_grad``, as a script may
+    call it) and a session's calls (without) alternate on one compiled model: its images are encoded without
+    gradients either way, as ``generate`` encodes them, so no call fails the other's graph guards and compiles again
+    (a compiled call's image features with gradients used to fail them at every alternation)."""
+    import logging
+
+    session = DecoderSession(tiny_llava, **settings(True))
+    inputs = llava_prompt(torch.Generator().manual_seed(0), text_len=5)
+    expected = tiny_llava.generate(**inputs, **settings(True))
+    with caplog.at_level(logging.INFO, logger="hf_specvla"):
+        for _ in range(2):
+            assert torch.is_grad_enabled()
+            out = tiny_llava.generate(**inputs, assistant_model=JacobiDrafter(), **settings(True))
+            assert torch.equal(out, expected)
+            assert torch.equal(session.generate(**inputs, assistant_model=JacobiDrafter()), expected)
+    failed = [r.getMessage() for r in caplog.records if "failed its graph's guards" in r.getMessage()]
+    assert failed == []
+
+
 def test_session_samples_as_generate_does(tiny_llama):
     config = GenerationConfig(do_sample=True, temperature=0.7, top_k=20, max_new_tokens=NEW_TOKENS)
     session = DecoderSession(tiny_llama, generation_config=config)

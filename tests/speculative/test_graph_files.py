@@ -92,12 +92,12 @@ def small_model(width: int = 8, dtype=torch.float32):
     return torch.nn.Sequential(torch.nn.Linear(width, 16), torch.nn.Tanh(), torch.nn.Linear(16, 3)).eval().to(dtype)
 
 
-def file_backed(model, folder, key_extra: dict | None = None) -> FileBackedFunction:
+def file_backed(model, folder, key_extra: dict | None = None, **settings) -> FileBackedFunction:
     def run_small(x):
         return model(x)
 
     key = {**environment(), "model": architecture(model), **(key_extra or {})}
-    return FileBackedFunction(run_small, {"fullgraph": True, "backend": "eager"}, key, GraphStore(folder))
+    return FileBackedFunction(run_small, {"fullgraph": True, "backend": "eager", **settings}, key, GraphStore(folder))
 
 
 @pytest.mark.parametrize("damage", ["truncated", "one byte changed", "not a graph"])
@@ -204,6 +204,33 @@ def test_a_call_that_fails_its_graph_guards_compiles_again(tmp_path, caplog):
             out = function(x)
         assert out.shape == (4, 5) and torch.allclose(out, model(x))
     assert any("failed its graph's guards" in r.getMessage() for r in caplog.records)
+
+
+def test_a_dimension_marked_dynamic_stays_dynamic_in_a_graph_compiled_again_after_a_failed_guard(tmp_path, caplog):
+    """A graph whose input has a dimension marked dynamic (the engine's prefill: every prompt length) and which a
+    call compiles again because it failed a guard (here grad mode, on after the first call) is traced from the
+    inputs as marked: still one graph for every size, in this process and in the next one that loads its file. (It
+    used to be traced from the unmarked inputs: a graph of one size under the key of every size, compiled again and
+    saved over at each change of size, by every later process too.)"""
+    model = small_model()
+    function = file_backed(model, tmp_path, dynamic=False)  # as a CompileConfig compiles: no automatic dynamic sizes
+
+    def call(function, size: int):
+        x = torch.randn(size, 8)
+        torch._dynamo.mark_dynamic(x, 0)
+        assert torch.equal(function(x), model(x))
+
+    with torch.no_grad():
+        call(function, 4)
+    with caplog.at_level(logging.INFO, logger="hf_specvla"):  # grad mode on: a guard fails, once
+        for size in (5, 6, 5, 7, 6):
+            call(function, size)
+    assert function.compiled == 2
+    assert sum("failed its graph's guards" in r.getMessage() for r in caplog.records) == 1
+    later = file_backed(model, tmp_path, dynamic=False)  # a later process's: the file serves every size
+    for size in (9, 3, 12):
+        call(later, size)
+    assert (later.loaded, later.compiled) == (1, 0)
 
 
 def test_the_model_key_holds_no_weights():

@@ -171,10 +171,14 @@ class SpeculativeDecoder:
         prompt = Pending(call.model_inputs, *call.prompt)
         call.stats.compile_seconds = verifier.compile_ahead(self.model, following, prompt, prefill_trees)
 
+    @torch.no_grad()
     def encode_images(self, kwargs: dict) -> dict:
         """``generate``'s keyword arguments for a speculative call, its images encoded by the compiled image encoder
         when the call compiles its verifications ([`compiled_call_config`]) and the model takes pre-encoded images
         (its forward has ``mm_encoder_outputs``, its base model ``get_image_features``); else ``kwargs`` unchanged.
+        Without gradients, as ``generate`` (decorated ``torch.no_grad``) encodes them: a call of ``model.generate``
+        with gradients on and a session's call meet the same graphs (a graph traced with them on would fail its
+        guards at the other's every call, and compile again).
         The encoder's inputs (``pixel_values`` and whatever else ``get_image_features`` takes from the call) leave
         the keyword arguments, as transformers' own encoding removes them. The encoder compiles at its first call of
         a shape, here (``generate`` encodes before its prefill, so before [`warm_up`])."""

@@ -530,9 +530,16 @@ class FileBackedFunction:
             graph = self.graphs[key] = self._load_or_compile(args, kwargs, self._parts(key))
             if graph is None:  # it cannot be saved: in memory from now on
                 return self.in_memory(*args, **kwargs)
-        _unmark_dynamic((args, kwargs))  # what a loaded graph's guards expect (see _compile)
+        marks = _unmark_dynamic((args, kwargs))  # what a loaded graph's guards expect (see _compile)
         if not graph.guard_check(*args, **kwargs):  # what the key leaves to the guards: e.g. a parameter swapped
-            logger.info("compiling %s again: a call failed its graph's guards", self.name)
+            logger.info(
+                "compiling %s again: a call failed its graph's guards (%s)",
+                self.name,
+                _failed_guard(graph, args, kwargs),
+            )
+            # traced from the inputs as marked, as the key says (a dimension marked dynamic stays so: traced from
+            # unmarked inputs, the graph would hold this call's size under a key for every size)
+            _mark_dynamic_again(marks)
             graph = self.graphs[key] = self._compile(args, kwargs, self._parts(key))
             if graph is None:
                 return self.in_memory(*args, **kwargs)
@@ -636,6 +643,15 @@ class FileBackedFunction:
         }
 
 
+def _failed_guard(graph, args: tuple, kwargs: dict) -> str:
+    """The first guard of ``graph`` that a call with ``args`` / ``kwargs`` fails, as torch words it (for the log)."""
+    try:
+        f_locals = graph.prepare_f_locals(*args, **kwargs)
+        return " ".join(str(graph._artifacts.guard_manager.check_verbose(f_locals).verbose_code_parts).split())[:300]
+    except Exception as error:  # noqa: BLE001 - a diagnosis only
+        return f"unknown: {type(error).__name__}"
+
+
 def _plain_view(value):
     """``value``, or for a model whose class the engine made (``enable_speculation``'s class, made at run time: no
     module holds it, [`MIXED_FROM`] names the class it was made from) a view of it as that class: an object of the
@@ -662,15 +678,25 @@ def _closure_value(value) -> str:
 _MARKS = ("_dynamo_", "_has_dynamo_dim_marking", "_specialize_on")
 
 
-def _unmark_dynamic(value) -> None:
+def _unmark_dynamic(value, removed: list | None = None) -> list[tuple[torch.Tensor, str, object]]:
     """Drops dynamo's dynamic-dimension marks from the tensors in ``value`` (nested in mappings and sequences): a
-    graph loaded from a file was traced from marked inputs but its guards expect none."""
+    graph loaded from a file was traced from marked inputs but its guards expect none. Returns what it dropped,
+    ``(tensor, attribute, value)`` each ([`_mark_dynamic_again`])."""
+    removed = [] if removed is None else removed
     if isinstance(value, torch.Tensor):
         for mark in [name for name in vars(value) if name.startswith(_MARKS)]:
+            removed.append((value, mark, getattr(value, mark)))
             delattr(value, mark)
     elif isinstance(value, dict):
         for item in value.values():
-            _unmark_dynamic(item)
+            _unmark_dynamic(item, removed)
     elif isinstance(value, (list, tuple)):
         for item in value:
-            _unmark_dynamic(item)
+            _unmark_dynamic(item, removed)
+    return removed
+
+
+def _mark_dynamic_again(marks: list[tuple[torch.Tensor, str, object]]) -> None:
+    """Puts back the marks [`_unmark_dynamic`] dropped."""
+    for tensor, name, value in marks:
+        setattr(tensor, name, value)
