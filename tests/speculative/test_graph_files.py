@@ -233,6 +233,32 @@ def test_a_dimension_marked_dynamic_stays_dynamic_in_a_graph_compiled_again_afte
     assert (later.loaded, later.compiled) == (1, 0)
 
 
+def test_calls_that_alternate_between_guards_compile_each_once(tmp_path, caplog):
+    """Calls that alternate between what a graph's guards tell apart (grad mode off and on, as a script's calls and a
+    session's may) compile one graph each, then run whichever passes, as dynamo's own cache does: a function keeps
+    several graphs per input signature ([`GRAPHS_PER_SIGNATURE`]), not one compiled again at every change."""
+    model = small_model()
+    function = file_backed(model, tmp_path)
+    x = torch.randn(4, 8)
+    with caplog.at_level(logging.INFO, logger="hf_specvla"):
+        for _ in range(4):
+            with torch.no_grad():
+                assert torch.equal(function(x), model(x))
+            out = function(x)
+            assert out.requires_grad and torch.equal(out, model(x))
+    assert function.compiled == 2
+    assert sum("failed its graph's guards" in r.getMessage() for r in caplog.records) == 1
+    # more variants than it keeps (which parameters take gradients: 2^4 of them): the least recently used goes
+    parameters = list(model.parameters())
+    variants = graph_files.GRAPHS_PER_SIGNATURE + 1
+    for variant in [*range(variants), 0]:
+        for bit, parameter in enumerate(parameters):
+            parameter.requires_grad_(bool(variant >> bit & 1))
+        assert torch.equal(function(x), model(x))
+    assert function.compiled == 2 + variants + 1  # each variant once, then variant 0 again: it was dropped
+    assert len(function.graphs[graph_files.signature(((x,), {}))]) == graph_files.GRAPHS_PER_SIGNATURE
+
+
 def test_the_model_key_holds_no_weights():
     a, b = small_model(), small_model()
     with torch.no_grad():

@@ -28,8 +28,10 @@ retrained or fine-tuned with the same architecture reuses its graphs.
 
 Guards: a file keeps the guards that can be saved ([`portable_guards`]: the inputs' and parameters' shapes, dtypes,
 strides and devices, grad mode, autocast and the other ambient state), checked at every call; a call that fails them
-compiles anew. What the dropped guards checked (a module's class, its ``forward``, its hooks, the identity of the
-model; any guard reaching into a class made inside a function, which no file can name: the ``kernels`` package's
+compiles anew, from its inputs as marked (a size marked dynamic stays dynamic), and the function keeps that graph
+beside the others of the signature ([`GRAPHS_PER_SIGNATURE`]: calls that alternate compile each variant once; the
+file holds the newest). What the dropped guards checked (a module's class, its ``forward``, its hooks, the identity of
+the model; any guard reaching into a class made inside a function, which no file can name: the ``kernels`` package's
 function layers on transformers >= 5.25's Llama-family models) the engine checks itself: the versions and the
 architecture in the key (a layer's ``forward`` replaced by ``kernels.kernelize`` included), and a model's graphs
 belong to its decoder (a copy gets its own).
@@ -451,9 +453,16 @@ def _differences(mine: dict, other: dict, prefix: str = "") -> set[str]:
 
 
 # --------------------------------------------------------------------------------------------------- the function
+#: the graphs a [`FileBackedFunction`] keeps per input signature, each compiled for other guards (as dynamo keeps a
+#: code object's graphs, up to its recompile limit): a call runs the first whose guards it passes, so calls that
+#: alternate between what the guards tell apart (grad mode on and off, a hook added and removed) compile each once
+GRAPHS_PER_SIGNATURE = 8
+
+
 class FileBackedFunction:
-    """``torch.compile(function, **settings)`` whose graphs are files (see the module docstring): one graph per input
-    signature, loaded from its file when there is one, else compiled ahead of time and saved.
+    """``torch.compile(function, **settings)`` whose graphs are files (see the module docstring): a graph per input
+    signature, loaded from its file when there is one, else compiled ahead of time and saved; a call that fails its
+    guards gets one of its own beside it ([`GRAPHS_PER_SIGNATURE`]).
 
     Args:
         function: a plain function (its closure's modules are the graph's external data: a file never holds a model).
@@ -511,7 +520,8 @@ class FileBackedFunction:
             },
         }
         self.store = store
-        self.graphs: dict[object, Callable] = {}
+        #: input signature -> its graphs, each for other guards, the most recently used first
+        self.graphs: dict[object, list[Callable]] = {}
         self.compile_seconds = 0.0
         self.loaded = 0
         self.compiled = 0
@@ -525,25 +535,33 @@ class FileBackedFunction:
         if self.in_memory is not None:
             return self.in_memory(*args, **kwargs)
         key = signature((args, kwargs))
-        graph = self.graphs.get(key)
-        if graph is None:
-            graph = self.graphs[key] = self._load_or_compile(args, kwargs, self._parts(key))
+        graphs = self.graphs.get(key)
+        if graphs is None:
+            graph = self._load_or_compile(args, kwargs, self._parts(key))
             if graph is None:  # it cannot be saved: in memory from now on
                 return self.in_memory(*args, **kwargs)
+            graphs = self.graphs[key] = [graph]
         marks = _unmark_dynamic((args, kwargs))  # what a loaded graph's guards expect (see _compile)
-        if not graph.guard_check(*args, **kwargs):  # what the key leaves to the guards: e.g. a parameter swapped
-            logger.info(
-                "compiling %s again: a call failed its graph's guards (%s)",
-                self.name,
-                _failed_guard(graph, args, kwargs),
-            )
-            # traced from the inputs as marked, as the key says (a dimension marked dynamic stays so: traced from
-            # unmarked inputs, the graph would hold this call's size under a key for every size)
-            _mark_dynamic_again(marks)
-            graph = self.graphs[key] = self._compile(args, kwargs, self._parts(key))
-            if graph is None:
-                return self.in_memory(*args, **kwargs)
-            _unmark_dynamic((args, kwargs))
+        for index, graph in enumerate(graphs):  # the most recently used first
+            if graph.guard_check(*args, **kwargs):
+                if index:
+                    graphs.insert(0, graphs.pop(index))
+                return graph(*args, **kwargs)
+        # what the key leaves to the guards (a parameter swapped, grad mode, a hook): none of its graphs passes
+        logger.info(
+            "compiling %s again: a call failed its graph's guards (%s)",
+            self.name,
+            _failed_guard(graphs[0], args, kwargs),
+        )
+        # traced from the inputs as marked, as the key says (a dimension marked dynamic stays so: traced from unmarked
+        # inputs, the graph would hold this call's size under a key for every size)
+        _mark_dynamic_again(marks)
+        graph = self._compile(args, kwargs, self._parts(key))
+        if graph is None:
+            return self.in_memory(*args, **kwargs)
+        _unmark_dynamic((args, kwargs))
+        graphs.insert(0, graph)
+        del graphs[GRAPHS_PER_SIGNATURE:]
         return graph(*args, **kwargs)
 
     def _parts(self, inputs) -> dict:
