@@ -14,6 +14,9 @@
 #                                                    # on the still-warm machine (within its 30 s) a warm one
 #   GPU_CHECKS_TINY=1 bash examples/benchmarks/gpu_checks.sh start 1  # any part on a tiny random OpenVLA, on the
 #                                                    # CPU (PYTHON=...: an interpreter other than python3)
+#   HF_SPECVLA_DYNAMIC_WIDTHS=1 bash examples/benchmarks/gpu_checks.sh bench 1  # the round's widths of 2 nodes and
+#                                                    # more as one graph on the GPU too (the CPU's default, issue 84):
+#                                                    # its compile time and steady state against `bench 1`'s
 #
 # Packages the machine's image lacks (transformers >= 5.20, the server's) travel as wheels in ./.whl (carry it), made
 # here with the device README's `pip download` line: transformers==5.24.0 json-numpy==2.1.1 starlette==1.10.0

@@ -5,6 +5,10 @@ start three times, each in a process of its own, one after the other:
 * ``files, first start``: an empty graph folder (the graphs compiled ahead of time and saved);
 * ``files, later start``: the same folder again (the graphs loaded, not traced).
 
+Inductor's cache (``TORCHINDUCTOR_CACHE_DIR``) starts empty: one for the start in memory, one the two file starts share
+(a graph file holds its kernels' code; their C++ compile is Inductor's cache, which a later start on the same machine
+finds): a cold start is a machine's first.
+
 Each start builds a ``PolicyService`` (``--method`` on ``--buckets``, no calibration) and times its warm-up, which
 compiles every bucket's graphs for every mode, then decodes one observation per bucket row and compares its actions
 with the policy's own greedy ``predict_action`` (eager), and counts the graphs dynamo traced in the process (a later
@@ -115,7 +119,8 @@ def main(argv=None) -> list[dict]:
             policy = str(Path(scratch) / "policy")
             save_tiny_policy(Path(policy))
         for name, folder in STARTS.items():
-            env = {**os.environ, "HF_SPECVLA_GRAPH_CACHE": folder or str(Path(scratch) / "graphs")}
+            env = {**os.environ, "HF_SPECVLA_GRAPH_CACHE": folder or str(Path(scratch) / "graphs"),
+                   "TORCHINDUCTOR_CACHE_DIR": str(Path(scratch) / f"inductor-{folder or 'files'}")}  # fmt: skip
             command = [sys.executable, __file__, "--child", policy, "--method", args.method, "--threads",
                        str(args.threads), "--buckets", *map(str, args.buckets)]  # fmt: skip
             done = subprocess.run(command, capture_output=True, text=True, env=env)

@@ -159,9 +159,10 @@ def test_no_recompilation_after_warm_up(graphs_in_memory):
     # 0-4 with hidden states and its round, the tree (12) width 8-16 and its round, drafts + tree (18) width 32
     assert [s > 0 for s in compile_seconds] == [True, False, True, True, True, True], compile_seconds
     graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
-    # one round graph for the chain and one for the tree (shallower rounds pass their depth as data), and one prefill
-    # graph for every prompt length and draft count, without hidden states and with them
-    assert graphs == (len(NODE_BUCKETS) - 1) + len(NODE_BUCKETS) + 1 + 1 + 2
+    # the round's widths (on the CPU width 0 and one graph for the widths from 2 nodes) without hidden states and with
+    # them, one round graph for the chain and one for the tree (shallower rounds pass their depth as data), and one
+    # prefill graph for every prompt length and draft count, without hidden states and with them
+    assert graphs == 2 + 2 + 1 + 1 + 2
     with torch._dynamo.config.patch(error_on_recompile=True):
         for input_ids, expected, kwargs in steady:
             out = greedy(model, input_ids, return_dict_in_generate=True, **compiled, **kwargs)
@@ -184,7 +185,43 @@ def test_only_the_widths_a_drafter_can_fill_are_compiled(graphs_in_memory):
                  **compiled)  # fmt: skip
     assert torch.equal(out.sequences, greedy(model, input_ids))
     assert set(out.speculation.compiled_widths) <= {0, 2, 4} and out.speculation.compile_seconds > 0
-    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 3 + 1  # and the prefill's
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 2 + 1  # width 0, one for 2 and 4, the prefill
+
+
+@pytest.mark.parametrize("asked", [None, "1", "0"])
+def test_a_rounds_widths_from_two_nodes_share_one_graph_on_the_cpu(monkeypatch, graphs_in_memory, asked):
+    """On the CPU (``HF_SPECVLA_DYNAMIC_WIDTHS`` unset, or 1) a compiled round's widths of 2, 4 and 8 nodes run one
+    graph whose node count is a dynamic dimension, width 0 (a plain decoding step) its own: 2 graphs where a graph per
+    width is 4 (``HF_SPECVLA_DYNAMIC_WIDTHS=0``). Either way every call gives greedy's tokens, several widths are met,
+    and after the first call nothing compiles."""
+    if asked is None:
+        monkeypatch.delenv("HF_SPECVLA_DYNAMIC_WIDTHS", raising=False)
+    else:
+        monkeypatch.setenv("HF_SPECVLA_DYNAMIC_WIDTHS", asked)
+    model = _model("llama")
+    config = eager_compile_config()
+    drafter = JacobiDrafter(max_tokens=6)
+    assert buckets_up_to(drafter.max_tree_nodes(NEW_TOKENS - 1)) == (0, 2, 4, 8)
+    widths = set()
+    for seed, length in enumerate((6, 9, 5, 12)):
+        input_ids = torch.randint(6, 64, (1, length), generator=torch.Generator().manual_seed(seed))
+        expected = greedy(model, input_ids)
+        with torch._dynamo.config.patch(error_on_recompile=seed > 0):
+            out = greedy(model, input_ids, assistant_model=drafter, return_dict_in_generate=True,
+                         cache_implementation="static", compile_config=config)  # fmt: skip
+        assert torch.equal(out.sequences, expected), length
+        widths |= set(out.speculation.compiled_widths)
+    (accepting,) = SpeculativeDecoder.of(model).graphs(config).accepting.values()
+    assert graphs_held(accepting) == (4 if asked == "0" else 2)
+    assert len(widths & {2, 4, 8}) > 1, widths  # the one graph served several widths (the test is not vacuous)
+
+
+def test_a_dynamic_widths_setting_that_is_not_0_or_1_is_refused(monkeypatch):
+    from hf_specvla.speculative.compiled import dynamic_widths
+
+    monkeypatch.setenv("HF_SPECVLA_DYNAMIC_WIDTHS", "yes")
+    with pytest.raises(ValueError, match=r"HF_SPECVLA_DYNAMIC_WIDTHS='yes': expected 1 .* 0 .* or unset"):
+        dynamic_widths("cpu")
 
 
 def test_one_compiled_prefill_serves_every_prompt_length_and_draft_count(graphs_in_memory):
@@ -453,12 +490,16 @@ def test_compact_rows_moves_each_rows_valid_entries_to_the_front_in_order():
     assert static.layers[0].keys.data_ptr() == address
 
 
-def test_a_thread_that_did_not_compile_the_graphs_decodes_compiled_greedy_and_speculation(graphs_in_memory):
+def test_a_thread_that_did_not_compile_the_graphs_decodes_compiled_greedy_and_speculation(
+    monkeypatch, graphs_in_memory
+):
     """dynamo's recompile limit is per thread: graphs compiled in one thread (more than the default limit of 8 on the
     model's forward) must not make another thread's next compile fail (a server's worker decoding what its main
-    thread warmed up): compiled greedy and compiled verification there equal greedy."""
+    thread warmed up): compiled greedy and compiled verification there equal greedy. (A graph per round width, so
+    that the warm-up compiles more graphs than the default limit.)"""
     import threading
 
+    monkeypatch.setenv("HF_SPECVLA_DYNAMIC_WIDTHS", "0")
     model = _model("llama")
     compiled = dict(cache_implementation="static", compile_config=eager_compile_config())
     input_ids = torch.randint(6, 64, (1, 6), generator=torch.Generator().manual_seed(3))
@@ -547,7 +588,7 @@ def test_the_graph_budget_is_what_dynamo_holds_and_reset_forgets_every_verifier(
            draft_ids=torch.randint(6, 64, (1, 3)))  # fmt: skip
     held = graphs_held(type(model).forward)
     (accepting,) = verifier.accepting.values()  # the rounds' forward with their acceptance
-    assert held >= 1 and graphs_held(accepting) >= 3  # the prefill's graph; the widths of 3 drafts (0, 2, 4)
+    assert held >= 1 and graphs_held(accepting) >= 2  # the prefill's graph; the widths of 3 drafts (0; 2 and 4)
     with torch._dynamo.config.patch(recompile_limit=1):
         allow_graphs_held(model)  # a thread that did not compile: its limit holds every graph and transformers'
         assert torch._dynamo.config.recompile_limit >= max(held, graphs_held(accepting)) + 8

@@ -3,11 +3,12 @@
 A compiled graph (and a CUDA graph) holds one input shape. Every verification after the prefill feeds the pending
 token and a draft tree: its node count is rounded **up** to a width bucket (filler nodes pad it, see
 [`TreeBatch`]), its mask is always the explicit ``[1, 1, 1 + N, slots]`` tree mask over the static cache's slots,
-and it keeps ``1 + N`` logits, so a call site compiles one graph per bucket it meets (per batch size: a batch keeps
+and it keeps ``1 + N`` logits, so a call site compiles a graph per bucket it meets (per batch size: a batch keeps
 its rows in the static cache, finished ones included) and none afterwards, whatever the drafts, the accepted lengths
-or the tree shapes. Near the end of the cache, where a bucket no longer fits the
-free slots, the tree is cut to the largest bucket that does (fewer drafts, still exact) rather than compiling a
-new width.
+or the tree shapes. On the CPU the buckets of 2 nodes and more are one graph whose node count is a dynamic dimension
+([`dynamic_widths`], ``verify.mark_width_dynamic``), width 0 (a plain decoding step) its own. Near the end of the
+cache, where a bucket no longer fits the free slots, the tree is cut to the largest bucket that does (fewer drafts,
+still exact) rather than compiling a new width.
 
 Compilation is transformers' own: ``model.get_compiled_call(generation_config.compile_config)``, under the criteria
 of its compiled greedy decoding (a static cache; a CUDA / XPU device, or ``CompileConfig._compile_all_devices``; not
@@ -25,6 +26,7 @@ the prompt does not trace into one graph keeps an eager prefill (logged once).
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
@@ -53,7 +55,8 @@ from .verify import CompiledVerification, InputBuffers, Pending, Verification
 
 logger = logging.getLogger(__name__)
 
-#: the node counts a compiled verification is padded to (0: a plain decoding step); one graph per bucket met
+#: the node counts a compiled verification is padded to (0: a plain decoding step); a graph per bucket met (on the
+#: CPU one for the buckets from 2: [`dynamic_widths`])
 NODE_BUCKETS: tuple[int, ...] = (0, 2, 4, 8, 16, 32)  # checked by check_buckets below
 
 #: generate's own static cache is rebuilt with room for the largest bucket, its slot count rounded up to a multiple of
@@ -153,6 +156,23 @@ def _warn_eager_device(device_type: str) -> None:
     )
 
 
+#: ``HF_SPECVLA_DYNAMIC_WIDTHS``: ``1`` one graph for a round's widths from 2 nodes on every device, ``0`` a graph per
+#: width everywhere; unset: one graph on the CPU ([`dynamic_widths`])
+DYNAMIC_WIDTHS_VARIABLE = "HF_SPECVLA_DYNAMIC_WIDTHS"
+
+
+def dynamic_widths(device_type: str) -> bool:
+    """Whether a compiled round's widths of 2 nodes and more run as one graph whose node count is a dynamic
+    dimension (``verify.mark_width_dynamic``) instead of one graph per width: a compile instead of one per width
+    (``NODE_BUCKETS`` 2 4 8: 3 -> 1), at a forward that costs about as much (docs/design.md, "The compiled round").
+    On by default on the CPU; elsewhere (a CUDA graph per width either way, Triton kernels of a dynamic size not
+    measured against static ones) with ``HF_SPECVLA_DYNAMIC_WIDTHS=1``; ``=0`` turns it off everywhere."""
+    asked = os.environ.get(DYNAMIC_WIDTHS_VARIABLE, "")
+    if asked not in ("", "0", "1"):
+        raise ValueError(f"{DYNAMIC_WIDTHS_VARIABLE}={asked!r}: expected 1 (one graph), 0 (a graph per width) or unset")
+    return asked == "1" if asked else device_type == "cpu"
+
+
 def compile_settings(compile_config) -> str:
     """A hashable description of a ``CompileConfig`` (what its compiled graphs depend on)."""
     return repr(sorted(compile_config.to_dict().items()))
@@ -244,6 +264,8 @@ class CompiledGraphs:
         #: the model call as a file-backed function (None: transformers' ``get_compiled_call``)
         self.file_call = self._file_backed(model_call(model), None) if self.store is not None else None
         self.call: Callable = self.model_call(model)
+        #: whether a round's widths from ``DYNAMIC_WIDTH_FROM`` nodes share one graph ([`dynamic_widths`])
+        self.dynamic_widths = dynamic_widths(model.device.type)
         self.widths_compiled: set[tuple] = set()  # (slots, hidden states, buckets, batch size)
         self.prefills_compiled: set[tuple] = set()  # (slots, hidden states, batch size)
         self.prefills_eager: set[tuple] = set()  # the same keys, whose forward over the prompt did not compile

@@ -251,7 +251,8 @@ def _forward_of(layer: torch.nn.Module) -> str:
 
 
 def _dims(tensor: torch.Tensor) -> tuple:
-    dynamic = getattr(tensor, "_dynamo_dynamic_indices", ())
+    """The tensor's sizes, -1 where marked dynamic (``mark_dynamic`` or ``maybe_mark_dynamic``)."""
+    dynamic = {*getattr(tensor, "_dynamo_dynamic_indices", ()), *getattr(tensor, "_dynamo_weak_dynamic_indices", ())}
     return tuple(-1 if i in dynamic else s for i, s in enumerate(tensor.shape))
 
 

@@ -164,6 +164,33 @@ def forward_inputs(
     return inputs
 
 
+#: the node count from which a compiled round's width is a dynamic dimension of one graph ([`mark_width_dynamic`]);
+#: below it (a plain decoding step, 0 nodes) a graph of its own (dynamo specialises sizes 0 and 1)
+DYNAMIC_WIDTH_FROM = 2
+
+
+def mark_width_dynamic(inputs: dict, trees: TreeBatch) -> bool:
+    """Marks a compiled round's node count dynamic in the model's inputs
+    (``input_ids`` / ``position_ids`` ``[B, 1 + N]``, the tree mask ``[B, 1, 1 + N, slots]``) and the trees' tensors
+    (``[B, N]``, ``ancestor_or_self`` ``[B, N, N]``), and keeps every logit (``logits_to_keep = 0``: the ``1 + N``
+    queries, not an int the graph would hold), so that one graph serves every width from [`DYNAMIC_WIDTH_FROM`]
+    nodes. ``torch._dynamo.maybe_mark_dynamic``: a model whose forward fixes the query length (a Python branch on it)
+    gets a graph of that width, and one per width as before (a graph file keeps several per key, each for its own
+    guards). Only for one pending token (a round's) and 2D positions; returns whether it marked them."""
+    if trees.num_nodes < DYNAMIC_WIDTH_FROM or inputs["input_ids"].shape[1] != 1 + trees.num_nodes:
+        return False
+    if inputs["position_ids"].ndim != 2:
+        return False
+    mark = torch._dynamo.maybe_mark_dynamic
+    for tensor in (inputs["input_ids"], inputs["position_ids"], trees.token_ids, trees.parents, trees.depths):
+        mark(tensor, 1)
+    mark(trees.is_real, 1)
+    mark(inputs["attention_mask"], 2)
+    mark(trees.ancestor_or_self, (1, 2))
+    inputs["logits_to_keep"] = 0
+    return True
+
+
 class Verification:
     """How a call's target forwards run (chosen once per call, the same interface for the prefill and every round):
     ``verify(model, pending, trees)`` -> [`TargetOutput`], logits ``[B, 1 + N, V]`` after the root and after each
@@ -217,8 +244,9 @@ class EagerVerification(Verification):
 
 
 class CompiledVerification(Verification):
-    """A compiled model call: every forward gets the explicit tree mask (one mask kind, one graph per width), its
-    outputs are copied (a CUDA graph's are overwritten by its next replay).
+    """A compiled model call: every forward gets the explicit tree mask (one mask kind; a graph per width, or one for
+    the widths from [`DYNAMIC_WIDTH_FROM`]: [`round_inputs`]), its outputs are copied (a CUDA graph's are overwritten
+    by its next replay).
 
     Args:
         call: the compiled model call (transformers' ``get_compiled_call``), or the compiled prefill's
@@ -248,8 +276,16 @@ class CompiledVerification(Verification):
         batch_size, queries = pending.ids.shape[0], pending.ids.shape[1] + trees.num_nodes
         return self.verifier.input_buffers(batch_size, queries, self.key_length, self.dtype, pending.ids.device)
 
-    def verify(self, model: PreTrainedModel, pending: Pending, trees: TreeBatch) -> TargetOutput:
+    def round_inputs(self, model: PreTrainedModel, pending: Pending, trees: TreeBatch) -> dict:
+        """The forward's inputs, written into the width's buffers; a round's width marked dynamic where the
+        verifier's graphs serve every width from [`DYNAMIC_WIDTH_FROM`] with one graph ([`mark_width_dynamic`])."""
         inputs = forward_inputs(model, pending, trees, False, self.key_length, self.buffers(pending, trees))
+        if self.verifier is not None and self.verifier.dynamic_widths:
+            mark_width_dynamic(inputs, trees)
+        return inputs
+
+    def verify(self, model: PreTrainedModel, pending: Pending, trees: TreeBatch) -> TargetOutput:
+        inputs = self.round_inputs(model, pending, trees)
         outputs = self.call(**inputs, output_hidden_states=bool(self.output_hidden), return_dict=True)
         note_appended(pending.cache, pending.ids.shape[1] + trees.num_nodes)
         return self._read(outputs, copy=True)
@@ -280,7 +316,7 @@ class FusedVerification(CompiledVerification):
         self.acceptance = acceptance
 
     def verify(self, model: PreTrainedModel, pending: Pending, trees: TreeBatch) -> TargetOutput:
-        inputs = forward_inputs(model, pending, trees, False, self.key_length, self.buffers(pending, trees))
+        inputs = self.round_inputs(model, pending, trees)
         accepted, hidden = self.acceptance(inputs, trees, pending.lengths)
         note_appended(pending.cache, pending.ids.shape[1] + trees.num_nodes)
         return TargetOutput(None, None if hidden is None else hidden.clone(), accepted.clone())
