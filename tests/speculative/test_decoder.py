@@ -20,6 +20,7 @@ from hf_specvla.speculative import SpeculativeDecoder, reusable_static_cache
 from hf_specvla.speculative.compiled import reset_compilation
 from hf_specvla.speculative.decoder import DECODER_ATTRIBUTE
 from hf_specvla.speculative.generation import SpeculativeGenerationMixin
+from hf_specvla.speculative.graph_files import MIXED_FROM
 
 from ..conftest import tiny_llama_config
 from .test_compiled_verification import eager_compile_config, greedy
@@ -150,8 +151,26 @@ def test_one_speculative_class_a_model_class_found_without_a_registry():
     assert type(disable_speculation(first)) is LlamaForCausalLM
     assert type(enable_speculation(first)) is mixed
     assert type(enable_speculation(first)) is mixed  # enabling twice changes nothing
-    bases = (SpeculativeGenerationMixin, LlamaForCausalLM)
-    assert [sub for sub in LlamaForCausalLM.__subclasses__() if sub.__bases__ == bases] == [mixed]
+    assert [sub for sub in LlamaForCausalLM.__subclasses__() if vars(sub).get(MIXED_FROM)] == [mixed]
+
+
+def test_a_users_own_subclass_of_the_same_bases_is_never_taken_for_the_mixed_class():
+    """A class of the user's with the mixin and a model class as its bases (its own ``generate``, say: the OpenVLA port
+    has one), made before any model of that class is enabled, is not the class ``enable_speculation`` mixes in: the
+    model keeps the mixin's ``generate`` and decodes."""
+
+    class Plain(LlamaForCausalLM):  # a model class no test has enabled yet
+        pass
+
+    class Wrapping(SpeculativeGenerationMixin, Plain):
+        def generate(self, *args, **kwargs):
+            raise AssertionError("the user's class, not the mixed one")
+
+    torch.manual_seed(0)
+    model = enable_speculation(Plain(tiny_llama_config()).eval())
+    assert type(model) is not Wrapping and vars(type(model)).get(MIXED_FROM) is Plain
+    input_ids = torch.randint(6, 64, (1, 5), generator=torch.Generator().manual_seed(0))
+    assert greedy(model, input_ids, draft_ids=torch.randint(6, 64, (1, 3))).shape == (1, 5 + 7)
 
 
 def test_nothing_is_written_on_transformers_cache_objects(tiny_llama, monkeypatch):

@@ -207,12 +207,14 @@ def _set_up(
 def speculative_class(model_class: type[PreTrainedModel]) -> type[PreTrainedModel]:
     """``model_class`` with [`SpeculativeGenerationMixin`] mixed in; keeps the class name, so that
     ``save_pretrained`` records the original architecture. One such class per model class while any exists: it is
-    found among ``model_class``'s own subclasses (Python keeps that list), so that nothing is kept here."""
+    found among ``model_class``'s own subclasses (Python keeps that list) by the mark it was made with
+    ([`MIXED_FROM`]), so that nothing is kept here and a user's own subclass of the same bases (one that overrides
+    ``generate``, say) is never taken for it."""
     if issubclass(model_class, SpeculativeGenerationMixin):
         return model_class
     bases = (SpeculativeGenerationMixin, model_class)
     for subclass in model_class.__subclasses__():
-        if subclass.__bases__ == bases:
+        if subclass.__bases__ == bases and vars(subclass).get(MIXED_FROM) is model_class:
             return subclass
     namespace = {"__module__": model_class.__module__, "__qualname__": model_class.__qualname__}
     return type(model_class.__name__, bases, {**namespace, MIXED_FROM: model_class})
