@@ -7,7 +7,7 @@ start three times, each in a process of its own, one after the other:
 
 Inductor's cache (``TORCHINDUCTOR_CACHE_DIR``) starts empty: one for the start in memory, one the two file starts share
 (a graph file holds its kernels' code; their C++ compile is Inductor's cache, which a later start on the same machine
-finds): a cold start is a machine's first.
+finds): a cold start is a machine's first (``--inductor-cache machine``: the machine's own cache instead).
 
 Each start builds a ``PolicyService`` (``--method`` on ``--buckets``, no calibration) and times its warm-up, which
 compiles every bucket's graphs for every mode, then decodes one observation per bucket row and compares its actions
@@ -42,6 +42,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s)")
     parser.add_argument("--json", type=Path, help="write the table's rows here")
     parser.add_argument("--tiny", action="store_true", help="a random tiny policy (saved to a temporary folder)")
+    parser.add_argument(
+        "--inductor-cache",
+        choices=("empty", "machine"),
+        default="empty",
+        help="empty: every start from empty Inductor caches (a machine's first start); machine: the machine's own "
+        "(TORCHINDUCTOR_CACHE_DIR or torch's default) (default: %(default)s)",
+    )
     parser.add_argument("--child", help=argparse.SUPPRESS)  # one start, in this process: the policy folder
     args = parser.parse_args(argv)
     if args.threads < 1 or any(b < 1 for b in args.buckets):
@@ -119,8 +126,9 @@ def main(argv=None) -> list[dict]:
             policy = str(Path(scratch) / "policy")
             save_tiny_policy(Path(policy))
         for name, folder in STARTS.items():
-            env = {**os.environ, "HF_SPECVLA_GRAPH_CACHE": folder or str(Path(scratch) / "graphs"),
-                   "TORCHINDUCTOR_CACHE_DIR": str(Path(scratch) / f"inductor-{folder or 'files'}")}  # fmt: skip
+            env = {**os.environ, "HF_SPECVLA_GRAPH_CACHE": folder or str(Path(scratch) / "graphs")}
+            if args.inductor_cache == "empty":
+                env["TORCHINDUCTOR_CACHE_DIR"] = str(Path(scratch) / f"inductor-{folder or 'files'}")
             command = [sys.executable, __file__, "--child", policy, "--method", args.method, "--threads",
                        str(args.threads), "--buckets", *map(str, args.buckets)]  # fmt: skip
             done = subprocess.run(command, capture_output=True, text=True, env=env)

@@ -414,6 +414,7 @@ def test_every_decode_runs_on_the_services_thread_with_room_for_every_buckets_gr
         return dict(cache_implementation="static", compile_config=config)
 
     monkeypatch.setattr(speculative, "compiled_decoding_kwargs", eager_backend)
+    monkeypatch.setenv("HF_SPECVLA_DYNAMIC_WIDTHS", "0")  # a graph per round width: more than the default limit
     reset_compilation()
     service = _service(policy, method=METHOD + ":compile", buckets=(1, 2, 4))
     seen = []
