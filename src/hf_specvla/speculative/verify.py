@@ -169,26 +169,23 @@ def forward_inputs(
 DYNAMIC_WIDTH_FROM = 2
 
 
-def mark_width_dynamic(inputs: dict, trees: TreeBatch) -> bool:
+def mark_width_dynamic(inputs: dict, trees: TreeBatch) -> None:
     """Marks a compiled round's node count dynamic in the model's inputs
     (``input_ids`` / ``position_ids`` ``[B, 1 + N]``, the tree mask ``[B, 1, 1 + N, slots]``) and the trees' tensors
     (``[B, N]``, ``ancestor_or_self`` ``[B, N, N]``), and keeps every logit (``logits_to_keep = 0``: the ``1 + N``
     queries, not an int the graph would hold), so that one graph serves every width from [`DYNAMIC_WIDTH_FROM`]
     nodes. ``torch._dynamo.maybe_mark_dynamic``: a model whose forward fixes the query length (a Python branch on it)
     gets a graph of that width, and one per width as before (a graph file keeps several per key, each for its own
-    guards). Only for one pending token (a round's) and 2D positions; returns whether it marked them."""
-    if trees.num_nodes < DYNAMIC_WIDTH_FROM or inputs["input_ids"].shape[1] != 1 + trees.num_nodes:
-        return False
-    if inputs["position_ids"].ndim != 2:
-        return False
+    guards). Only for one pending token (a round's) and 2D positions; anything else is left as it is."""
+    ids, positions = inputs["input_ids"], inputs["position_ids"]
+    if trees.num_nodes < DYNAMIC_WIDTH_FROM or ids.shape[1] != 1 + trees.num_nodes or positions.ndim != 2:
+        return
     mark = torch._dynamo.maybe_mark_dynamic
-    for tensor in (inputs["input_ids"], inputs["position_ids"], trees.token_ids, trees.parents, trees.depths):
+    for tensor in (ids, positions, trees.token_ids, trees.parents, trees.depths, trees.is_real):
         mark(tensor, 1)
-    mark(trees.is_real, 1)
     mark(inputs["attention_mask"], 2)
     mark(trees.ancestor_or_self, (1, 2))
     inputs["logits_to_keep"] = 0
-    return True
 
 
 class Verification:
