@@ -380,6 +380,27 @@ def test_session_path_benchmark_tiny_mode(tmp_path):
 
 
 @pytest.mark.slow
+def test_call_path_benchmark_counts_a_sessions_call_that_plans_nothing(tmp_path):
+    """It counts the functions from ``predict_action`` to the prefill's forward (fewer than the whole call's); a
+    session's third call reuses its shape's plan (no round plan made, no cache sized), a call through
+    ``model.generate`` makes both; an existing --json is refused before anything runs."""
+    output = tmp_path / "path.json"
+    result = run_example("benchmarks/call_path.py", "--json", output, timeout=600)
+    assert "| span | functions | files | + comprehensions, lambdas |" in result.stdout
+    counts = json.loads(output.read_text())
+    forward, whole = counts["to the forward"], counts["whole call"]
+    assert 0 < forward["functions"] < whole["functions"] and 0 < forward["files"] <= whole["files"]
+    session = [name for names in forward["by_file"].values() for name in names]
+    assert "ActionPolicy.predict_action" in session and "SpeculativeDecoder.decode" in session
+    assert "_round_plan" not in session and "with_draft_slots" not in session
+    result = run_example("benchmarks/call_path.py", "--no-session", "--json", tmp_path / "generate.json", timeout=600)
+    generate = json.loads((tmp_path / "generate.json").read_text())["to the forward"]["by_file"]
+    assert {"_round_plan", "with_draft_slots"} <= {name for names in generate.values() for name in names}
+    refused = run_example("benchmarks/call_path.py", "--json", output, timeout=120, check=False)
+    assert refused.returncode == 2 and "exists" in refused.stderr
+
+
+@pytest.mark.slow
 def test_start_time_benchmark_tiny_mode(tmp_path):
     """Its tiny mode: three fresh server processes (graphs in memory, files first, files again), every served action
     equal to the policy's greedy one; the later start loads every graph, the image encoder's included: dynamo traces

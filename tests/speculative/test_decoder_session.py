@@ -104,6 +104,39 @@ def test_generate_with_gradients_on_and_a_session_meet_the_same_compiled_graphs(
     assert failed == []
 
 
+def test_a_shapes_later_calls_reuse_its_round_plan_while_it_fits(tiny_llama):
+    """A session's calls of one shape plan once (``call.KeptPlan``: the round plan and its static cache) and reuse
+    it, the prefill compiled by the first call included; a drafter that reads other hidden states has a plan of its
+    own; graphs dropped by ``reset_compilation`` or another dtype written make a new one. Every call generate's."""
+    from hf_specvla.speculative import SpeculativeDecoder
+
+    torch.manual_seed(1)
+    head = DraftHead.from_target(tiny_llama, num_draft_tokens=3).eval()
+    SpeculativeDecoder.reset_compilation()
+    session = DecoderSession(tiny_llama, **settings(True))
+    input_ids = prompt(7, 0)
+    expected = tiny_llama.generate(input_ids=input_ids, **settings(True))
+
+    def call(assistant) -> object:
+        assert torch.equal(session.generate(input_ids, assistant_model=assistant), expected)
+        (shape,) = session.prepared.values()
+        return shape.plans
+
+    kept = [dict(call(JacobiDrafter())) for _ in range(3)]
+    (first,) = kept[0].values()
+    assert [list(plans.values())[0] for plans in kept] == [first] * 3 and all(len(p) == 1 for p in kept)
+    assert all(list(plans.values())[0] is first for plans in kept)  # the first call's plan, reused
+    assert first.cache is not None and first.plan.verifier.compiled_prefill  # prefills compiled from the 2nd call
+    plans = call(head)  # a head reads hidden states: its own plan beside the first
+    assert len(plans) == 2 and first in plans.values()
+    SpeculativeDecoder.reset_compilation()  # the graphs the plans run are gone: planned anew
+    plans = call(JacobiDrafter())
+    assert len(plans) == 2 and first not in plans.values()
+    renewed = [plan for plan in plans.values() if plan.plan.output_hidden is None]
+    assert len(renewed) == 1 and renewed[0].plan.verifier.graphs is not first.plan.verifier.graphs
+    SpeculativeDecoder.reset_compilation()
+
+
 def test_session_samples_as_generate_does(tiny_llama):
     config = GenerationConfig(do_sample=True, temperature=0.7, top_k=20, max_new_tokens=NEW_TOKENS)
     session = DecoderSession(tiny_llama, generation_config=config)

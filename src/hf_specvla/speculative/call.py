@@ -27,9 +27,16 @@ from .cache import (
     static_capacity,
     truncate_cache,
     with_draft_slots,
+    written_dtype,
 )
 from .compat import CACHE_KEY
-from .compiled import CompiledGraphs, buckets_up_to, call_compile_config, verification_slots
+from .compiled import (
+    CALL_WRAPPER_ATTRIBUTE,
+    CompiledGraphs,
+    buckets_up_to,
+    call_compile_config,
+    verification_slots,
+)
 from .config import SpeculationConfig
 from .drafter import (
     CandidateDrafter,
@@ -371,12 +378,65 @@ def _checked_call(model, input_ids, logits_processor, generation_config, setting
     return CheckedCall(generation_config, logits_processor, settings, drafter, rule, layout)
 
 
+@dataclass
+class KeptPlan:
+    """A call's [`RoundPlan`] and the static cache its rounds ran on, kept for the later calls of its shape (a
+    [`DecoderSession`]'s: the same shape, settings, generation config, processors and dtype), which then make
+    neither again: they reuse the plan (its verifier, whose prefill runs compiled once a call compiled it) and empty
+    the cache. Taken while it still fits the call ([`fits`]).
+
+    Attributes:
+        plan: the round plan.
+        cache: the target's static cache with draft slots (emptied by each call), or None: each call's own cache (a
+            dynamic one).
+        written: the dtype the target wrote its keys in (autocast's, inside ``torch.autocast``).
+        wrappers: the model's clock wrappers of its compiled calls when the plan was made (``get_compiled_call`` and
+            [`CALL_WRAPPER_ATTRIBUTE`] on the instance, or None).
+    """
+
+    plan: RoundPlan
+    cache: Cache | None
+    written: torch.dtype
+    wrappers: tuple
+
+    def fits(self, decoder, checked: CheckedCall) -> bool:
+        """Whether a call of its shape may reuse it: the same rule and layout, the dtype the target writes, the
+        model's compiled graphs still the ones the plan runs (none dropped by ``reset_compilation``) and no clock
+        wrapped around its compiled calls since."""
+        plan, graphs = self.plan, self.plan.verifier.graphs
+        return (
+            plan.rule is checked.rule
+            and plan.layout is checked.layout
+            and self.written == written_dtype(decoder.model)
+            and self.wrappers == _call_wrappers(decoder.model)
+            and (graphs is None or graphs in decoder.compiled_graphs.values())
+        )
+
+
+def _call_wrappers(model) -> tuple:
+    """What wraps ``model``'s compiled calls on the instance (a benchmark's clock): kept plans hold the calls it
+    wrapped."""
+    return model.__dict__.get("get_compiled_call"), model.__dict__.get(CALL_WRAPPER_ATTRIBUTE)
+
+
 def prepare(
-    decoder, input_ids, logits_processor, generation_config, settings: SpeculationConfig, draft_ids, model_kwargs
+    decoder,
+    input_ids,
+    logits_processor,
+    generation_config,
+    settings: SpeculationConfig,
+    draft_ids,
+    model_kwargs,
+    kept_plans: dict | None = None,
 ) -> SpeculativeCall:
     """1. The call checked and set up: the prefill's inputs on a cache with room for the trees, each row's drafter
     session, the round plan (compiled or eager, widths, rule). ``decoder``: the target's ``SpeculativeDecoder``
-    (the model, and what its calls reuse: caches, compiled graphs, tree structures), handed to what needs it."""
+    (the model, and what its calls reuse: caches, compiled graphs, tree structures), handed to what needs it.
+
+    Args:
+        kept_plans: a session's plans for calls of this shape ([`KeptPlan`], by what of the drafter decides one),
+            reused when one fits and kept when one is made; None (``model.generate``): every call plans anew.
+    """
     model = decoder.model
     checked = _checked_call(model, input_ids, logits_processor, generation_config, settings, draft_ids)
     drafter, layout = checked.drafter, checked.layout
@@ -393,21 +453,40 @@ def prepare(
     prompt_ids = input_ids[:, input_ids.shape[1] - num_new :]  # [B, new] what the prefill feeds
     stats = SpeculationStats()
     total_start = time.perf_counter()
-    # generate's own static cache holds the tokens greedy decoding stores; a tree needs slots beside them
-    model_kwargs[CACHE_KEY] = with_draft_slots(decoder, model_kwargs.get(CACHE_KEY), verification_slots, batch_size)
-    given_cache = model_kwargs.get(CACHE_KEY)
-    if given_cache is not None:
-        check_rollback_cache(given_cache, generation_config.max_length)
-    model_inputs = prefill_inputs(model, prompt_ids, model_kwargs)
-    if model_inputs[CACHE_KEY] is not given_cache:  # one the model's input preparation made
-        check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length)
+    # what of the drafter decides the round plan: the hidden states it reads, its widest tree (the widths compiled)
+    output_hidden = tuple(drafter.hidden_state_layers) if drafter.needs_hidden_states else None
+    # (the deepest a round after the prefill can draft: max_new_tokens - 1, the bonus token takes the last slot)
+    widest = _widest_tree(drafter, generation_config.max_length - input_ids.shape[1] - 1, settings)
+    plan_key = (output_hidden, widest)
+    kept = None if kept_plans is None or past_length else kept_plans.get(plan_key)
+    if kept is not None and not kept.fits(decoder, checked):
+        kept = None
+    if kept is not None:  # a session's call of a planned shape: the plan's cache, emptied
+        if kept.cache is not None:
+            model_kwargs[CACHE_KEY] = kept.cache
+            if holds_buffers(kept.cache):
+                kept.cache.reset()
+        model_inputs = prefill_inputs(model, prompt_ids, model_kwargs)
+        graphs = kept.plan.verifier.graphs
+    else:
+        # generate's own static cache holds the tokens greedy decoding stores; a tree needs slots beside them
+        model_kwargs[CACHE_KEY] = with_draft_slots(decoder, model_kwargs.get(CACHE_KEY), verification_slots, batch_size)
+        given_cache = model_kwargs.get(CACHE_KEY)
+        if given_cache is not None:
+            check_rollback_cache(given_cache, generation_config.max_length)
+        model_inputs = prefill_inputs(model, prompt_ids, model_kwargs)
+        if model_inputs[CACHE_KEY] is not given_cache:  # one the model's input preparation made
+            check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length)
+        compile_config = call_compile_config(
+            model,
+            generation_config.compile_config,
+            generation_config.disable_compile,
+            is_static_cache(model_inputs[CACHE_KEY]),
+        )
+        # the model's compiled graphs the call's rounds run (fixed widths), or None: eager
+        graphs = None if compile_config is None else decoder.graphs(compile_config)
     prompt_positions, position_offsets = _prompt_positions(model_inputs, prompt_ids, prompt_padding, past_length)
     cache = model_inputs[CACHE_KEY]
-    compile_config = call_compile_config(
-        model, generation_config.compile_config, generation_config.disable_compile, is_static_cache(cache)
-    )
-    # the model's compiled graphs the call's rounds run (fixed widths), or None: eager
-    graphs = None if compile_config is None else decoder.graphs(compile_config)
     cached_tokens = input_ids.shape[1] - num_new  # the rows' first tokens the cache held before the call
     prompt_embeddings = None
     if drafter.needs_prompt_embeddings:  # a head drafting before the prefill from the encoded images
@@ -435,17 +514,24 @@ def prepare(
         None if prompt_padding is None else prompt_padding.bool(),
         cache,
     )
-    plan = _round_plan(
-        model,
-        checked,
-        graphs,
-        decoder.tree_structures,
-        model_inputs,
-        prompt_ids,
-        position_offsets,
-        past_length,
-        input_ids.shape[1],
-    )
+    if kept is not None:
+        plan = kept.plan
+    else:
+        plan = _round_plan(
+            model,
+            checked,
+            graphs,
+            decoder.tree_structures,
+            model_inputs,
+            prompt_ids,
+            position_offsets,
+            past_length,
+            output_hidden,
+            widest,
+        )
+        if kept_plans is not None and not past_length:
+            static = cache if is_static_cache(cache) else None
+            kept_plans[plan_key] = KeptPlan(plan, static, written_dtype(model), _call_wrappers(model))
     pad_token_id = generation_config.pad_token_id
     return SpeculativeCall(
         state=state,
@@ -472,21 +558,22 @@ def _round_plan(
     prompt_ids: torch.Tensor,
     position_offsets,
     past_length: int,
-    input_length: int,
+    output_hidden: tuple[int, ...] | None,
+    widest: int | None,
 ) -> RoundPlan:
     """What every round reads ([`RoundPlan`]), its [`CallVerifier`] chosen here: the prefill's and the rounds'
     verifications (``graphs``: the model's compiled graphs under the call's ``CompileConfig``, or None: eager;
     ``tree_structures``: the decoder's, by shape).
 
     Args:
-        prompt_ids: ``[B, P]`` the tokens the prefill feeds; ``input_length``: the rows' length before the call
-            (the cached tokens and those).
+        prompt_ids: ``[B, P]`` the tokens the prefill feeds.
+        output_hidden: the target's hidden states the drafter reads (its layers), or None.
+        widest: the most nodes a round after the prefill can verify ([`_widest_tree`]; None: unknown).
     """
-    generation_config, settings, drafter = checked.generation_config, checked.settings, checked.drafter
+    generation_config, settings = checked.generation_config, checked.settings
     num_new, batch_size = prompt_ids.shape[1], prompt_ids.shape[0]
     cache = model_inputs[CACHE_KEY]
     capacity = static_capacity(cache)
-    output_hidden = tuple(drafter.hidden_state_layers) if drafter.needs_hidden_states else None
     # A prefix-LM prompt (PaliGemma's token_type_ids: the prompt attends to itself both ways at the prefill) needs
     # the model's own prefill mask, which a tree mask built here would not reproduce: the prefill verifies a chain.
     prefix_attention = model_inputs.get("token_type_ids") is not None
@@ -523,8 +610,7 @@ def _round_plan(
             prefill_verification,
             graphs,
             prefill_key,
-            # the deepest a round after the prefill can draft: max_new_tokens - 1 (the bonus token takes the last slot)
-            buckets_up_to(_widest_tree(drafter, generation_config.max_length - input_length - 1, settings)),
+            buckets_up_to(widest),
         ),
         prefix_attention=prefix_attention,
         max_drafts=settings.max_drafts_per_row,

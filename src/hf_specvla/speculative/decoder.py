@@ -42,7 +42,6 @@ from .compiled import (
     CompiledGraphs,
     allow_graphs_beside,
     compile_settings,
-    compiled_call_config,
     reset_compilation,
 )
 from .config import SpeculationConfig
@@ -116,11 +115,12 @@ class SpeculativeDecoder:
         draft_ids: torch.LongTensor | None,
         model_kwargs: dict,
         on_row_finished: Callable[[int, torch.Tensor, SpeculationStats], None] | None = None,
+        kept_plans: dict | None = None,
     ) -> SpeculativeDecoderOnlyOutput | torch.LongTensor:
         """One speculative call of the model, on what ``generate`` prepared (``speculative_generate``'s arguments,
-        the settings whole): prepare (every argument checked, the rows' drafter sessions, the [`RoundPlan`]) ->
-        prefill -> [`warm_up`] -> a round until every row has stopped -> finish (the cache left as greedy leaves it,
-        statistics, the output).
+        the settings whole): prepare (every argument checked, the rows' drafter sessions, the [`RoundPlan`]; a
+        session's shape hands its ``kept_plans``: ``call.KeptPlan``) -> prefill -> [`warm_up`] -> a round until
+        every row has stopped -> finish (the cache left as greedy leaves it, statistics, the output).
 
         Raises:
             TypeError: ``on_row_finished`` is neither callable nor None (and whatever [`prepare`] refuses).
@@ -131,7 +131,9 @@ class SpeculativeDecoder:
                 f"or None, got {type(on_row_finished).__name__}"
             )
         model = self.model
-        call = prepare(self, input_ids, logits_processor, generation_config, speculation, draft_ids, model_kwargs)
+        call = prepare(
+            self, input_ids, logits_processor, generation_config, speculation, draft_ids, model_kwargs, kept_plans
+        )
         call.on_row_finished = on_row_finished
         cache = call.state.target_cache
         with open_sliding_windows(cache), host_length(cache):  # exact: the generation fits the window (checked)
@@ -172,9 +174,10 @@ class SpeculativeDecoder:
         call.stats.compile_seconds = verifier.compile_ahead(self.model, following, prompt, prefill_trees)
 
     @torch.no_grad()
-    def encode_images(self, kwargs: dict) -> dict:
+    def encode_images(self, kwargs: dict, compile_config) -> dict:
         """``generate``'s keyword arguments for a speculative call, its images encoded by the compiled image encoder
-        when the call compiles its verifications ([`compiled_call_config`]) and the model takes pre-encoded images
+        when the call compiles its verifications (``compile_config``: the call's, [`compiled_call_config`]'s
+        decision; None: eager) and the model takes pre-encoded images
         (its forward has ``mm_encoder_outputs``, its base model ``get_image_features``); else ``kwargs`` unchanged.
         Without gradients, as ``generate`` (decorated ``torch.no_grad``) encodes them: a call of ``model.generate``
         with gradients on and a session's call meet the same graphs (a graph traced with them on would fail its
@@ -183,10 +186,7 @@ class SpeculativeDecoder:
         the keyword arguments, as transformers' own encoding removes them. The encoder compiles at its first call of
         a shape, here (``generate`` encodes before its prefill, so before [`warm_up`])."""
         model = self.model
-        if not takes_encoded_images(model, kwargs):
-            return kwargs
-        compile_config = compiled_call_config(model, kwargs)
-        if compile_config is None:
+        if compile_config is None or not takes_encoded_images(model, kwargs):
             return kwargs
         graphs = self.graphs(compile_config)
         encoder = graphs.image_encoder(model, encoder_inputs(model.base_model.get_image_features, kwargs))

@@ -61,7 +61,7 @@ class SpeculativeGenerationMixin:
         ours = isinstance(assistant_model, (DraftHead, Drafter))
         if ours or draft_ids is not None or speculation is not None:
             return prepare_call(self, args, assistant_model, draft_ids, speculation, kwargs).run(self)
-        ready_model(self, kwargs)
+        ready_model(self, compiled_call_config(self, kwargs))
         if assistant_model is not None and not isinstance(assistant_model, PreTrainedModel):
             raise TypeError(
                 f"assistant_model must be a hf_specvla DraftHead or Drafter (DraftHeadDrafter, ActionPriorDrafter, "
@@ -78,12 +78,13 @@ class SpeculativeGenerationMixin:
         return super().generate(*args, assistant_model=assistant_model, **kwargs)
 
 
-def ready_model(model: PreTrainedModel, settings: dict) -> None:
+def ready_model(model: PreTrainedModel, compile_config) -> None:
     """What every ``generate`` call of a speculation-enabled model does to it first (its own ``generate`` and a
-    [`DecoderSession`]'s calls alike): its precision ([`keep_greedy_exact`]) and, for a compiled call
-    ([`compiled_call_config`]), this thread's leave to run the graphs the model holds."""
+    [`DecoderSession`]'s calls alike): its precision ([`keep_greedy_exact`]) and, for a compiled call (its
+    ``compile_config``, [`compiled_call_config`]'s decision; None: eager), this thread's leave to run the graphs the
+    model holds."""
     keep_greedy_exact(model)
-    if compiled_call_config(model, settings) is not None:  # this thread may not have compiled the graphs it meets
+    if compile_config is not None:  # this thread may not have compiled the graphs it meets
         allow_graphs_held(model)
 
 
@@ -101,6 +102,7 @@ class PreparedCall:
         speculation: the call's [`SpeculationConfig`], whole (its drafter the call's).
         draft_ids: ``[B, k]`` / ``[B, C, k]`` drafts known up front, or None.
         on_row_finished: the call's per-row callback, or None.
+        kept_plans: the round plans a [`DecoderSession`] keeps for the call's shape (``call.KeptPlan``), or None.
     """
 
     input_ids: torch.Tensor
@@ -111,6 +113,7 @@ class PreparedCall:
     speculation: SpeculationConfig
     draft_ids: torch.Tensor | None = None
     on_row_finished: Callable | None = None
+    kept_plans: dict | None = None
 
     @torch.no_grad()
     def run(self, model: PreTrainedModel):
@@ -125,6 +128,7 @@ class PreparedCall:
             self.draft_ids,
             dict(self.model_kwargs),
             self.on_row_finished,
+            self.kept_plans,
         )
 
 
@@ -144,16 +148,20 @@ def prepare_call(
     Raises:
         ValueError / TypeError: as [`speculative_call_kwargs`], and whatever ``generate`` refuses.
     """
-    ready_model(model, kwargs)
-    kwargs = speculative_call_kwargs(model, assistant_model, draft_ids, speculation, kwargs)
+    compile_config = compiled_call_config(model, kwargs)  # whether the call compiles, decided once
+    ready_model(model, compile_config)
+    kwargs = speculative_call_kwargs(model, assistant_model, draft_ids, speculation, kwargs, compile_config)
     return super(SpeculativeGenerationMixin, model).generate(*args, custom_generate=_set_up, **kwargs)
 
 
-def speculative_call_kwargs(model: PreTrainedModel, assistant_model, draft_ids, speculation, kwargs: dict) -> dict:
+def speculative_call_kwargs(
+    model: PreTrainedModel, assistant_model, draft_ids, speculation, kwargs: dict, compile_config
+) -> dict:
     """The keyword arguments of transformers' ``generate`` for a speculative call (checked): one
     [`SpeculationConfig`] (``speculation``, or the loose keywords and ``assistant_model`` folded into one) and
-    ``draft_ids`` as [`speculative_generate`] takes them, a compiled call's images encoded by the compiled encoder;
-    ``custom_generate`` is the caller's to add.
+    ``draft_ids`` as [`speculative_generate`] takes them, a compiled call's images encoded by the compiled encoder
+    (``compile_config``: the call's, [`compiled_call_config`]; None: eager); ``custom_generate`` is the caller's to
+    add.
 
     Raises:
         ValueError / TypeError: ``custom_generate`` or a ``streamer`` beside a speculative call, an assistant that is
@@ -174,7 +182,7 @@ def speculative_call_kwargs(model: PreTrainedModel, assistant_model, draft_ids, 
     if assistant_model is not None:
         loose["drafter"] = assistant_model
     speculation = SpeculationConfig.fold(speculation, loose)
-    kwargs = SpeculativeDecoder.of(model).encode_images(kwargs)  # a compiled call's images: a compiled encoder
+    kwargs = SpeculativeDecoder.of(model).encode_images(kwargs, compile_config)  # a compiled call's: compiled
     return {**kwargs, "speculation": speculation, "draft_ids": draft_ids}
 
 

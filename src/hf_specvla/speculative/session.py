@@ -28,7 +28,7 @@ from transformers.cache_utils import Cache, DynamicCache, StaticCache
 
 from .cache import holds_buffers
 from .compat import CACHE_KEY
-from .compiled import compile_settings
+from .compiled import compile_settings, compiled_call_config
 from .config import SPECULATION_KWARGS, SpeculationConfig
 from .decoder import SpeculativeDecoder
 from .drafter import Drafter, NoDrafter
@@ -79,6 +79,10 @@ class PreparedShape:
         cache: ``generate``'s static cache (emptied before each call), or None: a dynamic cache made anew each call.
         positions_from_mask: the position ids follow the prompt's padding (``[B, S]`` from its mask), made each call.
         encodes_images: ``generate`` encoded the images before the prefill (``mm_encoder_outputs``).
+        compile_config: whether the calls compile and with what (``compiled.compiled_call_config``'s decision, made
+            once for the shape), or None: eager.
+        plans: the engine's round plans for the shape's calls (``call.KeptPlan``: made by one call, reused by the
+            next), by what of the drafter decides one.
     """
 
     generation_config: GenerationConfig
@@ -88,9 +92,11 @@ class PreparedShape:
     cache: StaticCache | None
     positions_from_mask: bool
     encodes_images: bool
+    compile_config: object = None
+    plans: dict = dataclasses.field(default_factory=dict)
 
     @classmethod
-    def reusable(cls, prepared: PreparedCall, attention_mask, inputs: dict) -> PreparedShape | None:
+    def reusable(cls, prepared: PreparedCall, attention_mask, inputs: dict, compile_config) -> PreparedShape | None:
         """What of ``prepared`` (a shape's first call, [`prepare_call`]'s) a later call of the shape reuses; None
         when some of it is made for one call ([`PER_CALL_SETTINGS`], a cache that is neither ``generate``'s static
         one nor a plain dynamic one, position ids that are not the mask's): that shape's calls are each set up anew
@@ -131,6 +137,7 @@ class PreparedShape:
             kept_cache,
             positions is not None and padded,
             encodes_images,
+            compile_config,
         )
 
     def for_call(
@@ -149,7 +156,7 @@ class PreparedShape:
         them (``attention_mask`` ``[B, S]``, None when nothing is padded; position ids from it; the images encoded;
         a fresh cache) and its drafter folded into ``speculation``."""
         model_kwargs = dict(self.shared)
-        encoded = SpeculativeDecoder.of(model).encode_images({**inputs, **generate_settings})
+        encoded = SpeculativeDecoder.of(model).encode_images({**inputs, **generate_settings}, self.compile_config)
         if self.encodes_images and takes_encoded_images(model, encoded):
             encoded = with_encoded_images(model, encoded)
         model_kwargs.update({name: value for name, value in encoded.items() if name not in generate_settings})
@@ -167,6 +174,7 @@ class PreparedShape:
             SpeculationConfig.fold(speculation, drafter),
             draft_ids,
             on_row_finished,
+            self.plans,
         )
 
     def _fresh_cache(self, model: PreTrainedModel) -> Cache:
@@ -314,10 +322,13 @@ class DecoderSession:
                 ),
             )
             if kept is ...:
-                self.prepared[key] = PreparedShape.reusable(prepared, attention_mask, inputs)
+                compile_config = compiled_call_config(self.model, self.settings)
+                kept = self.prepared[key] = PreparedShape.reusable(prepared, attention_mask, inputs, compile_config)
+                if kept is not None:  # the engine's plan of this first call kept too
+                    prepared.kept_plans = kept.plans
             return prepared.run(self.model)
         self.direct_calls += 1
-        ready_model(self.model, self.settings)
+        ready_model(self.model, kept.compile_config)
         mask = attention_mask if padded else None
         prepared = kept.for_call(self.model, input_ids, mask, inputs, self.speculation, self.generate_settings, **call)
         return prepared.run(self.model)

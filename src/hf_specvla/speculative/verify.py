@@ -372,12 +372,19 @@ class CallVerifier:
     def compile_ahead(self, model: PreTrainedModel, following: Pending, prompt: Pending, trees: TreeBatch) -> float:
         """After the prefill of a compiled call: every round width compiled (``following``: the next round's pending
         tokens, as it feeds them) and the next call's prefill graph (``prompt`` and ``trees``: this call's prefill,
-        fed once more), so that no graph compiles mid-episode. Returns the seconds it took (0: eager, or all held)."""
+        fed once more), so that no graph compiles mid-episode; a compiled prefill becomes this verifier's (a later
+        call that keeps it: a session's). Returns the seconds it took (0: eager, or all held)."""
         if self.graphs is None:
             return 0.0
         seconds = self.graphs.compile_widths(model, self.rounds, following, self.buckets)
         if self.prefill_key is not None and not self.compiled_prefill:
             seconds += self.graphs.compile_prefill(model, self.prefill_key, self.rounds, prompt, trees)
+            prefill_call = self.graphs.prefill_call(self.prefill_key)
+            if prefill_call is not None:  # a later call that keeps this verifier (a session's) prefills through it
+                rounds = self.rounds
+                self.prefill_verification = CompiledVerification(
+                    prefill_call, rounds.output_hidden, rounds.sliding_window, rounds.key_length
+                )
         return seconds
 
 
