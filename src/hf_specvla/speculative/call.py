@@ -435,7 +435,8 @@ def prepare(
 
     Args:
         kept_plans: a session's plans for calls of this shape ([`KeptPlan`], by what of the drafter decides one),
-            reused when one fits and kept when one is made; None (``model.generate``): every call plans anew.
+            reused when one fits and kept when one is made; None (``model.generate``): every call plans anew. A
+            session's call starts from a new or emptied cache: nothing to continue.
     """
     model = decoder.model
     checked = _checked_call(model, input_ids, logits_processor, generation_config, settings, draft_ids)
@@ -445,9 +446,13 @@ def prepare(
     eos_ids = [] if eos_ids is None else ([eos_ids] if isinstance(eos_ids, int) else list(eos_ids))
     prompt_padding = model_kwargs.get("attention_mask")  # [B, past + new] or None (no padding)
     check_left_padded(prompt_padding)
-    if model_kwargs.get(CACHE_KEY) is not None:
-        check_continued_cache(decoder, model_kwargs[CACHE_KEY], batch_size)
-    past_length, num_new = _tokens_to_prefill(input_ids, model_kwargs.get(CACHE_KEY), prompt_padding, generation_config)
+    if kept_plans is not None:  # a session's call: its cache is new (generate's) or emptied for it, nothing continued
+        past_length, num_new = 0, input_ids.shape[1]
+    else:
+        if model_kwargs.get(CACHE_KEY) is not None:
+            check_continued_cache(decoder, model_kwargs[CACHE_KEY], batch_size)
+        cache = model_kwargs.get(CACHE_KEY)
+        past_length, num_new = _tokens_to_prefill(input_ids, cache, prompt_padding, generation_config)
     if prompt_padding is not None and bool(prompt_padding.all()):
         prompt_padding = None
     prompt_ids = input_ids[:, input_ids.shape[1] - num_new :]  # [B, new] what the prefill feeds
@@ -458,7 +463,7 @@ def prepare(
     # (the deepest a round after the prefill can draft: max_new_tokens - 1, the bonus token takes the last slot)
     widest = _widest_tree(drafter, generation_config.max_length - input_ids.shape[1] - 1, settings)
     plan_key = (output_hidden, widest)
-    kept = None if kept_plans is None or past_length else kept_plans.get(plan_key)
+    kept = None if kept_plans is None else kept_plans.get(plan_key)
     if kept is not None and not kept.fits(decoder, checked):
         kept = None
     if kept is not None:  # a session's call of a planned shape: the plan's cache, emptied
@@ -529,7 +534,7 @@ def prepare(
             output_hidden,
             widest,
         )
-        if kept_plans is not None and not past_length:
+        if kept_plans is not None:
             static = cache if is_static_cache(cache) else None
             kept_plans[plan_key] = KeptPlan(plan, static, written_dtype(model), _call_wrappers(model))
     pad_token_id = generation_config.pad_token_id
