@@ -449,9 +449,9 @@ def prepare(
     if kept_plans is not None:  # a session's call: its cache is new (generate's) or emptied for it, nothing continued
         past_length, num_new = 0, input_ids.shape[1]
     else:
-        if model_kwargs.get(CACHE_KEY) is not None:
-            check_continued_cache(decoder, model_kwargs[CACHE_KEY], batch_size)
         cache = model_kwargs.get(CACHE_KEY)
+        if cache is not None:
+            check_continued_cache(decoder, cache, batch_size)
         past_length, num_new = _tokens_to_prefill(input_ids, cache, prompt_padding, generation_config)
     if prompt_padding is not None and bool(prompt_padding.all()):
         prompt_padding = None
@@ -466,30 +466,7 @@ def prepare(
     kept = None if kept_plans is None else kept_plans.get(plan_key)
     if kept is not None and not kept.fits(decoder, checked):
         kept = None
-    if kept is not None:  # a session's call of a planned shape: the plan's cache, emptied
-        if kept.cache is not None:
-            model_kwargs[CACHE_KEY] = kept.cache
-            if holds_buffers(kept.cache):
-                kept.cache.reset()
-        model_inputs = prefill_inputs(model, prompt_ids, model_kwargs)
-        graphs = kept.plan.verifier.graphs
-    else:
-        # generate's own static cache holds the tokens greedy decoding stores; a tree needs slots beside them
-        model_kwargs[CACHE_KEY] = with_draft_slots(decoder, model_kwargs.get(CACHE_KEY), verification_slots, batch_size)
-        given_cache = model_kwargs.get(CACHE_KEY)
-        if given_cache is not None:
-            check_rollback_cache(given_cache, generation_config.max_length)
-        model_inputs = prefill_inputs(model, prompt_ids, model_kwargs)
-        if model_inputs[CACHE_KEY] is not given_cache:  # one the model's input preparation made
-            check_rollback_cache(model_inputs[CACHE_KEY], generation_config.max_length)
-        compile_config = call_compile_config(
-            model,
-            generation_config.compile_config,
-            generation_config.disable_compile,
-            is_static_cache(model_inputs[CACHE_KEY]),
-        )
-        # the model's compiled graphs the call's rounds run (fixed widths), or None: eager
-        graphs = None if compile_config is None else decoder.graphs(compile_config)
+    model_inputs, graphs = _inputs_and_graphs(decoder, kept, prompt_ids, model_kwargs, generation_config)
     prompt_positions, position_offsets = _prompt_positions(model_inputs, prompt_ids, prompt_padding, past_length)
     cache = model_inputs[CACHE_KEY]
     cached_tokens = input_ids.shape[1] - num_new  # the rows' first tokens the cache held before the call
@@ -552,6 +529,35 @@ def prepare(
         total_start=total_start,
         decoder=decoder,
     )
+
+
+def _inputs_and_graphs(
+    decoder, kept: KeptPlan | None, prompt_ids, model_kwargs: dict, generation_config
+) -> tuple[dict, CompiledGraphs | None]:
+    """The prefill's inputs (the model's own, ``prompt_ids`` ``[B, P]`` on the call's cache) and the compiled graphs
+    the call's rounds run (None: eager): a kept plan's (its static cache emptied), else decided here: ``generate``'s
+    own static cache swapped for one with room for the trees beside the tokens greedy decoding stores, and whether
+    the call compiles (``call_compile_config``)."""
+    model = decoder.model
+    if kept is not None:
+        if kept.cache is not None:
+            model_kwargs[CACHE_KEY] = kept.cache
+            if holds_buffers(kept.cache):
+                kept.cache.reset()
+        return prefill_inputs(model, prompt_ids, model_kwargs), kept.plan.verifier.graphs
+    given = model_kwargs[CACHE_KEY] = with_draft_slots(
+        decoder, model_kwargs.get(CACHE_KEY), verification_slots, prompt_ids.shape[0]
+    )
+    if given is not None:
+        check_rollback_cache(given, generation_config.max_length)
+    model_inputs = prefill_inputs(model, prompt_ids, model_kwargs)
+    cache = model_inputs[CACHE_KEY]
+    if cache is not given:  # one the model's input preparation made
+        check_rollback_cache(cache, generation_config.max_length)
+    compile_config = call_compile_config(
+        model, generation_config.compile_config, generation_config.disable_compile, is_static_cache(cache)
+    )
+    return model_inputs, None if compile_config is None else decoder.graphs(compile_config)
 
 
 def _round_plan(
