@@ -137,6 +137,42 @@ def test_a_shapes_later_calls_reuse_its_round_plan_while_it_fits(tiny_llama):
     SpeculativeDecoder.reset_compilation()
 
 
+def test_a_clock_wrapped_around_the_compiled_calls_after_a_plan_was_kept_times_the_next_call(tiny_llama):
+    """A benchmark's clock installed after a session's first calls (``get_compiled_call`` and the engine's compiled
+    rounds wrapped on the instance, as ``ForwardClock`` does) sees the next call's compiled forwards: the kept plan,
+    which holds the unwrapped calls, no longer fits and the call plans anew."""
+    from hf_specvla.speculative import CALL_WRAPPER_ATTRIBUTE, SpeculativeDecoder
+
+    SpeculativeDecoder.reset_compilation()
+    session = DecoderSession(tiny_llama, **settings(True))
+    input_ids = prompt(7, 2)
+    expected = tiny_llama.generate(input_ids=input_ids, **settings(True))
+    for _ in range(2):
+        assert torch.equal(session.generate(input_ids, assistant_model=JacobiDrafter()), expected)
+    (shape,) = session.prepared.values()
+    (before,) = shape.plans.values()
+    timed = []
+
+    def clock(compiled):
+        def timed_call(*args, **kwargs):
+            timed.append(1)
+            return compiled(*args, **kwargs)
+
+        return timed_call
+
+    original = tiny_llama.get_compiled_call
+    tiny_llama.get_compiled_call = lambda config: clock(original(config))
+    setattr(tiny_llama, CALL_WRAPPER_ATTRIBUTE, clock)
+    try:
+        assert torch.equal(session.generate(input_ids, assistant_model=JacobiDrafter()), expected)
+        (after,) = shape.plans.values()
+        assert after is not before and timed  # planned anew, its compiled rounds through the clock
+    finally:
+        del tiny_llama.get_compiled_call
+        delattr(tiny_llama, CALL_WRAPPER_ATTRIBUTE)
+        SpeculativeDecoder.reset_compilation()
+
+
 def test_session_samples_as_generate_does(tiny_llama):
     config = GenerationConfig(do_sample=True, temperature=0.7, top_k=20, max_new_tokens=NEW_TOKENS)
     session = DecoderSession(tiny_llama, generation_config=config)
