@@ -606,9 +606,6 @@ def _round_plan(
             verification = FusedVerification(acceptance, output_hidden, window, capacity, graphs, model.dtype)
         else:
             verification = CompiledVerification(graphs.call, output_hidden, window, capacity, graphs, model.dtype)
-        prefill_call = None if prefill_key is None else graphs.prefill_call(prefill_key)
-        if prefill_call is not None:  # its graph compiled by an earlier call
-            prefill_verification = CompiledVerification(prefill_call, output_hidden, window, capacity)
     plan = RoundPlan(
         max_length=generation_config.max_length,
         rule=checked.rule,

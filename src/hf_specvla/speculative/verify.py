@@ -327,8 +327,9 @@ class CallVerifier:
 
     Args:
         rounds: how every round after the prefill verifies.
-        prefill_verification: how the prefill verifies: eagerly, or through the compiled prefill graph an earlier
-            call compiled.
+        prefill_verification: how the prefill verifies until its compiled graph exists (eagerly): the compiled
+            prefill graph for ``prefill_key`` once a call compiled it (an earlier call, or this verifier's
+            [`compile_ahead`], for a later call that keeps it: a session's).
         graphs: the model's compiled graphs under the call's ``CompileConfig``, or None (an eager call).
         prefill_key: the compiled prefill graph this call can run or compiles ahead, or None (its prefill stays
             eager).
@@ -345,6 +346,16 @@ class CallVerifier:
     ):
         self.rounds, self.prefill_verification, self.graphs = rounds, prefill_verification, graphs
         self.prefill_key, self.buckets = prefill_key, buckets
+        self._take_compiled_prefill()
+
+    def _take_compiled_prefill(self) -> None:
+        """The compiled prefill graph for ``prefill_key`` becomes the prefill's verification once it exists."""
+        prefill_call = None if self.prefill_key is None else self.graphs.prefill_call(self.prefill_key)
+        if prefill_call is not None:
+            rounds = self.rounds
+            self.prefill_verification = CompiledVerification(
+                prefill_call, rounds.output_hidden, rounds.sliding_window, rounds.key_length
+            )
 
     @property
     def compiled(self) -> bool:
@@ -379,12 +390,7 @@ class CallVerifier:
         seconds = self.graphs.compile_widths(model, self.rounds, following, self.buckets)
         if self.prefill_key is not None and not self.compiled_prefill:
             seconds += self.graphs.compile_prefill(model, self.prefill_key, self.rounds, prompt, trees)
-            prefill_call = self.graphs.prefill_call(self.prefill_key)
-            if prefill_call is not None:  # a later call that keeps this verifier (a session's) prefills through it
-                rounds = self.rounds
-                self.prefill_verification = CompiledVerification(
-                    prefill_call, rounds.output_hidden, rounds.sliding_window, rounds.key_length
-                )
+            self._take_compiled_prefill()  # a later call that keeps this verifier (a session's) prefills through it
         return seconds
 
 
